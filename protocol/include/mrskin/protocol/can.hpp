@@ -1,0 +1,115 @@
+// Classic CAN (8 bytes, 11-bit identifiers) and CAN FD framing of protocol v1.
+//
+// Identifier: bits 10..8 function, bits 7..4 block, bits 3..0 node (1..15).
+//   function 0 management: block 0 heartbeat (host->device), 1 status, 2 time sync,
+//              3 state request (host->device), 4 segmented host->device,
+//              5 segmented device->host
+//   function 1 valve-current block (host->device), 4 values of valves 4*block..
+//   function 2 sensor block (device->host), 4 values of sensors 4*block..
+//   function 3 cell target (host->device), block = cell index bits 3..0
+//   function 4 CAN FD packet host->device, function 5 CAN FD packet device->host
+// Single frames are always 8 bytes: [0..5] payload, [6] rolling counter (high nibble) and
+// value count or zero (low nibble), [7] CRC-8/SAE-J1850 over id_hi, id_lo, bytes 0..6.
+// Identity and configuration travel as packets split ISO-TP style (single, first and
+// consecutive frames, no flow control in v1) on the segmented identifiers.
+#pragma once
+
+#include <array>
+#include <cstddef>
+#include <cstdint>
+#include <span>
+
+#include "mrskin/protocol/errors.hpp"
+#include "mrskin/protocol/messages.hpp"
+#include "mrskin/protocol/packet.hpp"
+
+namespace mrskin::protocol {
+
+struct CanFrame {
+  std::uint32_t id = 0;  // 11-bit identifier
+  std::uint8_t length = 0;
+  bool fd = false;
+  std::array<std::uint8_t, 64> data{};
+  bool operator==(const CanFrame&) const = default;
+};
+
+enum class CanFunction : std::uint8_t {
+  management = 0,
+  valve_block = 1,
+  sensor_block = 2,
+  cell_target = 3,
+  fd_host_to_device = 4,
+  fd_device_to_host = 5,
+};
+enum class CanManagement : std::uint8_t {
+  heartbeat = 0,
+  status = 1,
+  time_sync = 2,
+  state_request = 3,
+  segmented_host_to_device = 4,
+  segmented_device_to_host = 5,
+};
+
+inline constexpr std::uint8_t kCanNodeMin = 1;
+inline constexpr std::uint8_t kCanNodeMax = 15;
+inline constexpr std::size_t kCanValuesPerBlock = 4;
+inline constexpr std::size_t kCanMaxBlocks = 16;
+inline constexpr std::size_t kCanMaxFramesPerMessage = 12;  // 64-byte packet segmented
+
+constexpr std::uint32_t can_id(CanFunction f, std::uint8_t block, std::uint8_t node) noexcept {
+  return (static_cast<std::uint32_t>(f) << 8U) | (static_cast<std::uint32_t>(block & 0xFU) << 4U) |
+         (node & 0xFU);
+}
+
+enum class Direction : std::uint8_t { host_to_device, device_to_host };
+
+struct CanEncodeResult {
+  Error error = Error::ok;
+  std::size_t frames = 0;
+};
+
+// Encodes one message into classic CAN frames for node. Cyclic messages become one frame
+// per block (ValveCurrents and Telemetry need first % 4 == 0; Telemetry's device time goes
+// in a separate TimeSync frame that the caller sends first). Identity and configuration
+// are packets segmented over several frames; sequence numbers their packet.
+CanEncodeResult encode_can(const Message& message, std::uint8_t node, std::uint8_t counter,
+                           std::uint8_t sequence, std::span<CanFrame> out) noexcept;
+
+// Encodes a message as one CAN FD frame carrying a packet.
+CanEncodeResult encode_canfd(const Message& message, std::uint8_t node, Direction direction,
+                             std::uint8_t sequence, CanFrame& out) noexcept;
+
+struct CanDecoded {
+  Error error = Error::ok;
+  bool complete = false;      // a message is ready (false while a segmented transfer runs)
+  std::uint8_t counter = 0;   // rolling counter of a single frame
+  std::uint8_t sequence = 0;  // packet sequence of a segmented or FD message
+  std::uint8_t peer_version = 0;
+  Message message{};
+};
+
+// Decodes frames addressed to one node; keeps the state of one segmented transfer per
+// direction. No allocation; frames for other nodes give wrong_node.
+class CanDecoder {
+ public:
+  explicit CanDecoder(std::uint8_t node) noexcept : node_(node) {}
+  CanDecoded decode(const CanFrame& frame) noexcept;
+
+ private:
+  struct Reassembly {
+    std::array<std::uint8_t, kPacketMaxBytes> buffer{};
+    std::size_t expected = 0;
+    std::size_t received = 0;
+    std::uint8_t next_index = 0;
+    bool active = false;
+  };
+  CanDecoded decode_segment(const CanFrame& frame, Reassembly& r) noexcept;
+  std::uint8_t node_;
+  std::array<Reassembly, 2> reassembly_{};
+};
+
+// Bits on the wire of a classic or FD data frame (11-bit id) with worst-case stuffing,
+// including interframe space. Classic 8-byte frame: 135 bits.
+std::size_t can_frame_bits_worst_case(std::size_t data_bytes, bool fd) noexcept;
+
+}  // namespace mrskin::protocol

@@ -1,0 +1,69 @@
+// Bounds-checked little-endian cursor over a span. Internal to the codec.
+#pragma once
+
+#include <cstddef>
+#include <cstdint>
+#include <span>
+
+namespace mrskin::protocol::detail {
+
+class Writer {
+ public:
+  explicit Writer(std::span<std::uint8_t> out) noexcept : out_(out) {}
+  void u8(std::uint8_t v) noexcept {
+    if (pos_ < out_.size()) {
+      out_[pos_] = v;
+    } else {
+      overflow_ = true;
+    }
+    ++pos_;
+  }
+  void u16(std::uint16_t v) noexcept {
+    u8(static_cast<std::uint8_t>(v & 0xFFU));
+    u8(static_cast<std::uint8_t>(v >> 8U));
+  }
+  void i16(std::int16_t v) noexcept { u16(static_cast<std::uint16_t>(v)); }
+  void u32(std::uint32_t v) noexcept {
+    u16(static_cast<std::uint16_t>(v & 0xFFFFU));
+    u16(static_cast<std::uint16_t>(v >> 16U));
+  }
+  [[nodiscard]] std::size_t position() const noexcept { return pos_; }
+  [[nodiscard]] bool overflow() const noexcept { return overflow_; }
+
+ private:
+  std::span<std::uint8_t> out_;
+  std::size_t pos_ = 0;
+  bool overflow_ = false;
+};
+
+class Reader {
+ public:
+  explicit Reader(std::span<const std::uint8_t> in) noexcept : in_(in) {}
+  std::uint8_t u8() noexcept {
+    if (pos_ < in_.size()) {
+      return in_[pos_++];
+    }
+    underflow_ = true;
+    return 0;
+  }
+  std::uint16_t u16() noexcept {
+    const std::uint16_t lo = u8();
+    const std::uint16_t hi = u8();
+    return static_cast<std::uint16_t>(lo | (hi << 8U));
+  }
+  std::int16_t i16() noexcept { return static_cast<std::int16_t>(u16()); }
+  std::uint32_t u32() noexcept {
+    const std::uint32_t lo = u16();
+    const std::uint32_t hi = u16();
+    return lo | (hi << 16U);
+  }
+  [[nodiscard]] std::size_t remaining() const noexcept { return in_.size() - pos_; }
+  [[nodiscard]] bool underflow() const noexcept { return underflow_; }
+
+ private:
+  std::span<const std::uint8_t> in_;
+  std::size_t pos_ = 0;
+  bool underflow_ = false;
+};
+
+}  // namespace mrskin::protocol::detail
