@@ -1,0 +1,64 @@
+// Typed exceptions thrown at setup only (open, configure). Every message says what to
+// do about it. The real-time path never throws: it returns ResultCode.
+#pragma once
+
+#include <stdexcept>
+#include <string>
+
+namespace mrskin {
+
+class Error : public std::runtime_error {
+ public:
+  using std::runtime_error::runtime_error;
+};
+// A URI, option or profile value that cannot be used.
+class InvalidArgument : public Error {
+ public:
+  using Error::Error;
+};
+// No device answers at the given address.
+class DeviceNotFound : public Error {
+ public:
+  using Error::Error;
+};
+// The OS refused access (udev rule, group, capability).
+class PermissionDenied : public Error {
+ public:
+  using Error::Error;
+};
+// The device speaks another protocol version; the message names both.
+class ProtocolMismatch : public Error {
+ public:
+  using Error::Error;
+};
+// The device did not answer in time during setup.
+class Timeout : public Error {
+ public:
+  using Error::Error;
+};
+
+// Return codes of calls allowed on the real-time path.
+enum class ResultCode : unsigned char {
+  ok = 0,
+  would_block,     // queue full or nothing to read; try next tick
+  not_open,        // no device session
+  invalid_value,   // NaN, Inf or out of range: nothing was sent
+  device_fault,    // device reports FAULT; enable() clears it
+  disconnected,    // transport lost
+  stale,           // input older than its validity
+};
+
+constexpr const char* to_string(ResultCode c) noexcept {
+  switch (c) {
+    case ResultCode::ok: return "ok";
+    case ResultCode::would_block: return "would block";
+    case ResultCode::not_open: return "not open";
+    case ResultCode::invalid_value: return "invalid value";
+    case ResultCode::device_fault: return "device fault";
+    case ResultCode::disconnected: return "disconnected";
+    case ResultCode::stale: return "stale";
+  }
+  return "unknown";
+}
+
+}  // namespace mrskin
