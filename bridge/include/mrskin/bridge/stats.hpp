@@ -1,0 +1,51 @@
+// Loop statistics: plain data, filled without allocation on the tick thread.
+#pragma once
+
+#include <array>
+#include <cstdint>
+#include <string>
+
+namespace mrskin::bridge {
+
+// Log-spaced histogram of durations from 10 ns to 10 s, 16 buckets per decade.
+class DurationHistogram {
+ public:
+  void add(std::int64_t ns) noexcept;
+  // Value (ns) below which fraction q of the samples fall; 0 when empty.
+  [[nodiscard]] double percentile_ns(double q) const noexcept;
+  [[nodiscard]] std::uint64_t count() const noexcept { return count_; }
+  [[nodiscard]] std::int64_t max_ns() const noexcept { return max_ns_; }
+  void reset() noexcept { *this = DurationHistogram{}; }
+
+ private:
+  static constexpr int kPerDecade = 16;
+  static constexpr int kDecades = 9;
+  std::array<std::uint64_t, kPerDecade * kDecades + 2> buckets_{};
+  std::uint64_t count_ = 0;
+  std::int64_t max_ns_ = 0;
+};
+
+struct BridgeStats {
+  std::uint64_t ticks = 0;
+  std::uint64_t overruns = 0;         // ticks whose work exceeded the period
+  std::uint64_t skipped_periods = 0;  // periods skipped to catch up (never burst)
+  std::uint64_t send_failures = 0;
+  std::uint64_t slave_samples = 0;
+  std::uint64_t stale_ticks = 0;      // ticks rendering without fresh slave data
+  DurationHistogram tick_time;
+  // Rendered-force error: plant's true force minus the target clamped into the envelope,
+  // scored on contacted cells while loading and holding.
+  std::uint64_t force_samples = 0;
+  double force_sq_error_sum_N2 = 0.0;
+  double force_max_abs_error_N = 0.0;
+  std::uint64_t target_cell_ticks = 0;
+  std::uint64_t clamped_cell_ticks = 0;
+
+  [[nodiscard]] double force_rms_error_N() const noexcept;
+  [[nodiscard]] double clamped_fraction() const noexcept;
+};
+
+// JSON text of the statistics (allocates: call off the tick thread).
+std::string to_json(const BridgeStats& stats, double tick_period_s);
+
+}  // namespace mrskin::bridge

@@ -1,0 +1,108 @@
+// mrskinctl: diagnostic CLI for the MR skin.
+#include <CLI/CLI.hpp>
+
+#include <cstdio>
+#include <string>
+
+#include "mrskin/driver/device.hpp"
+#include "mrskin/driver/version.hpp"
+
+namespace {
+
+// Exit codes (sysexits-style): 0 ok, 1 failure, 2 usage, 3 device not found or denied,
+// 4 protocol mismatch, 69 command not available in this build.
+constexpr int kExitUnavailable = 69;
+
+int cmd_info(const std::string& uri, bool json) {
+  mrskin::MonotonicClock clock;
+  const mrskin::OpenedDevice dev = mrskin::open_device(uri, clock);
+  const mrskin::DeviceInfo& i = dev.session->info();
+  if (json) {
+    std::printf(
+        "{\"uri\": \"%s\", \"serial\": \"%08X\", \"firmware\": \"%s\", \"protocol\": \"%d.%d\", \"rows\": %d, "
+        "\"cols\": %d, \"fluid_cells\": %zu, \"valves\": %zu, \"sensors\": %zu, \"current_lsb_A\": %.9g, "
+        "\"max_current_A\": %.9g, \"sensor_lsb\": %.9g, \"heartbeat_timeout_s\": %.6g, \"telemetry_rate_hz\": %.6g}\n",
+        uri.c_str(), i.serial, i.firmware.c_str(), i.protocol_major, i.protocol_minor, i.rows, i.cols, i.fluid_cells,
+        i.valves, i.sensors, i.current_lsb_A, i.max_current_A, i.sensor_lsb, i.heartbeat_timeout_s,
+        i.telemetry_rate_hz);
+  } else {
+    std::printf("device      %s\nserial      %08X\nfirmware    %s\nprotocol    v%d.%d (library speaks v%d.%d)\n"
+                "grid        %d x %d: %zu fluid cells, %zu valves, %zu sensors\n"
+                "current     %.3f mA per count, max %.4f A\nsensor LSB  %.3g (SI)\nheartbeat   %.3f s timeout\n"
+                "telemetry   %.0f Hz\n",
+                uri.c_str(), i.serial, i.firmware.c_str(), i.protocol_major, i.protocol_minor,
+                mrskin::protocol_version_major(), mrskin::protocol_version_minor(), i.rows, i.cols, i.fluid_cells,
+                i.valves, i.sensors, i.current_lsb_A * 1e3, i.max_current_A, i.sensor_lsb, i.heartbeat_timeout_s,
+                i.telemetry_rate_hz);
+  }
+  return 0;
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  CLI::App app{"mrskinctl: inspect, test and calibrate MR skin devices"};
+  app.set_version_flag("--version", std::string(mrskin::library_version()) + " (protocol v" +
+                                        std::to_string(mrskin::protocol_version_major()) + "." +
+                                        std::to_string(mrskin::protocol_version_minor()) + ")");
+  app.require_subcommand(1);
+  bool json = false;
+  app.add_flag("--json", json, "machine-readable output");
+  std::string device = "mock://";
+
+  auto* info = app.add_subcommand("info", "open a device, run the handshake and print its identity");
+  info->add_option("--device", device, "device URI")->capture_default_str();
+
+  struct Planned {
+    const char* name;
+    const char* help;
+    const char* issue;
+  };
+  static constexpr Planned kPlanned[] = {
+      {"list", "list attached devices on every bus", "Driver II (#7)"},
+      {"model", "evaluate the device model's laws and profiles", "Device model I (#4)"},
+      {"monitor", "show the grid live: force, displacement, current, temperature", "mrskinctl complete (#11)"},
+      {"set", "send per-valve currents or per-cell targets", "mrskinctl complete (#11)"},
+      {"selftest", "valve sweep, sensor noise, latency histogram, leak and stuck-sensor checks",
+       "mrskinctl complete (#11)"},
+      {"calibrate", "yield-force sweep, degauss, tare; store on the device", "mrskinctl complete (#11)"},
+      {"record", "record telemetry and commands to a file", "mrskinctl complete (#11)"},
+      {"replay", "replay a recording", "mrskinctl complete (#11)"},
+      {"enable", "enable a running bridge's device", "Bridge II (#10)"},
+      {"disable", "disable a running bridge's device", "Bridge II (#10)"},
+      {"estop", "emergency stop through a running bridge", "Bridge II (#10)"},
+      {"fault", "show a running bridge's fault cause and ring log", "Bridge II (#10)"},
+  };
+  const Planned* chosen = nullptr;
+  for (const Planned& p : kPlanned) {
+    auto* sub = app.add_subcommand(p.name, std::string(p.help) + " [not in this build]");
+    sub->allow_extras();
+    sub->callback([&chosen, &p] { chosen = &p; });
+  }
+  CLI11_PARSE(app, argc, argv);
+  if (chosen != nullptr) {
+    std::fprintf(stderr, "mrskinctl %s: not available in this build (planned in %s)\n", chosen->name, chosen->issue);
+    return kExitUnavailable;
+  }
+  try {
+    if (info->parsed()) {
+      return cmd_info(device, json);
+    }
+  } catch (const mrskin::InvalidArgument& e) {
+    std::fprintf(stderr, "error: %s\n", e.what());
+    return 2;
+  } catch (const mrskin::DeviceNotFound& e) {
+    std::fprintf(stderr, "error: %s\n", e.what());
+    return 3;
+  } catch (const mrskin::PermissionDenied& e) {
+    std::fprintf(stderr, "error: %s\n", e.what());
+    return 3;
+  } catch (const mrskin::ProtocolMismatch& e) {
+    std::fprintf(stderr, "error: %s\n", e.what());
+    return 4;
+  } catch (const std::exception& e) {
+    std::fprintf(stderr, "error: %s\n", e.what());
+    return 1;
+  }
+  return 0;
+}
