@@ -5,6 +5,7 @@
 #include <csignal>
 #include <cstdio>
 #include <fstream>
+#include <optional>
 #include <vector>
 
 #include "mrskin/bridge/bridge.hpp"
@@ -40,9 +41,10 @@ int run(const std::string& device_uri, const std::string& scene_name, double dur
   bridge::BridgeOptions options;
   options.rate_hz = rate_hz;
   bridge::Bridge loop(*dev.session, *scene, options);
-  MockTruth truth(*dev.mock);
+  std::optional<MockTruth> truth;
   if (dev.mock) {
-    loop.set_force_truth(&truth);
+    truth.emplace(*dev.mock);
+    loop.set_force_truth(&*truth);
   }
   const TimePoint t0 = clock.now();
   scene->set_start(t0);

@@ -22,8 +22,9 @@ struct OpenOptions {
 };
 
 struct OpenedDevice {
-  std::unique_ptr<DeviceSession> session;
+  // Declared first so it is destroyed last: the session's destructor still talks to it.
   std::shared_ptr<MockDevice> mock;  // set for mock:// only
+  std::unique_ptr<DeviceSession> session;
 };
 
 // Parses a mock:// URI into options; throws InvalidArgument naming the bad parameter.

@@ -1,0 +1,44 @@
+// The real-time arrangement: the mock device on its own thread, the bridge's own loop on
+// another, the finger driven from a third. Asserts behaviour only (timing is benchmarked
+// elsewhere); its main job is to run the cross-thread paths under TSan.
+#include <gtest/gtest.h>
+
+#include <cmath>
+#include <thread>
+#include <vector>
+
+#include "mrskin/bridge/bridge.hpp"
+#include "mrskin/driver/device.hpp"
+
+namespace mrskin::bridge {
+namespace {
+
+TEST(Threaded, LibraryLoopAndMockThreadRunTogether) {
+  MonotonicClock clock;
+  OpenedDevice dev = open_device("mock://?seed=9", clock);  // mock starts its own thread
+  auto scene = make_scene("demo");
+  Bridge loop(*dev.session, *scene);
+  scene->set_start(clock.now());
+  ASSERT_EQ(loop.enable(), ResultCode::ok);
+  loop.start(clock);
+  EXPECT_TRUE(loop.running());
+  std::vector<double> finger(dev.mock->layout().fluid_cell_count());
+  const TimePoint end = clock.now() + std::chrono::milliseconds(300);
+  while (clock.now() < end) {
+    scene->finger(to_seconds(clock.now() - scene->start()), dev.mock->layout(), finger);
+    dev.mock->set_finger_indentation(finger);
+    std::this_thread::sleep_for(std::chrono::milliseconds(1));
+    (void)loop.live_ticks();
+    (void)loop.live_rms_error_N();
+  }
+  loop.stop();
+  EXPECT_FALSE(loop.running());
+  dev.mock->stop();
+  EXPECT_GT(loop.stats().ticks, 0U);
+  EXPECT_GT(dev.session->counters().telemetry, 0U);
+  EXPECT_EQ(dev.session->counters().decode_errors, 0U);
+  EXPECT_TRUE(std::isfinite(loop.stats().force_rms_error_N()));
+}
+
+}  // namespace
+}  // namespace mrskin::bridge
