@@ -1,7 +1,7 @@
 #include "mrskin/bridge/stats.hpp"
 
 #include <cmath>
-#include <cstdio>
+#include <fmt/format.h>
 
 namespace mrskin::bridge {
 
@@ -41,34 +41,30 @@ double BridgeStats::force_rms_error_N() const noexcept {
 }
 
 double BridgeStats::clamped_fraction() const noexcept {
-  return target_cell_ticks == 0 ? 0.0
-                                : static_cast<double>(clamped_cell_ticks) / static_cast<double>(target_cell_ticks);
+  return target_cell_ticks == 0
+             ? 0.0
+             : static_cast<double>(clamped_cell_ticks) / static_cast<double>(target_cell_ticks);
 }
 
 std::string to_json(const BridgeStats& s, double tick_period_s) {
-  char buf[1024];
-  const int n = std::snprintf(
-      buf, sizeof buf,
-      "{\n"
-      "  \"tick_period_s\": %.9g,\n"
-      "  \"ticks\": %llu,\n"
-      "  \"overruns\": %llu,\n"
-      "  \"skipped_periods\": %llu,\n"
-      "  \"send_failures\": %llu,\n"
-      "  \"slave_samples\": %llu,\n"
-      "  \"stale_ticks\": %llu,\n"
-      "  \"tick_time_us\": {\"p50\": %.4g, \"p90\": %.4g, \"p99\": %.4g, \"p999\": %.4g, \"max\": %.4g},\n"
-      "  \"force_error\": {\"samples\": %llu, \"rms_N\": %.6g, \"max_abs_N\": %.6g},\n"
-      "  \"clamped_fraction\": %.6g\n"
-      "}\n",
-      tick_period_s, static_cast<unsigned long long>(s.ticks), static_cast<unsigned long long>(s.overruns),
-      static_cast<unsigned long long>(s.skipped_periods), static_cast<unsigned long long>(s.send_failures),
-      static_cast<unsigned long long>(s.slave_samples), static_cast<unsigned long long>(s.stale_ticks),
+  return fmt::format(
+      "{{\n"
+      "  \"tick_period_s\": {:.9g},\n"
+      "  \"ticks\": {},\n"
+      "  \"overruns\": {},\n"
+      "  \"skipped_periods\": {},\n"
+      "  \"send_failures\": {},\n"
+      "  \"slave_samples\": {},\n"
+      "  \"stale_ticks\": {},\n"
+      "  \"tick_time_us\": {{\"p50\": {:.4g}, \"p90\": {:.4g}, \"p99\": {:.4g}, \"p999\": {:.4g}, \"max\": {:.4g}}},\n"
+      "  \"force_error\": {{\"samples\": {}, \"rms_N\": {:.6g}, \"max_abs_N\": {:.6g}}},\n"
+      "  \"clamped_fraction\": {:.6g}\n"
+      "}}\n",
+      tick_period_s, s.ticks, s.overruns, s.skipped_periods, s.send_failures, s.slave_samples, s.stale_ticks,
       s.tick_time.percentile_ns(0.5) / 1e3, s.tick_time.percentile_ns(0.9) / 1e3,
       s.tick_time.percentile_ns(0.99) / 1e3, s.tick_time.percentile_ns(0.999) / 1e3,
-      static_cast<double>(s.tick_time.max_ns()) / 1e3, static_cast<unsigned long long>(s.force_samples),
-      s.force_rms_error_N(), s.force_max_abs_error_N, s.clamped_fraction());
-  return std::string(buf, n > 0 ? static_cast<std::size_t>(n) : 0);
+      static_cast<double>(s.tick_time.max_ns()) / 1e3, s.force_samples, s.force_rms_error_N(),
+      s.force_max_abs_error_N, s.clamped_fraction());
 }
 
 }  // namespace mrskin::bridge

@@ -1,8 +1,7 @@
 #include "mrskin/driver/clock.hpp"
 
-#include <time.h>
-
 #include <cerrno>
+#include <ctime>
 
 namespace mrskin {
 

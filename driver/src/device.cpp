@@ -14,7 +14,8 @@ T parse_number(std::string_view key, std::string_view text) {
   const auto* end = text.data() + text.size();
   const auto r = std::from_chars(text.data(), end, value);
   if (r.ec != std::errc{} || r.ptr != end) {
-    throw InvalidArgument("mock:// parameter '" + std::string(key) + "' has bad value '" + std::string(text) + "'");
+    throw InvalidArgument("mock:// parameter '" + std::string(key) + "' has bad value '" + std::string(text) +
+                          "'");
   }
   return value;
 }
@@ -30,8 +31,9 @@ MockOptions parse_mock_uri(std::string_view uri, int& rows, int& cols) {
   const auto q = uri.find('?');
   const std::string_view profile = uri.substr(0, q);
   if (!profile.empty() && profile != "default") {
-    throw InvalidArgument("mock:// profile '" + std::string(profile) +
-                          "' is unknown: device profiles arrive with the device model; use mock:// for the 5 x 5");
+    throw InvalidArgument(
+        "mock:// profile '" + std::string(profile) +
+        "' is unknown: device profiles arrive with the device model; use mock:// for the 5 x 5");
   }
   std::string_view query = q == std::string_view::npos ? std::string_view{} : uri.substr(q + 1);
   while (!query.empty()) {

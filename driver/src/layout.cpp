@@ -11,11 +11,11 @@ GridLayout::GridLayout(int rows, int cols) : rows_(rows), cols_(cols) {
     throw InvalidArgument("grid " + std::to_string(rows) + " x " + std::to_string(cols) +
                           " is outside 1..255 x 1..255: fix rows/cols in the device profile");
   }
-  std::vector<int> fluid_index(static_cast<std::size_t>(rows * cols), -1);
+  std::vector<int> fluid_index(static_cast<std::size_t>(rows) * static_cast<std::size_t>(cols), -1);
   for (int r = 0; r < rows; ++r) {
     for (int c = 0; c < cols; ++c) {
       if ((r + c) % 2 == 0) {
-        fluid_index[static_cast<std::size_t>(r * cols + c)] = static_cast<int>(fluid_.size());
+        fluid_index[static_cast<std::size_t>(r) * static_cast<std::size_t>(cols) + static_cast<std::size_t>(c)] = static_cast<int>(fluid_.size());
         fluid_.push_back({r, c});
       } else {
         valves_.push_back({r, c});
@@ -34,7 +34,7 @@ GridLayout::GridLayout(int rows, int cols) : rows_(rows), cols_(cols) {
       if (r < 0 || r >= rows || c < 0 || c >= cols) {
         continue;
       }
-      const int f = fluid_index[static_cast<std::size_t>(r * cols + c)];
+      const int f = fluid_index[static_cast<std::size_t>(r) * static_cast<std::size_t>(cols) + static_cast<std::size_t>(c)];
       cells_of_valve_[v].push_back(static_cast<std::size_t>(f));
       valves_of_cell_[static_cast<std::size_t>(f)].push_back(v);
     }

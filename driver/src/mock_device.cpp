@@ -90,7 +90,8 @@ MockDevice::MockDevice(const GridLayout& layout, const MockOptions& options, std
 
 std::shared_ptr<MockDevice> MockDevice::make_placeholder(const MockOptions& options, int rows, int cols) {
   const GridLayout layout(rows, cols);
-  auto plant = std::make_unique<PlaceholderPlant>(layout, PlaceholderParams{}, options.perturbation, options.seed);
+  auto plant =
+      std::make_unique<PlaceholderPlant>(layout, PlaceholderParams{}, options.perturbation, options.seed);
   return std::make_shared<MockDevice>(layout, options, std::move(plant));
 }
 
@@ -161,7 +162,8 @@ void MockDevice::send_status() noexcept {
   proto::Status s;
   s.state = state_.load(std::memory_order_relaxed);
   s.fault = fault_.load(std::memory_order_relaxed);
-  const bool released = std::all_of(commanded_A_.begin(), commanded_A_.end(), [](double a) { return a == 0.0; });
+  const bool released =
+      std::all_of(commanded_A_.begin(), commanded_A_.end(), [](double a) { return a == 0.0; });
   s.flags = released ? proto::kFlagValvesReleased : 0;
   send_message(s);
 }
@@ -200,8 +202,8 @@ void MockDevice::handle(const std::uint8_t* bytes, std::size_t length, TimePoint
     id.sensors = static_cast<std::uint16_t>(sensor_si_.size());
     id.serial = options_.serial;
     id.current_lsb_nA = static_cast<std::uint32_t>(std::lround(options_.current_lsb_A * 1e9));
-    id.current_max_counts = static_cast<std::uint16_t>(
-        std::min<long>(std::lround(options_.max_current_A / options_.current_lsb_A), proto::kCurrentCountMax));
+    id.current_max_counts = static_cast<std::uint16_t>(std::min<long>(
+        std::lround(options_.max_current_A / options_.current_lsb_A), proto::kCurrentCountMax));
     id.sensor_quantity = static_cast<std::uint8_t>(proto::SensorQuantity::displacement_m);
     id.sensor_lsb_nano = static_cast<std::uint32_t>(std::lround(options_.sensor_lsb_m * 1e9));
     id.heartbeat_timeout_ms = static_cast<std::uint16_t>(std::lround(options_.heartbeat_timeout_s * 1e3));
@@ -249,7 +251,8 @@ void MockDevice::handle(const std::uint8_t* bytes, std::size_t length, TimePoint
 
 void MockDevice::emit_telemetry(TimePoint now) noexcept {
   plant_->read_sensors(sensor_si_);
-  const auto time_us = static_cast<std::uint32_t>(static_cast<std::uint64_t>(now.count() / 1000) & 0xFFFFFFFFULL);
+  const auto time_us =
+      static_cast<std::uint32_t>(static_cast<std::uint64_t>(now.count() / 1000) & 0xFFFFFFFFULL);
   std::size_t first = 0;
   while (first < sensor_si_.size()) {
     proto::Telemetry t;
@@ -277,7 +280,8 @@ void MockDevice::step(TimePoint now) noexcept {
   }
   handle_host_input(now);
   const auto state = static_cast<proto::DeviceState>(state_.load(std::memory_order_relaxed));
-  if (state == proto::DeviceState::enabled && to_seconds(now - last_heartbeat_) > options_.heartbeat_timeout_s) {
+  if (state == proto::DeviceState::enabled &&
+      to_seconds(now - last_heartbeat_) > options_.heartbeat_timeout_s) {
     state_.store(static_cast<std::uint8_t>(proto::DeviceState::fault));
     fault_.store(static_cast<std::uint8_t>(proto::FaultCode::heartbeat_lost));
     release_valves();

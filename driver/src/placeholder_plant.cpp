@@ -79,8 +79,8 @@ void PlaceholderPlant::set_finger_indentation(std::span<const double> indentatio
 void PlaceholderPlant::step(double dt_s) noexcept {
   for (Cell& c : cells_) {
     const double contact = std::max(0.0, c.finger_m - c.fluid_m) * c.p.contact_stiffness_N_per_m;
-    const double free_force = contact - c.p.membrane_stiffness_N_per_m * c.fluid_m -
-                              c.p.damping_N_s_per_m * c.velocity_m_per_s;
+    const double free_force =
+        contact - c.p.membrane_stiffness_N_per_m * c.fluid_m - c.p.damping_N_s_per_m * c.velocity_m_per_s;
     // Semi-implicit Coulomb clamp: the yield impulse can stop the column but never
     // reverse it, so locked valves stay locked without chatter.
     const double v_free = c.velocity_m_per_s + dt_s * free_force / c.p.mass_kg;

@@ -12,24 +12,36 @@ namespace proto = mrskin::protocol;
 
 const char* to_string(DeviceState s) noexcept {
   switch (s) {
-    case DeviceState::disabled: return "DISABLED";
-    case DeviceState::enabled: return "ENABLED";
-    case DeviceState::paused: return "PAUSED";
-    case DeviceState::fault: return "FAULT";
+    case DeviceState::disabled:
+      return "DISABLED";
+    case DeviceState::enabled:
+      return "ENABLED";
+    case DeviceState::paused:
+      return "PAUSED";
+    case DeviceState::fault:
+      return "FAULT";
   }
   return "UNKNOWN";
 }
 
 const char* fault_name(std::uint8_t fault_code) noexcept {
   switch (static_cast<proto::FaultCode>(fault_code)) {
-    case proto::FaultCode::none: return "none";
-    case proto::FaultCode::heartbeat_lost: return "heartbeat lost";
-    case proto::FaultCode::overtemperature: return "coil overtemperature";
-    case proto::FaultCode::overcurrent: return "overcurrent";
-    case proto::FaultCode::sensor_fault: return "sensor fault";
-    case proto::FaultCode::bus_off: return "bus off";
-    case proto::FaultCode::estop: return "emergency stop";
-    case proto::FaultCode::internal: return "internal error";
+    case proto::FaultCode::none:
+      return "none";
+    case proto::FaultCode::heartbeat_lost:
+      return "heartbeat lost";
+    case proto::FaultCode::overtemperature:
+      return "coil overtemperature";
+    case proto::FaultCode::overcurrent:
+      return "overcurrent";
+    case proto::FaultCode::sensor_fault:
+      return "sensor fault";
+    case proto::FaultCode::bus_off:
+      return "bus off";
+    case proto::FaultCode::estop:
+      return "emergency stop";
+    case proto::FaultCode::internal:
+      return "internal error";
   }
   return "unknown fault";
 }
@@ -51,7 +63,8 @@ DeviceSession::DeviceSession(std::unique_ptr<Transport> transport, Clock& clock,
     Datagram d;
     const ResultCode rc = transport_->receive(d);
     if (rc == ResultCode::ok) {
-      const proto::PacketDecoded p = proto::decode_packet(std::span<const std::uint8_t>(d.bytes.data(), d.length));
+      const proto::PacketDecoded p =
+          proto::decode_packet(std::span<const std::uint8_t>(d.bytes.data(), d.length));
       if (p.error == proto::Error::wrong_version) {
         throw ProtocolMismatch("device on " + std::string(transport_->uri()) + " speaks protocol v" +
                                std::to_string(p.peer_version) + ", this library speaks v" +
@@ -66,7 +79,8 @@ DeviceSession::DeviceSession(std::unique_ptr<Transport> transport, Clock& clock,
         if (id->proto_major != proto::kVersionMajor) {
           throw ProtocolMismatch("device reports protocol v" + std::to_string(id->proto_major) + "." +
                                  std::to_string(id->proto_minor) + ", this library speaks v" +
-                                 std::to_string(proto::kVersionMajor) + "." + std::to_string(proto::kVersionMinor) +
+                                 std::to_string(proto::kVersionMajor) + "." +
+                                 std::to_string(proto::kVersionMinor) +
                                  ": update the device firmware or use a matching mrskin release");
         }
         info_.protocol_major = id->proto_major;
@@ -92,7 +106,8 @@ DeviceSession::DeviceSession(std::unique_ptr<Transport> transport, Clock& clock,
       continue;
     }
     if (rc == ResultCode::disconnected) {
-      throw DeviceNotFound("device on " + std::string(transport_->uri()) + " disconnected during the handshake");
+      throw DeviceNotFound("device on " + std::string(transport_->uri()) +
+                           " disconnected during the handshake");
     }
     if (clock_.now() >= deadline) {
       throw Timeout("device on " + std::string(transport_->uri()) + " did not identify within " +
@@ -129,7 +144,8 @@ ResultCode DeviceSession::send_packet(const proto::Message& message) noexcept {
 }
 
 void DeviceSession::handle(const Datagram& d) noexcept {
-  const proto::PacketDecoded p = proto::decode_packet(std::span<const std::uint8_t>(d.bytes.data(), d.length));
+  const proto::PacketDecoded p =
+      proto::decode_packet(std::span<const std::uint8_t>(d.bytes.data(), d.length));
   if (p.error != proto::Error::ok) {
     ++counters_.decode_errors;
     return;

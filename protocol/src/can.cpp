@@ -139,8 +139,8 @@ CanEncodeResult encode_can(const Message& message, std::uint8_t node, std::uint8
     }
     for (std::size_t b = 0; b < frames; ++b) {
       const std::size_t n = std::min(kCanValuesPerBlock, v->count - b * kCanValuesPerBlock);
-      CanFrame f = single(CanFunction::valve_block, static_cast<std::uint8_t>(first_block + b), node,
-                          counter, static_cast<std::uint8_t>(n));
+      CanFrame f = single(CanFunction::valve_block, static_cast<std::uint8_t>(first_block + b), node, counter,
+                          static_cast<std::uint8_t>(n));
       for (std::size_t i = 0; i < n; ++i) {
         put_bits(f.data, static_cast<unsigned>(12 * i), 12, v->counts[b * kCanValuesPerBlock + i]);
       }
@@ -200,7 +200,8 @@ CanEncodeResult encode_can(const Message& message, std::uint8_t node, std::uint8
   }
   CanFrame f;
   if (const auto* h = std::get_if<Heartbeat>(&message)) {
-    f = single(CanFunction::management, static_cast<std::uint8_t>(CanManagement::heartbeat), node, counter, 0);
+    f = single(CanFunction::management, static_cast<std::uint8_t>(CanManagement::heartbeat), node, counter,
+               0);
     f.data[0] = static_cast<std::uint8_t>(h->counter & 0xFFU);
     f.data[1] = static_cast<std::uint8_t>(h->counter >> 8U);
   } else if (const auto* s = std::get_if<Status>(&message)) {
@@ -211,12 +212,14 @@ CanEncodeResult encode_can(const Message& message, std::uint8_t node, std::uint8
     f.data[3] = static_cast<std::uint8_t>(s->fault_detail >> 8U);
     f.data[4] = s->flags;
   } else if (const auto* ts = std::get_if<TimeSync>(&message)) {
-    f = single(CanFunction::management, static_cast<std::uint8_t>(CanManagement::time_sync), node, counter, 0);
+    f = single(CanFunction::management, static_cast<std::uint8_t>(CanManagement::time_sync), node, counter,
+               0);
     for (unsigned i = 0; i < 4; ++i) {
       f.data[i] = static_cast<std::uint8_t>((ts->device_time_us >> (8U * i)) & 0xFFU);
     }
   } else if (const auto* r = std::get_if<StateRequest>(&message)) {
-    f = single(CanFunction::management, static_cast<std::uint8_t>(CanManagement::state_request), node, counter, 0);
+    f = single(CanFunction::management, static_cast<std::uint8_t>(CanManagement::state_request), node,
+               counter, 0);
     f.data[0] = r->request;
   } else {
     return {Error::unknown_type, 0};
@@ -238,7 +241,7 @@ CanEncodeResult encode_canfd(const Message& message, std::uint8_t node, Directio
   }
   f.fd = true;
   f.id = can_id(direction == Direction::host_to_device ? CanFunction::fd_host_to_device
-                                                        : CanFunction::fd_device_to_host,
+                                                       : CanFunction::fd_device_to_host,
                 0, node);
   f.length = static_cast<std::uint8_t>(canfd_padded_length(enc.bytes));
   out = f;
@@ -285,8 +288,8 @@ CanDecoded CanDecoder::decode(const CanFrame& frame) noexcept {
   if (fn == static_cast<std::uint8_t>(CanFunction::management) &&
       (block == static_cast<std::uint8_t>(CanManagement::segmented_host_to_device) ||
        block == static_cast<std::uint8_t>(CanManagement::segmented_device_to_host))) {
-    return decode_segment(frame, reassembly_[block - static_cast<std::uint8_t>(
-                                                        CanManagement::segmented_host_to_device)]);
+    return decode_segment(
+        frame, reassembly_[block - static_cast<std::uint8_t>(CanManagement::segmented_host_to_device)]);
   }
   if (frame_crc(frame) != frame.data[7]) {
     result.error = Error::bad_crc;
@@ -320,7 +323,8 @@ CanDecoded CanDecoder::decode(const CanFrame& frame) noexcept {
       t.count = low;
       for (unsigned i = 0; i < low; ++i) {
         const std::uint32_t raw = get_bits(d, 12 * i, 12);
-        t.counts[i] = static_cast<std::int16_t>(raw >= 0x800U ? static_cast<int>(raw) - 0x1000 : static_cast<int>(raw));
+        t.counts[i] =
+            static_cast<std::int16_t>(raw >= 0x800U ? static_cast<int>(raw) - 0x1000 : static_cast<int>(raw));
       }
       result.message = t;
       break;
@@ -345,9 +349,9 @@ CanDecoded CanDecoder::decode(const CanFrame& frame) noexcept {
           result.message = Status{d[0], d[1], static_cast<std::uint16_t>(d[2] | (d[3] << 8U)), d[4]};
           break;
         case CanManagement::time_sync:
-          result.message = TimeSync{static_cast<std::uint32_t>(d[0]) | (static_cast<std::uint32_t>(d[1]) << 8U) |
-                                    (static_cast<std::uint32_t>(d[2]) << 16U) |
-                                    (static_cast<std::uint32_t>(d[3]) << 24U)};
+          result.message =
+              TimeSync{static_cast<std::uint32_t>(d[0]) | (static_cast<std::uint32_t>(d[1]) << 8U) |
+                       (static_cast<std::uint32_t>(d[2]) << 16U) | (static_cast<std::uint32_t>(d[3]) << 24U)};
           break;
         case CanManagement::state_request:
           result.message = StateRequest{d[0]};

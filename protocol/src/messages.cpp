@@ -3,15 +3,16 @@
 #include <type_traits>
 
 #include "validate.hpp"
+#include "visit.hpp"
 
 namespace mrskin::protocol {
 
 MessageType type_of(const Message& m) noexcept {
   static constexpr MessageType kTypes[] = {
-      MessageType::identify_request, MessageType::identity,     MessageType::valve_currents,
-      MessageType::cell_targets,     MessageType::telemetry,    MessageType::time_sync,
-      MessageType::status,           MessageType::heartbeat,    MessageType::state_request,
-      MessageType::config_read,      MessageType::config_data,  MessageType::config_write,
+      MessageType::identify_request, MessageType::identity,    MessageType::valve_currents,
+      MessageType::cell_targets,     MessageType::telemetry,   MessageType::time_sync,
+      MessageType::status,           MessageType::heartbeat,   MessageType::state_request,
+      MessageType::config_read,      MessageType::config_data, MessageType::config_write,
       MessageType::config_ack};
   static_assert(std::size(kTypes) == std::variant_size_v<Message>);
   return kTypes[m.index()];
@@ -45,8 +46,8 @@ Error check(const CellTargets& m) noexcept {
   }
   for (std::size_t i = 0; i < m.count; ++i) {
     const CellTarget& t = m.targets[i];
-    if (t.stiffness > kStiffnessCountMax || t.offset > kOffsetCountMax ||
-        t.ceiling > kCeilingCountMax || t.validity > kValidityCountMax) {
+    if (t.stiffness > kStiffnessCountMax || t.offset > kOffsetCountMax || t.ceiling > kCeilingCountMax ||
+        t.validity > kValidityCountMax) {
       return Error::out_of_range;
     }
   }
@@ -68,9 +69,7 @@ Error check(const Status& m) noexcept {
   return (m.state > 3 || m.fault > 7) ? Error::out_of_range : Error::ok;
 }
 Error check(const Heartbeat& /*m*/) noexcept { return Error::ok; }
-Error check(const StateRequest& m) noexcept {
-  return m.request > 3 ? Error::out_of_range : Error::ok;
-}
+Error check(const StateRequest& m) noexcept { return m.request > 3 ? Error::out_of_range : Error::ok; }
 Error check(const ConfigRead& m) noexcept {
   return (m.length == 0 || m.length > kMaxConfigBytes) ? Error::out_of_range : Error::ok;
 }
@@ -85,7 +84,7 @@ Error check(const ConfigAck& m) noexcept { return m.status > 4 ? Error::out_of_r
 }  // namespace
 
 Error validate(const Message& message) noexcept {
-  return std::visit([](const auto& m) { return check(m); }, message);
+  return visit_nothrow<Error>([](const auto& m) noexcept { return check(m); }, message);
 }
 
 }  // namespace detail

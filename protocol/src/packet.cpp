@@ -5,6 +5,7 @@
 #include "bytes.hpp"
 #include "mrskin/protocol/crc.hpp"
 #include "validate.hpp"
+#include "visit.hpp"
 
 namespace mrskin::protocol {
 namespace {
@@ -191,19 +192,45 @@ std::size_t get(Reader& r, ConfigAck& m) noexcept {
 
 bool message_for_type(std::uint8_t type, Message& out) noexcept {
   switch (static_cast<MessageType>(type)) {
-    case MessageType::identify_request: out = IdentifyRequest{}; return true;
-    case MessageType::identity: out = Identity{}; return true;
-    case MessageType::valve_currents: out = ValveCurrents{}; return true;
-    case MessageType::cell_targets: out = CellTargets{}; return true;
-    case MessageType::telemetry: out = Telemetry{}; return true;
-    case MessageType::time_sync: out = TimeSync{}; return true;
-    case MessageType::status: out = Status{}; return true;
-    case MessageType::heartbeat: out = Heartbeat{}; return true;
-    case MessageType::state_request: out = StateRequest{}; return true;
-    case MessageType::config_read: out = ConfigRead{}; return true;
-    case MessageType::config_data: out = ConfigData{}; return true;
-    case MessageType::config_write: out = ConfigWrite{}; return true;
-    case MessageType::config_ack: out = ConfigAck{}; return true;
+    case MessageType::identify_request:
+      out = IdentifyRequest{};
+      return true;
+    case MessageType::identity:
+      out = Identity{};
+      return true;
+    case MessageType::valve_currents:
+      out = ValveCurrents{};
+      return true;
+    case MessageType::cell_targets:
+      out = CellTargets{};
+      return true;
+    case MessageType::telemetry:
+      out = Telemetry{};
+      return true;
+    case MessageType::time_sync:
+      out = TimeSync{};
+      return true;
+    case MessageType::status:
+      out = Status{};
+      return true;
+    case MessageType::heartbeat:
+      out = Heartbeat{};
+      return true;
+    case MessageType::state_request:
+      out = StateRequest{};
+      return true;
+    case MessageType::config_read:
+      out = ConfigRead{};
+      return true;
+    case MessageType::config_data:
+      out = ConfigData{};
+      return true;
+    case MessageType::config_write:
+      out = ConfigWrite{};
+      return true;
+    case MessageType::config_ack:
+      out = ConfigAck{};
+      return true;
   }
   return false;
 }
@@ -216,7 +243,10 @@ std::size_t packet_payload_length(const Message& message) noexcept {
   }
   std::array<std::uint8_t, kPacketMaxBytes> scratch{};
   Writer w(scratch);
-  std::visit([&w](const auto& m) { put(w, m); }, message);
+  detail::visit_nothrow<int>([&w](const auto& m) noexcept {
+    put(w, m);
+    return 0;
+  }, message);
   return w.overflow() ? 0 : w.position();
 }
 
@@ -227,7 +257,10 @@ EncodeResult encode_packet(const Message& message, std::uint8_t sequence,
   }
   std::array<std::uint8_t, kPacketMaxBytes> buffer{};
   Writer w(std::span<std::uint8_t>(buffer).subspan(kPacketHeaderBytes, kPacketMaxPayload));
-  std::visit([&w](const auto& m) { put(w, m); }, message);
+  detail::visit_nothrow<int>([&w](const auto& m) noexcept {
+    put(w, m);
+    return 0;
+  }, message);
   if (w.overflow()) {
     return {Error::too_long, 0};
   }
@@ -292,7 +325,7 @@ PacketDecoded decode_packet(std::span<const std::uint8_t> in) noexcept {
     return result;
   }
   Reader r(in.subspan(kPacketHeaderBytes, payload));
-  const std::size_t wanted = std::visit([&r](auto& m) { return get(r, m); }, result.message);
+  const std::size_t wanted = detail::visit_nothrow<std::size_t>([&r](auto& m) noexcept { return get(r, m); }, result.message);
   if (wanted != payload || r.underflow()) {
     result.error = Error::bad_length;
     return result;

@@ -1,6 +1,7 @@
 // mrskinctl: diagnostic CLI for the MR skin.
-#include <CLI/CLI.hpp>
+#include <fmt/format.h>
 
+#include <CLI/CLI.hpp>
 #include <cstdio>
 #include <string>
 
@@ -18,34 +19,37 @@ int cmd_info(const std::string& uri, bool json) {
   const mrskin::OpenedDevice dev = mrskin::open_device(uri, clock);
   const mrskin::DeviceInfo& i = dev.session->info();
   if (json) {
-    std::printf(
-        "{\"uri\": \"%s\", \"serial\": \"%08X\", \"firmware\": \"%s\", \"protocol\": \"%d.%d\", \"rows\": %d, "
-        "\"cols\": %d, \"fluid_cells\": %zu, \"valves\": %zu, \"sensors\": %zu, \"current_lsb_A\": %.9g, "
-        "\"max_current_A\": %.9g, \"sensor_lsb\": %.9g, \"heartbeat_timeout_s\": %.6g, \"telemetry_rate_hz\": %.6g}\n",
-        uri.c_str(), i.serial, i.firmware.c_str(), i.protocol_major, i.protocol_minor, i.rows, i.cols, i.fluid_cells,
-        i.valves, i.sensors, i.current_lsb_A, i.max_current_A, i.sensor_lsb, i.heartbeat_timeout_s,
-        i.telemetry_rate_hz);
+    fmt::print(
+        "{{\"uri\": \"{}\", \"serial\": \"{:08X}\", \"firmware\": \"{}\", \"protocol\": \"{}.{}\", "
+        "\"rows\": {}, \"cols\": {}, \"fluid_cells\": {}, \"valves\": {}, \"sensors\": {}, "
+        "\"current_lsb_a\": {:.9g}, \"max_current_a\": {:.9g}, \"sensor_lsb_si\": {:.9g}, "
+        "\"heartbeat_timeout_s\": {:.6g}, \"telemetry_rate_hz\": {:.6g}}}\n",
+        uri, i.serial, i.firmware, i.protocol_major, i.protocol_minor, i.rows, i.cols, i.fluid_cells, i.valves,
+        i.sensors, i.current_lsb_A, i.max_current_A, i.sensor_lsb, i.heartbeat_timeout_s, i.telemetry_rate_hz);
   } else {
-    std::printf("device      %s\nserial      %08X\nfirmware    %s\nprotocol    v%d.%d (library speaks v%d.%d)\n"
-                "grid        %d x %d: %zu fluid cells, %zu valves, %zu sensors\n"
-                "current     %.3f mA per count, max %.4f A\nsensor LSB  %.3g (SI)\nheartbeat   %.3f s timeout\n"
-                "telemetry   %.0f Hz\n",
-                uri.c_str(), i.serial, i.firmware.c_str(), i.protocol_major, i.protocol_minor,
-                mrskin::protocol_version_major(), mrskin::protocol_version_minor(), i.rows, i.cols, i.fluid_cells,
-                i.valves, i.sensors, i.current_lsb_A * 1e3, i.max_current_A, i.sensor_lsb, i.heartbeat_timeout_s,
-                i.telemetry_rate_hz);
+    fmt::print(
+        "device      {}\nserial      {:08X}\nfirmware    {}\nprotocol    v{}.{} (library speaks v{}.{})\n"
+        "grid        {} x {}: {} fluid cells, {} valves, {} sensors\n"
+        "current     {:.3f} mA per count, max {:.4f} A\nsensor LSB  {:.3g} (SI)\nheartbeat   {:.3f} s timeout\n"
+        "telemetry   {:.0f} Hz\n",
+        uri, i.serial, i.firmware, i.protocol_major, i.protocol_minor, mrskin::protocol_version_major(),
+        mrskin::protocol_version_minor(), i.rows, i.cols, i.fluid_cells, i.valves, i.sensors, i.current_lsb_A * 1e3,
+        i.max_current_A, i.sensor_lsb, i.heartbeat_timeout_s, i.telemetry_rate_hz);
   }
   return 0;
 }
 
 }  // namespace
 
-int main(int argc, char** argv) {
+namespace {
+
+int guarded_main(int argc, char** argv) {
   CLI::App app{"mrskinctl: inspect, test and calibrate MR skin devices"};
   app.set_version_flag("--version", std::string(mrskin::library_version()) + " (protocol v" +
                                         std::to_string(mrskin::protocol_version_major()) + "." +
                                         std::to_string(mrskin::protocol_version_minor()) + ")");
   app.require_subcommand(1);
+  app.fallthrough();  // global flags such as --json may follow the subcommand
   bool json = false;
   app.add_flag("--json", json, "machine-readable output");
   std::string device = "mock://";
@@ -61,7 +65,8 @@ int main(int argc, char** argv) {
   static constexpr Planned kPlanned[] = {
       {"list", "list attached devices on every bus", "Driver II (#7)"},
       {"model", "evaluate the device model's laws and profiles", "Device model I (#4)"},
-      {"monitor", "show the grid live: force, displacement, current, temperature", "mrskinctl complete (#11)"},
+      {"monitor", "show the grid live: force, displacement, current, temperature",
+       "mrskinctl complete (#11)"},
       {"set", "send per-valve currents or per-cell targets", "mrskinctl complete (#11)"},
       {"selftest", "valve sweep, sensor noise, latency histogram, leak and stuck-sensor checks",
        "mrskinctl complete (#11)"},
@@ -81,7 +86,7 @@ int main(int argc, char** argv) {
   }
   CLI11_PARSE(app, argc, argv);
   if (chosen != nullptr) {
-    std::fprintf(stderr, "mrskinctl %s: not available in this build (planned in %s)\n", chosen->name, chosen->issue);
+    fmt::print(stderr, "mrskinctl {}: not available in this build (planned in {})\n", chosen->name, chosen->issue);
     return kExitUnavailable;
   }
   try {
@@ -89,20 +94,32 @@ int main(int argc, char** argv) {
       return cmd_info(device, json);
     }
   } catch (const mrskin::InvalidArgument& e) {
-    std::fprintf(stderr, "error: %s\n", e.what());
+    fmt::print(stderr, "error: {}\n", e.what());
     return 2;
   } catch (const mrskin::DeviceNotFound& e) {
-    std::fprintf(stderr, "error: %s\n", e.what());
+    fmt::print(stderr, "error: {}\n", e.what());
     return 3;
   } catch (const mrskin::PermissionDenied& e) {
-    std::fprintf(stderr, "error: %s\n", e.what());
+    fmt::print(stderr, "error: {}\n", e.what());
     return 3;
   } catch (const mrskin::ProtocolMismatch& e) {
-    std::fprintf(stderr, "error: %s\n", e.what());
+    fmt::print(stderr, "error: {}\n", e.what());
     return 4;
-  } catch (const std::exception& e) {
-    std::fprintf(stderr, "error: %s\n", e.what());
-    return 1;
   }
   return 0;
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  try {
+    return guarded_main(argc, argv);
+  } catch (const std::exception& e) {
+    std::fputs("error: ", stderr);
+    std::fputs(e.what(), stderr);
+    std::fputs("\n", stderr);
+  } catch (...) {
+    std::fputs("error: unknown exception\n", stderr);
+  }
+  return 1;
 }

@@ -20,15 +20,15 @@ namespace mrskin::bridge {
 
 struct BridgeOptions {
   double rate_hz = 1000.0;
-  double contact_threshold_m = 50e-6;   // a cell deeper than this is in contact
-  double max_force_N = 2.0;             // device range
-  double stale_hold_s = 0.1;            // hold the last tissue model this long...
-  double stale_fade_s = 0.2;            // ...then fade to released over this long
-  double stiffness_filter_s = 0.02;     // time constant of the online stiffness estimate
-  double rate_filter_s = 0.02;          // time constant of the indentation-rate filter
-  double unload_rate_m_per_s = 2e-3;    // faster withdrawal than this counts as unloading
-  int allocation_sweeps = 8;            // coordinate-descent sweeps per tick
-  PlaceholderParams model{};            // nominal device model the controller inverts
+  double contact_threshold_m = 50e-6;  // a cell deeper than this is in contact
+  double max_force_N = 2.0;            // device range
+  double stale_hold_s = 0.1;           // hold the last tissue model this long...
+  double stale_fade_s = 0.2;           // ...then fade to released over this long
+  double stiffness_filter_s = 0.02;    // time constant of the online stiffness estimate
+  double rate_filter_s = 0.02;         // time constant of the indentation-rate filter
+  double unload_rate_m_per_s = 2e-3;   // faster withdrawal than this counts as unloading
+  int allocation_sweeps = 8;           // coordinate-descent sweeps per tick
+  PlaceholderParams model{};           // nominal device model the controller inverts
 };
 
 // Ground truth for scoring (the mock's true contact forces); optional.
@@ -67,8 +67,12 @@ class Bridge {
 
   // Statistics; read after stop() or from the tick thread. live_*() are safe from any thread.
   [[nodiscard]] const BridgeStats& stats() const noexcept { return stats_; }
-  [[nodiscard]] std::uint64_t live_ticks() const noexcept { return live_ticks_.load(std::memory_order_relaxed); }
-  [[nodiscard]] double live_rms_error_N() const noexcept { return live_rms_N_.load(std::memory_order_relaxed); }
+  [[nodiscard]] std::uint64_t live_ticks() const noexcept {
+    return live_ticks_.load(std::memory_order_relaxed);
+  }
+  [[nodiscard]] double live_rms_error_N() const noexcept {
+    return live_rms_N_.load(std::memory_order_relaxed);
+  }
   [[nodiscard]] double live_stiffness_N_per_m() const noexcept {
     return live_stiffness_.load(std::memory_order_relaxed);
   }

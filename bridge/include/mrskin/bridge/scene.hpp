@@ -13,10 +13,10 @@ namespace mrskin::bridge {
 
 // One slave-side sample: what the instrument feels.
 struct SlaveSample {
-  TimePoint stamp{};              // when the robot sampled it
-  double force_N = 0.0;           // normal contact force on the tissue
-  double indentation_m = 0.0;     // instrument indentation into the tissue
-  double contact_row = 0.0;       // where on the skin to render it, in cell units
+  TimePoint stamp{};           // when the robot sampled it
+  double force_N = 0.0;        // normal contact force on the tissue
+  double indentation_m = 0.0;  // instrument indentation into the tissue
+  double contact_row = 0.0;    // where on the skin to render it, in cell units
   double contact_col = 0.0;
   double contact_radius_cells = 0.0;
   bool valid = false;
@@ -40,7 +40,8 @@ class Scene : public SlaveSource {
  public:
   [[nodiscard]] virtual std::string_view name() const noexcept = 0;
   // Finger indentation per fluid cell of layout at scene time t_s, m.
-  virtual void finger(double t_s, const GridLayout& layout, std::span<double> indentation_m) const noexcept = 0;
+  virtual void finger(double t_s, const GridLayout& layout,
+                      std::span<double> indentation_m) const noexcept = 0;
   [[nodiscard]] virtual double cycle_s() const noexcept = 0;
   void set_start(TimePoint t0) noexcept { start_ = t0; }
   [[nodiscard]] TimePoint start() const noexcept { return start_; }

@@ -31,7 +31,7 @@ struct BridgeStats {
   std::uint64_t skipped_periods = 0;  // periods skipped to catch up (never burst)
   std::uint64_t send_failures = 0;
   std::uint64_t slave_samples = 0;
-  std::uint64_t stale_ticks = 0;      // ticks rendering without fresh slave data
+  std::uint64_t stale_ticks = 0;  // ticks rendering without fresh slave data
   DurationHistogram tick_time;
   // Rendered-force error: plant's true force minus the target clamped into the envelope,
   // scored on contacted cells while loading and holding.

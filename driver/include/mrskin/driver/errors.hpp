@@ -40,23 +40,30 @@ class Timeout : public Error {
 // Return codes of calls allowed on the real-time path.
 enum class ResultCode : unsigned char {
   ok = 0,
-  would_block,     // queue full or nothing to read; try next tick
-  not_open,        // no device session
-  invalid_value,   // NaN, Inf or out of range: nothing was sent
-  device_fault,    // device reports FAULT; enable() clears it
-  disconnected,    // transport lost
-  stale,           // input older than its validity
+  would_block,    // queue full or nothing to read; try next tick
+  not_open,       // no device session
+  invalid_value,  // NaN, Inf or out of range: nothing was sent
+  device_fault,   // device reports FAULT; enable() clears it
+  disconnected,   // transport lost
+  stale,          // input older than its validity
 };
 
 constexpr const char* to_string(ResultCode c) noexcept {
   switch (c) {
-    case ResultCode::ok: return "ok";
-    case ResultCode::would_block: return "would block";
-    case ResultCode::not_open: return "not open";
-    case ResultCode::invalid_value: return "invalid value";
-    case ResultCode::device_fault: return "device fault";
-    case ResultCode::disconnected: return "disconnected";
-    case ResultCode::stale: return "stale";
+    case ResultCode::ok:
+      return "ok";
+    case ResultCode::would_block:
+      return "would block";
+    case ResultCode::not_open:
+      return "not open";
+    case ResultCode::invalid_value:
+      return "invalid value";
+    case ResultCode::device_fault:
+      return "device fault";
+    case ResultCode::disconnected:
+      return "disconnected";
+    case ResultCode::stale:
+      return "stale";
   }
   return "unknown";
 }

@@ -23,8 +23,12 @@ class GridLayout {
   [[nodiscard]] const std::vector<GridCell>& fluid_cells() const noexcept { return fluid_; }
   [[nodiscard]] const std::vector<GridCell>& valves() const noexcept { return valves_; }
   // Fluid-cell indices a valve joins, and valve indices a fluid cell touches.
-  [[nodiscard]] const std::vector<std::size_t>& cells_of_valve(std::size_t v) const { return cells_of_valve_.at(v); }
-  [[nodiscard]] const std::vector<std::size_t>& valves_of_cell(std::size_t c) const { return valves_of_cell_.at(c); }
+  [[nodiscard]] const std::vector<std::size_t>& cells_of_valve(std::size_t v) const {
+    return cells_of_valve_.at(v);
+  }
+  [[nodiscard]] const std::vector<std::size_t>& valves_of_cell(std::size_t c) const {
+    return valves_of_cell_.at(c);
+  }
 
  private:
   int rows_;

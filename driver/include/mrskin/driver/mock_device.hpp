@@ -21,15 +21,15 @@ namespace mrskin {
 
 struct MockOptions {
   std::uint64_t seed = 1;
-  double perturbation = 0.15;         // plant parameters within +-15 % of nominal
-  double physics_dt_s = 1e-4;         // plant substep
-  double telemetry_period_s = 1e-3;   // one telemetry packet per period
-  double status_period_s = 0.1;       // status also goes out on every change
-  double heartbeat_timeout_s = 0.1;   // valves released after this silence
+  double perturbation = 0.15;        // plant parameters within +-15 % of nominal
+  double physics_dt_s = 1e-4;        // plant substep
+  double telemetry_period_s = 1e-3;  // one telemetry packet per period
+  double status_period_s = 0.1;      // status also goes out on every change
+  double heartbeat_timeout_s = 0.1;  // valves released after this silence
   double max_current_A = 0.5;
   double current_lsb_A = 125e-6;
   double sensor_lsb_m = 2.5e-6;
-  double sensor_noise_m = 1e-6;       // standard deviation, before quantisation
+  double sensor_noise_m = 1e-6;  // standard deviation, before quantisation
   std::uint32_t serial = 0x4D520001;
 };
 

@@ -103,7 +103,7 @@ class CanDecoder {
     std::uint8_t next_index = 0;
     bool active = false;
   };
-  CanDecoded decode_segment(const CanFrame& frame, Reassembly& r) noexcept;
+  static CanDecoded decode_segment(const CanFrame& frame, Reassembly& r) noexcept;
   std::uint8_t node_;
   std::array<Reassembly, 2> reassembly_{};
 };

@@ -181,9 +181,8 @@ struct ConfigAck {
   bool operator==(const ConfigAck&) const = default;
 };
 
-using Message = std::variant<IdentifyRequest, Identity, ValveCurrents, CellTargets, Telemetry,
-                             TimeSync, Status, Heartbeat, StateRequest, ConfigRead, ConfigData,
-                             ConfigWrite, ConfigAck>;
+using Message = std::variant<IdentifyRequest, Identity, ValveCurrents, CellTargets, Telemetry, TimeSync,
+                             Status, Heartbeat, StateRequest, ConfigRead, ConfigData, ConfigWrite, ConfigAck>;
 
 MessageType type_of(const Message& m) noexcept;
 
