@@ -5,37 +5,6 @@
 
 namespace mrskin::bridge {
 
-void DurationHistogram::add(std::int64_t ns) noexcept {
-  ++count_;
-  max_ns_ = std::max(max_ns_, ns);
-  std::size_t index = 0;
-  if (ns >= 10) {
-    const double pos = (std::log10(static_cast<double>(ns)) - 1.0) * kPerDecade;
-    index = static_cast<std::size_t>(std::min(pos + 1.0, static_cast<double>(buckets_.size() - 1)));
-  }
-  ++buckets_[index];
-}
-
-double DurationHistogram::percentile_ns(double q) const noexcept {
-  if (count_ == 0) {
-    return 0.0;
-  }
-  const auto rank = static_cast<std::uint64_t>(std::ceil(q * static_cast<double>(count_)));
-  std::uint64_t seen = 0;
-  for (std::size_t i = 0; i < buckets_.size(); ++i) {
-    seen += buckets_[i];
-    if (seen >= rank && buckets_[i] > 0) {
-      if (i == 0) {
-        return 10.0;
-      }
-      // Upper edge of the bucket, never above the largest value seen.
-      const double upper = std::pow(10.0, 1.0 + static_cast<double>(i) / kPerDecade);
-      return std::min(upper, static_cast<double>(max_ns_));
-    }
-  }
-  return static_cast<double>(max_ns_);
-}
-
 double BridgeStats::force_rms_error_N() const noexcept {
   return force_samples == 0 ? 0.0 : std::sqrt(force_sq_error_sum_N2 / static_cast<double>(force_samples));
 }

@@ -1,6 +1,17 @@
 #include "mrskin/driver/device.hpp"
 
+#include <fcntl.h>
+#include <fmt/format.h>
+#include <sys/file.h>
+#include <unistd.h>
+
+#include <algorithm>
+#include <cctype>
+#include <cerrno>
 #include <charconv>
+#include <cstdlib>
+#include <cstring>
+#include <fstream>
 #include <string>
 
 #include "mrskin/driver/errors.hpp"
@@ -18,6 +29,60 @@ T parse_number(std::string_view key, std::string_view text) {
                           "'");
   }
   return value;
+}
+
+// faults=drop:P,dup:P,corrupt:P,reorder:P,delay:S,disconnect:AT+FOR,stuck:N,noisy:N,
+//        overheat:N,busoff:AT
+MockFaults parse_faults(std::string_view list) {
+  MockFaults f;
+  while (!list.empty()) {
+    const auto comma = list.find(',');
+    const std::string_view item = list.substr(0, comma);
+    list = comma == std::string_view::npos ? std::string_view{} : list.substr(comma + 1);
+    const auto colon = item.find(':');
+    if (colon == std::string_view::npos) {
+      throw InvalidArgument("mock:// fault '" + std::string(item) + "' needs a value (name:value)");
+    }
+    const std::string_view name = item.substr(0, colon);
+    const std::string_view value = item.substr(colon + 1);
+    auto probability = [&](double& out) {
+      out = parse_number<double>(name, value);
+      if (!(out >= 0.0 && out <= 1.0)) {
+        throw InvalidArgument("mock:// fault '" + std::string(name) + "' is a probability in [0, 1]");
+      }
+    };
+    if (name == "drop") {
+      probability(f.drop_probability);
+    } else if (name == "dup") {
+      probability(f.duplicate_probability);
+    } else if (name == "corrupt") {
+      probability(f.corrupt_probability);
+    } else if (name == "reorder") {
+      probability(f.reorder_probability);
+    } else if (name == "delay") {
+      f.delay_s = parse_number<double>(name, value);
+    } else if (name == "disconnect") {
+      const auto plus = value.find('+');
+      if (plus == std::string_view::npos) {
+        throw InvalidArgument("mock:// fault 'disconnect' is AT+FOR, in seconds (e.g. disconnect:2+0.5)");
+      }
+      f.disconnect_at_s = parse_number<double>(name, value.substr(0, plus));
+      f.disconnect_for_s = parse_number<double>(name, value.substr(plus + 1));
+    } else if (name == "stuck") {
+      f.stuck_sensor = parse_number<int>(name, value);
+    } else if (name == "noisy") {
+      f.noisy_sensor = parse_number<int>(name, value);
+    } else if (name == "overheat") {
+      f.overheat_valve = parse_number<int>(name, value);
+    } else if (name == "busoff") {
+      f.bus_off_at_s = parse_number<double>(name, value);
+    } else {
+      throw InvalidArgument("mock:// fault '" + std::string(name) +
+                            "' is unknown: use drop, dup, corrupt, reorder, delay, disconnect, stuck, noisy, "
+                            "overheat or busoff");
+    }
+  }
+  return f;
 }
 
 }  // namespace
@@ -53,30 +118,90 @@ MockOptions parse_mock_uri(std::string_view uri, int& rows, int& cols) {
       if (options.perturbation < 0.0 || options.perturbation >= 0.9) {
         throw InvalidArgument("mock:// perturbation must be in [0, 0.9)");
       }
+    } else if (key == "faults") {
+      options.faults = parse_faults(value);
+    } else if (key == "time_scale") {
+      options.time_scale = parse_number<double>(key, value);
+      if (!(options.time_scale >= 1.0 && options.time_scale <= 1000.0)) {
+        throw InvalidArgument("mock:// time_scale must be in [1, 1000]");
+      }
     } else if (key == "rows") {
       rows = parse_number<int>(key, value);
     } else if (key == "cols") {
       cols = parse_number<int>(key, value);
     } else {
       throw InvalidArgument("mock:// parameter '" + std::string(key) +
-                            "' is unknown: use seed, perturbation, rows or cols");
+                            "' is unknown: use seed, perturbation, faults, time_scale, rows or cols");
     }
   }
   return options;
 }
 
+DeviceLock::DeviceLock(std::string_view uri) {
+  std::string name(uri.substr(0, uri.find('?')));
+  if (uri.starts_with("mock://")) {
+    name = fmt::format("{}@{}", name, ::getpid());
+  }
+  for (char& c : name) {
+    if (std::isalnum(static_cast<unsigned char>(c)) == 0 && c != '@' && c != '-') {
+      c = '_';
+    }
+  }
+  const char* runtime = std::getenv("XDG_RUNTIME_DIR");
+  path_ = fmt::format("{}/mrskin-{}.lock", runtime != nullptr && *runtime != '\0' ? runtime : "/tmp", name);
+  fd_ = ::open(path_.c_str(), O_RDWR | O_CREAT | O_CLOEXEC, 0600);
+  if (fd_ < 0) {
+    throw PermissionDenied(fmt::format("cannot create the ownership lock {}: {}: set XDG_RUNTIME_DIR to a writable "
+                                       "directory",
+                                       path_, std::strerror(errno)));
+  }
+  if (::flock(fd_, LOCK_EX | LOCK_NB) != 0) {
+    std::string owner = "another session";
+    std::ifstream in(path_);
+    long pid = 0;
+    if (in >> pid && pid > 0) {
+      std::ifstream comm(fmt::format("/proc/{}/comm", pid));
+      std::string command;
+      std::getline(comm, command);
+      owner = command.empty() ? fmt::format("process {}", pid) : fmt::format("process {} ({})", pid, command);
+    }
+    ::close(fd_);
+    fd_ = -1;
+    throw DeviceBusy(fmt::format(
+        "{} is owned by {}: stop it, or talk to the device through the running bridge (mrskinctl --bridge)", uri,
+        owner));
+  }
+  const std::string pid = fmt::format("{}\n", ::getpid());
+  if (::ftruncate(fd_, 0) != 0 || ::write(fd_, pid.data(), pid.size()) != static_cast<ssize_t>(pid.size())) {
+    // The lock holds without the PID; only the message to a second opener gets vaguer.
+  }
+}
+
+DeviceLock::~DeviceLock() {
+  if (fd_ >= 0) {
+    ::flock(fd_, LOCK_UN);
+    ::close(fd_);
+  }
+}
+
 OpenedDevice open_device(std::string_view uri, Clock& clock, const OpenOptions& options) {
   OpenedDevice opened;
+  SessionOptions session_options = options.session;
+  if (const char* scale = std::getenv("MRSKIN_TIME_SCALE"); scale != nullptr && *scale != '\0') {
+    session_options.time_scale = parse_number<double>("MRSKIN_TIME_SCALE", scale);
+  }
   if (uri.starts_with("mock://")) {
+    opened.lock = std::make_unique<DeviceLock>(uri);
     int rows = 5;
     int cols = 5;
-    const MockOptions mock_options = parse_mock_uri(uri, rows, cols);
+    MockOptions mock_options = parse_mock_uri(uri, rows, cols);
+    mock_options.time_scale = std::max(mock_options.time_scale, session_options.time_scale);
     opened.mock = MockDevice::make_placeholder(mock_options, rows, cols);
     if (!options.synchronous_mock) {
       opened.mock->start(clock);
     }
-    opened.session = std::make_unique<DeviceSession>(opened.mock->connect(options.synchronous_mock), clock,
-                                                     options.session);
+    opened.session = std::make_unique<DeviceSession>(opened.mock->connect(options.synchronous_mock, &clock), clock,
+                                                     session_options);
     return opened;
   }
   for (const std::string_view scheme : {"hid://", "usb://", "can://"}) {

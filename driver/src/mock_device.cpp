@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <string>
 
 #include "mrskin/protocol/packet.hpp"
 #include "mrskin/protocol/units.hpp"
@@ -12,8 +13,10 @@ namespace proto = mrskin::protocol;
 namespace {
 
 constexpr std::uint8_t kFirmwareMajor = 0;
-constexpr std::uint8_t kFirmwareMinor = 1;
+constexpr std::uint8_t kFirmwareMinor = 2;
 constexpr std::uint8_t kFirmwarePatch = 0;
+constexpr std::size_t kDelayLineCapacity = 4096;
+constexpr std::size_t kConfigCapacity = 4096;
 
 std::uint64_t splitmix(std::uint64_t& s) noexcept {
   std::uint64_t z = (s += 0x9E3779B97F4A7C15ULL);
@@ -21,14 +24,23 @@ std::uint64_t splitmix(std::uint64_t& s) noexcept {
   z = (z ^ (z >> 27U)) * 0x94D049BB133111EBULL;
   return z ^ (z >> 31U);
 }
+double unit_random(std::uint64_t& s) noexcept { return static_cast<double>(splitmix(s) >> 11U) * 0x1.0p-53; }
 // Standard normal by Box-Muller; deterministic for a seed.
 double gaussian(std::uint64_t& s) noexcept {
   const double u1 = (static_cast<double>(splitmix(s) >> 11U) + 1.0) * 0x1.0p-53;
-  const double u2 = static_cast<double>(splitmix(s) >> 11U) * 0x1.0p-53;
+  const double u2 = unit_random(s);
   return std::sqrt(-2.0 * std::log(u1)) * std::cos(6.283185307179586 * u2);
 }
 
+std::vector<std::uint8_t> to_bytes(const std::string& text) { return {text.begin(), text.end()}; }
+
 }  // namespace
+
+bool MockFaults::any() const noexcept {
+  return drop_probability > 0.0 || duplicate_probability > 0.0 || corrupt_probability > 0.0 ||
+         reorder_probability > 0.0 || delay_s > 0.0 || disconnect_at_s >= 0.0 || stuck_sensor >= 0 ||
+         noisy_sensor >= 0 || overheat_valve >= 0 || bus_off_at_s >= 0.0;
+}
 
 // Host end of the in-process link: pushes into the device's queue, pops from the host's.
 class MockDevice::HostTransport final : public Transport {
@@ -51,13 +63,15 @@ class MockDevice::HostTransport final : public Transport {
       return ResultCode::disconnected;
     }
     if (synchronous_) {
-      device_.handle_host_input(device_.last_step_);
+      const TimePoint now = device_.sync_clock_ != nullptr ? std::max(device_.sync_clock_->now(), device_.last_step_)
+                                                           : device_.last_step_;
+      device_.handle_host_input(now);
+      device_.flush_delayed(now);
     }
     return device_.to_host_.try_pop(out) ? ResultCode::ok : ResultCode::would_block;
   }
   [[nodiscard]] TransportState state() const noexcept override {
-    return device_.link_up_.load(std::memory_order_acquire) ? TransportState::open
-                                                            : TransportState::disconnected;
+    return device_.link_up_.load(std::memory_order_acquire) ? TransportState::open : TransportState::disconnected;
   }
   [[nodiscard]] std::string_view uri() const noexcept override { return "mock://"; }
 
@@ -71,6 +85,11 @@ MockDevice::MockDevice(const GridLayout& layout, const MockOptions& options, std
       options_(options),
       plant_(std::move(plant)),
       commanded_A_(layout.valve_count(), 0.0),
+      coil_A_(layout.valve_count(), 0.0),
+      coil_C_(layout.valve_count(), options.ambient_C),
+      stuck_value_(plant_->sensor_count(), 0.0),
+      delay_line_(kDelayLineCapacity),
+      fault_rng_(options.seed ^ 0x5EEDFA017ULL),
       sensor_si_(plant_->sensor_count(), 0.0),
       finger_m_(layout.fluid_cell_count()),
       truth_N_(layout.fluid_cell_count()),
@@ -86,19 +105,25 @@ MockDevice::MockDevice(const GridLayout& layout, const MockOptions& options, std
   for (auto& a : applied_A_) {
     a.store(0.0);
   }
+  // What a factory writes: a versioned calibration and the profile the unit was built to.
+  calibration_blob_ = to_bytes("# mrskin calibration\nversion = " + std::to_string(options.calibration_version) +
+                               "\nserial = " + std::to_string(options.serial) + "\nvalve_yield_gain = 1.0\n");
+  profile_blob_ = to_bytes("# mrskin profile\nname = \"placeholder\"\nrows = " + std::to_string(layout.rows()) +
+                           "\ncols = " + std::to_string(layout.cols()) + "\n");
+  calibration_blob_.reserve(kConfigCapacity);
 }
 
 std::shared_ptr<MockDevice> MockDevice::make_placeholder(const MockOptions& options, int rows, int cols) {
   const GridLayout layout(rows, cols);
-  auto plant =
-      std::make_unique<PlaceholderPlant>(layout, PlaceholderParams{}, options.perturbation, options.seed);
+  auto plant = std::make_unique<PlaceholderPlant>(layout, PlaceholderParams{}, options.perturbation, options.seed);
   return std::make_shared<MockDevice>(layout, options, std::move(plant));
 }
 
 MockDevice::~MockDevice() { stop(); }
 
-std::unique_ptr<Transport> MockDevice::connect(bool synchronous) {
+std::unique_ptr<Transport> MockDevice::connect(bool synchronous, const Clock* clock) {
   synchronous_.store(synchronous, std::memory_order_release);
+  sync_clock_ = clock;
   return std::make_unique<HostTransport>(*this, synchronous);
 }
 
@@ -123,6 +148,19 @@ void MockDevice::stop() noexcept {
   }
 }
 
+void MockDevice::set_link_up(bool up) noexcept {
+  const bool was = link_up_.exchange(up, std::memory_order_acq_rel);
+  if (up && !was) {
+    // A re-plugged unit boots: DISABLED, valves released, nothing queued.
+    state_.store(static_cast<std::uint8_t>(proto::DeviceState::disabled));
+    fault_.store(0);
+  }
+}
+
+MockDevice::FaultCounters MockDevice::fault_counters() const noexcept {
+  return {dropped_.load(), duplicated_.load(), corrupted_.load(), reordered_.load()};
+}
+
 void MockDevice::set_finger_indentation(std::span<const double> indentation_m) noexcept {
   const std::size_t n = std::min(indentation_m.size(), finger_m_.size());
   for (std::size_t i = 0; i < n; ++i) {
@@ -144,8 +182,63 @@ void MockDevice::applied_currents(std::span<double> out_A) const noexcept {
   }
 }
 
+bool MockDevice::chance(double probability) noexcept {
+  return probability > 0.0 && unit_random(fault_rng_) < probability;
+}
+
+void MockDevice::emit(const Datagram& d, TimePoint now) noexcept {
+  const MockFaults& f = options_.faults;
+  if (chance(f.drop_probability)) {
+    dropped_.fetch_add(1, std::memory_order_relaxed);
+    return;
+  }
+  Datagram out = d;
+  if (chance(f.corrupt_probability) && out.length > 0) {
+    const std::uint64_t bit = splitmix(fault_rng_) % (out.length * 8U);
+    out.bytes[bit / 8U] = static_cast<std::uint8_t>(out.bytes[bit / 8U] ^ (1U << (bit % 8U)));
+    corrupted_.fetch_add(1, std::memory_order_relaxed);
+  }
+  const int copies = chance(f.duplicate_probability) ? 2 : 1;
+  if (copies == 2) {
+    duplicated_.fetch_add(1, std::memory_order_relaxed);
+  }
+  for (int c = 0; c < copies; ++c) {
+    if (!holding_ && chance(f.reorder_probability)) {
+      held_ = out;  // goes out after the next datagram
+      holding_ = true;
+      reordered_.fetch_add(1, std::memory_order_relaxed);
+      continue;
+    }
+    for (int k = 0; k < (holding_ ? 2 : 1); ++k) {
+      const Datagram& next = k == 0 ? out : held_;
+      if (delay_count_ == delay_line_.size()) {
+        dropped_.fetch_add(1, std::memory_order_relaxed);  // line full: a bus would lose it too
+        continue;
+      }
+      Delayed& slot = delay_line_[(delay_head_ + delay_count_) % delay_line_.size()];
+      slot.due = now + from_seconds(f.delay_s);
+      slot.datagram = next;
+      ++delay_count_;
+    }
+    holding_ = false;
+  }
+  flush_delayed(now);
+}
+
+void MockDevice::flush_delayed(TimePoint now) noexcept {
+  while (delay_count_ > 0) {
+    const Delayed& slot = delay_line_[delay_head_];
+    if (slot.due > now) {
+      break;
+    }
+    (void)to_host_.try_push(slot.datagram);  // a full queue drops the datagram, as a bus would
+    delay_head_ = (delay_head_ + 1) % delay_line_.size();
+    --delay_count_;
+  }
+}
+
 void MockDevice::send_message(const proto::Message& message) noexcept {
-  if (!link_up_.load(std::memory_order_acquire)) {
+  if (!link_up_.load(std::memory_order_acquire) || bus_off_until_ > last_step_) {
     return;
   }
   Datagram d;
@@ -155,31 +248,108 @@ void MockDevice::send_message(const proto::Message& message) noexcept {
   }
   ++tx_sequence_;
   d.length = static_cast<std::uint8_t>(r.bytes);
-  (void)to_host_.try_push(d);  // a full queue drops the datagram, as a bus would
+  emit(d, last_step_);
 }
 
 void MockDevice::send_status() noexcept {
   proto::Status s;
   s.state = state_.load(std::memory_order_relaxed);
   s.fault = fault_.load(std::memory_order_relaxed);
-  const bool released =
-      std::all_of(commanded_A_.begin(), commanded_A_.end(), [](double a) { return a == 0.0; });
-  s.flags = released ? proto::kFlagValvesReleased : 0;
+  const bool released = std::all_of(commanded_A_.begin(), commanded_A_.end(), [](double a) { return a == 0.0; });
+  unsigned flags = proto::kFlagCalibrated;
+  if (released) {
+    flags |= proto::kFlagValvesReleased;
+  }
+  if (derated_) {
+    flags |= proto::kFlagDerated;
+  }
+  s.flags = static_cast<std::uint8_t>(flags);
   send_message(s);
 }
 
 void MockDevice::release_valves() noexcept {
   std::fill(commanded_A_.begin(), commanded_A_.end(), 0.0);
-  plant_->set_valve_currents(commanded_A_);
+  std::fill(coil_A_.begin(), coil_A_.end(), 0.0);  // the driver's fast-off path ignores slew
+  plant_->set_valve_currents(coil_A_);
   for (auto& a : applied_A_) {
     a.store(0.0, std::memory_order_relaxed);
   }
 }
 
+void MockDevice::enter_fault(proto::FaultCode code) noexcept {
+  state_.store(static_cast<std::uint8_t>(proto::DeviceState::fault));
+  fault_.store(static_cast<std::uint8_t>(code));  // latched until an explicit enable
+  release_valves();
+  send_status();
+}
+
 void MockDevice::handle_host_input(TimePoint now) noexcept {
   Datagram d;
+  const MockFaults& f = options_.faults;
   while (to_device_.try_pop(d)) {
+    if (bus_off_until_ > now) {
+      continue;  // bus-off: the node hears nothing
+    }
+    if (chance(f.drop_probability)) {
+      dropped_.fetch_add(1, std::memory_order_relaxed);
+      continue;
+    }
+    if (chance(f.corrupt_probability) && d.length > 0) {
+      const std::uint64_t bit = splitmix(fault_rng_) % (d.length * 8U);
+      d.bytes[bit / 8U] = static_cast<std::uint8_t>(d.bytes[bit / 8U] ^ (1U << (bit % 8U)));
+      corrupted_.fetch_add(1, std::memory_order_relaxed);
+    }
     handle(d.bytes.data(), d.length, now);
+    if (chance(f.duplicate_probability)) {
+      duplicated_.fetch_add(1, std::memory_order_relaxed);
+      handle(d.bytes.data(), d.length, now);
+    }
+  }
+}
+
+void MockDevice::handle_config(const proto::Message& message) noexcept {
+  auto blob_for = [this](std::uint16_t key) -> std::vector<std::uint8_t>* {
+    switch (static_cast<proto::ConfigKey>(key)) {
+      case proto::ConfigKey::profile: return &profile_blob_;
+      case proto::ConfigKey::calibration: return &calibration_blob_;
+    }
+    return nullptr;
+  };
+  if (const auto* r = std::get_if<proto::ConfigRead>(&message)) {
+    const std::vector<std::uint8_t>* blob = blob_for(r->key);
+    if (blob == nullptr || r->offset > blob->size()) {
+      send_message(proto::ConfigAck{r->key, r->offset,
+                                    static_cast<std::uint8_t>(blob == nullptr ? proto::ConfigStatus::bad_key
+                                                                              : proto::ConfigStatus::bad_range)});
+      return;
+    }
+    proto::ConfigData data;
+    data.key = r->key;
+    data.offset = r->offset;
+    data.total = static_cast<std::uint16_t>(blob->size());
+    data.length = static_cast<std::uint8_t>(std::min<std::size_t>(r->length, blob->size() - r->offset));
+    std::copy_n(blob->begin() + r->offset, data.length, data.bytes.begin());
+    send_message(data);
+  } else if (const auto* w = std::get_if<proto::ConfigWrite>(&message)) {
+    // Only the calibration is writable, and only while the coils are off.
+    auto status = proto::ConfigStatus::ok;
+    if (static_cast<proto::ConfigKey>(w->key) != proto::ConfigKey::calibration) {
+      status = proto::ConfigStatus::rejected;
+    } else if (state_.load() == static_cast<std::uint8_t>(proto::DeviceState::enabled)) {
+      status = proto::ConfigStatus::busy;
+    } else if (w->total > kConfigCapacity) {
+      status = proto::ConfigStatus::bad_range;
+    } else {
+      if (w->offset == 0) {
+        calibration_blob_.clear();  // within reserve: no allocation
+      }
+      if (w->offset != calibration_blob_.size()) {
+        status = proto::ConfigStatus::bad_range;  // chunks must arrive in order
+      } else {
+        calibration_blob_.insert(calibration_blob_.end(), w->bytes.begin(), w->bytes.begin() + w->length);
+      }
+    }
+    send_message(proto::ConfigAck{w->key, w->offset, static_cast<std::uint8_t>(status)});
   }
 }
 
@@ -202,11 +372,12 @@ void MockDevice::handle(const std::uint8_t* bytes, std::size_t length, TimePoint
     id.sensors = static_cast<std::uint16_t>(sensor_si_.size());
     id.serial = options_.serial;
     id.current_lsb_nA = static_cast<std::uint32_t>(std::lround(options_.current_lsb_A * 1e9));
-    id.current_max_counts = static_cast<std::uint16_t>(std::min<long>(
-        std::lround(options_.max_current_A / options_.current_lsb_A), proto::kCurrentCountMax));
+    id.current_max_counts = static_cast<std::uint16_t>(
+        std::min<long>(std::lround(options_.max_current_A / options_.current_lsb_A), proto::kCurrentCountMax));
     id.sensor_quantity = static_cast<std::uint8_t>(proto::SensorQuantity::displacement_m);
     id.sensor_lsb_nano = static_cast<std::uint32_t>(std::lround(options_.sensor_lsb_m * 1e9));
-    id.heartbeat_timeout_ms = static_cast<std::uint16_t>(std::lround(options_.heartbeat_timeout_s * 1e3));
+    id.heartbeat_timeout_ms =
+        static_cast<std::uint16_t>(std::lround(options_.heartbeat_timeout_s * options_.time_scale * 1e3));
     id.telemetry_rate_hz = static_cast<std::uint16_t>(std::lround(1.0 / options_.telemetry_period_s));
     send_message(id);
     send_status();
@@ -224,35 +395,66 @@ void MockDevice::handle(const std::uint8_t* bytes, std::size_t length, TimePoint
         state_.store(static_cast<std::uint8_t>(proto::DeviceState::paused));
         break;
       case proto::StateRequestCode::estop:
-        state_.store(static_cast<std::uint8_t>(proto::DeviceState::fault));
-        fault_.store(static_cast<std::uint8_t>(proto::FaultCode::estop));
-        release_valves();
-        break;
+        enter_fault(proto::FaultCode::estop);
+        return;
     }
     send_status();
   } else if (const auto* v = std::get_if<proto::ValveCurrents>(&p.message)) {
     if (state != proto::DeviceState::enabled) {
       return;  // only an enabled unit drives its coils
     }
-    const double lsb = options_.current_lsb_A;
     for (std::size_t i = 0; i < v->count; ++i) {
       const std::size_t valve = v->first + i;
       if (valve < commanded_A_.size()) {
-        commanded_A_[valve] = std::min(v->counts[i] * lsb, options_.max_current_A);
+        commanded_A_[valve] = std::min(v->counts[i] * options_.current_lsb_A, options_.max_current_A);
       }
     }
-    plant_->set_valve_currents(commanded_A_);
-    for (std::size_t i = 0; i < commanded_A_.size(); ++i) {
-      applied_A_[i].store(commanded_A_[i], std::memory_order_relaxed);
-    }
+  } else if (const auto* h = std::get_if<proto::Heartbeat>(&p.message)) {
+    send_message(proto::Heartbeat{h->counter});  // echo: the host measures round trips
+  } else {
+    handle_config(p.message);
   }
-  // Heartbeat needs nothing beyond refreshing the watchdog above.
+}
+
+void MockDevice::update_coils(double dt_s) noexcept {
+  const MockFaults& f = options_.faults;
+  const double max_step_A = options_.slew_A_per_s * dt_s;
+  double hottest = options_.ambient_C;
+  bool derated = false;
+  bool overheated = false;
+  for (std::size_t v = 0; v < coil_A_.size(); ++v) {
+    // Current limit falls linearly from derate_start_C to zero at fault_C.
+    const double t = coil_C_[v];
+    const double limit_fraction =
+        std::clamp((options_.fault_C - t) / (options_.fault_C - options_.derate_start_C), 0.0, 1.0);
+    const double wanted = std::min(commanded_A_[v], options_.max_current_A * limit_fraction);
+    derated = derated || wanted < commanded_A_[v];
+    coil_A_[v] += std::clamp(wanted - coil_A_[v], -max_step_A, max_step_A);
+    const double extra_W = static_cast<int>(v) == f.overheat_valve ? f.overheat_power_W : 0.0;
+    const double heat_W = options_.coil_resistance_ohm * coil_A_[v] * coil_A_[v] + extra_W -
+                          (t - options_.ambient_C) / options_.coil_thermal_resistance_K_per_W;
+    coil_C_[v] = t + dt_s * heat_W / options_.coil_heat_capacity_J_per_K;
+    hottest = std::max(hottest, coil_C_[v]);
+    overheated = overheated || coil_C_[v] >= options_.fault_C;
+  }
+  plant_->set_valve_currents(coil_A_);
+  for (std::size_t i = 0; i < coil_A_.size(); ++i) {
+    applied_A_[i].store(coil_A_[i], std::memory_order_relaxed);
+  }
+  max_coil_C_.store(hottest, std::memory_order_relaxed);
+  if (derated != derated_) {
+    derated_ = derated;
+    send_status();
+  }
+  if (overheated && state_.load() != static_cast<std::uint8_t>(proto::DeviceState::fault)) {
+    enter_fault(proto::FaultCode::overtemperature);
+  }
 }
 
 void MockDevice::emit_telemetry(TimePoint now) noexcept {
   plant_->read_sensors(sensor_si_);
-  const auto time_us =
-      static_cast<std::uint32_t>(static_cast<std::uint64_t>(now.count() / 1000) & 0xFFFFFFFFULL);
+  const MockFaults& f = options_.faults;
+  const auto time_us = static_cast<std::uint32_t>(static_cast<std::uint64_t>(now.count() / 1000) & 0xFFFFFFFFULL);
   std::size_t first = 0;
   while (first < sensor_si_.size()) {
     proto::Telemetry t;
@@ -260,8 +462,13 @@ void MockDevice::emit_telemetry(TimePoint now) noexcept {
     t.first = static_cast<std::uint16_t>(first);
     t.count = static_cast<std::uint8_t>(std::min(proto::kMaxTelemetryValues, sensor_si_.size() - first));
     for (std::size_t i = 0; i < t.count; ++i) {
-      const double noisy = sensor_si_[first + i] + options_.sensor_noise_m * gaussian(noise_state_);
-      const double counts = std::nearbyint(noisy / options_.sensor_lsb_m);
+      const std::size_t s = first + i;
+      const double sigma = static_cast<int>(s) == f.noisy_sensor ? f.noisy_sensor_noise_m : options_.sensor_noise_m;
+      double value = sensor_si_[s] + sigma * gaussian(noise_state_);
+      if (static_cast<int>(s) == f.stuck_sensor) {
+        value = stuck_value_[s];
+      }
+      const double counts = std::nearbyint(value / options_.sensor_lsb_m);
       t.counts[i] = static_cast<std::int16_t>(std::clamp(counts, static_cast<double>(proto::kSensorCountMin),
                                                          static_cast<double>(proto::kSensorCountMax)));
     }
@@ -270,22 +477,49 @@ void MockDevice::emit_telemetry(TimePoint now) noexcept {
   }
 }
 
+void MockDevice::apply_link_faults(TimePoint now) noexcept {
+  const MockFaults& f = options_.faults;
+  const double t_s = to_seconds(now - start_);
+  if (f.disconnect_at_s >= 0.0 && !disconnect_done_ && t_s >= f.disconnect_at_s) {
+    if (link_up_.load() && t_s < f.disconnect_at_s + f.disconnect_for_s) {
+      set_link_up(false);
+    } else if (!link_up_.load() && t_s >= f.disconnect_at_s + f.disconnect_for_s) {
+      set_link_up(true);
+      release_valves();
+      disconnect_done_ = true;
+    }
+  }
+  if (f.bus_off_at_s >= 0.0 && !bus_off_done_ && t_s >= f.bus_off_at_s) {
+    bus_off_done_ = true;
+    enter_fault(proto::FaultCode::bus_off);
+    bus_off_until_ = now + from_seconds(f.bus_off_for_s);
+  }
+}
+
 void MockDevice::step(TimePoint now) noexcept {
   if (!started_) {
     started_ = true;
+    start_ = now;
     last_step_ = now;
     last_heartbeat_ = now;
     next_telemetry_ = now;
     next_status_ = now;
+    plant_->read_sensors(stuck_value_);
+  }
+  apply_link_faults(now);
+  if (!link_up_.load(std::memory_order_acquire)) {
+    Datagram drain;
+    while (to_device_.try_pop(drain)) {
+    }
+    last_step_ = now;
+    last_heartbeat_ = now;
+    return;
   }
   handle_host_input(now);
   const auto state = static_cast<proto::DeviceState>(state_.load(std::memory_order_relaxed));
   if (state == proto::DeviceState::enabled &&
-      to_seconds(now - last_heartbeat_) > options_.heartbeat_timeout_s) {
-    state_.store(static_cast<std::uint8_t>(proto::DeviceState::fault));
-    fault_.store(static_cast<std::uint8_t>(proto::FaultCode::heartbeat_lost));
-    release_valves();
-    send_status();
+      to_seconds(now - last_heartbeat_) > options_.heartbeat_timeout_s * options_.time_scale) {
+    enter_fault(proto::FaultCode::heartbeat_lost);
   }
   for (std::size_t i = 0; i < finger_m_.size(); ++i) {
     scratch_[i] = finger_m_[i].load(std::memory_order_relaxed);
@@ -293,6 +527,7 @@ void MockDevice::step(TimePoint now) noexcept {
   plant_->set_finger_indentation(std::span<const double>(scratch_.data(), finger_m_.size()));
   const Duration dt = from_seconds(options_.physics_dt_s);
   while (last_step_ + dt <= now) {
+    update_coils(options_.physics_dt_s);
     plant_->step(options_.physics_dt_s);
     last_step_ += dt;
     if (last_step_ >= next_telemetry_) {
@@ -308,6 +543,7 @@ void MockDevice::step(TimePoint now) noexcept {
     send_status();
     next_status_ += from_seconds(options_.status_period_s);
   }
+  flush_delayed(now);
 }
 
 }  // namespace mrskin

@@ -5,25 +5,11 @@
 #include <cstdint>
 #include <string>
 
+#include "mrskin/driver/histogram.hpp"
+
 namespace mrskin::bridge {
 
-// Log-spaced histogram of durations from 10 ns to 10 s, 16 buckets per decade.
-class DurationHistogram {
- public:
-  void add(std::int64_t ns) noexcept;
-  // Value (ns) below which fraction q of the samples fall; 0 when empty.
-  [[nodiscard]] double percentile_ns(double q) const noexcept;
-  [[nodiscard]] std::uint64_t count() const noexcept { return count_; }
-  [[nodiscard]] std::int64_t max_ns() const noexcept { return max_ns_; }
-  void reset() noexcept { *this = DurationHistogram{}; }
-
- private:
-  static constexpr int kPerDecade = 16;
-  static constexpr int kDecades = 9;
-  std::array<std::uint64_t, kPerDecade * kDecades + 2> buckets_{};
-  std::uint64_t count_ = 0;
-  std::int64_t max_ns_ = 0;
-};
+using mrskin::DurationHistogram;
 
 struct BridgeStats {
   std::uint64_t ticks = 0;

@@ -1,5 +1,8 @@
 // Opening a device by URI. Setup only: throws typed exceptions that say what to do.
-//   mock://[?seed=N&perturbation=F&rows=R&cols=C]   the simulated unit (in-process)
+//   mock://[?seed=N&perturbation=F&faults=LIST&time_scale=K&rows=R&cols=C]
+//     the simulated unit, in-process. faults is a comma list of drop:P, dup:P, corrupt:P,
+//     reorder:P, delay:S, disconnect:AT+FOR, stuck:SENSOR, noisy:SENSOR, overheat:VALVE,
+//     busoff:AT (probabilities per datagram, times in seconds of device time).
 // hid://, usb:// and can:// are recognised and refused until their transports land.
 #pragma once
 
@@ -21,8 +24,29 @@ struct OpenOptions {
   SessionOptions session{};
 };
 
+// Advisory ownership of one device: an flock()ed file under $XDG_RUNTIME_DIR (or /tmp)
+// holding the owner's PID. A mock device lives inside its process, so its lock name
+// carries the PID: two sessions on one mock:// name in one process are refused.
+class DeviceLock {
+ public:
+  // Throws DeviceBusy naming the owning process.
+  explicit DeviceLock(std::string_view uri);
+  DeviceLock(const DeviceLock&) = delete;
+  DeviceLock& operator=(const DeviceLock&) = delete;
+  DeviceLock(DeviceLock&&) = delete;
+  DeviceLock& operator=(DeviceLock&&) = delete;
+  ~DeviceLock();
+  [[nodiscard]] const std::string& path() const noexcept { return path_; }
+
+ private:
+  std::string path_;
+  int fd_ = -1;
+};
+
 struct OpenedDevice {
-  // Declared first so it is destroyed last: the session's destructor still talks to it.
+  std::unique_ptr<DeviceLock> lock;  // destroyed last
+  // Declared before the session so it is destroyed after it: the session's destructor
+  // still talks to it.
   std::shared_ptr<MockDevice> mock;  // set for mock:// only
   std::unique_ptr<DeviceSession> session;
 };

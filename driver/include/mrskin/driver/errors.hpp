@@ -31,6 +31,11 @@ class ProtocolMismatch : public Error {
  public:
   using Error::Error;
 };
+// Another process (or another session in this one) owns the device.
+class DeviceBusy : public Error {
+ public:
+  using Error::Error;
+};
 // The device did not answer in time during setup.
 class Timeout : public Error {
  public:

@@ -1,6 +1,8 @@
 // The mock device: firmware that speaks protocol v1 packets (HID report framing) over an
 // in-process transport, above a simulated Plant. It is our only hardware, so it behaves
-// like a unit: identity, heartbeat watchdog, states, current limits, timestamps.
+// like a unit: identity, heartbeat watchdog, states, current and slew limits, a coil
+// thermal model that derates, configuration memory with a versioned calibration, device
+// timestamps, and faults injected on demand.
 #pragma once
 
 #include <atomic>
@@ -19,6 +21,25 @@
 
 namespace mrskin {
 
+// Faults the mock injects, seeded like everything else (mock://?faults=...).
+struct MockFaults {
+  double drop_probability = 0.0;       // each datagram, each direction
+  double duplicate_probability = 0.0;  // each datagram, each direction
+  double corrupt_probability = 0.0;    // one bit flipped, each datagram, each direction
+  double reorder_probability = 0.0;    // device->host datagram held back behind the next
+  double delay_s = 0.0;                // extra device->host latency
+  double disconnect_at_s = -1.0;       // cable pulled at this device time (< 0: never)...
+  double disconnect_for_s = 0.0;       // ...for this long; the unit reboots DISABLED
+  int stuck_sensor = -1;               // this sensor freezes at its first reading
+  int noisy_sensor = -1;               // this sensor gets noisy_sensor_noise_m of noise
+  double noisy_sensor_noise_m = 50e-6;
+  int overheat_valve = -1;             // this coil gets overheat_power_W of extra heat
+  double overheat_power_W = 10.0;
+  double bus_off_at_s = -1.0;          // bus-off at this device time (< 0: never)
+  double bus_off_for_s = 0.1;          // silent this long, then back in FAULT
+  [[nodiscard]] bool any() const noexcept;
+};
+
 struct MockOptions {
   std::uint64_t seed = 1;
   double perturbation = 0.15;        // plant parameters within +-15 % of nominal
@@ -31,6 +52,17 @@ struct MockOptions {
   double sensor_lsb_m = 2.5e-6;
   double sensor_noise_m = 1e-6;  // standard deviation, before quantisation
   std::uint32_t serial = 0x4D520001;
+  double slew_A_per_s = 200.0;          // coil current slew limit of the current driver
+  // Coil thermal model: C dT/dt = R I^2 + P_extra - (T - T_ambient) / R_th.
+  double coil_resistance_ohm = 4.0;
+  double coil_heat_capacity_J_per_K = 0.5;
+  double coil_thermal_resistance_K_per_W = 20.0;
+  double ambient_C = 25.0;
+  double derate_start_C = 80.0;         // current limit falls linearly from here...
+  double fault_C = 100.0;               // ...to zero here, where the unit faults
+  double time_scale = 1.0;              // multiplies every timeout (slow environments, VMs)
+  MockFaults faults{};
+  std::uint16_t calibration_version = 1;
 };
 
 class MockDevice {
@@ -47,7 +79,8 @@ class MockDevice {
   // The host's end of the link. With synchronous == true (single-threaded tests), the
   // firmware answers requests inside the host's receive() call; telemetry and physics
   // still advance only in step().
-  std::unique_ptr<Transport> connect(bool synchronous);
+  // clock (optional, synchronous mode) dates what the firmware does inside receive().
+  std::unique_ptr<Transport> connect(bool synchronous, const Clock* clock = nullptr);
 
   // Handles host packets, advances the plant to now and emits telemetry. Not thread-safe
   // against itself: call it from one thread, or use start().
@@ -66,9 +99,21 @@ class MockDevice {
   [[nodiscard]] const GridLayout& layout() const noexcept { return layout_; }
   [[nodiscard]] std::uint8_t state() const noexcept { return state_.load(std::memory_order_acquire); }
   [[nodiscard]] std::uint8_t fault() const noexcept { return fault_.load(std::memory_order_acquire); }
-  // Stop answering (simulates a host going silent is done by the host; this is the device
-  // pulling its cable).
-  void set_link_up(bool up) noexcept { link_up_.store(up, std::memory_order_release); }
+  // Pulls (false) or re-plugs (true) the cable. A re-plugged unit boots DISABLED.
+  void set_link_up(bool up) noexcept;
+  [[nodiscard]] bool link_up() const noexcept { return link_up_.load(std::memory_order_acquire); }
+  // Hottest coil temperature, deg C; callable from any thread.
+  [[nodiscard]] double max_coil_temperature_C() const noexcept {
+    return max_coil_C_.load(std::memory_order_relaxed);
+  }
+  // Datagrams the fault injector dropped, duplicated, corrupted, in both directions.
+  struct FaultCounters {
+    std::uint64_t dropped = 0;
+    std::uint64_t duplicated = 0;
+    std::uint64_t corrupted = 0;
+    std::uint64_t reordered = 0;
+  };
+  [[nodiscard]] FaultCounters fault_counters() const noexcept;
 
  private:
   class HostTransport;
@@ -79,6 +124,13 @@ class MockDevice {
   void send_status() noexcept;
   void release_valves() noexcept;
   void emit_telemetry(TimePoint now) noexcept;
+  void emit(const Datagram& d, TimePoint now) noexcept;
+  void flush_delayed(TimePoint now) noexcept;
+  void update_coils(double dt_s) noexcept;
+  void enter_fault(protocol::FaultCode code) noexcept;
+  void apply_link_faults(TimePoint now) noexcept;
+  bool chance(double probability) noexcept;
+  void handle_config(const protocol::Message& message) noexcept;
 
   GridLayout layout_;
   MockOptions options_;
@@ -86,6 +138,31 @@ class MockDevice {
   SpscQueue<Datagram> to_device_{256};
   SpscQueue<Datagram> to_host_{1024};
   std::vector<double> commanded_A_;
+  std::vector<double> coil_A_;  // after slew limit and derating
+  std::vector<double> coil_C_;
+  std::vector<double> stuck_value_;
+  struct Delayed {
+    TimePoint due{};
+    Datagram datagram{};
+  };
+  std::vector<Delayed> delay_line_;  // ring, preallocated
+  std::size_t delay_head_ = 0;
+  std::size_t delay_count_ = 0;
+  Datagram held_{};                  // reorder: the datagram held back
+  bool holding_ = false;
+  std::vector<std::uint8_t> calibration_blob_;
+  std::vector<std::uint8_t> profile_blob_;
+  std::atomic<double> max_coil_C_{25.0};
+  std::atomic<std::uint64_t> dropped_{0};
+  std::atomic<std::uint64_t> duplicated_{0};
+  std::atomic<std::uint64_t> corrupted_{0};
+  std::atomic<std::uint64_t> reordered_{0};
+  std::uint64_t fault_rng_;
+  TimePoint start_{};
+  TimePoint bus_off_until_{};
+  bool bus_off_done_ = false;
+  bool disconnect_done_ = false;
+  bool derated_ = false;
   std::vector<double> sensor_si_;
   std::vector<std::atomic<double>> finger_m_;
   std::vector<std::atomic<double>> truth_N_;
@@ -95,6 +172,7 @@ class MockDevice {
   std::atomic<std::uint8_t> fault_{0};
   std::atomic<bool> link_up_{true};
   std::atomic<bool> synchronous_{false};
+  const Clock* sync_clock_ = nullptr;
   std::atomic<bool> running_{false};
   std::thread thread_;
   TimePoint last_step_{};

@@ -1,7 +1,11 @@
 // A session with one device: handshake at construction (throws on failure), then
 // allocation-free, non-throwing calls for the tick: poll(), send_valve_currents().
+// The session mirrors the device's operating state (DISABLED, ENABLED, PAUSED, FAULT),
+// keeps a ring log of recent traffic that freezes on a fault, reconnects after an unplug
+// with backoff, and counts everything that went wrong.
 #pragma once
 
+#include <array>
 #include <cstdint>
 #include <memory>
 #include <span>
@@ -10,6 +14,7 @@
 
 #include "mrskin/driver/clock.hpp"
 #include "mrskin/driver/errors.hpp"
+#include "mrskin/driver/histogram.hpp"
 #include "mrskin/driver/transport.hpp"
 #include "mrskin/protocol/messages.hpp"
 
@@ -19,7 +24,7 @@ enum class DeviceState : std::uint8_t { disabled = 0, enabled = 1, paused = 2, f
 const char* to_string(DeviceState s) noexcept;
 const char* fault_name(std::uint8_t fault_code) noexcept;
 
-// What the device said about itself, in SI units.
+// What the device said about itself, in SI units, plus its configuration memory.
 struct DeviceInfo {
   int protocol_major = 0;
   int protocol_minor = 0;
@@ -35,11 +40,22 @@ struct DeviceInfo {
   double sensor_lsb = 0.0;  // in the sensor's SI unit
   double heartbeat_timeout_s = 0.0;
   double telemetry_rate_hz = 0.0;
+  std::string profile;      // profile text stored on the device
+  std::string calibration;  // calibration text stored on the device (versioned)
 };
 
 struct SessionOptions {
+  // Multiplies every timeout below (handshake, heartbeat period, reconnect backoff):
+  // raise it in slow environments such as a VM. open_device() also reads
+  // MRSKIN_TIME_SCALE from the environment.
+  double time_scale = 1.0;
   Duration handshake_timeout = std::chrono::milliseconds(500);
+  Duration handshake_retry = std::chrono::milliseconds(50);
   Duration heartbeat_period = std::chrono::milliseconds(20);
+  Duration reconnect_backoff_min = std::chrono::milliseconds(10);
+  Duration reconnect_backoff_max = std::chrono::milliseconds(1000);
+  Duration telemetry_timeout = std::chrono::milliseconds(50);
+  bool read_configuration = true;  // read profile and calibration during the handshake
 };
 
 // Counters the session keeps; read from the tick thread or after it stops.
@@ -48,11 +64,33 @@ struct SessionCounters {
   std::uint64_t send_would_block = 0;
   std::uint64_t received = 0;
   std::uint64_t telemetry = 0;
-  std::uint64_t decode_errors = 0;
+  std::uint64_t crc_errors = 0;
+  std::uint64_t decode_errors = 0;  // all decode failures, CRC included
   std::uint64_t sequence_gaps = 0;
+  std::uint64_t duplicates = 0;     // same sequence number twice in a row
   std::uint64_t heartbeats = 0;
   std::uint64_t invalid_commands = 0;
+  std::uint64_t telemetry_timeouts = 0;
+  std::uint64_t disconnects = 0;
+  std::uint64_t reconnects = 0;
+  std::uint64_t faults = 0;
+  DurationHistogram round_trip;  // heartbeat sent -> its echo received
 };
+
+// One packet in the ring log.
+struct TrafficRecord {
+  TimePoint time{};
+  bool sent = false;  // host -> device
+  Datagram datagram{};
+};
+
+// Called on the tick thread for every telemetry packet, inside poll(); must not block.
+struct TelemetryView {
+  std::uint32_t device_time_us = 0;
+  std::size_t first = 0;
+  std::span<const double> values;  // SI
+};
+using TelemetryCallback = void (*)(void* context, const TelemetryView& view) noexcept;
 
 class DeviceSession {
  public:
@@ -66,15 +104,25 @@ class DeviceSession {
   ~DeviceSession();
 
   [[nodiscard]] const DeviceInfo& info() const noexcept { return info_; }
+  void set_telemetry_callback(TelemetryCallback callback, void* context) noexcept {
+    telemetry_callback_ = callback;
+    telemetry_context_ = context;
+  }
 
   // --- real-time path: no allocation, no exceptions, no blocking -----------------------
-  // Drains received packets and sends the heartbeat when due.
+  // Drains received packets, sends the heartbeat when due, reconnects after an unplug.
+  // Returns disconnected while the link is down, device_fault while the device is in FAULT.
   ResultCode poll(TimePoint now) noexcept;
   // Per-valve coil currents, A. Refuses NaN/Inf/out-of-range with invalid_value and sends
   // nothing in that case.
   ResultCode send_valve_currents(std::span<const double> current_A) noexcept;
+  // Per-cell impedance targets (wire counts; see protocol/units.hpp for SI conversion).
+  ResultCode send_cell_targets(std::uint16_t first_cell, std::span<const protocol::CellTarget> targets) noexcept;
+  // Leaves DISABLED, PAUSED or a latched FAULT. The caller re-seeds its targets from the
+  // measured state before the next command.
   ResultCode request_enable() noexcept;
   ResultCode request_disable() noexcept;
+  ResultCode request_pause() noexcept;
   ResultCode request_estop() noexcept;
   // Stops heartbeats (used to test the device's watchdog).
   void suppress_heartbeat(bool suppress) noexcept { suppress_heartbeat_ = suppress; }
@@ -82,15 +130,30 @@ class DeviceSession {
   // Latest sensor values in SI, one per sensor, and their device timestamp.
   [[nodiscard]] std::span<const double> sensors() const noexcept { return sensors_; }
   [[nodiscard]] std::uint32_t sensor_device_time_us() const noexcept { return sensor_time_us_; }
+  [[nodiscard]] TimePoint last_telemetry_time() const noexcept { return last_telemetry_; }
   [[nodiscard]] DeviceState state() const noexcept { return state_; }
   [[nodiscard]] std::uint8_t fault_code() const noexcept { return fault_; }
   [[nodiscard]] bool valves_released() const noexcept { return valves_released_; }
+  [[nodiscard]] bool derated() const noexcept { return derated_; }
+  [[nodiscard]] bool connected() const noexcept { return connected_; }
   [[nodiscard]] const SessionCounters& counters() const noexcept { return counters_; }
   [[nodiscard]] TransportState transport_state() const noexcept { return transport_->state(); }
 
+  // --- off the tick thread -------------------------------------------------------------
+  // The last N packets, oldest first (allocates).
+  [[nodiscard]] std::vector<TrafficRecord> ring_log() const;
+  // The ring log as it was when the last fault arrived (empty if none).
+  [[nodiscard]] std::vector<TrafficRecord> fault_log() const;
+  // Text dump of a log, one packet per line (allocates).
+  static std::string format_log(const std::vector<TrafficRecord>& records);
+
  private:
   ResultCode send_packet(const protocol::Message& message) noexcept;
-  void handle(const Datagram& d) noexcept;
+  void handle(const Datagram& d, TimePoint now) noexcept;
+  void log(const Datagram& d, bool sent, TimePoint now) noexcept;
+  void apply_identity(const protocol::Identity& id);
+  std::string read_config(protocol::ConfigKey key, TimePoint deadline);
+  void await_identity(TimePoint deadline);
 
   std::unique_ptr<Transport> transport_;
   Clock& clock_;
@@ -99,18 +162,40 @@ class DeviceSession {
   std::vector<double> sensors_;
   std::vector<std::uint16_t> current_counts_;
   std::uint32_t sensor_time_us_ = 0;
+  TimePoint last_telemetry_{};
+  bool telemetry_timed_out_ = false;
   DeviceState state_ = DeviceState::disabled;
+  DeviceState wanted_state_ = DeviceState::disabled;
   std::uint8_t fault_ = 0;
   bool valves_released_ = true;
+  bool derated_ = false;
   bool suppress_heartbeat_ = false;
+  bool connected_ = true;
+  bool identify_pending_ = false;
+  TimePoint next_reconnect_{};
+  Duration backoff_{};
   TimePoint next_heartbeat_{};
   std::uint16_t heartbeat_counter_ = 0;
+  std::array<TimePoint, 64> heartbeat_sent_{};
   std::uint8_t tx_sequence_ = 0;
   int rx_last_sequence_ = -1;
   SessionCounters counters_;
   std::uint32_t current_lsb_nA_ = 0;
   std::uint16_t current_max_counts_ = 0;
   double sensor_lsb_ = 0.0;
+  TelemetryCallback telemetry_callback_ = nullptr;
+  void* telemetry_context_ = nullptr;
+  std::vector<TrafficRecord> ring_;
+  std::size_t ring_next_ = 0;
+  std::size_t ring_size_ = 0;
+  std::vector<TrafficRecord> fault_ring_;
+  std::size_t fault_ring_size_ = 0;
+  std::size_t fault_ring_next_ = 0;
+  // Pending configuration reply while reading configuration at setup.
+  protocol::ConfigData config_reply_{};
+  bool config_reply_ready_ = false;
+  protocol::ConfigAck config_ack_{};
+  bool config_ack_ready_ = false;
 };
 
 }  // namespace mrskin

@@ -1,0 +1,361 @@
+// The device session against the mock device's firmware, on the simulated clock.
+#include <gtest/gtest.h>
+
+#include <cmath>
+#include <deque>
+#include <functional>
+#include <string>
+#include <vector>
+
+#include "mrskin/driver/device.hpp"
+#include "mrskin/protocol/packet.hpp"
+
+namespace mrskin {
+namespace {
+
+namespace proto = mrskin::protocol;
+
+// A synchronous mock stepped at 1 kHz with the session polled after every step.
+struct Rig {
+  explicit Rig(const std::string& uri, SessionOptions session = {}) {
+    OpenOptions open;
+    open.synchronous_mock = true;
+    open.session = session;
+    dev = open_device(uri, clock, open);
+    currents.assign(dev.mock->layout().valve_count(), 0.0);
+    finger.assign(dev.mock->layout().fluid_cell_count(), 0.0);
+  }
+  // Runs for ms milliseconds; commands the currents each tick unless the host is silent.
+  void run(int ms, bool host_alive = true) {
+    for (int k = 0; k < ms; ++k) {
+      dev.mock->set_finger_indentation(finger);
+      dev.mock->step(clock.now());
+      if (host_alive) {
+        last = dev.session->poll(clock.now());
+        if (last == ResultCode::ok) {
+          (void)dev.session->send_valve_currents(currents);
+        }
+      }
+      clock.advance(std::chrono::milliseconds(1));
+    }
+  }
+  SimulatedClock clock;
+  OpenedDevice dev;
+  std::vector<double> currents;
+  std::vector<double> finger;
+  ResultCode last = ResultCode::ok;
+};
+
+TEST(Session, HandshakeReadsIdentityProfileAndCalibration) {
+  Rig rig("mock://?seed=1");
+  const DeviceInfo& info = rig.dev.session->info();
+  EXPECT_EQ(info.protocol_major, 1);
+  EXPECT_EQ(info.rows, 5);
+  EXPECT_EQ(info.cols, 5);
+  EXPECT_EQ(info.fluid_cells, 13U);
+  EXPECT_EQ(info.valves, 12U);
+  EXPECT_NEAR(info.current_lsb_A, 125e-6, 1e-12);
+  EXPECT_NEAR(info.max_current_A, 0.5, 1e-9);
+  EXPECT_NE(info.calibration.find("version = 1"), std::string::npos) << info.calibration;
+  EXPECT_NE(info.profile.find("rows = 5"), std::string::npos) << info.profile;
+  rig.run(10);
+  EXPECT_EQ(rig.dev.session->state(), DeviceState::disabled);
+  EXPECT_GT(rig.dev.session->counters().telemetry, 5U);
+}
+
+// Answers every request with a fixed packet.
+class ScriptedTransport final : public Transport {
+ public:
+  explicit ScriptedTransport(std::vector<std::uint8_t> reply) : reply_(std::move(reply)) {}
+  ResultCode send(std::span<const std::uint8_t> /*bytes*/) noexcept override {
+    Datagram d;
+    std::copy(reply_.begin(), reply_.end(), d.bytes.begin());
+    d.length = static_cast<std::uint8_t>(reply_.size());
+    queue_.push_back(d);
+    return ResultCode::ok;
+  }
+  ResultCode receive(Datagram& out) noexcept override {
+    if (queue_.empty()) {
+      return ResultCode::would_block;
+    }
+    out = queue_.front();
+    queue_.pop_front();
+    return ResultCode::ok;
+  }
+  [[nodiscard]] TransportState state() const noexcept override { return TransportState::open; }
+  [[nodiscard]] std::string_view uri() const noexcept override { return "scripted://"; }
+
+ private:
+  std::vector<std::uint8_t> reply_;
+  std::deque<Datagram> queue_;
+};
+
+TEST(Session, VersionMismatchNamesBothVersions) {
+  std::vector<std::uint8_t> packet(64);
+  proto::Identity id;
+  id.proto_major = 2;
+  id.proto_minor = 3;
+  id.current_lsb_nA = 1;
+  id.sensor_lsb_nano = 1;
+  const auto r = proto::encode_packet(id, 0, packet);
+  ASSERT_EQ(r.error, proto::Error::ok);
+  packet.resize(r.bytes);
+  SimulatedClock clock;
+  try {
+    DeviceSession session(std::make_unique<ScriptedTransport>(packet), clock);
+    FAIL() << "handshake accepted protocol v2";
+  } catch (const ProtocolMismatch& e) {
+    EXPECT_NE(std::string(e.what()).find("v2.3"), std::string::npos) << e.what();
+    EXPECT_NE(std::string(e.what()).find("v1.0"), std::string::npos) << e.what();
+  }
+  // A packet whose framing itself is another major version.
+  packet[0] = 7;
+  try {
+    DeviceSession session(std::make_unique<ScriptedTransport>(packet), clock);
+    FAIL() << "handshake accepted framing v7";
+  } catch (const ProtocolMismatch& e) {
+    EXPECT_NE(std::string(e.what()).find("v7"), std::string::npos) << e.what();
+    EXPECT_NE(std::string(e.what()).find("v1"), std::string::npos) << e.what();
+  }
+}
+
+TEST(Session, SilentDeviceTimesOutWithAHint) {
+  SimulatedClock clock;
+  class Silent final : public Transport {
+   public:
+    ResultCode send(std::span<const std::uint8_t> /*b*/) noexcept override { return ResultCode::ok; }
+    ResultCode receive(Datagram& /*d*/) noexcept override { return ResultCode::would_block; }
+    [[nodiscard]] TransportState state() const noexcept override { return TransportState::open; }
+    [[nodiscard]] std::string_view uri() const noexcept override { return "silent://"; }
+  };
+  EXPECT_THROW(DeviceSession(std::make_unique<Silent>(), clock), Timeout);
+}
+
+TEST(Session, HeartbeatLossLeadsToSafeStateAndEnableRecovers) {
+  Rig rig("mock://?seed=2");
+  ASSERT_EQ(rig.dev.session->request_enable(), ResultCode::ok);
+  std::fill(rig.currents.begin(), rig.currents.end(), 0.2);
+  rig.run(50);
+  EXPECT_EQ(rig.dev.session->state(), DeviceState::enabled);
+  std::vector<double> applied(rig.currents.size());
+  rig.dev.mock->applied_currents(applied);
+  EXPECT_NEAR(applied[0], 0.2, 1e-3);
+  rig.run(150, /*host_alive=*/false);
+  rig.dev.mock->applied_currents(applied);
+  for (const double a : applied) {
+    EXPECT_EQ(a, 0.0);
+  }
+  rig.run(1);
+  EXPECT_EQ(rig.dev.session->state(), DeviceState::fault);
+  EXPECT_STREQ(fault_name(rig.dev.session->fault_code()), "heartbeat lost");
+  EXPECT_EQ(rig.last, ResultCode::device_fault);
+  EXPECT_EQ(rig.dev.session->counters().faults, 1U);
+  EXPECT_FALSE(rig.dev.session->fault_log().empty());
+  // The fault latches until an explicit enable.
+  rig.run(20);
+  EXPECT_EQ(rig.dev.session->state(), DeviceState::fault);
+  ASSERT_EQ(rig.dev.session->request_enable(), ResultCode::ok);
+  rig.run(20);
+  EXPECT_EQ(rig.dev.session->state(), DeviceState::enabled);
+  EXPECT_EQ(rig.dev.session->fault_code(), 0);
+}
+
+TEST(Session, DroppedFramesAreCountedAndTheLinkKeepsWorking) {
+  Rig rig("mock://?seed=3&faults=drop:0.2");
+  rig.run(500);
+  const auto& c = rig.dev.session->counters();
+  EXPECT_GT(rig.dev.mock->fault_counters().dropped, 50U);
+  EXPECT_GT(c.sequence_gaps, 20U);
+  EXPECT_GT(c.telemetry, 300U);
+}
+
+TEST(Session, CorruptedFramesFailTheirCrc) {
+  Rig rig("mock://?seed=4&faults=corrupt:0.1");
+  rig.run(500);
+  EXPECT_GT(rig.dev.mock->fault_counters().corrupted, 20U);
+  EXPECT_GT(rig.dev.session->counters().decode_errors, 10U);
+  EXPECT_GT(rig.dev.session->counters().crc_errors, 5U);
+}
+
+TEST(Session, DuplicatesAreDroppedAndCounted) {
+  Rig rig("mock://?seed=5&faults=dup:0.1");
+  rig.run(500);
+  EXPECT_GT(rig.dev.session->counters().duplicates, 10U);
+}
+
+TEST(Session, ReorderedFramesShowAsGaps) {
+  Rig rig("mock://?seed=6&faults=reorder:0.05");
+  rig.run(500);
+  EXPECT_GT(rig.dev.mock->fault_counters().reordered, 5U);
+  EXPECT_GT(rig.dev.session->counters().sequence_gaps, 5U);
+}
+
+TEST(Session, DelayShowsInTheRoundTripHistogram) {
+  Rig rig("mock://?seed=7&faults=delay:0.005");
+  rig.run(500);
+  const auto& rtt = rig.dev.session->counters().round_trip;
+  ASSERT_GT(rtt.count(), 10U);
+  EXPECT_GE(rtt.percentile_ns(0.5), 5e6);
+  EXPECT_LE(rtt.percentile_ns(0.5), 8e6);
+}
+
+TEST(Session, ReconnectsAfterUnplugAndKeepsItsConfiguration) {
+  Rig rig("mock://?seed=8&faults=disconnect:0.2+0.1");
+  ASSERT_EQ(rig.dev.session->request_enable(), ResultCode::ok);
+  rig.run(150);
+  EXPECT_EQ(rig.dev.session->state(), DeviceState::enabled);
+  rig.run(100);
+  EXPECT_EQ(rig.last, ResultCode::disconnected);
+  EXPECT_FALSE(rig.dev.session->connected());
+  rig.run(300);
+  const auto& c = rig.dev.session->counters();
+  EXPECT_EQ(c.disconnects, 1U);
+  EXPECT_EQ(c.reconnects, 1U);
+  EXPECT_TRUE(rig.dev.session->connected());
+  EXPECT_EQ(rig.dev.session->state(), DeviceState::enabled);  // re-enabled after the reboot
+}
+
+TEST(Session, StuckSensorFreezesWhileTheFingerMoves) {
+  Rig rig("mock://?seed=9&faults=stuck:6");
+  rig.finger[6] = 2e-3;
+  rig.finger[5] = 2e-3;
+  rig.run(50);
+  const auto sensors = rig.dev.session->sensors();
+  EXPECT_NEAR(sensors[6], 0.0, 1e-5);  // frozen at its first reading
+  EXPECT_NEAR(sensors[5], 2e-3, 1e-5);
+}
+
+TEST(Session, NoisySensorIsNoisy) {
+  Rig rig("mock://?seed=10&faults=noisy:3");
+  double sum_sq_noisy = 0.0;
+  double sum_sq_quiet = 0.0;
+  for (int k = 0; k < 200; ++k) {
+    rig.run(1);
+    sum_sq_noisy += rig.dev.session->sensors()[3] * rig.dev.session->sensors()[3];
+    sum_sq_quiet += rig.dev.session->sensors()[4] * rig.dev.session->sensors()[4];
+  }
+  EXPECT_GT(std::sqrt(sum_sq_noisy / 200), 20e-6);
+  EXPECT_LT(std::sqrt(sum_sq_quiet / 200), 5e-6);
+}
+
+TEST(Session, OverheatedCoilDeratesThenFaults) {
+  Rig rig("mock://?seed=11&faults=overheat:2");
+  ASSERT_EQ(rig.dev.session->request_enable(), ResultCode::ok);
+  std::fill(rig.currents.begin(), rig.currents.end(), 0.3);
+  bool saw_derated = false;
+  for (int k = 0; k < 60 && rig.dev.session->state() != DeviceState::fault; ++k) {
+    rig.run(100);
+    saw_derated = saw_derated || rig.dev.session->derated();
+  }
+  EXPECT_TRUE(saw_derated);
+  EXPECT_EQ(rig.dev.session->state(), DeviceState::fault);
+  EXPECT_STREQ(fault_name(rig.dev.session->fault_code()), "coil overtemperature");
+  EXPECT_GE(rig.dev.mock->max_coil_temperature_C(), 100.0);
+}
+
+TEST(Session, BusOffFaultsAndEnableRecovers) {
+  Rig rig("mock://?seed=12&faults=busoff:0.1");
+  ASSERT_EQ(rig.dev.session->request_enable(), ResultCode::ok);
+  rig.run(300);
+  EXPECT_EQ(rig.dev.session->state(), DeviceState::fault);
+  EXPECT_STREQ(fault_name(rig.dev.session->fault_code()), "bus off");
+  EXPECT_GT(rig.dev.session->counters().telemetry_timeouts, 0U);
+  ASSERT_EQ(rig.dev.session->request_enable(), ResultCode::ok);
+  rig.run(20);
+  EXPECT_EQ(rig.dev.session->state(), DeviceState::enabled);
+}
+
+TEST(Session, EstopReleasesEverythingAndLatches) {
+  Rig rig("mock://?seed=13");
+  ASSERT_EQ(rig.dev.session->request_enable(), ResultCode::ok);
+  std::fill(rig.currents.begin(), rig.currents.end(), 0.2);
+  rig.run(20);
+  ASSERT_EQ(rig.dev.session->request_estop(), ResultCode::ok);
+  rig.run(1);
+  std::vector<double> applied(rig.currents.size());
+  rig.dev.mock->applied_currents(applied);
+  for (const double a : applied) {
+    EXPECT_EQ(a, 0.0);
+  }
+  EXPECT_EQ(rig.dev.session->state(), DeviceState::fault);
+  EXPECT_STREQ(fault_name(rig.dev.session->fault_code()), "emergency stop");
+}
+
+TEST(Session, InvalidCurrentsAreRefusedAndNothingIsSent) {
+  Rig rig("mock://?seed=14");
+  rig.run(5);
+  const auto sent = rig.dev.session->counters().sent;
+  std::vector<double> bad(rig.currents.size(), 0.1);
+  bad[3] = std::nan("");
+  EXPECT_EQ(rig.dev.session->send_valve_currents(bad), ResultCode::invalid_value);
+  bad[3] = 5.0;  // above the device's limit
+  EXPECT_EQ(rig.dev.session->send_valve_currents(bad), ResultCode::invalid_value);
+  bad.pop_back();
+  EXPECT_EQ(rig.dev.session->send_valve_currents(bad), ResultCode::invalid_value);
+  EXPECT_EQ(rig.dev.session->counters().sent, sent);
+  EXPECT_EQ(rig.dev.session->counters().invalid_commands, 3U);
+}
+
+TEST(Session, SecondOpenerIsRefusedNamingTheOwner) {
+  Rig first("mock://");
+  try {
+    Rig second("mock://");
+    FAIL() << "second opener was not refused";
+  } catch (const DeviceBusy& e) {
+    EXPECT_NE(std::string(e.what()).find("owned by process"), std::string::npos) << e.what();
+  }
+}
+
+TEST(Session, RingLogKeepsTheLastPackets) {
+  Rig rig("mock://?seed=15");
+  rig.run(300);
+  const auto log = rig.dev.session->ring_log();
+  EXPECT_EQ(log.size(), 256U);
+  EXPECT_LE(log.front().time, log.back().time);
+  const std::string text = DeviceSession::format_log(log);
+  EXPECT_NE(text.find(" rx type 0x20"), std::string::npos);
+  EXPECT_NE(text.find(" tx type 0x31"), std::string::npos);
+}
+
+TEST(Session, TimeScaleStretchesTheDeviceWatchdog) {
+  SessionOptions options;
+  options.time_scale = 10.0;
+  Rig rig("mock://?seed=16", options);
+  EXPECT_NEAR(rig.dev.session->info().heartbeat_timeout_s, 1.0, 1e-9);
+  ASSERT_EQ(rig.dev.session->request_enable(), ResultCode::ok);
+  rig.run(10);
+  rig.run(500, /*host_alive=*/false);  // silent for 0.5 s: within the scaled 1 s
+  rig.run(1);
+  EXPECT_EQ(rig.dev.session->state(), DeviceState::enabled);
+}
+
+TEST(Session, TelemetryCallbackSeesEveryPacket) {
+  Rig rig("mock://?seed=17");
+  int calls = 0;
+  rig.dev.session->set_telemetry_callback(
+      [](void* ctx, const TelemetryView& view) noexcept {
+        ++*static_cast<int*>(ctx);
+        (void)view;
+      },
+      &calls);
+  rig.run(100);
+  EXPECT_GE(calls, 95);
+}
+
+TEST(MockUri, BadParametersAreNamed) {
+  int rows = 0;
+  int cols = 0;
+  EXPECT_THROW(parse_mock_uri("mock://?faults=drop:1.5", rows, cols), InvalidArgument);
+  EXPECT_THROW(parse_mock_uri("mock://?faults=melt:1", rows, cols), InvalidArgument);
+  EXPECT_THROW(parse_mock_uri("mock://?seed=abc", rows, cols), InvalidArgument);
+  EXPECT_THROW(parse_mock_uri("mock://?colour=red", rows, cols), InvalidArgument);
+  const MockOptions o = parse_mock_uri("mock://?seed=3&faults=drop:0.1,disconnect:2+0.5,overheat:4", rows, cols);
+  EXPECT_EQ(o.seed, 3U);
+  EXPECT_DOUBLE_EQ(o.faults.drop_probability, 0.1);
+  EXPECT_DOUBLE_EQ(o.faults.disconnect_at_s, 2.0);
+  EXPECT_DOUBLE_EQ(o.faults.disconnect_for_s, 0.5);
+  EXPECT_EQ(o.faults.overheat_valve, 4);
+}
+
+}  // namespace
+}  // namespace mrskin

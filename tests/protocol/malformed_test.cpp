@@ -1,0 +1,579 @@
+// Malformed input: each kind gives its own error code, never an exception or a crash.
+#include <gtest/gtest.h>
+
+#include <array>
+#include <cmath>
+#include <cstdint>
+#include <limits>
+#include <vector>
+
+#include "mrskin/protocol/can.hpp"
+#include "mrskin/protocol/crc.hpp"
+#include "mrskin/protocol/packet.hpp"
+#include "mrskin/protocol/units.hpp"
+#include "test_support.hpp"
+
+namespace {
+
+using namespace mrskin::protocol;
+using namespace mrskin::protocol::test;
+
+constexpr std::uint8_t kNode = 5;
+constexpr double kNaN = std::numeric_limits<double>::quiet_NaN();
+constexpr double kInf = std::numeric_limits<double>::infinity();
+
+// Recomputes the CRC of a packet after a deliberate change to its header or payload.
+void fix_crc(std::vector<std::uint8_t>& p) {
+  const std::size_t body = kPacketHeaderBytes + p[3];
+  p.resize(body + kPacketCrcBytes);
+  const std::uint16_t c = crc16_ccitt({p.data(), body});
+  p[body] = static_cast<std::uint8_t>(c & 0xFFU);
+  p[body + 1] = static_cast<std::uint8_t>(c >> 8U);
+}
+void fix_crc8(CanFrame& f) {
+  const std::array<std::uint8_t, 9> in{static_cast<std::uint8_t>((f.id >> 8U) & 0x7U),
+                                       static_cast<std::uint8_t>(f.id & 0xFFU),
+                                       f.data[0], f.data[1], f.data[2], f.data[3], f.data[4], f.data[5], f.data[6]};
+  f.data[7] = crc8_j1850(in);
+}
+std::vector<std::uint8_t> heartbeat_packet() { return packet_bytes(Heartbeat{0x1234}, 7); }
+Error encode_error(const Message& m) {
+  std::array<std::uint8_t, kPacketMaxBytes> out{};
+  return encode_packet(m, 0, out).error;
+}
+CanFrame classic_frame(const Message& m) { return can_frames(m, kNode, 3, 0).at(0); }
+
+// ---- short ---------------------------------------------------------------------------
+
+TEST(ProtocolMalformed, ShortPacket) {
+  const auto p = heartbeat_packet();
+  for (std::size_t n = 0; n < p.size(); ++n) {
+    EXPECT_EQ(decode_packet({p.data(), n}).error, Error::short_buffer) << n << " bytes";
+  }
+}
+
+TEST(ProtocolMalformed, ShortOutputBuffers) {
+  std::array<std::uint8_t, 7> small{};
+  EXPECT_EQ(encode_packet(Heartbeat{}, 0, small).error, Error::short_buffer);  // needs 8
+  std::array<CanFrame, 2> two{};
+  ValveCurrents v;
+  v.count = 12;
+  EXPECT_EQ(encode_can(v, kNode, 0, 0, two).error, Error::short_buffer);  // needs 3
+  EXPECT_EQ(encode_can(Identity{1, 0, 0, 0, 0, 5, 5, 13, 12, 12, 1, 1000, 4095, 0, 1000, 100, 1000}, kNode, 0, 0, two)
+                .error,
+            Error::short_buffer);  // needs 6
+  EXPECT_EQ(encode_can(Heartbeat{}, kNode, 0, 0, std::span<CanFrame>{}).error, Error::short_buffer);
+}
+
+TEST(ProtocolMalformed, ShortClassicFrame) {
+  CanFrame f = classic_frame(Heartbeat{1});
+  f.length = 7;
+  CanDecoder dec(kNode);
+  EXPECT_EQ(dec.decode(f).error, Error::short_buffer);
+}
+
+TEST(ProtocolMalformed, ShortCanFdFrame) {
+  CanFrame f;
+  ASSERT_EQ(encode_canfd(Heartbeat{1}, kNode, Direction::host_to_device, 0, f).error, Error::ok);
+  f.length = 7;  // the packet is 8 bytes
+  CanDecoder dec(kNode);
+  EXPECT_EQ(dec.decode(f).error, Error::short_buffer);
+}
+
+// ---- too long ------------------------------------------------------------------------
+
+TEST(ProtocolMalformed, TooLongPacket) {
+  std::vector<std::uint8_t> p = heartbeat_packet();
+  p.resize(kPacketMaxBytes, 0);
+  EXPECT_EQ(decode_packet(p).error, Error::ok);  // 64 bytes with padding is fine
+  p.push_back(0);
+  EXPECT_EQ(decode_packet(p).error, Error::too_long);  // 65: e.g. a hid_write buffer by mistake
+}
+
+TEST(ProtocolMalformed, TooLongFrames) {
+  CanDecoder dec(kNode);
+  CanFrame f = classic_frame(Heartbeat{1});
+  f.length = 9;
+  EXPECT_EQ(dec.decode(f).error, Error::too_long);
+  CanFrame fd;
+  ASSERT_EQ(encode_canfd(Heartbeat{1}, kNode, Direction::host_to_device, 0, fd).error, Error::ok);
+  fd.length = 65;
+  EXPECT_EQ(dec.decode(fd).error, Error::too_long);
+}
+
+TEST(ProtocolMalformed, TooLongSegmentedTransfer) {
+  CanDecoder dec(kNode);
+  CanFrame f;
+  f.id = can_id(CanFunction::management, 4, kNode);
+  f.length = 8;
+  f.data[0] = 0x10;
+  f.data[1] = 65;  // first frame announcing 65 bytes: more than a packet
+  EXPECT_EQ(dec.decode(f).error, Error::too_long);
+}
+
+// ---- bad CRC -------------------------------------------------------------------------
+
+TEST(ProtocolMalformed, BadPacketCrc) {
+  const auto good = heartbeat_packet();
+  for (std::size_t i = 1; i < good.size(); ++i) {  // byte 0 is the version, checked first
+    auto p = good;
+    p[i] = static_cast<std::uint8_t>(p[i] ^ 0x01U);
+    const Error e = decode_packet(p).error;
+    // Flipping the length byte makes the packet look shorter or longer than it is.
+    if (i == 3) {
+      EXPECT_TRUE(e == Error::short_buffer || e == Error::bad_crc) << e;
+    } else {
+      EXPECT_EQ(e, Error::bad_crc) << "byte " << i;
+    }
+  }
+}
+
+TEST(ProtocolMalformed, BadFrameCrc) {
+  CanDecoder dec(kNode);
+  for (const Message& m : {Message{Heartbeat{1}}, Message{Status{1, 0, 0, 0}}, Message{TimeSync{5}},
+                           Message{StateRequest{1}}}) {
+    CanFrame f = classic_frame(m);
+    f.data[7] ^= 0x80;
+    EXPECT_EQ(dec.decode(f).error, Error::bad_crc) << m;
+  }
+  ValveCurrents v;
+  v.count = 4;
+  CanFrame f = classic_frame(v);
+  f.data[2] ^= 0x10;
+  EXPECT_EQ(dec.decode(f).error, Error::bad_crc);
+  // The CRC covers the identifier: the same data on another block is refused.
+  f = classic_frame(v);
+  f.id = can_id(CanFunction::valve_block, 1, kNode);
+  EXPECT_EQ(dec.decode(f).error, Error::bad_crc);
+}
+
+TEST(ProtocolMalformed, BadCrcInsideSegmentedTransfer) {
+  Identity id{1, 0, 0, 0, 0, 5, 5, 13, 12, 12, 1, 1000, 4095, 0, 1000, 100, 1000};
+  auto frames = can_frames(id, kNode, 0, 1);
+  frames[2].data[3] ^= 0xFF;  // corrupt the reassembled packet
+  CanDecoder dec(kNode);
+  CanDecoded d;
+  for (const CanFrame& f : frames) d = dec.decode(f);
+  EXPECT_EQ(d.error, Error::bad_crc);
+  EXPECT_FALSE(d.complete);
+}
+
+// ---- unknown type --------------------------------------------------------------------
+
+TEST(ProtocolMalformed, UnknownPacketType) {
+  for (const int type : {0x00, 0x03, 0x12, 0x22, 0x33, 0x44, 0xFF}) {
+    auto p = heartbeat_packet();
+    p[1] = static_cast<std::uint8_t>(type);
+    fix_crc(p);
+    EXPECT_EQ(decode_packet(p).error, Error::unknown_type) << type;
+  }
+}
+
+TEST(ProtocolMalformed, UnknownCanIdentifiers) {
+  CanDecoder dec(kNode);
+  CanFrame f = classic_frame(Heartbeat{1});
+  for (const unsigned block : {6U, 7U, 15U}) {  // management blocks not defined in v1
+    f.id = can_id(CanFunction::management, static_cast<std::uint8_t>(block), kNode);
+    fix_crc8(f);
+    EXPECT_EQ(dec.decode(f).error, Error::unknown_type) << block;
+  }
+  for (const unsigned fn : {6U, 7U}) {  // functions not defined in v1
+    f.id = (fn << 8U) | kNode;
+    fix_crc8(f);
+    EXPECT_EQ(dec.decode(f).error, Error::unknown_type) << fn;
+  }
+  f.id = 0x800U | kNode;  // not an 11-bit identifier
+  EXPECT_EQ(dec.decode(f).error, Error::unknown_type);
+  // CAN FD functions need FD frames, and FD frames need FD functions.
+  f.id = can_id(CanFunction::fd_host_to_device, 0, kNode);
+  EXPECT_EQ(dec.decode(f).error, Error::unknown_type);
+  CanFrame fd;
+  ASSERT_EQ(encode_canfd(Heartbeat{1}, kNode, Direction::host_to_device, 0, fd).error, Error::ok);
+  fd.id = can_id(CanFunction::valve_block, 0, kNode);
+  EXPECT_EQ(dec.decode(fd).error, Error::unknown_type);
+  fd.id = can_id(CanFunction::fd_host_to_device, 1, kNode);  // FD uses block 0 only
+  EXPECT_EQ(dec.decode(fd).error, Error::unknown_type);
+}
+
+// ---- wrong version -------------------------------------------------------------------
+
+TEST(ProtocolMalformed, WrongVersionNamesThePeerVersion) {
+  for (const int version : {0, 2, 0xFF}) {
+    auto p = heartbeat_packet();
+    p[0] = static_cast<std::uint8_t>(version);
+    fix_crc(p);
+    const PacketDecoded d = decode_packet(p);
+    EXPECT_EQ(d.error, Error::wrong_version);
+    EXPECT_EQ(d.peer_version, version);
+    EXPECT_NE(d.peer_version, kVersionMajor);
+  }
+  // A v2 packet may have another layout: the version is refused before length and CRC.
+  std::vector<std::uint8_t> v2{2, 0x31, 0, 200, 0, 0, 0, 0};
+  const PacketDecoded d = decode_packet(v2);
+  EXPECT_EQ(d.error, Error::wrong_version);
+  EXPECT_EQ(d.peer_version, 2);
+}
+
+TEST(ProtocolMalformed, WrongVersionOverCan) {
+  // CAN FD frame.
+  CanFrame fd;
+  ASSERT_EQ(encode_canfd(Heartbeat{1}, kNode, Direction::host_to_device, 0, fd).error, Error::ok);
+  fd.data[0] = 2;
+  CanDecoder dec(kNode);
+  CanDecoded d = dec.decode(fd);
+  EXPECT_EQ(d.error, Error::wrong_version);
+  EXPECT_EQ(d.peer_version, 2);
+  // Segmented identity from a v3 device.
+  std::vector<std::uint8_t> p = packet_bytes(Identity{3, 1, 0, 0, 0, 5, 5, 13, 12, 12, 1, 1000, 4095, 0, 1000, 100, 1000}, 0);
+  p[0] = 3;
+  fix_crc(p);
+  CanFrame first;
+  first.id = can_id(CanFunction::management, 5, kNode);
+  first.length = 8;
+  first.data[0] = 0x10;
+  first.data[1] = static_cast<std::uint8_t>(p.size());
+  std::copy_n(p.begin(), 6, first.data.begin() + 2);
+  d = dec.decode(first);
+  ASSERT_EQ(d.error, Error::ok);
+  for (std::size_t pos = 6, index = 1; pos < p.size(); pos += 7, ++index) {
+    CanFrame cf;
+    cf.id = first.id;
+    cf.length = 8;
+    cf.data[0] = static_cast<std::uint8_t>(0x20U | index);
+    std::copy_n(p.begin() + static_cast<std::ptrdiff_t>(pos), std::min<std::size_t>(7, p.size() - pos),
+                cf.data.begin() + 1);
+    d = dec.decode(cf);
+  }
+  EXPECT_EQ(d.error, Error::wrong_version);
+  EXPECT_EQ(d.peer_version, 3);
+}
+
+// ---- out-of-range fields -------------------------------------------------------------
+
+TEST(ProtocolMalformed, OutOfRangeOnEncode) {
+  ValveCurrents v;
+  v.count = 0;
+  EXPECT_EQ(encode_error(v), Error::out_of_range);
+  v.count = kMaxValveCurrents + 1;
+  EXPECT_EQ(encode_error(v), Error::out_of_range);
+  v.count = 1;
+  v.counts[0] = kCurrentCountMax + 1;
+  EXPECT_EQ(encode_error(v), Error::out_of_range);
+
+  Telemetry t;
+  t.count = 2;
+  t.counts[1] = kSensorCountMax + 1;
+  EXPECT_EQ(encode_error(t), Error::out_of_range);
+  t.counts[1] = kSensorCountMin - 1;
+  EXPECT_EQ(encode_error(t), Error::out_of_range);
+  t.counts[1] = 0;
+  t.count = kMaxTelemetryValues + 1;
+  EXPECT_EQ(encode_error(t), Error::out_of_range);
+
+  for (const CellTarget bad : {CellTarget{kStiffnessCountMax + 1, 0, 0, 0}, CellTarget{0, kOffsetCountMax + 1, 0, 0},
+                               CellTarget{0, 0, kCeilingCountMax + 1, 0}, CellTarget{0, 0, 0, kValidityCountMax + 1}}) {
+    CellTargets c;
+    c.count = 1;
+    c.targets[0] = bad;
+    EXPECT_EQ(encode_error(c), Error::out_of_range) << c;
+  }
+  CellTargets c8;
+  c8.count = kMaxCellTargets + 1;
+  EXPECT_EQ(encode_error(c8), Error::out_of_range);
+
+  EXPECT_EQ(encode_error(Status{4, 0, 0, 0}), Error::out_of_range);
+  EXPECT_EQ(encode_error(Status{0, 8, 0, 0}), Error::out_of_range);
+  EXPECT_EQ(encode_error(StateRequest{4}), Error::out_of_range);
+  EXPECT_EQ(encode_error(ConfigRead{1, 0, 0}), Error::out_of_range);
+  EXPECT_EQ(encode_error(ConfigRead{1, 0, kMaxConfigBytes + 1}), Error::out_of_range);
+  ConfigWrite w;
+  w.total = 10;
+  w.offset = 8;
+  w.length = 3;  // past the end of the blob
+  EXPECT_EQ(encode_error(w), Error::out_of_range);
+  w.offset = 0;
+  w.total = 100;
+  w.length = kMaxConfigBytes + 1;
+  EXPECT_EQ(encode_error(w), Error::out_of_range);
+  EXPECT_EQ(encode_error(ConfigAck{1, 0, 5}), Error::out_of_range);
+
+  Identity id{1, 0, 0, 0, 0, 5, 5, 13, 12, 12, 1, 1000, 4095, 0, 1000, 100, 1000};
+  EXPECT_EQ(encode_error(id), Error::ok);
+  Identity bad = id;
+  bad.current_max_counts = kCurrentCountMax + 1;
+  EXPECT_EQ(encode_error(bad), Error::out_of_range);
+  bad = id;
+  bad.sensor_quantity = 3;
+  EXPECT_EQ(encode_error(bad), Error::out_of_range);
+  bad = id;
+  bad.current_lsb_nA = 0;
+  EXPECT_EQ(encode_error(bad), Error::out_of_range);
+  bad = id;
+  bad.sensor_lsb_nano = 0;
+  EXPECT_EQ(encode_error(bad), Error::out_of_range);
+}
+
+TEST(ProtocolMalformed, OutOfRangeOnCanEncode) {
+  std::array<CanFrame, 16> out{};
+  EXPECT_EQ(encode_can(Heartbeat{}, 0, 0, 0, out).error, Error::out_of_range);  // node 0
+  EXPECT_EQ(encode_can(Heartbeat{}, 16, 0, 0, out).error, Error::out_of_range);
+  CanFrame fd;
+  EXPECT_EQ(encode_canfd(Heartbeat{}, 0, Direction::host_to_device, 0, fd).error, Error::out_of_range);
+  ValveCurrents v;
+  v.first = 2;  // blocks start at multiples of 4
+  v.count = 4;
+  EXPECT_EQ(encode_can(v, kNode, 0, 0, out).error, Error::out_of_range);
+  v.first = 60;
+  v.count = 8;  // valves 60..67: past block 15
+  EXPECT_EQ(encode_can(v, kNode, 0, 0, out).error, Error::out_of_range);
+  Telemetry t;
+  t.first = 1;
+  t.count = 1;
+  EXPECT_EQ(encode_can(t, kNode, 0, 0, out).error, Error::out_of_range);
+  CellTargets c;
+  c.first = 255;
+  c.count = 2;  // cell 256 has no CAN address
+  EXPECT_EQ(encode_can(c, kNode, 0, 0, out).error, Error::out_of_range);
+  // The fields themselves are checked on every framing.
+  v.first = 0;
+  v.count = 1;
+  v.counts[0] = 5000;
+  EXPECT_EQ(encode_can(v, kNode, 0, 0, out).error, Error::out_of_range);
+  EXPECT_EQ(encode_canfd(v, kNode, Direction::host_to_device, 0, fd).error, Error::out_of_range);
+}
+
+TEST(ProtocolMalformed, OutOfRangeOnDecode) {
+  // A well-formed packet (right length and CRC) whose fields break the v1 domains.
+  auto p = packet_bytes(ValveCurrents{0, 1, {100}}, 0);
+  p[7] = 0x00;
+  p[8] = 0x10;  // 4096
+  fix_crc(p);
+  EXPECT_EQ(decode_packet(p).error, Error::out_of_range);
+
+  Telemetry t;
+  t.count = 1;
+  p = packet_bytes(t, 0);
+  p[11] = 0x00;
+  p[12] = 0x08;  // +2048
+  fix_crc(p);
+  EXPECT_EQ(decode_packet(p).error, Error::out_of_range);
+
+  p = packet_bytes(Status{0, 0, 0, 0}, 0);
+  p[4] = 9;  // state 9
+  fix_crc(p);
+  EXPECT_EQ(decode_packet(p).error, Error::out_of_range);
+
+  p = packet_bytes(ValveCurrents{0, 1, {100}}, 0);
+  p[6] = 0;  // count 0 with a 3-byte payload
+  p[3] = 3;
+  fix_crc(p);
+  EXPECT_EQ(decode_packet(p).error, Error::out_of_range);
+
+  // Classic CAN: a valve block announcing 0 or 5 values.
+  CanDecoder dec(kNode);
+  ValveCurrents v;
+  v.count = 4;
+  CanFrame f = classic_frame(v);
+  for (const unsigned n : {0U, 5U, 15U}) {
+    f.data[6] = static_cast<std::uint8_t>((f.data[6] & 0xF0U) | n);
+    fix_crc8(f);
+    EXPECT_EQ(dec.decode(f).error, Error::out_of_range) << n;
+  }
+  // Status state 7 on classic CAN.
+  f = classic_frame(Status{0, 0, 0, 0});
+  f.data[0] = 7;
+  fix_crc8(f);
+  EXPECT_EQ(dec.decode(f).error, Error::out_of_range);
+}
+
+// ---- bad length ----------------------------------------------------------------------
+
+TEST(ProtocolMalformed, BadLength) {
+  auto p = heartbeat_packet();
+  p.insert(p.begin() + 6, 0x00);  // heartbeat with a 3-byte payload
+  p[3] = 3;
+  fix_crc(p);
+  EXPECT_EQ(decode_packet(p).error, Error::bad_length);
+  p = heartbeat_packet();
+  p[3] = 1;  // 1-byte payload
+  p.erase(p.begin() + 5);
+  fix_crc(p);
+  EXPECT_EQ(decode_packet(p).error, Error::bad_length);
+  // A count that disagrees with the payload length.
+  p = packet_bytes(ValveCurrents{0, 2, {1, 2}}, 0);
+  p[6] = 3;
+  fix_crc(p);
+  EXPECT_EQ(decode_packet(p).error, Error::bad_length);
+  // A length byte beyond the 58-byte maximum.
+  std::vector<std::uint8_t> big(kPacketMaxBytes, 0);
+  big[0] = kVersionMajor;
+  big[1] = static_cast<std::uint8_t>(MessageType::heartbeat);
+  big[3] = kPacketMaxPayload + 1;
+  EXPECT_EQ(decode_packet(big).error, Error::bad_length);
+}
+
+// ---- counter gaps --------------------------------------------------------------------
+
+TEST(ProtocolMalformed, CounterGapModulus16) {
+  CounterTracker c(16);
+  EXPECT_EQ(c.accept(14), Error::ok);  // first value is always accepted
+  EXPECT_EQ(c.accept(15), Error::ok);
+  EXPECT_EQ(c.accept(0), Error::ok);  // wraparound
+  EXPECT_EQ(c.missed(), 0U);
+  EXPECT_EQ(c.accept(3), Error::counter_gap);
+  EXPECT_EQ(c.missed(), 2U);  // 1 and 2
+  EXPECT_EQ(c.accept(4), Error::ok);
+  EXPECT_EQ(c.missed(), 0U);
+  EXPECT_EQ(c.accept(15), Error::counter_gap);
+  EXPECT_EQ(c.missed(), 10U);  // 5..14
+  EXPECT_EQ(c.accept(1), Error::counter_gap);  // gap across the wrap: 0 missed
+  EXPECT_EQ(c.missed(), 1U);
+  EXPECT_EQ(c.accept(1), Error::counter_gap);  // a repeat reads as 15 missed
+  EXPECT_EQ(c.missed(), 15U);
+  c.reset();
+  EXPECT_EQ(c.accept(9), Error::ok);
+}
+
+TEST(ProtocolMalformed, CounterGapModulus256) {
+  CounterTracker c;  // 0 = 256: packet sequence numbers
+  EXPECT_EQ(c.accept(254), Error::ok);
+  EXPECT_EQ(c.accept(255), Error::ok);
+  EXPECT_EQ(c.accept(0), Error::ok);
+  EXPECT_EQ(c.accept(1), Error::ok);
+  EXPECT_EQ(c.accept(5), Error::counter_gap);
+  EXPECT_EQ(c.missed(), 3U);
+  EXPECT_EQ(c.accept(6), Error::ok);
+  EXPECT_EQ(c.accept(5), Error::counter_gap);  // going back
+  EXPECT_EQ(c.missed(), 254U);
+  for (unsigned i = 0; i < 600; ++i) {
+    EXPECT_EQ(c.accept(static_cast<std::uint8_t>((6 + i) & 0xFFU)), Error::ok) << i;
+  }
+}
+
+// ---- CAN node and segments -----------------------------------------------------------
+
+TEST(ProtocolMalformed, WrongNode) {
+  CanDecoder dec(kNode);
+  const auto on_other = can_frames(Heartbeat{1}, 6, 0, 0).at(0);
+  EXPECT_EQ(dec.decode(on_other).error, Error::wrong_node);
+  CanFrame fd;
+  ASSERT_EQ(encode_canfd(Heartbeat{1}, 4, Direction::host_to_device, 0, fd).error, Error::ok);
+  EXPECT_EQ(dec.decode(fd).error, Error::wrong_node);
+  const auto seg = can_frames(ConfigRead{1, 0, 4}, 1, 0, 0);
+  EXPECT_EQ(dec.decode(seg.at(0)).error, Error::wrong_node);
+}
+
+TEST(ProtocolMalformed, BadSegmentOrder) {
+  const auto frames = can_frames(ConfigData{{2, 0, 100, 40, {}}}, kNode, 0, 1);  // 53 bytes, 8 frames
+  ASSERT_EQ(frames.size(), 8U);
+  {
+    CanDecoder dec(kNode);  // consecutive frame with no first frame
+    EXPECT_EQ(dec.decode(frames[1]).error, Error::bad_segment);
+  }
+  {
+    CanDecoder dec(kNode);  // a frame skipped
+    EXPECT_EQ(dec.decode(frames[0]).error, Error::ok);
+    EXPECT_EQ(dec.decode(frames[1]).error, Error::ok);
+    EXPECT_EQ(dec.decode(frames[3]).error, Error::bad_segment);
+    // The transfer is abandoned: later frames of it are refused too.
+    EXPECT_EQ(dec.decode(frames[4]).error, Error::bad_segment);
+    // A new first frame starts over and completes.
+    CanDecoded d;
+    for (const CanFrame& f : frames) d = dec.decode(f);
+    EXPECT_EQ(d.error, Error::ok);
+    EXPECT_TRUE(d.complete);
+  }
+  {
+    CanDecoder dec(kNode);  // a frame repeated
+    EXPECT_EQ(dec.decode(frames[0]).error, Error::ok);
+    EXPECT_EQ(dec.decode(frames[1]).error, Error::ok);
+    EXPECT_EQ(dec.decode(frames[1]).error, Error::bad_segment);
+  }
+  CanDecoder dec(kNode);
+  CanFrame f = frames[0];
+  f.data[0] = 0x30;  // flow control: not used in v1
+  EXPECT_EQ(dec.decode(f).error, Error::bad_segment);
+  f.data[0] = 0x00;  // single frame of 0 bytes
+  EXPECT_EQ(dec.decode(f).error, Error::bad_segment);
+  f.data[0] = 0x08;  // single frame of 8 bytes: cannot fit
+  EXPECT_EQ(dec.decode(f).error, Error::bad_segment);
+  f.data[0] = 0x10;
+  f.data[1] = 7;  // first frame for 7 bytes: should have been a single frame
+  EXPECT_EQ(dec.decode(f).error, Error::bad_segment);
+}
+
+TEST(ProtocolMalformed, SegmentedDirectionsAreIndependent) {
+  // A device->host identity and a host->device config write interleaved frame by frame.
+  const auto a = can_frames(Identity{1, 0, 0, 0, 0, 5, 5, 13, 12, 12, 1, 1000, 4095, 0, 1000, 100, 1000}, kNode, 0, 1);
+  ConfigWrite w;
+  w.total = 4;
+  w.length = 4;
+  const auto b = can_frames(w, kNode, 0, 2);
+  CanDecoder dec(kNode);
+  int complete = 0;
+  for (std::size_t i = 0; i < std::max(a.size(), b.size()); ++i) {
+    for (const auto* frames : {&a, &b}) {
+      if (i >= frames->size()) continue;
+      const CanDecoded d = dec.decode((*frames)[i]);
+      ASSERT_EQ(d.error, Error::ok);
+      complete += d.complete ? 1 : 0;
+    }
+  }
+  EXPECT_EQ(complete, 2);
+}
+
+// ---- quantisation: NaN, Inf and out-of-range SI values ---------------------------------
+
+Identity unit_identity() {
+  Identity id;
+  id.current_lsb_nA = 125000;  // 125 uA
+  id.current_max_counts = 4000;  // 0.5 A
+  id.sensor_lsb_nano = 2500;     // 2.5 um
+  return id;
+}
+
+TEST(ProtocolMalformed, NotFiniteIsRefused) {
+  const Identity id = unit_identity();
+  for (const double bad : {kNaN, kInf, -kInf}) {
+    EXPECT_EQ(quantize_unsigned(bad, 1.0, 100).error, Error::not_finite);
+    EXPECT_EQ(quantize_signed(bad, 1.0, -100, 100).error, Error::not_finite);
+    EXPECT_EQ(quantize_current(bad, id).error, Error::not_finite);
+    EXPECT_EQ(quantize_sensor(bad, id).error, Error::not_finite);
+    EXPECT_EQ(quantize_unsigned(1.0, bad, 100).error, Error::not_finite);  // a bad LSB too
+    for (int field = 0; field < 4; ++field) {
+      CellTargetSi si{300.0, 1e-3, 1.0, 0.1};
+      (field == 0 ? si.stiffness_N_per_m : field == 1 ? si.offset_m : field == 2 ? si.ceiling_N : si.validity_s) = bad;
+      EXPECT_EQ(quantize_cell_target(si).error, Error::not_finite) << field;
+    }
+  }
+  EXPECT_EQ(quantize_cell_target({300.0, 1e-3, 1.0, 0.1}).error, Error::ok);
+}
+
+TEST(ProtocolMalformed, OutOfRangeSiValues) {
+  const Identity id = unit_identity();
+  EXPECT_EQ(quantize_current(0.5, id).error, Error::ok);
+  EXPECT_EQ(quantize_current(0.5, id).counts, 4000);
+  EXPECT_EQ(quantize_current(0.5 + 62e-6, id).counts, 4000);  // rounds down, within half an LSB
+  EXPECT_EQ(quantize_current(0.5 + 63e-6, id).error, Error::out_of_range);  // the device's maximum
+  EXPECT_EQ(quantize_current(-1e-3, id).error, Error::out_of_range);       // coils are unipolar
+  EXPECT_EQ(quantize_current(-62e-6, id).counts, 0);
+  EXPECT_EQ(quantize_current(1e300, id).error, Error::out_of_range);
+
+  EXPECT_EQ(quantize_sensor(2047 * 2.5e-6, id).counts, 2047);
+  EXPECT_EQ(quantize_sensor(2048 * 2.5e-6, id).error, Error::out_of_range);
+  EXPECT_EQ(quantize_sensor(-2048 * 2.5e-6, id).counts, -2048);
+  EXPECT_EQ(quantize_sensor(-2049 * 2.5e-6, id).error, Error::out_of_range);
+
+  EXPECT_EQ(quantize_cell_target({-10.0, 0, 0, 0}).error, Error::out_of_range);       // negative stiffness
+  EXPECT_EQ(quantize_cell_target({32768.0, 0, 0, 0}).error, Error::out_of_range);     // > 16383 x 2 N/m
+  EXPECT_EQ(quantize_cell_target({0, 8.2e-3, 0, 0}).error, Error::out_of_range);      // > 4095 x 2 um
+  EXPECT_EQ(quantize_cell_target({0, 0, 4.1, 0}).error, Error::out_of_range);         // > 4.095 N
+  EXPECT_EQ(quantize_cell_target({0, 0, 0, 0.64}).error, Error::out_of_range);        // > 630 ms
+  EXPECT_EQ(quantize_cell_target({32766.0, 8.19e-3, 4.095, 0.63}).error, Error::ok);  // the maxima
+
+  // An LSB of zero or below cannot quantise anything.
+  EXPECT_EQ(quantize_unsigned(1.0, 0.0, 100).error, Error::not_finite);
+  EXPECT_EQ(quantize_unsigned(1.0, -1.0, 100).error, Error::not_finite);
+}
+
+}  // namespace
