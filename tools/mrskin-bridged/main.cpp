@@ -29,8 +29,9 @@ class MockTruth final : public mrskin::bridge::ForceTruth {
   const mrskin::MockDevice& mock_;
 };
 
-// Exit codes: 0 ok, 1 runtime failure, 2 usage, 3 device not found/denied, 4 protocol mismatch.
-enum Exit : int { kOk = 0, kFailure = 1, kUsage = 2, kNoDevice = 3, kMismatch = 4 };
+// Exit codes: 0 ok, 1 runtime failure, 2 usage, 3 device not found/denied, 4 protocol mismatch,
+// 5 device owned by another process.
+enum Exit : int { kOk = 0, kFailure = 1, kUsage = 2, kNoDevice = 3, kMismatch = 4, kBusy = 5 };
 
 struct Settings {
   std::string device = "mock://";
@@ -148,6 +149,9 @@ int guarded_main(int argc, char** argv) {
   } catch (const mrskin::PermissionDenied& e) {
     fmt::print(stderr, "error: {}\n", e.what());
     return kNoDevice;
+  } catch (const mrskin::DeviceBusy& e) {
+    fmt::print(stderr, "error: {}\n", e.what());
+    return kBusy;
   } catch (const mrskin::ProtocolMismatch& e) {
     fmt::print(stderr, "error: {}\n", e.what());
     return kMismatch;

@@ -11,31 +11,72 @@
 namespace {
 
 // Exit codes (sysexits-style): 0 ok, 1 failure, 2 usage, 3 device not found or denied,
-// 4 protocol mismatch, 69 command not available in this build.
+// 4 protocol mismatch, 5 device owned by another process, 69 command not available in
+// this build.
 constexpr int kExitUnavailable = 69;
 
-int cmd_info(const std::string& uri, bool json) {
+std::string json_escape(const std::string& text) {
+  std::string out;
+  for (const char c : text) {
+    switch (c) {
+      case '"': out += "\\\""; break;
+      case '\\': out += "\\\\"; break;
+      case '\n': out += "\\n"; break;
+      default: out += c;
+    }
+  }
+  return out;
+}
+
+int cmd_info(const std::string& uri, bool json, double sample_s) {
   mrskin::MonotonicClock clock;
   const mrskin::OpenedDevice dev = mrskin::open_device(uri, clock);
-  const mrskin::DeviceInfo& i = dev.session->info();
+  mrskin::DeviceSession& session = *dev.session;
+  // Listen for a moment so the statistics mean something.
+  const mrskin::TimePoint end = clock.now() + mrskin::from_seconds(sample_s);
+  while (clock.now() < end) {
+    (void)session.poll(clock.now());
+    clock.sleep_until(clock.now() + std::chrono::milliseconds(1));
+  }
+  const mrskin::DeviceInfo& i = session.info();
+  const mrskin::SessionCounters& c = session.counters();
   if (json) {
     fmt::print(
         "{{\"uri\": \"{}\", \"serial\": \"{:08X}\", \"firmware\": \"{}\", \"protocol\": \"{}.{}\", "
         "\"rows\": {}, \"cols\": {}, \"fluid_cells\": {}, \"valves\": {}, \"sensors\": {}, "
         "\"current_lsb_a\": {:.9g}, \"max_current_a\": {:.9g}, \"sensor_lsb_si\": {:.9g}, "
-        "\"heartbeat_timeout_s\": {:.6g}, \"telemetry_rate_hz\": {:.6g}}}\n",
+        "\"heartbeat_timeout_s\": {:.6g}, \"telemetry_rate_hz\": {:.6g}, \"state\": \"{}\", \"fault\": \"{}\", "
+        "\"calibration\": \"{}\", \"stats\": {{\"sent\": {}, \"received\": {}, \"telemetry\": {}, "
+        "\"crc_errors\": {}, \"decode_errors\": {}, \"sequence_gaps\": {}, \"telemetry_timeouts\": {}, "
+        "\"reconnects\": {}, \"rtt_p50_s\": {:.6g}, \"rtt_p99_s\": {:.6g}}}}}\n",
         uri, i.serial, i.firmware, i.protocol_major, i.protocol_minor, i.rows, i.cols, i.fluid_cells, i.valves,
-        i.sensors, i.current_lsb_A, i.max_current_A, i.sensor_lsb, i.heartbeat_timeout_s, i.telemetry_rate_hz);
-  } else {
-    fmt::print(
-        "device      {}\nserial      {:08X}\nfirmware    {}\nprotocol    v{}.{} (library speaks v{}.{})\n"
-        "grid        {} x {}: {} fluid cells, {} valves, {} sensors\n"
-        "current     {:.3f} mA per count, max {:.4f} A\nsensor LSB  {:.3g} (SI)\nheartbeat   {:.3f} s timeout\n"
-        "telemetry   {:.0f} Hz\n",
-        uri, i.serial, i.firmware, i.protocol_major, i.protocol_minor, mrskin::protocol_version_major(),
-        mrskin::protocol_version_minor(), i.rows, i.cols, i.fluid_cells, i.valves, i.sensors, i.current_lsb_A * 1e3,
-        i.max_current_A, i.sensor_lsb, i.heartbeat_timeout_s, i.telemetry_rate_hz);
+        i.sensors, i.current_lsb_A, i.max_current_A, i.sensor_lsb, i.heartbeat_timeout_s, i.telemetry_rate_hz,
+        mrskin::to_string(session.state()), mrskin::fault_name(session.fault_code()), json_escape(i.calibration),
+        c.sent, c.received, c.telemetry, c.crc_errors, c.decode_errors, c.sequence_gaps, c.telemetry_timeouts,
+        c.reconnects, c.round_trip.percentile_ns(0.5) * 1e-9, c.round_trip.percentile_ns(0.99) * 1e-9);
+    return 0;
   }
+  fmt::print(
+      "device      {}\nserial      {:08X}\nfirmware    {}\nprotocol    v{}.{} (library speaks v{}.{})\n"
+      "grid        {} x {}: {} fluid cells, {} valves, {} sensors\n"
+      "current     {:.3f} mA per count, max {:.4f} A\nsensor LSB  {:.3g} (SI)\nheartbeat   {:.3f} s timeout\n"
+      "telemetry   {:.0f} Hz\nstate       {} (fault: {})\n",
+      uri, i.serial, i.firmware, i.protocol_major, i.protocol_minor, mrskin::protocol_version_major(),
+      mrskin::protocol_version_minor(), i.rows, i.cols, i.fluid_cells, i.valves, i.sensors, i.current_lsb_A * 1e3,
+      i.max_current_A, i.sensor_lsb, i.heartbeat_timeout_s, i.telemetry_rate_hz, mrskin::to_string(session.state()),
+      mrskin::fault_name(session.fault_code()));
+  fmt::print("calibration\n");
+  std::size_t start = 0;
+  while (start < i.calibration.size()) {
+    const std::size_t end_line = i.calibration.find('\n', start);
+    fmt::print("  {}\n", i.calibration.substr(start, end_line - start));
+    start = end_line == std::string::npos ? i.calibration.size() : end_line + 1;
+  }
+  fmt::print(
+      "statistics over {:.2f} s: {} sent, {} received ({} telemetry), {} CRC errors, {} decode errors, {} sequence "
+      "gaps, {} telemetry timeouts, {} reconnects, round trip p50 {:.3f} ms p99 {:.3f} ms\n",
+      sample_s, c.sent, c.received, c.telemetry, c.crc_errors, c.decode_errors, c.sequence_gaps, c.telemetry_timeouts,
+      c.reconnects, c.round_trip.percentile_ns(0.5) * 1e-6, c.round_trip.percentile_ns(0.99) * 1e-6);
   return 0;
 }
 
@@ -56,6 +97,10 @@ int guarded_main(int argc, char** argv) {
 
   auto* info = app.add_subcommand("info", "open a device, run the handshake and print its identity");
   info->add_option("--device", device, "device URI")->capture_default_str();
+  double sample_s = 0.2;
+  info->add_option("--sample", sample_s, "seconds to listen for statistics")
+      ->check(CLI::Range(0.0, 60.0))
+      ->capture_default_str();
 
   struct Planned {
     const char* name;
@@ -91,7 +136,7 @@ int guarded_main(int argc, char** argv) {
   }
   try {
     if (info->parsed()) {
-      return cmd_info(device, json);
+      return cmd_info(device, json, sample_s);
     }
   } catch (const mrskin::InvalidArgument& e) {
     fmt::print(stderr, "error: {}\n", e.what());
@@ -102,6 +147,9 @@ int guarded_main(int argc, char** argv) {
   } catch (const mrskin::PermissionDenied& e) {
     fmt::print(stderr, "error: {}\n", e.what());
     return 3;
+  } catch (const mrskin::DeviceBusy& e) {
+    fmt::print(stderr, "error: {}\n", e.what());
+    return 5;
   } catch (const mrskin::ProtocolMismatch& e) {
     fmt::print(stderr, "error: {}\n", e.what());
     return 4;
