@@ -1,7 +1,8 @@
 #include "mrskin/bridge/stats.hpp"
 
-#include <cmath>
 #include <fmt/format.h>
+
+#include <cmath>
 
 namespace mrskin::bridge {
 
@@ -25,7 +26,8 @@ std::string to_json(const BridgeStats& s, double tick_period_s) {
       "  \"send_failures\": {},\n"
       "  \"slave_samples\": {},\n"
       "  \"stale_ticks\": {},\n"
-      "  \"tick_time_us\": {{\"p50\": {:.4g}, \"p90\": {:.4g}, \"p99\": {:.4g}, \"p999\": {:.4g}, \"max\": {:.4g}}},\n"
+      "  \"tick_time_us\": {{\"p50\": {:.4g}, \"p90\": {:.4g}, \"p99\": {:.4g}, \"p999\": {:.4g}, \"max\": "
+      "{:.4g}}},\n"
       "  \"force_error\": {{\"samples\": {}, \"rms_N\": {:.6g}, \"max_abs_N\": {:.6g}}},\n"
       "  \"clamped_fraction\": {:.6g}\n"
       "}}\n",

@@ -149,11 +149,13 @@ DeviceLock::DeviceLock(std::string_view uri) {
   }
   const char* runtime = std::getenv("XDG_RUNTIME_DIR");
   path_ = fmt::format("{}/mrskin-{}.lock", runtime != nullptr && *runtime != '\0' ? runtime : "/tmp", name);
-  fd_ = ::open(path_.c_str(), O_RDWR | O_CREAT | O_CLOEXEC, 0600);
+  fd_ =
+      ::open(path_.c_str(), O_RDWR | O_CREAT | O_CLOEXEC, 0600);  // NOLINT(cppcoreguidelines-pro-type-vararg)
   if (fd_ < 0) {
-    throw PermissionDenied(fmt::format("cannot create the ownership lock {}: {}: set XDG_RUNTIME_DIR to a writable "
-                                       "directory",
-                                       path_, std::strerror(errno)));
+    throw PermissionDenied(
+        fmt::format("cannot create the ownership lock {}: {}: set XDG_RUNTIME_DIR to a writable "
+                    "directory",
+                    path_, std::strerror(errno)));
   }
   if (::flock(fd_, LOCK_EX | LOCK_NB) != 0) {
     std::string owner = "another session";
@@ -168,8 +170,8 @@ DeviceLock::DeviceLock(std::string_view uri) {
     ::close(fd_);
     fd_ = -1;
     throw DeviceBusy(fmt::format(
-        "{} is owned by {}: stop it, or talk to the device through the running bridge (mrskinctl --bridge)", uri,
-        owner));
+        "{} is owned by {}: stop it, or talk to the device through the running bridge (mrskinctl --bridge)",
+        uri, owner));
   }
   const std::string pid = fmt::format("{}\n", ::getpid());
   if (::ftruncate(fd_, 0) != 0 || ::write(fd_, pid.data(), pid.size()) != static_cast<ssize_t>(pid.size())) {
@@ -200,8 +202,8 @@ OpenedDevice open_device(std::string_view uri, Clock& clock, const OpenOptions& 
     if (!options.synchronous_mock) {
       opened.mock->start(clock);
     }
-    opened.session = std::make_unique<DeviceSession>(opened.mock->connect(options.synchronous_mock, &clock), clock,
-                                                     session_options);
+    opened.session = std::make_unique<DeviceSession>(opened.mock->connect(options.synchronous_mock, &clock),
+                                                     clock, session_options);
     return opened;
   }
   for (const std::string_view scheme : {"hid://", "usb://", "can://"}) {

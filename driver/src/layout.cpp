@@ -15,7 +15,8 @@ GridLayout::GridLayout(int rows, int cols) : rows_(rows), cols_(cols) {
   for (int r = 0; r < rows; ++r) {
     for (int c = 0; c < cols; ++c) {
       if ((r + c) % 2 == 0) {
-        fluid_index[static_cast<std::size_t>(r) * static_cast<std::size_t>(cols) + static_cast<std::size_t>(c)] = static_cast<int>(fluid_.size());
+        fluid_index[static_cast<std::size_t>(r) * static_cast<std::size_t>(cols) +
+                    static_cast<std::size_t>(c)] = static_cast<int>(fluid_.size());
         fluid_.push_back({r, c});
       } else {
         valves_.push_back({r, c});
@@ -34,7 +35,8 @@ GridLayout::GridLayout(int rows, int cols) : rows_(rows), cols_(cols) {
       if (r < 0 || r >= rows || c < 0 || c >= cols) {
         continue;
       }
-      const int f = fluid_index[static_cast<std::size_t>(r) * static_cast<std::size_t>(cols) + static_cast<std::size_t>(c)];
+      const int f = fluid_index[static_cast<std::size_t>(r) * static_cast<std::size_t>(cols) +
+                                static_cast<std::size_t>(c)];
       cells_of_valve_[v].push_back(static_cast<std::size_t>(f));
       valves_of_cell_[static_cast<std::size_t>(f)].push_back(v);
     }

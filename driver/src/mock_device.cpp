@@ -63,15 +63,17 @@ class MockDevice::HostTransport final : public Transport {
       return ResultCode::disconnected;
     }
     if (synchronous_) {
-      const TimePoint now = device_.sync_clock_ != nullptr ? std::max(device_.sync_clock_->now(), device_.last_step_)
-                                                           : device_.last_step_;
+      const TimePoint now = device_.sync_clock_ != nullptr
+                                ? std::max(device_.sync_clock_->now(), device_.last_step_)
+                                : device_.last_step_;
       device_.handle_host_input(now);
       device_.flush_delayed(now);
     }
     return device_.to_host_.try_pop(out) ? ResultCode::ok : ResultCode::would_block;
   }
   [[nodiscard]] TransportState state() const noexcept override {
-    return device_.link_up_.load(std::memory_order_acquire) ? TransportState::open : TransportState::disconnected;
+    return device_.link_up_.load(std::memory_order_acquire) ? TransportState::open
+                                                            : TransportState::disconnected;
   }
   [[nodiscard]] std::string_view uri() const noexcept override { return "mock://"; }
 
@@ -106,16 +108,19 @@ MockDevice::MockDevice(const GridLayout& layout, const MockOptions& options, std
     a.store(0.0);
   }
   // What a factory writes: a versioned calibration and the profile the unit was built to.
-  calibration_blob_ = to_bytes("# mrskin calibration\nversion = " + std::to_string(options.calibration_version) +
-                               "\nserial = " + std::to_string(options.serial) + "\nvalve_yield_gain = 1.0\n");
-  profile_blob_ = to_bytes("# mrskin profile\nname = \"placeholder\"\nrows = " + std::to_string(layout.rows()) +
-                           "\ncols = " + std::to_string(layout.cols()) + "\n");
+  calibration_blob_ =
+      to_bytes("# mrskin calibration\nversion = " + std::to_string(options.calibration_version) +
+               "\nserial = " + std::to_string(options.serial) + "\nvalve_yield_gain = 1.0\n");
+  profile_blob_ =
+      to_bytes("# mrskin profile\nname = \"placeholder\"\nrows = " + std::to_string(layout.rows()) +
+               "\ncols = " + std::to_string(layout.cols()) + "\n");
   calibration_blob_.reserve(kConfigCapacity);
 }
 
 std::shared_ptr<MockDevice> MockDevice::make_placeholder(const MockOptions& options, int rows, int cols) {
   const GridLayout layout(rows, cols);
-  auto plant = std::make_unique<PlaceholderPlant>(layout, PlaceholderParams{}, options.perturbation, options.seed);
+  auto plant =
+      std::make_unique<PlaceholderPlant>(layout, PlaceholderParams{}, options.perturbation, options.seed);
   return std::make_shared<MockDevice>(layout, options, std::move(plant));
 }
 
@@ -194,7 +199,7 @@ void MockDevice::emit(const Datagram& d, TimePoint now) noexcept {
   }
   Datagram out = d;
   if (chance(f.corrupt_probability) && out.length > 0) {
-    const std::uint64_t bit = splitmix(fault_rng_) % (out.length * 8U);
+    const std::uint64_t bit = splitmix(fault_rng_) % (static_cast<std::uint64_t>(out.length) * 8U);
     out.bytes[bit / 8U] = static_cast<std::uint8_t>(out.bytes[bit / 8U] ^ (1U << (bit % 8U)));
     corrupted_.fetch_add(1, std::memory_order_relaxed);
   }
@@ -255,7 +260,8 @@ void MockDevice::send_status() noexcept {
   proto::Status s;
   s.state = state_.load(std::memory_order_relaxed);
   s.fault = fault_.load(std::memory_order_relaxed);
-  const bool released = std::all_of(commanded_A_.begin(), commanded_A_.end(), [](double a) { return a == 0.0; });
+  const bool released =
+      std::all_of(commanded_A_.begin(), commanded_A_.end(), [](double a) { return a == 0.0; });
   unsigned flags = proto::kFlagCalibrated;
   if (released) {
     flags |= proto::kFlagValvesReleased;
@@ -295,7 +301,7 @@ void MockDevice::handle_host_input(TimePoint now) noexcept {
       continue;
     }
     if (chance(f.corrupt_probability) && d.length > 0) {
-      const std::uint64_t bit = splitmix(fault_rng_) % (d.length * 8U);
+      const std::uint64_t bit = splitmix(fault_rng_) % (static_cast<std::uint64_t>(d.length) * 8U);
       d.bytes[bit / 8U] = static_cast<std::uint8_t>(d.bytes[bit / 8U] ^ (1U << (bit % 8U)));
       corrupted_.fetch_add(1, std::memory_order_relaxed);
     }
@@ -310,17 +316,20 @@ void MockDevice::handle_host_input(TimePoint now) noexcept {
 void MockDevice::handle_config(const proto::Message& message) noexcept {
   auto blob_for = [this](std::uint16_t key) -> std::vector<std::uint8_t>* {
     switch (static_cast<proto::ConfigKey>(key)) {
-      case proto::ConfigKey::profile: return &profile_blob_;
-      case proto::ConfigKey::calibration: return &calibration_blob_;
+      case proto::ConfigKey::profile:
+        return &profile_blob_;
+      case proto::ConfigKey::calibration:
+        return &calibration_blob_;
     }
     return nullptr;
   };
   if (const auto* r = std::get_if<proto::ConfigRead>(&message)) {
     const std::vector<std::uint8_t>* blob = blob_for(r->key);
     if (blob == nullptr || r->offset > blob->size()) {
-      send_message(proto::ConfigAck{r->key, r->offset,
-                                    static_cast<std::uint8_t>(blob == nullptr ? proto::ConfigStatus::bad_key
-                                                                              : proto::ConfigStatus::bad_range)});
+      send_message(
+          proto::ConfigAck{r->key, r->offset,
+                           static_cast<std::uint8_t>(blob == nullptr ? proto::ConfigStatus::bad_key
+                                                                     : proto::ConfigStatus::bad_range)});
       return;
     }
     proto::ConfigData data;
@@ -372,8 +381,8 @@ void MockDevice::handle(const std::uint8_t* bytes, std::size_t length, TimePoint
     id.sensors = static_cast<std::uint16_t>(sensor_si_.size());
     id.serial = options_.serial;
     id.current_lsb_nA = static_cast<std::uint32_t>(std::lround(options_.current_lsb_A * 1e9));
-    id.current_max_counts = static_cast<std::uint16_t>(
-        std::min<long>(std::lround(options_.max_current_A / options_.current_lsb_A), proto::kCurrentCountMax));
+    id.current_max_counts = static_cast<std::uint16_t>(std::min<long>(
+        std::lround(options_.max_current_A / options_.current_lsb_A), proto::kCurrentCountMax));
     id.sensor_quantity = static_cast<std::uint8_t>(proto::SensorQuantity::displacement_m);
     id.sensor_lsb_nano = static_cast<std::uint32_t>(std::lround(options_.sensor_lsb_m * 1e9));
     id.heartbeat_timeout_ms =
@@ -454,7 +463,8 @@ void MockDevice::update_coils(double dt_s) noexcept {
 void MockDevice::emit_telemetry(TimePoint now) noexcept {
   plant_->read_sensors(sensor_si_);
   const MockFaults& f = options_.faults;
-  const auto time_us = static_cast<std::uint32_t>(static_cast<std::uint64_t>(now.count() / 1000) & 0xFFFFFFFFULL);
+  const auto time_us =
+      static_cast<std::uint32_t>(static_cast<std::uint64_t>(now.count() / 1000) & 0xFFFFFFFFULL);
   std::size_t first = 0;
   while (first < sensor_si_.size()) {
     proto::Telemetry t;
@@ -463,7 +473,8 @@ void MockDevice::emit_telemetry(TimePoint now) noexcept {
     t.count = static_cast<std::uint8_t>(std::min(proto::kMaxTelemetryValues, sensor_si_.size() - first));
     for (std::size_t i = 0; i < t.count; ++i) {
       const std::size_t s = first + i;
-      const double sigma = static_cast<int>(s) == f.noisy_sensor ? f.noisy_sensor_noise_m : options_.sensor_noise_m;
+      const double sigma =
+          static_cast<int>(s) == f.noisy_sensor ? f.noisy_sensor_noise_m : options_.sensor_noise_m;
       double value = sensor_si_[s] + sigma * gaussian(noise_state_);
       if (static_cast<int>(s) == f.stuck_sensor) {
         value = stuck_value_[s];

@@ -22,24 +22,36 @@ Duration scaled(Duration d, double scale) noexcept {
 
 const char* to_string(DeviceState s) noexcept {
   switch (s) {
-    case DeviceState::disabled: return "DISABLED";
-    case DeviceState::enabled: return "ENABLED";
-    case DeviceState::paused: return "PAUSED";
-    case DeviceState::fault: return "FAULT";
+    case DeviceState::disabled:
+      return "DISABLED";
+    case DeviceState::enabled:
+      return "ENABLED";
+    case DeviceState::paused:
+      return "PAUSED";
+    case DeviceState::fault:
+      return "FAULT";
   }
   return "UNKNOWN";
 }
 
 const char* fault_name(std::uint8_t fault_code) noexcept {
   switch (static_cast<proto::FaultCode>(fault_code)) {
-    case proto::FaultCode::none: return "none";
-    case proto::FaultCode::heartbeat_lost: return "heartbeat lost";
-    case proto::FaultCode::overtemperature: return "coil overtemperature";
-    case proto::FaultCode::overcurrent: return "overcurrent";
-    case proto::FaultCode::sensor_fault: return "sensor fault";
-    case proto::FaultCode::bus_off: return "bus off";
-    case proto::FaultCode::estop: return "emergency stop";
-    case proto::FaultCode::internal: return "internal error";
+    case proto::FaultCode::none:
+      return "none";
+    case proto::FaultCode::heartbeat_lost:
+      return "heartbeat lost";
+    case proto::FaultCode::overtemperature:
+      return "coil overtemperature";
+    case proto::FaultCode::overcurrent:
+      return "overcurrent";
+    case proto::FaultCode::sensor_fault:
+      return "sensor fault";
+    case proto::FaultCode::bus_off:
+      return "bus off";
+    case proto::FaultCode::estop:
+      return "emergency stop";
+    case proto::FaultCode::internal:
+      return "internal error";
   }
   return "unknown fault";
 }
@@ -84,7 +96,8 @@ DeviceSession::~DeviceSession() {
 void DeviceSession::apply_identity(const proto::Identity& id) {
   if (id.proto_major != proto::kVersionMajor) {
     throw ProtocolMismatch(fmt::format(
-        "device on {} reports protocol v{}.{}, this library speaks v{}.{}: update the device firmware or use a "
+        "device on {} reports protocol v{}.{}, this library speaks v{}.{}: update the device firmware or use "
+        "a "
         "matching mrskin release",
         transport_->uri(), id.proto_major, id.proto_minor, proto::kVersionMajor, proto::kVersionMinor));
   }
@@ -114,7 +127,8 @@ void DeviceSession::await_identity(TimePoint deadline) {
     if (now >= next_request) {
       // Repeated, since a lossy link may eat the request or the answer.
       if (send_packet(proto::IdentifyRequest{}) == ResultCode::disconnected) {
-        throw DeviceNotFound(fmt::format("device on {} disconnected during the handshake", transport_->uri()));
+        throw DeviceNotFound(
+            fmt::format("device on {} disconnected during the handshake", transport_->uri()));
       }
       next_request = now + options_.handshake_retry;
     }
@@ -122,7 +136,8 @@ void DeviceSession::await_identity(TimePoint deadline) {
     const ResultCode rc = transport_->receive(d);
     if (rc == ResultCode::ok) {
       log(d, false, now);
-      const proto::PacketDecoded p = proto::decode_packet(std::span<const std::uint8_t>(d.bytes.data(), d.length));
+      const proto::PacketDecoded p =
+          proto::decode_packet(std::span<const std::uint8_t>(d.bytes.data(), d.length));
       if (p.error == proto::Error::wrong_version) {
         throw ProtocolMismatch(fmt::format(
             "device on {} speaks protocol v{}, this library speaks v{}: update the device firmware or use a "
@@ -144,10 +159,11 @@ void DeviceSession::await_identity(TimePoint deadline) {
       throw DeviceNotFound(fmt::format("device on {} disconnected during the handshake", transport_->uri()));
     }
     if (now >= deadline) {
-      throw Timeout(fmt::format(
-          "device on {} did not identify within {:.3f} s: check power, firmware and that no other process owns it "
-          "(raise the time scale in slow environments)",
-          transport_->uri(), to_seconds(options_.handshake_timeout)));
+      throw Timeout(
+          fmt::format("device on {} did not identify within {:.3f} s: check power, firmware and that no "
+                      "other process owns it "
+                      "(raise the time scale in slow environments)",
+                      transport_->uri(), to_seconds(options_.handshake_timeout)));
     }
     clock_.sleep_until(now + std::chrono::microseconds(200));
   }
@@ -183,8 +199,8 @@ std::string DeviceSession::read_config(proto::ConfigKey key, TimePoint deadline)
       clock_.sleep_until(now + std::chrono::microseconds(200));
     }
     if (config_ack_ready_) {
-      throw Error(fmt::format("device on {} refused to read configuration key {} (status {})", transport_->uri(),
-                              static_cast<int>(key), config_ack_.status));
+      throw Error(fmt::format("device on {} refused to read configuration key {} (status {})",
+                              transport_->uri(), static_cast<int>(key), config_ack_.status));
     }
     if (config_reply_.key != request.key || config_reply_.offset != offset) {
       continue;  // a stale answer to an earlier retry
@@ -227,7 +243,8 @@ ResultCode DeviceSession::send_packet(const proto::Message& message) noexcept {
 
 void DeviceSession::handle(const Datagram& d, TimePoint now) noexcept {
   log(d, false, now);
-  const proto::PacketDecoded p = proto::decode_packet(std::span<const std::uint8_t>(d.bytes.data(), d.length));
+  const proto::PacketDecoded p =
+      proto::decode_packet(std::span<const std::uint8_t>(d.bytes.data(), d.length));
   if (p.error != proto::Error::ok) {
     ++counters_.decode_errors;
     counters_.crc_errors += p.error == proto::Error::bad_crc ? 1U : 0U;
@@ -256,8 +273,9 @@ void DeviceSession::handle(const Datagram& d, TimePoint now) noexcept {
       sensors_[first + i] = static_cast<double>(t->counts[i]) * sensor_lsb_;
     }
     if (telemetry_callback_ != nullptr && count > 0) {
-      telemetry_callback_(telemetry_context_,
-                          TelemetryView{t->device_time_us, first, std::span<const double>(&sensors_[first], count)});
+      telemetry_callback_(
+          telemetry_context_,
+          TelemetryView{t->device_time_us, first, std::span<const double>(&sensors_[first], count)});
     }
   } else if (const auto* s = std::get_if<proto::Status>(&p.message)) {
     const auto state = static_cast<DeviceState>(s->state);

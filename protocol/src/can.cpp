@@ -1,6 +1,7 @@
 #include "mrskin/protocol/can.hpp"
 
 #include <algorithm>
+#include <utility>
 
 #include "mrskin/protocol/crc.hpp"
 #include "validate.hpp"
@@ -310,7 +311,7 @@ CanDecoded CanDecoder::decode(const CanFrame& frame) noexcept {
       for (unsigned i = 0; i < low; ++i) {
         v.counts[i] = static_cast<std::uint16_t>(get_bits(d, 12 * i, 12));
       }
-      result.message = v;
+      result.message = Message(std::move(v));
       break;
     }
     case CanFunction::sensor_block: {
@@ -326,7 +327,7 @@ CanDecoded CanDecoder::decode(const CanFrame& frame) noexcept {
         t.counts[i] =
             static_cast<std::int16_t>(raw >= 0x800U ? static_cast<int>(raw) - 0x1000 : static_cast<int>(raw));
       }
-      result.message = t;
+      result.message = Message(std::move(t));
       break;
     }
     case CanFunction::cell_target: {
@@ -337,24 +338,24 @@ CanDecoded CanDecoder::decode(const CanFrame& frame) noexcept {
       c.targets[0].offset = static_cast<std::uint16_t>(get_bits(d, 14, 12));
       c.targets[0].ceiling = static_cast<std::uint16_t>(get_bits(d, 26, 12));
       c.targets[0].validity = static_cast<std::uint8_t>(get_bits(d, 38, 6));
-      result.message = c;
+      result.message = Message(std::move(c));
       break;
     }
     case CanFunction::management: {
       switch (static_cast<CanManagement>(block)) {
         case CanManagement::heartbeat:
-          result.message = Heartbeat{static_cast<std::uint16_t>(d[0] | (d[1] << 8U))};
+          result.message = Message(Heartbeat{static_cast<std::uint16_t>(d[0] | (d[1] << 8U))});
           break;
         case CanManagement::status:
-          result.message = Status{d[0], d[1], static_cast<std::uint16_t>(d[2] | (d[3] << 8U)), d[4]};
+          result.message = Message(Status{d[0], d[1], static_cast<std::uint16_t>(d[2] | (d[3] << 8U)), d[4]});
           break;
         case CanManagement::time_sync:
-          result.message =
-              TimeSync{static_cast<std::uint32_t>(d[0]) | (static_cast<std::uint32_t>(d[1]) << 8U) |
-                       (static_cast<std::uint32_t>(d[2]) << 16U) | (static_cast<std::uint32_t>(d[3]) << 24U)};
+          result.message = Message(TimeSync{
+              static_cast<std::uint32_t>(d[0]) | (static_cast<std::uint32_t>(d[1]) << 8U) |
+              (static_cast<std::uint32_t>(d[2]) << 16U) | (static_cast<std::uint32_t>(d[3]) << 24U)});
           break;
         case CanManagement::state_request:
-          result.message = StateRequest{d[0]};
+          result.message = Message(StateRequest{d[0]});
           break;
         default:
           result.error = Error::unknown_type;

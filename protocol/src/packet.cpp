@@ -1,6 +1,9 @@
 #include "mrskin/protocol/packet.hpp"
 
 #include <algorithm>
+#include <array>
+#include <type_traits>
+#include <utility>
 
 #include "bytes.hpp"
 #include "mrskin/protocol/crc.hpp"
@@ -190,47 +193,21 @@ std::size_t get(Reader& r, ConfigAck& m) noexcept {
   return 5;
 }
 
+// Default-constructed alternatives, built at compile time: copying one is a trivial copy
+// (every alternative is trivially copyable), so it cannot throw.
+template <std::size_t... I>
+constexpr std::array<Message, sizeof...(I)> make_prototypes(std::index_sequence<I...> /*indices*/) noexcept {
+  return {Message{std::in_place_index<I>}...};
+}
+constexpr auto kPrototypes = make_prototypes(std::make_index_sequence<std::variant_size_v<Message>>{});
+static_assert(std::is_trivially_copy_assignable_v<Message>);
+
 bool message_for_type(std::uint8_t type, Message& out) noexcept {
-  switch (static_cast<MessageType>(type)) {
-    case MessageType::identify_request:
-      out = IdentifyRequest{};
+  for (const Message& prototype : kPrototypes) {
+    if (static_cast<std::uint8_t>(type_of(prototype)) == type) {
+      out = prototype;
       return true;
-    case MessageType::identity:
-      out = Identity{};
-      return true;
-    case MessageType::valve_currents:
-      out = ValveCurrents{};
-      return true;
-    case MessageType::cell_targets:
-      out = CellTargets{};
-      return true;
-    case MessageType::telemetry:
-      out = Telemetry{};
-      return true;
-    case MessageType::time_sync:
-      out = TimeSync{};
-      return true;
-    case MessageType::status:
-      out = Status{};
-      return true;
-    case MessageType::heartbeat:
-      out = Heartbeat{};
-      return true;
-    case MessageType::state_request:
-      out = StateRequest{};
-      return true;
-    case MessageType::config_read:
-      out = ConfigRead{};
-      return true;
-    case MessageType::config_data:
-      out = ConfigData{};
-      return true;
-    case MessageType::config_write:
-      out = ConfigWrite{};
-      return true;
-    case MessageType::config_ack:
-      out = ConfigAck{};
-      return true;
+    }
   }
   return false;
 }
@@ -243,10 +220,12 @@ std::size_t packet_payload_length(const Message& message) noexcept {
   }
   std::array<std::uint8_t, kPacketMaxBytes> scratch{};
   Writer w(scratch);
-  detail::visit_nothrow<int>([&w](const auto& m) noexcept {
-    put(w, m);
-    return 0;
-  }, message);
+  detail::visit_nothrow<int>(
+      [&w](const auto& m) noexcept {
+        put(w, m);
+        return 0;
+      },
+      message);
   return w.overflow() ? 0 : w.position();
 }
 
@@ -257,10 +236,12 @@ EncodeResult encode_packet(const Message& message, std::uint8_t sequence,
   }
   std::array<std::uint8_t, kPacketMaxBytes> buffer{};
   Writer w(std::span<std::uint8_t>(buffer).subspan(kPacketHeaderBytes, kPacketMaxPayload));
-  detail::visit_nothrow<int>([&w](const auto& m) noexcept {
-    put(w, m);
-    return 0;
-  }, message);
+  detail::visit_nothrow<int>(
+      [&w](const auto& m) noexcept {
+        put(w, m);
+        return 0;
+      },
+      message);
   if (w.overflow()) {
     return {Error::too_long, 0};
   }
@@ -325,7 +306,8 @@ PacketDecoded decode_packet(std::span<const std::uint8_t> in) noexcept {
     return result;
   }
   Reader r(in.subspan(kPacketHeaderBytes, payload));
-  const std::size_t wanted = detail::visit_nothrow<std::size_t>([&r](auto& m) noexcept { return get(r, m); }, result.message);
+  const auto wanted =
+      detail::visit_nothrow<std::size_t>([&r](auto& m) noexcept { return get(r, m); }, result.message);
   if (wanted != payload || r.underflow()) {
     result.error = Error::bad_length;
     return result;

@@ -349,7 +349,8 @@ TEST(MockUri, BadParametersAreNamed) {
   EXPECT_THROW(parse_mock_uri("mock://?faults=melt:1", rows, cols), InvalidArgument);
   EXPECT_THROW(parse_mock_uri("mock://?seed=abc", rows, cols), InvalidArgument);
   EXPECT_THROW(parse_mock_uri("mock://?colour=red", rows, cols), InvalidArgument);
-  const MockOptions o = parse_mock_uri("mock://?seed=3&faults=drop:0.1,disconnect:2+0.5,overheat:4", rows, cols);
+  const MockOptions o =
+      parse_mock_uri("mock://?seed=3&faults=drop:0.1,disconnect:2+0.5,overheat:4", rows, cols);
   EXPECT_EQ(o.seed, 3U);
   EXPECT_DOUBLE_EQ(o.faults.drop_probability, 0.1);
   EXPECT_DOUBLE_EQ(o.faults.disconnect_at_s, 2.0);

@@ -59,9 +59,11 @@ int run(const Settings& cfg) {
   auto scene = bridge::make_scene(cfg.scene);
   OpenedDevice dev = open_device(cfg.device, clock);
   const DeviceInfo& info = dev.session->info();
-  fmt::print("mrskin-bridged {}: {} serial {:08X} firmware {} protocol v{}.{}, {} x {} grid, {} valves, {} sensors\n",
-             library_version(), cfg.device, info.serial, info.firmware, info.protocol_major, info.protocol_minor,
-             info.rows, info.cols, info.valves, info.sensors);
+  fmt::print(
+      "mrskin-bridged {}: {} serial {:08X} firmware {} protocol v{}.{}, {} x {} grid, {} valves, {} "
+      "sensors\n",
+      library_version(), cfg.device, info.serial, info.firmware, info.protocol_major, info.protocol_minor,
+      info.rows, info.cols, info.valves, info.sensors);
   bridge::BridgeOptions options;
   options.rate_hz = cfg.rate_hz;
   bridge::Bridge loop(*dev.session, *scene, options);
@@ -91,9 +93,11 @@ int run(const Settings& cfg) {
       for (const double f : loop.targets_N()) {
         peak_N = std::max(peak_N, f);
       }
-      fmt::print("t={:5.2f} s  ticks={:<7} state={:<8} stiffness={:6.1f} N/m  peak target={:5.3f} N  rms error={:6.4f} N\n",
-                 to_seconds(now - t0), loop.live_ticks(), to_string(dev.session->state()),
-                 loop.live_stiffness_N_per_m(), peak_N, loop.live_rms_error_N());
+      fmt::print(
+          "t={:5.2f} s  ticks={:<7} state={:<8} stiffness={:6.1f} N/m  peak target={:5.3f} N  rms "
+          "error={:6.4f} N\n",
+          to_seconds(now - t0), loop.live_ticks(), to_string(dev.session->state()),
+          loop.live_stiffness_N_per_m(), peak_N, loop.live_rms_error_N());
       std::fflush(stdout);
     }
     next += std::chrono::milliseconds(1);
@@ -129,7 +133,9 @@ int guarded_main(int argc, char** argv) {
       ->capture_default_str();
   app.add_option("--duration", cfg.duration_s, "seconds to run; 0 runs until SIGINT/SIGTERM")
       ->check(CLI::NonNegativeNumber);
-  app.add_option("--rate", cfg.rate_hz, "loop rate, Hz")->check(CLI::Range(1.0, 20000.0))->capture_default_str();
+  app.add_option("--rate", cfg.rate_hz, "loop rate, Hz")
+      ->check(CLI::Range(1.0, 20000.0))
+      ->capture_default_str();
   app.add_option("--stats-json", cfg.stats_path, "write loop statistics as JSON to this file at exit");
   app.add_flag("--quiet", cfg.quiet, "no live status lines");
   CLI11_PARSE(app, argc, argv);

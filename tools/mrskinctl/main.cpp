@@ -19,10 +19,17 @@ std::string json_escape(const std::string& text) {
   std::string out;
   for (const char c : text) {
     switch (c) {
-      case '"': out += "\\\""; break;
-      case '\\': out += "\\\\"; break;
-      case '\n': out += "\\n"; break;
-      default: out += c;
+      case '"':
+        out += "\\\"";
+        break;
+      case '\\':
+        out += "\\\\";
+        break;
+      case '\n':
+        out += "\\n";
+        break;
+      default:
+        out += c;
     }
   }
   return out;
@@ -45,15 +52,17 @@ int cmd_info(const std::string& uri, bool json, double sample_s) {
         "{{\"uri\": \"{}\", \"serial\": \"{:08X}\", \"firmware\": \"{}\", \"protocol\": \"{}.{}\", "
         "\"rows\": {}, \"cols\": {}, \"fluid_cells\": {}, \"valves\": {}, \"sensors\": {}, "
         "\"current_lsb_a\": {:.9g}, \"max_current_a\": {:.9g}, \"sensor_lsb_si\": {:.9g}, "
-        "\"heartbeat_timeout_s\": {:.6g}, \"telemetry_rate_hz\": {:.6g}, \"state\": \"{}\", \"fault\": \"{}\", "
+        "\"heartbeat_timeout_s\": {:.6g}, \"telemetry_rate_hz\": {:.6g}, \"state\": \"{}\", \"fault\": "
+        "\"{}\", "
         "\"calibration\": \"{}\", \"stats\": {{\"sent\": {}, \"received\": {}, \"telemetry\": {}, "
         "\"crc_errors\": {}, \"decode_errors\": {}, \"sequence_gaps\": {}, \"telemetry_timeouts\": {}, "
         "\"reconnects\": {}, \"rtt_p50_s\": {:.6g}, \"rtt_p99_s\": {:.6g}}}}}\n",
-        uri, i.serial, i.firmware, i.protocol_major, i.protocol_minor, i.rows, i.cols, i.fluid_cells, i.valves,
-        i.sensors, i.current_lsb_A, i.max_current_A, i.sensor_lsb, i.heartbeat_timeout_s, i.telemetry_rate_hz,
-        mrskin::to_string(session.state()), mrskin::fault_name(session.fault_code()), json_escape(i.calibration),
-        c.sent, c.received, c.telemetry, c.crc_errors, c.decode_errors, c.sequence_gaps, c.telemetry_timeouts,
-        c.reconnects, c.round_trip.percentile_ns(0.5) * 1e-9, c.round_trip.percentile_ns(0.99) * 1e-9);
+        uri, i.serial, i.firmware, i.protocol_major, i.protocol_minor, i.rows, i.cols, i.fluid_cells,
+        i.valves, i.sensors, i.current_lsb_A, i.max_current_A, i.sensor_lsb, i.heartbeat_timeout_s,
+        i.telemetry_rate_hz, mrskin::to_string(session.state()), mrskin::fault_name(session.fault_code()),
+        json_escape(i.calibration), c.sent, c.received, c.telemetry, c.crc_errors, c.decode_errors,
+        c.sequence_gaps, c.telemetry_timeouts, c.reconnects, c.round_trip.percentile_ns(0.5) * 1e-9,
+        c.round_trip.percentile_ns(0.99) * 1e-9);
     return 0;
   }
   fmt::print(
@@ -62,9 +71,9 @@ int cmd_info(const std::string& uri, bool json, double sample_s) {
       "current     {:.3f} mA per count, max {:.4f} A\nsensor LSB  {:.3g} (SI)\nheartbeat   {:.3f} s timeout\n"
       "telemetry   {:.0f} Hz\nstate       {} (fault: {})\n",
       uri, i.serial, i.firmware, i.protocol_major, i.protocol_minor, mrskin::protocol_version_major(),
-      mrskin::protocol_version_minor(), i.rows, i.cols, i.fluid_cells, i.valves, i.sensors, i.current_lsb_A * 1e3,
-      i.max_current_A, i.sensor_lsb, i.heartbeat_timeout_s, i.telemetry_rate_hz, mrskin::to_string(session.state()),
-      mrskin::fault_name(session.fault_code()));
+      mrskin::protocol_version_minor(), i.rows, i.cols, i.fluid_cells, i.valves, i.sensors,
+      i.current_lsb_A * 1e3, i.max_current_A, i.sensor_lsb, i.heartbeat_timeout_s, i.telemetry_rate_hz,
+      mrskin::to_string(session.state()), mrskin::fault_name(session.fault_code()));
   fmt::print("calibration\n");
   std::size_t start = 0;
   while (start < i.calibration.size()) {
@@ -73,10 +82,12 @@ int cmd_info(const std::string& uri, bool json, double sample_s) {
     start = end_line == std::string::npos ? i.calibration.size() : end_line + 1;
   }
   fmt::print(
-      "statistics over {:.2f} s: {} sent, {} received ({} telemetry), {} CRC errors, {} decode errors, {} sequence "
+      "statistics over {:.2f} s: {} sent, {} received ({} telemetry), {} CRC errors, {} decode errors, {} "
+      "sequence "
       "gaps, {} telemetry timeouts, {} reconnects, round trip p50 {:.3f} ms p99 {:.3f} ms\n",
-      sample_s, c.sent, c.received, c.telemetry, c.crc_errors, c.decode_errors, c.sequence_gaps, c.telemetry_timeouts,
-      c.reconnects, c.round_trip.percentile_ns(0.5) * 1e-6, c.round_trip.percentile_ns(0.99) * 1e-6);
+      sample_s, c.sent, c.received, c.telemetry, c.crc_errors, c.decode_errors, c.sequence_gaps,
+      c.telemetry_timeouts, c.reconnects, c.round_trip.percentile_ns(0.5) * 1e-6,
+      c.round_trip.percentile_ns(0.99) * 1e-6);
   return 0;
 }
 
@@ -131,7 +142,8 @@ int guarded_main(int argc, char** argv) {
   }
   CLI11_PARSE(app, argc, argv);
   if (chosen != nullptr) {
-    fmt::print(stderr, "mrskinctl {}: not available in this build (planned in {})\n", chosen->name, chosen->issue);
+    fmt::print(stderr, "mrskinctl {}: not available in this build (planned in {})\n", chosen->name,
+               chosen->issue);
     return kExitUnavailable;
   }
   try {

@@ -47,7 +47,7 @@ class DurationHistogram {
  private:
   static constexpr int kPerDecade = 16;
   static constexpr int kDecades = 9;
-  std::array<std::uint64_t, static_cast<std::size_t>(kPerDecade * kDecades + 2)> buckets_{};
+  std::array<std::uint64_t, static_cast<std::size_t>(kPerDecade* kDecades + 2)> buckets_{};
   std::uint64_t count_ = 0;
   std::int64_t max_ns_ = 0;
 };

@@ -33,10 +33,10 @@ struct MockFaults {
   int stuck_sensor = -1;               // this sensor freezes at its first reading
   int noisy_sensor = -1;               // this sensor gets noisy_sensor_noise_m of noise
   double noisy_sensor_noise_m = 50e-6;
-  int overheat_valve = -1;             // this coil gets overheat_power_W of extra heat
+  int overheat_valve = -1;  // this coil gets overheat_power_W of extra heat
   double overheat_power_W = 10.0;
-  double bus_off_at_s = -1.0;          // bus-off at this device time (< 0: never)
-  double bus_off_for_s = 0.1;          // silent this long, then back in FAULT
+  double bus_off_at_s = -1.0;  // bus-off at this device time (< 0: never)
+  double bus_off_for_s = 0.1;  // silent this long, then back in FAULT
   [[nodiscard]] bool any() const noexcept;
 };
 
@@ -52,15 +52,15 @@ struct MockOptions {
   double sensor_lsb_m = 2.5e-6;
   double sensor_noise_m = 1e-6;  // standard deviation, before quantisation
   std::uint32_t serial = 0x4D520001;
-  double slew_A_per_s = 200.0;          // coil current slew limit of the current driver
+  double slew_A_per_s = 200.0;  // coil current slew limit of the current driver
   // Coil thermal model: C dT/dt = R I^2 + P_extra - (T - T_ambient) / R_th.
   double coil_resistance_ohm = 4.0;
   double coil_heat_capacity_J_per_K = 0.5;
   double coil_thermal_resistance_K_per_W = 20.0;
   double ambient_C = 25.0;
-  double derate_start_C = 80.0;         // current limit falls linearly from here...
-  double fault_C = 100.0;               // ...to zero here, where the unit faults
-  double time_scale = 1.0;              // multiplies every timeout (slow environments, VMs)
+  double derate_start_C = 80.0;  // current limit falls linearly from here...
+  double fault_C = 100.0;        // ...to zero here, where the unit faults
+  double time_scale = 1.0;       // multiplies every timeout (slow environments, VMs)
   MockFaults faults{};
   std::uint16_t calibration_version = 1;
 };
@@ -148,7 +148,7 @@ class MockDevice {
   std::vector<Delayed> delay_line_;  // ring, preallocated
   std::size_t delay_head_ = 0;
   std::size_t delay_count_ = 0;
-  Datagram held_{};                  // reorder: the datagram held back
+  Datagram held_{};  // reorder: the datagram held back
   bool holding_ = false;
   std::vector<std::uint8_t> calibration_blob_;
   std::vector<std::uint8_t> profile_blob_;

@@ -67,7 +67,7 @@ struct SessionCounters {
   std::uint64_t crc_errors = 0;
   std::uint64_t decode_errors = 0;  // all decode failures, CRC included
   std::uint64_t sequence_gaps = 0;
-  std::uint64_t duplicates = 0;     // same sequence number twice in a row
+  std::uint64_t duplicates = 0;  // same sequence number twice in a row
   std::uint64_t heartbeats = 0;
   std::uint64_t invalid_commands = 0;
   std::uint64_t telemetry_timeouts = 0;
@@ -117,7 +117,8 @@ class DeviceSession {
   // nothing in that case.
   ResultCode send_valve_currents(std::span<const double> current_A) noexcept;
   // Per-cell impedance targets (wire counts; see protocol/units.hpp for SI conversion).
-  ResultCode send_cell_targets(std::uint16_t first_cell, std::span<const protocol::CellTarget> targets) noexcept;
+  ResultCode send_cell_targets(std::uint16_t first_cell,
+                               std::span<const protocol::CellTarget> targets) noexcept;
   // Leaves DISABLED, PAUSED or a latched FAULT. The caller re-seeds its targets from the
   // measured state before the next command.
   ResultCode request_enable() noexcept;
