@@ -62,7 +62,8 @@ TEST(ProtocolFuzzCorpus, GoldenSeedsDecode) {
     const auto bytes = read_file(root / "packet" / name);
     EXPECT_EQ(p::decode_packet(bytes).error, p::Error::ok) << name;
   }
-  EXPECT_EQ(p::decode_packet(read_file(root / "packet" / "version2_heartbeat")).error, p::Error::wrong_version);
+  EXPECT_EQ(p::decode_packet(read_file(root / "packet" / "version2_heartbeat")).error,
+            p::Error::wrong_version);
   for (const char* name : {"valve_currents", "telemetry", "identity", "management"}) {
     const auto bytes = read_file(root / "can_classic" / name);
     ASSERT_GE(bytes.size(), 13U) << name;

@@ -54,7 +54,8 @@ inline const char* check_packet(std::span<const std::uint8_t> in) noexcept {
   std::array<std::uint8_t, p::kPacketMaxBytes> out{};
   const p::EncodeResult e = p::encode_packet(d.message, d.sequence, out);
   if (e.error != p::Error::ok) return "decoded packet does not re-encode";
-  if (e.bytes > in.size() || !std::equal(out.begin(), out.begin() + static_cast<std::ptrdiff_t>(e.bytes), in.begin())) {
+  if (e.bytes > in.size() ||
+      !std::equal(out.begin(), out.begin() + static_cast<std::ptrdiff_t>(e.bytes), in.begin())) {
     return "decoded packet re-encodes to other bytes";
   }
   return nullptr;
@@ -99,17 +100,29 @@ inline std::array<std::uint8_t, 7> classic_defined_bits(const p::CanFrame& f) no
         mask[bit / 8] = static_cast<std::uint8_t>(mask[bit / 8] | (1U << (bit % 8)));
       }
       break;
-    case p::CanFunction::cell_target: bytes(6); break;
+    case p::CanFunction::cell_target:
+      bytes(6);
+      break;
     case p::CanFunction::management:
       switch (static_cast<p::CanManagement>(block)) {
-        case p::CanManagement::heartbeat: bytes(2); break;
-        case p::CanManagement::status: bytes(5); break;
-        case p::CanManagement::time_sync: bytes(4); break;
-        case p::CanManagement::state_request: bytes(1); break;
-        default: break;
+        case p::CanManagement::heartbeat:
+          bytes(2);
+          break;
+        case p::CanManagement::status:
+          bytes(5);
+          break;
+        case p::CanManagement::time_sync:
+          bytes(4);
+          break;
+        case p::CanManagement::state_request:
+          bytes(1);
+          break;
+        default:
+          break;
       }
       break;
-    default: break;
+    default:
+      break;
   }
   return mask;
 }
@@ -135,16 +148,16 @@ inline const char* check_can(const p::CanFrame& frame, std::uint8_t node, const 
   if (frame.fd) {
     // The packet in the frame must re-encode to the same bytes, in a frame with the same id.
     const auto fn = static_cast<p::CanFunction>((frame.id >> 8U) & 0x7U);
-    const p::Direction dir = fn == p::CanFunction::fd_host_to_device ? p::Direction::host_to_device
-                                                                     : p::Direction::device_to_host;
+    const p::Direction dir =
+        fn == p::CanFunction::fd_host_to_device ? p::Direction::host_to_device : p::Direction::device_to_host;
     p::CanFrame re;
     if (p::encode_canfd(d.message, node, dir, d.sequence, re).error != p::Error::ok) {
       return "decoded CAN FD message does not re-encode";
     }
     if (re.id != frame.id) return "CAN FD message re-encodes with another id";
     const std::size_t n = p::kPacketHeaderBytes + re.data[3] + p::kPacketCrcBytes;
-    if (n > frame.length || !std::equal(re.data.begin(), re.data.begin() + static_cast<std::ptrdiff_t>(n),
-                                        frame.data.begin())) {
+    if (n > frame.length ||
+        !std::equal(re.data.begin(), re.data.begin() + static_cast<std::ptrdiff_t>(n), frame.data.begin())) {
       return "CAN FD message re-encodes to other bytes";
     }
     return nullptr;
@@ -201,8 +214,14 @@ inline const char* can_classic_entry(const std::uint8_t* data, std::size_t size)
     std::copy_n(r + 4, 8, f.data.begin());
     if ((r[0] & 1U) != 0) {
       const std::array<std::uint8_t, 9> crc_in{static_cast<std::uint8_t>((f.id >> 8U) & 0x7U),
-                                               static_cast<std::uint8_t>(f.id & 0xFFU), f.data[0], f.data[1],
-                                               f.data[2], f.data[3], f.data[4], f.data[5], f.data[6]};
+                                               static_cast<std::uint8_t>(f.id & 0xFFU),
+                                               f.data[0],
+                                               f.data[1],
+                                               f.data[2],
+                                               f.data[3],
+                                               f.data[4],
+                                               f.data[5],
+                                               f.data[6]};
       f.data[7] = p::crc8_j1850(crc_in);
     }
     if (const char* failure = check_can(f, node, decoder.decode(f))) return failure;
@@ -263,8 +282,8 @@ class ByteReader {
 
 // |counts * lsb - value| within half an LSB (plus rounding of the products).
 inline bool within_half_lsb(double dequantized, double value, double lsb) noexcept {
-  const double tol = 0.5 * lsb * (1.0 + 1e-12) + 1e-12 * std::fabs(value) +
-                     4.0 * std::numeric_limits<double>::denorm_min();
+  const double tol =
+      0.5 * lsb * (1.0 + 1e-12) + 1e-12 * std::fabs(value) + 4.0 * std::numeric_limits<double>::denorm_min();
   return std::fabs(dequantized - value) <= tol;
 }
 
@@ -316,7 +335,8 @@ inline const char* quantize_entry(const std::uint8_t* data, std::size_t size) no
   }
   p::Identity id;
   id.current_lsb_nA = current_lsb_nA;
-  id.current_max_counts = static_cast<std::uint16_t>(std::min<std::uint16_t>(current_max, p::kCurrentCountMax));
+  id.current_max_counts =
+      static_cast<std::uint16_t>(std::min<std::uint16_t>(current_max, p::kCurrentCountMax));
   id.sensor_lsb_nano = sensor_lsb_nano;
   {
     const auto q = p::quantize_current(value, id);
@@ -338,7 +358,8 @@ inline const char* quantize_entry(const std::uint8_t* data, std::size_t size) no
     const p::CellTargetSi si{value, lsb, extra1, extra2};
     const auto q = p::quantize_cell_target(si);
     if (!known_error(q.error)) return "quantize_cell_target returned an undefined error code";
-    const bool all_finite = std::isfinite(value) && std::isfinite(lsb) && std::isfinite(extra1) && std::isfinite(extra2);
+    const bool all_finite =
+        std::isfinite(value) && std::isfinite(lsb) && std::isfinite(extra1) && std::isfinite(extra2);
     // NaN/Inf is always refused; when another field is also out of range, the first bad
     // field in stiffness, offset, ceiling, validity order names the error.
     if (!all_finite && q.error != p::Error::not_finite && q.error != p::Error::out_of_range) {

@@ -50,7 +50,9 @@ struct Grid {
 
 int ceil_div(int a, int b) { return (a + b - 1) / b; }
 
-std::size_t packet_bytes(const Message& m) { return kPacketHeaderBytes + packet_payload_length(m) + kPacketCrcBytes; }
+std::size_t packet_bytes(const Message& m) {
+  return kPacketHeaderBytes + packet_payload_length(m) + kPacketCrcBytes;
+}
 
 std::size_t valve_packet_bytes(int n) {
   ValveCurrents v;
@@ -65,7 +67,9 @@ std::size_t telemetry_packet_bytes(int n) {
 
 // ---- classic CAN -----------------------------------------------------------------------
 
-double classic_frame_us() { return static_cast<double>(can_frame_bits_worst_case(8, false)) / kClassicBitRate * 1e6; }
+double classic_frame_us() {
+  return static_cast<double>(can_frame_bits_worst_case(8, false)) / kClassicBitRate * 1e6;
+}
 
 // Frames per tick; every classic frame of v1 is 8 bytes.
 double classic_frames_full(const Grid& g) {
@@ -80,7 +84,9 @@ double classic_frames_delta(const Grid& g, double changed) {
   return blocks(g.valves()) + blocks(g.sensors()) + 1.0;
 }
 double classic_background_frames() { return (kHeartbeatHz + kStatusHz) / kTickHz; }
-double classic_load(double frames) { return (frames + classic_background_frames()) * classic_frame_us() / 1000.0; }
+double classic_load(double frames) {
+  return (frames + classic_background_frames()) * classic_frame_us() / 1000.0;
+}
 
 // ---- CAN FD (bit-rate switch) -----------------------------------------------------------
 
@@ -91,7 +97,8 @@ double fd_frame_us(std::size_t packet) {
   const std::size_t total = can_frame_bits_worst_case(packet, true);
   const std::size_t arbitration = 17 + (17 - 1) / 4 + 12;  // SOF..BRS stuffed, ACK..IFS
   const std::size_t data = total - arbitration;
-  return static_cast<double>(arbitration) / kFdNominalRate * 1e6 + static_cast<double>(data) / kFdDataRate * 1e6;
+  return static_cast<double>(arbitration) / kFdNominalRate * 1e6 +
+         static_cast<double>(data) / kFdDataRate * 1e6;
 }
 // Time on the bus per tick for `values` values sent as packets of at most `cap` values.
 template <class Bytes>
@@ -101,7 +108,8 @@ double fd_values_us(int values, int cap, Bytes bytes) {
   return us;
 }
 double fd_background_us() {
-  return (kHeartbeatHz * fd_frame_us(packet_bytes(Heartbeat{})) + kStatusHz * fd_frame_us(packet_bytes(Status{}))) /
+  return (kHeartbeatHz * fd_frame_us(packet_bytes(Heartbeat{})) +
+          kStatusHz * fd_frame_us(packet_bytes(Status{}))) /
          kTickHz;
 }
 double fd_full_us(const Grid& g) {
@@ -127,8 +135,10 @@ double fd_load(double us) { return (us + fd_background_us()) / 1000.0; }
 // One packet per report: reports per tick in the busier direction, over the reports the
 // endpoint moves per tick.
 double hid_full_reports(const Grid& g, bool with_background) {
-  const double out = ceil_div(g.valves(), kMaxValveCurrents) + (with_background ? kHeartbeatHz / kTickHz : 0.0);
-  const double in = ceil_div(g.sensors(), kMaxTelemetryValues) + (with_background ? kStatusHz / kTickHz : 0.0);
+  const double out =
+      ceil_div(g.valves(), kMaxValveCurrents) + (with_background ? kHeartbeatHz / kTickHz : 0.0);
+  const double in =
+      ceil_div(g.sensors(), kMaxTelemetryValues) + (with_background ? kStatusHz / kTickHz : 0.0);
   return std::max(out, in);
 }
 double hid_delta_reports(const Grid& g, double changed_blocks) {
@@ -182,65 +192,82 @@ void print_tables() {
   const Grid g5{5, 5};
   out("## Per full 5x5 update (13 fluid cells, 12 valves, 12 sensors)\n\n");
   out("| bus | host->device | device->host | on the wire per update |\n|---|---|---|---|\n");
-  out("| USB-HID full speed | 1 report: ValveCurrents packet %zu B in 64 B | 1 report: Telemetry packet %zu B in 64 B | 128 B of reports (70 B used) |\n",
-              valve_packet_bytes(12), telemetry_packet_bytes(12));
-  out("| classic CAN | 3 valve-block frames | 1 TimeSync + 3 sensor-block frames | 7 frames x 8 B = 56 B, 7 x %zu = %zu bits |\n",
-              can_frame_bits_worst_case(8, false), 7 * can_frame_bits_worst_case(8, false));
-  out("| CAN FD | 1 frame, %zu B packet in %zu B | 1 frame, %zu B packet in %zu B | %zu + %zu bits (%.1f us) |\n\n",
-              valve_packet_bytes(12), canfd_padded_length(valve_packet_bytes(12)), telemetry_packet_bytes(12),
-              canfd_padded_length(telemetry_packet_bytes(12)), can_frame_bits_worst_case(valve_packet_bytes(12), true),
-              can_frame_bits_worst_case(telemetry_packet_bytes(12), true), fd_full_us(g5));
+  out("| USB-HID full speed | 1 report: ValveCurrents packet %zu B in 64 B | 1 report: Telemetry packet %zu "
+      "B in 64 B | 128 B of reports (70 B used) |\n",
+      valve_packet_bytes(12), telemetry_packet_bytes(12));
+  out("| classic CAN | 3 valve-block frames | 1 TimeSync + 3 sensor-block frames | 7 frames x 8 B = 56 B, 7 "
+      "x %zu = %zu bits |\n",
+      can_frame_bits_worst_case(8, false), 7 * can_frame_bits_worst_case(8, false));
+  out("| CAN FD | 1 frame, %zu B packet in %zu B | 1 frame, %zu B packet in %zu B | %zu + %zu bits (%.1f us) "
+      "|\n\n",
+      valve_packet_bytes(12), canfd_padded_length(valve_packet_bytes(12)), telemetry_packet_bytes(12),
+      canfd_padded_length(telemetry_packet_bytes(12)),
+      can_frame_bits_worst_case(valve_packet_bytes(12), true),
+      can_frame_bits_worst_case(telemetry_packet_bytes(12), true), fd_full_us(g5));
 
-  out("## Worst-case frame times\n\n| frame | bits (worst-case stuffing, with IFS) | time |\n|---|---|---|\n");
-  out("| classic, 8 data bytes | %zu | %.1f us at 1 Mbit/s |\n", can_frame_bits_worst_case(8, false), classic_frame_us());
+  out("## Worst-case frame times\n\n| frame | bits (worst-case stuffing, with IFS) | time "
+      "|\n|---|---|---|\n");
+  out("| classic, 8 data bytes | %zu | %.1f us at 1 Mbit/s |\n", can_frame_bits_worst_case(8, false),
+      classic_frame_us());
   for (const std::size_t n : {std::size_t{8}, std::size_t{12}, std::size_t{48}, std::size_t{64}}) {
     out("| FD, %zu data bytes | %zu | %.1f us at 1/5 Mbit/s |\n", n, can_frame_bits_worst_case(n, true),
-                fd_frame_us(n));
+        fd_frame_us(n));
   }
   out("\n");
 
   out("## Load at 1 kHz (heartbeat %.0f Hz and status %.0f Hz included)\n\n", kHeartbeatHz, kStatusHz);
-  out("| grid | fluid/valves/sensors | HID FS full | classic CAN full | classic CAN delta typical | classic CAN delta busy | CAN FD full | CAN FD delta typical | full updates/s at 100 %% classic CAN |\n");
+  out("| grid | fluid/valves/sensors | HID FS full | classic CAN full | classic CAN delta typical | classic "
+      "CAN delta busy | CAN FD full | CAN FD delta typical | full updates/s at 100 %% classic CAN |\n");
   out("|---|---|---|---|---|---|---|---|---|\n");
-  for (const Grid g : {Grid{3, 3}, Grid{4, 4}, Grid{5, 5}, Grid{7, 7}, Grid{8, 8}, Grid{10, 10}, Grid{16, 16}, Grid{64, 64}}) {
+  for (const Grid g : {Grid{3, 3}, Grid{4, 4}, Grid{5, 5}, Grid{7, 7}, Grid{8, 8}, Grid{10, 10}, Grid{16, 16},
+                       Grid{64, 64}}) {
     const double classic_full = classic_load(classic_frames_full(g));
     const double per_update_us = (classic_frames_full(g) + classic_background_frames()) * classic_frame_us();
-    out("| %dx%d | %d/%d/%d | %s | %s (%.1f frames) | %s | %s | %s | %s | %.0f |\n", g.rows, g.cols, g.fluid(),
-                g.valves(), g.sensors(), pct(hid_full_reports(g, true) / kHidFsReportsPerMs).c_str(),
-                pct(classic_full).c_str(), classic_frames_full(g),
-                pct(classic_load(classic_frames_delta(g, kTypicalChangedBlocks))).c_str(),
-                pct(classic_load(classic_frames_delta(g, kBusyChangedBlocks))).c_str(), pct(fd_load(fd_full_us(g))).c_str(),
-                pct(fd_load(fd_delta_us(g, kTypicalChangedBlocks))).c_str(), 1e6 / per_update_us);
+    out("| %dx%d | %d/%d/%d | %s | %s (%.1f frames) | %s | %s | %s | %s | %.0f |\n", g.rows, g.cols,
+        g.fluid(), g.valves(), g.sensors(), pct(hid_full_reports(g, true) / kHidFsReportsPerMs).c_str(),
+        pct(classic_full).c_str(), classic_frames_full(g),
+        pct(classic_load(classic_frames_delta(g, kTypicalChangedBlocks))).c_str(),
+        pct(classic_load(classic_frames_delta(g, kBusyChangedBlocks))).c_str(),
+        pct(fd_load(fd_full_us(g))).c_str(), pct(fd_load(fd_delta_us(g, kTypicalChangedBlocks))).c_str(),
+        1e6 / per_update_us);
   }
   out("\nHID FS load = reports per 1 ms frame in the busier direction; above 100 %% the\n"
-              "heartbeat must ride on valve traffic and status displaces telemetry reports.\n\n");
+      "heartbeat must ride on valve traffic and status displaces telemetry reports.\n\n");
 
   out("## Largest grid updated at 1 kHz (cells = R*C; checkerboard: valves = sensors = floor(R*C/2))\n\n");
-  out("| bus | full, <= 100 %% | full, <= 50 %% | delta typical, <= 100 %% | delta typical, <= 50 %% | delta busy, <= 100 %% |\n");
+  out("| bus | full, <= 100 %% | full, <= 50 %% | delta typical, <= 100 %% | delta typical, <= 50 %% | delta "
+      "busy, <= 100 %% |\n");
   out("|---|---|---|---|---|---|\n");
   // The 50 % columns are the CAN target (arbitration latency for the lowest-priority frame);
   // USB interrupt slots are reserved for the endpoint, so every slot is usable there.
   auto row = [](const char* name, auto full, auto typical, auto busy) {
     const bool usb = std::strncmp(name, "USB", 3) == 0;
     out("| %s | %s | %s | %s | %s | %s |\n", name, grid_text(largest_cells(full, 1.0)).c_str(),
-                usb ? "n/a" : grid_text(largest_cells(full, 0.5)).c_str(), grid_text(largest_cells(typical, 1.0)).c_str(),
-                usb ? "n/a" : grid_text(largest_cells(typical, 0.5)).c_str(), grid_text(largest_cells(busy, 1.0)).c_str());
+        usb ? "n/a" : grid_text(largest_cells(full, 0.5)).c_str(),
+        grid_text(largest_cells(typical, 1.0)).c_str(),
+        usb ? "n/a" : grid_text(largest_cells(typical, 0.5)).c_str(),
+        grid_text(largest_cells(busy, 1.0)).c_str());
   };
-  row("classic CAN 1 Mbit/s", [](const Grid& g) { return classic_load(classic_frames_full(g)); },
+  row(
+      "classic CAN 1 Mbit/s", [](const Grid& g) { return classic_load(classic_frames_full(g)); },
       [](const Grid& g) { return classic_load(classic_frames_delta(g, kTypicalChangedBlocks)); },
       [](const Grid& g) { return classic_load(classic_frames_delta(g, kBusyChangedBlocks)); });
-  row("CAN FD 1/5 Mbit/s", [](const Grid& g) { return fd_load(fd_full_us(g)); },
+  row(
+      "CAN FD 1/5 Mbit/s", [](const Grid& g) { return fd_load(fd_full_us(g)); },
       [](const Grid& g) { return fd_load(fd_delta_us(g, kTypicalChangedBlocks)); },
       [](const Grid& g) { return fd_load(fd_delta_us(g, kBusyChangedBlocks)); });
-  row("USB-HID full speed (no heartbeat/status)", [](const Grid& g) { return hid_full_reports(g, false) / kHidFsReportsPerMs; },
+  row(
+      "USB-HID full speed (no heartbeat/status)",
+      [](const Grid& g) { return hid_full_reports(g, false) / kHidFsReportsPerMs; },
       [](const Grid& g) { return hid_delta_reports(g, kTypicalChangedBlocks) / kHidFsReportsPerMs; },
       [](const Grid& g) { return hid_delta_reports(g, kBusyChangedBlocks) / kHidFsReportsPerMs; });
-  row("USB-HID high speed, 64 B reports (no heartbeat/status)",
+  row(
+      "USB-HID high speed, 64 B reports (no heartbeat/status)",
       [](const Grid& g) { return hid_full_reports(g, false) / kHidHsReportsPerMs; },
       [](const Grid& g) { return hid_delta_reports(g, kTypicalChangedBlocks) / kHidHsReportsPerMs; },
       [](const Grid& g) { return hid_delta_reports(g, kBusyChangedBlocks) / kHidHsReportsPerMs; });
   out("\nClassic CAN addresses 16 blocks (64 valves, 64 sensors) and 256 cells per node; larger\n"
-              "grids need several node ids on the same bus, which changes nothing in the load.\n");
+      "grids need several node ids on the same bus, which changes nothing in the load.\n");
 }
 
 // The figure worked by hand in docs/protocol.md: (3 valve + 1 TimeSync + 3 sensor) frames
@@ -260,8 +287,10 @@ int check() {
                               encode_can(TimeSync{}, 1, 0, 0, out).frames;
   const bool ok = frames == 7.0 && encoded == 7 && bits_per_frame == 135 && bits == 945.0 &&
                   std::fabs(load - 0.945) < 1e-12;
-  std::printf("check: 5x5 classic CAN full update = %.0f frames x %zu bits = %.0f bits/ms = %.1f %% at 1 Mbit/s: %s\n",
-              frames, bits_per_frame, bits, load * 100.0, ok ? "ok" : "MISMATCH");
+  std::printf(
+      "check: 5x5 classic CAN full update = %.0f frames x %zu bits = %.0f bits/ms = %.1f %% at 1 Mbit/s: "
+      "%s\n",
+      frames, bits_per_frame, bits, load * 100.0, ok ? "ok" : "MISMATCH");
   std::printf("check: with heartbeat and status: %s\n", pct(classic_load(frames)).c_str());
   return ok ? 0 : 1;
 }
@@ -281,7 +310,8 @@ int check_doc(const char* path) {
   int missing = 0;
   for (std::string line; std::getline(lines, line);) {
     if (line.rfind("| ", 0) != 0) continue;
-    if (line.rfind("| bus ", 0) == 0 || line.rfind("| grid ", 0) == 0 || line.rfind("| frame ", 0) == 0) continue;
+    if (line.rfind("| bus ", 0) == 0 || line.rfind("| grid ", 0) == 0 || line.rfind("| frame ", 0) == 0)
+      continue;
     ++rows;
     if (doc.find(line) == std::string::npos) {
       std::printf("doc: MISSING row: %s\n", line.c_str());

@@ -1,12 +1,12 @@
 // CRC check values of the catalogue (reveng): CRC-16/CCITT-FALSE and CRC-8/SAE-J1850.
+#include "mrskin/protocol/crc.hpp"
+
 #include <gtest/gtest.h>
 
 #include <array>
 #include <cstdint>
 #include <span>
 #include <string_view>
-
-#include "mrskin/protocol/crc.hpp"
 
 namespace {
 

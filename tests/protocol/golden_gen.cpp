@@ -17,8 +17,9 @@ int main() {
                "#   can:    classic CAN frames in cansend syntax <id>#<8 data bytes>, in send order\n"
                "#   canfd:  the CAN FD frame in cansend syntax <id>##<flags><data>\n"
                "# CAN vectors use node "
-            << int{kGoldenNode} << ", rolling counter " << int{kGoldenCounter} << "; every vector uses sequence 0x"
-            << std::hex << std::uppercase << int{kGoldenSequence} << std::dec << ".\n";
+            << int{kGoldenNode} << ", rolling counter " << int{kGoldenCounter}
+            << "; every vector uses sequence 0x" << std::hex << std::uppercase << int{kGoldenSequence}
+            << std::dec << ".\n";
   for (const NamedMessage& nm : golden_messages()) {
     for (const std::string& line : golden_lines_for(nm)) {
       std::cout << line << '\n';

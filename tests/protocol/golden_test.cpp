@@ -129,7 +129,8 @@ TEST_P(ProtocolGolden, CanFdEncode) {
   ASSERT_NE(g, nullptr) << "no CAN FD vector for " << nm.name;
   ASSERT_EQ(g->tokens.size(), 1U);
   CanFrame f;
-  ASSERT_EQ(encode_canfd(nm.message, kGoldenNode, direction_of(nm.message), kGoldenSequence, f).error, Error::ok);
+  ASSERT_EQ(encode_canfd(nm.message, kGoldenNode, direction_of(nm.message), kGoldenSequence, f).error,
+            Error::ok);
   EXPECT_EQ(frame_to_text(f), g->tokens[0]);
   EXPECT_TRUE(f.fd);
 }
@@ -149,7 +150,9 @@ TEST_P(ProtocolGolden, CanFdDecode) {
 }
 
 INSTANTIATE_TEST_SUITE_P(Vectors, ProtocolGolden, ::testing::ValuesIn(golden_messages()),
-                         [](const ::testing::TestParamInfo<NamedMessage>& param_info) { return param_info.param.name; });
+                         [](const ::testing::TestParamInfo<NamedMessage>& param_info) {
+                           return param_info.param.name;
+                         });
 
 TEST(ProtocolGoldenFile, EveryTypeOnEveryFraming) {
   std::map<std::string, std::set<MessageType>> seen;
@@ -220,18 +223,23 @@ std::vector<std::uint8_t> with_crc16(std::vector<std::uint8_t> p) {
 }
 std::string classic(unsigned fn, unsigned block, unsigned node, std::vector<std::uint8_t> data7) {
   const unsigned id = (fn << 8U) | (block << 4U) | node;
-  std::vector<std::uint8_t> crc_in{static_cast<std::uint8_t>(id >> 8U), static_cast<std::uint8_t>(id & 0xFFU)};
+  std::vector<std::uint8_t> crc_in{static_cast<std::uint8_t>(id >> 8U),
+                                   static_cast<std::uint8_t>(id & 0xFFU)};
   crc_in.insert(crc_in.end(), data7.begin(), data7.end());
   data7.push_back(ref_crc8(crc_in));
   std::ostringstream os;
-  os << std::hex << std::uppercase << ((id >> 8U) & 0xFU) << ((id >> 4U) & 0xFU) << (id & 0xFU) << '#' << hex(data7);
+  os << std::hex << std::uppercase << ((id >> 8U) & 0xFU) << ((id >> 4U) & 0xFU) << (id & 0xFU) << '#'
+     << hex(data7);
   return os.str();
 }
 // Four 12-bit values little-endian into 6 bytes: v0 bits 0-11, v1 bits 12-23, ...
 std::vector<std::uint8_t> pack12(std::array<unsigned, 4> v) {
-  return {static_cast<std::uint8_t>(v[0] & 0xFF), static_cast<std::uint8_t>((v[0] >> 8) | ((v[1] & 0xF) << 4)),
-          static_cast<std::uint8_t>(v[1] >> 4),   static_cast<std::uint8_t>(v[2] & 0xFF),
-          static_cast<std::uint8_t>((v[2] >> 8) | ((v[3] & 0xF) << 4)), static_cast<std::uint8_t>(v[3] >> 4)};
+  return {static_cast<std::uint8_t>(v[0] & 0xFF),
+          static_cast<std::uint8_t>((v[0] >> 8) | ((v[1] & 0xF) << 4)),
+          static_cast<std::uint8_t>(v[1] >> 4),
+          static_cast<std::uint8_t>(v[2] & 0xFF),
+          static_cast<std::uint8_t>((v[2] >> 8) | ((v[3] & 0xF) << 4)),
+          static_cast<std::uint8_t>(v[3] >> 4)};
 }
 
 TEST(ProtocolGoldenByHand, HeartbeatPacket) {
@@ -277,7 +285,8 @@ TEST(ProtocolGoldenByHand, SensorBlocksOnClassicCan) {
   ASSERT_EQ(g->tokens.size(), 3U);
   auto data = [](std::array<int, 4> v) {
     std::array<unsigned, 4> u{};
-    for (std::size_t i = 0; i < 4; ++i) u[i] = static_cast<unsigned>(v[i]) & 0xFFFU;  // 12-bit two's complement
+    for (std::size_t i = 0; i < 4; ++i)
+      u[i] = static_cast<unsigned>(v[i]) & 0xFFFU;  // 12-bit two's complement
     auto d = pack12(u);
     d.push_back(0x94);
     return d;
@@ -316,7 +325,8 @@ TEST(ProtocolGoldenByHand, SegmentedConfigWrite) {
   // ConfigWrite packet: 7 + 5 payload bytes -> 18-byte packet. ISO-TP style on id 0x045
   // (management, block 4 = segmented host->device, node 5): first frame 10 12 + 6 bytes,
   // consecutive frames 21, 22 with 7 bytes each, zero padded.
-  const auto p = with_crc16({0x01, 0x42, 0x2A, 12, 0x01, 0x00, 0x00, 0x00, 0x05, 0x00, 5, 'm', 'r', 's', 'k', 'n'});
+  const auto p =
+      with_crc16({0x01, 0x42, 0x2A, 12, 0x01, 0x00, 0x00, 0x00, 0x05, 0x00, 5, 'm', 'r', 's', 'k', 'n'});
   ASSERT_EQ(p.size(), 18U);
   EXPECT_EQ(find_line("config_write", "packet")->tokens[0], hex(p));
   const GoldenLine* g = find_line("config_write", "can");
@@ -343,7 +353,8 @@ TEST(ProtocolGoldenByHand, CanFdCarriesThePacket) {
   ASSERT_EQ(tele.size(), 2U * 37U);
   EXPECT_EQ(find_line("telemetry", "canfd")->tokens[0], "505##0" + tele + std::string(2 * 11, '0'));
   // Heartbeat: 8-byte packet, FD length 8, no padding.
-  EXPECT_EQ(find_line("heartbeat", "canfd")->tokens[0], "405##0" + find_line("heartbeat", "packet")->tokens[0]);
+  EXPECT_EQ(find_line("heartbeat", "canfd")->tokens[0],
+            "405##0" + find_line("heartbeat", "packet")->tokens[0]);
 }
 
 TEST(ProtocolGoldenByHand, ReferenceCrcsMatchCheckValues) {

@@ -33,7 +33,13 @@ void fix_crc(std::vector<std::uint8_t>& p) {
 void fix_crc8(CanFrame& f) {
   const std::array<std::uint8_t, 9> in{static_cast<std::uint8_t>((f.id >> 8U) & 0x7U),
                                        static_cast<std::uint8_t>(f.id & 0xFFU),
-                                       f.data[0], f.data[1], f.data[2], f.data[3], f.data[4], f.data[5], f.data[6]};
+                                       f.data[0],
+                                       f.data[1],
+                                       f.data[2],
+                                       f.data[3],
+                                       f.data[4],
+                                       f.data[5],
+                                       f.data[6]};
   f.data[7] = crc8_j1850(in);
 }
 std::vector<std::uint8_t> heartbeat_packet() { return packet_bytes(Heartbeat{0x1234}, 7); }
@@ -59,7 +65,8 @@ TEST(ProtocolMalformed, ShortOutputBuffers) {
   ValveCurrents v;
   v.count = 12;
   EXPECT_EQ(encode_can(v, kNode, 0, 0, two).error, Error::short_buffer);  // needs 3
-  EXPECT_EQ(encode_can(Identity{1, 0, 0, 0, 0, 5, 5, 13, 12, 12, 1, 1000, 4095, 0, 1000, 100, 1000}, kNode, 0, 0, two)
+  EXPECT_EQ(encode_can(Identity{1, 0, 0, 0, 0, 5, 5, 13, 12, 12, 1, 1000, 4095, 0, 1000, 100, 1000}, kNode, 0,
+                       0, two)
                 .error,
             Error::short_buffer);  // needs 6
   EXPECT_EQ(encode_can(Heartbeat{}, kNode, 0, 0, std::span<CanFrame>{}).error, Error::short_buffer);
@@ -130,8 +137,8 @@ TEST(ProtocolMalformed, BadPacketCrc) {
 
 TEST(ProtocolMalformed, BadFrameCrc) {
   CanDecoder dec(kNode);
-  for (const Message& m : {Message{Heartbeat{1}}, Message{Status{1, 0, 0, 0}}, Message{TimeSync{5}},
-                           Message{StateRequest{1}}}) {
+  for (const Message& m :
+       {Message{Heartbeat{1}}, Message{Status{1, 0, 0, 0}}, Message{TimeSync{5}}, Message{StateRequest{1}}}) {
     CanFrame f = classic_frame(m);
     f.data[7] ^= 0x80;
     EXPECT_EQ(dec.decode(f).error, Error::bad_crc) << m;
@@ -224,7 +231,8 @@ TEST(ProtocolMalformed, WrongVersionOverCan) {
   EXPECT_EQ(d.error, Error::wrong_version);
   EXPECT_EQ(d.peer_version, 2);
   // Segmented identity from a v3 device.
-  std::vector<std::uint8_t> p = packet_bytes(Identity{3, 1, 0, 0, 0, 5, 5, 13, 12, 12, 1, 1000, 4095, 0, 1000, 100, 1000}, 0);
+  std::vector<std::uint8_t> p =
+      packet_bytes(Identity{3, 1, 0, 0, 0, 5, 5, 13, 12, 12, 1, 1000, 4095, 0, 1000, 100, 1000}, 0);
   p[0] = 3;
   fix_crc(p);
   CanFrame first;
@@ -270,8 +278,9 @@ TEST(ProtocolMalformed, OutOfRangeOnEncode) {
   t.count = kMaxTelemetryValues + 1;
   EXPECT_EQ(encode_error(t), Error::out_of_range);
 
-  for (const CellTarget bad : {CellTarget{kStiffnessCountMax + 1, 0, 0, 0}, CellTarget{0, kOffsetCountMax + 1, 0, 0},
-                               CellTarget{0, 0, kCeilingCountMax + 1, 0}, CellTarget{0, 0, 0, kValidityCountMax + 1}}) {
+  for (const CellTarget bad :
+       {CellTarget{kStiffnessCountMax + 1, 0, 0, 0}, CellTarget{0, kOffsetCountMax + 1, 0, 0},
+        CellTarget{0, 0, kCeilingCountMax + 1, 0}, CellTarget{0, 0, 0, kValidityCountMax + 1}}) {
     CellTargets c;
     c.count = 1;
     c.targets[0] = bad;
@@ -425,7 +434,7 @@ TEST(ProtocolMalformed, CounterGapModulus16) {
   EXPECT_EQ(c.accept(4), Error::ok);
   EXPECT_EQ(c.missed(), 0U);
   EXPECT_EQ(c.accept(15), Error::counter_gap);
-  EXPECT_EQ(c.missed(), 10U);  // 5..14
+  EXPECT_EQ(c.missed(), 10U);                  // 5..14
   EXPECT_EQ(c.accept(1), Error::counter_gap);  // gap across the wrap: 0 missed
   EXPECT_EQ(c.missed(), 1U);
   EXPECT_EQ(c.accept(1), Error::counter_gap);  // a repeat reads as 15 missed
@@ -504,7 +513,8 @@ TEST(ProtocolMalformed, BadSegmentOrder) {
 
 TEST(ProtocolMalformed, SegmentedDirectionsAreIndependent) {
   // A device->host identity and a host->device config write interleaved frame by frame.
-  const auto a = can_frames(Identity{1, 0, 0, 0, 0, 5, 5, 13, 12, 12, 1, 1000, 4095, 0, 1000, 100, 1000}, kNode, 0, 1);
+  const auto a =
+      can_frames(Identity{1, 0, 0, 0, 0, 5, 5, 13, 12, 12, 1, 1000, 4095, 0, 1000, 100, 1000}, kNode, 0, 1);
   ConfigWrite w;
   w.total = 4;
   w.length = 4;
@@ -526,7 +536,7 @@ TEST(ProtocolMalformed, SegmentedDirectionsAreIndependent) {
 
 Identity unit_identity() {
   Identity id;
-  id.current_lsb_nA = 125000;  // 125 uA
+  id.current_lsb_nA = 125000;    // 125 uA
   id.current_max_counts = 4000;  // 0.5 A
   id.sensor_lsb_nano = 2500;     // 2.5 um
   return id;
@@ -542,7 +552,10 @@ TEST(ProtocolMalformed, NotFiniteIsRefused) {
     EXPECT_EQ(quantize_unsigned(1.0, bad, 100).error, Error::not_finite);  // a bad LSB too
     for (int field = 0; field < 4; ++field) {
       CellTargetSi si{300.0, 1e-3, 1.0, 0.1};
-      (field == 0 ? si.stiffness_N_per_m : field == 1 ? si.offset_m : field == 2 ? si.ceiling_N : si.validity_s) = bad;
+      (field == 0   ? si.stiffness_N_per_m
+       : field == 1 ? si.offset_m
+       : field == 2 ? si.ceiling_N
+                    : si.validity_s) = bad;
       EXPECT_EQ(quantize_cell_target(si).error, Error::not_finite) << field;
     }
   }
@@ -553,9 +566,9 @@ TEST(ProtocolMalformed, OutOfRangeSiValues) {
   const Identity id = unit_identity();
   EXPECT_EQ(quantize_current(0.5, id).error, Error::ok);
   EXPECT_EQ(quantize_current(0.5, id).counts, 4000);
-  EXPECT_EQ(quantize_current(0.5 + 62e-6, id).counts, 4000);  // rounds down, within half an LSB
+  EXPECT_EQ(quantize_current(0.5 + 62e-6, id).counts, 4000);                // rounds down, within half an LSB
   EXPECT_EQ(quantize_current(0.5 + 63e-6, id).error, Error::out_of_range);  // the device's maximum
-  EXPECT_EQ(quantize_current(-1e-3, id).error, Error::out_of_range);       // coils are unipolar
+  EXPECT_EQ(quantize_current(-1e-3, id).error, Error::out_of_range);        // coils are unipolar
   EXPECT_EQ(quantize_current(-62e-6, id).counts, 0);
   EXPECT_EQ(quantize_current(1e300, id).error, Error::out_of_range);
 

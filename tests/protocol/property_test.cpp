@@ -126,19 +126,33 @@ Chunk gen_chunk() {
 
 Message gen_message(Fit fit) {
   switch (in<int>(0, 12)) {
-    case 0: return IdentifyRequest{any<std::uint8_t>(), any<std::uint8_t>()};
-    case 1: return gen_identity();
-    case 2: return gen_valves(fit);
-    case 3: return gen_cells(fit);
-    case 4: return gen_telemetry(fit);
-    case 5: return TimeSync{any<std::uint32_t>()};
-    case 6: return Status{in<std::uint8_t>(0, 3), in<std::uint8_t>(0, 7), any<std::uint16_t>(), any<std::uint8_t>()};
-    case 7: return Heartbeat{any<std::uint16_t>()};
-    case 8: return StateRequest{in<std::uint8_t>(0, 3)};
-    case 9: return ConfigRead{any<std::uint16_t>(), any<std::uint16_t>(), in<std::uint8_t>(1, kMaxConfigBytes)};
-    case 10: return gen_chunk<ConfigData>();
-    case 11: return gen_chunk<ConfigWrite>();
-    default: return ConfigAck{any<std::uint16_t>(), any<std::uint16_t>(), in<std::uint8_t>(0, 4)};
+    case 0:
+      return IdentifyRequest{any<std::uint8_t>(), any<std::uint8_t>()};
+    case 1:
+      return gen_identity();
+    case 2:
+      return gen_valves(fit);
+    case 3:
+      return gen_cells(fit);
+    case 4:
+      return gen_telemetry(fit);
+    case 5:
+      return TimeSync{any<std::uint32_t>()};
+    case 6:
+      return Status{in<std::uint8_t>(0, 3), in<std::uint8_t>(0, 7), any<std::uint16_t>(),
+                    any<std::uint8_t>()};
+    case 7:
+      return Heartbeat{any<std::uint16_t>()};
+    case 8:
+      return StateRequest{in<std::uint8_t>(0, 3)};
+    case 9:
+      return ConfigRead{any<std::uint16_t>(), any<std::uint16_t>(), in<std::uint8_t>(1, kMaxConfigBytes)};
+    case 10:
+      return gen_chunk<ConfigData>();
+    case 11:
+      return gen_chunk<ConfigWrite>();
+    default:
+      return ConfigAck{any<std::uint16_t>(), any<std::uint16_t>(), in<std::uint8_t>(0, 4)};
   }
 }
 
@@ -302,7 +316,7 @@ RC_GTEST_PROP(ProtocolProperty, CanFdRoundTrip, ()) {
   RC_ASSERT(f.fd);
   RC_ASSERT(f.length == canfd_padded_length(kPacketHeaderBytes + packet_payload_length(m) + kPacketCrcBytes));
   RC_ASSERT(f.id == can_id(dir == Direction::host_to_device ? CanFunction::fd_host_to_device
-                                                             : CanFunction::fd_device_to_host,
+                                                            : CanFunction::fd_device_to_host,
                            0, node));
   CanDecoder decoder(node);
   const CanDecoded d = decoder.decode(f);
@@ -353,9 +367,9 @@ RC_GTEST_PROP(ProtocolProperty, MutatedFramesIntoCanDecoder, ()) {
   CanFrame fd;
   const Message pm = gen_message(Fit::packet);
   RC_ASSERT(encode_canfd(pm, node, direction_of(pm), any<std::uint8_t>(), fd).error == Error::ok);
-  std::vector<std::uint8_t> fd_input{static_cast<std::uint8_t>(node - 1), static_cast<std::uint8_t>(1U | (in<unsigned>(0, 1) << 2U)),
-                                     static_cast<std::uint8_t>(fd.id & 0xFFU),
-                                     static_cast<std::uint8_t>(fd.id >> 8U), fd.length};
+  std::vector<std::uint8_t> fd_input{
+      static_cast<std::uint8_t>(node - 1), static_cast<std::uint8_t>(1U | (in<unsigned>(0, 1) << 2U)),
+      static_cast<std::uint8_t>(fd.id & 0xFFU), static_cast<std::uint8_t>(fd.id >> 8U), fd.length};
   fd_input.insert(fd_input.end(), fd.data.begin(), fd.data.begin() + fd.length);
   mutate(fd_input);
   expect_ok(mrskin::fuzz::can_fd_entry(fd_input.data(), fd_input.size()), fd_input);
@@ -393,13 +407,15 @@ RC_GTEST_PROP(ProtocolProperty, QuantizeWithinHalfLsb, ()) {
 
   const CellTarget t{in<std::uint16_t>(0, kStiffnessCountMax), in<std::uint16_t>(0, kOffsetCountMax),
                      in<std::uint16_t>(0, kCeilingCountMax), in<std::uint8_t>(0, kValidityCountMax)};
-  const CellTargetSi target{near_count(t.stiffness, kStiffnessLsb_N_per_m), near_count(t.offset, kOffsetLsb_m),
-                            near_count(t.ceiling, kCeilingLsb_N), near_count(t.validity, kValidityLsb_s)};
+  const CellTargetSi target{near_count(t.stiffness, kStiffnessLsb_N_per_m),
+                            near_count(t.offset, kOffsetLsb_m), near_count(t.ceiling, kCeilingLsb_N),
+                            near_count(t.validity, kValidityLsb_s)};
   const auto qt = quantize_cell_target(target);
   RC_ASSERT(qt.error == Error::ok);
   RC_ASSERT(qt.counts == t);
   const CellTargetSi back = cell_target_to_si(qt.counts);
-  RC_ASSERT(mrskin::fuzz::within_half_lsb(back.stiffness_N_per_m, target.stiffness_N_per_m, kStiffnessLsb_N_per_m));
+  RC_ASSERT(
+      mrskin::fuzz::within_half_lsb(back.stiffness_N_per_m, target.stiffness_N_per_m, kStiffnessLsb_N_per_m));
   RC_ASSERT(mrskin::fuzz::within_half_lsb(back.offset_m, target.offset_m, kOffsetLsb_m));
   RC_ASSERT(mrskin::fuzz::within_half_lsb(back.ceiling_N, target.ceiling_N, kCeilingLsb_N));
   RC_ASSERT(mrskin::fuzz::within_half_lsb(back.validity_s, target.validity_s, kValidityLsb_s));
@@ -412,11 +428,13 @@ RC_GTEST_PROP(ProtocolProperty, QuantizeAnyDoubles, ()) {
     const auto* p = reinterpret_cast<const std::uint8_t*>(&v);
     bytes.insert(bytes.end(), p, p + sizeof v);
   };
-  const auto special = rc::gen::element(std::numeric_limits<double>::quiet_NaN(),
-                                        std::numeric_limits<double>::infinity(),
-                                        -std::numeric_limits<double>::infinity(),
-                                        std::numeric_limits<double>::denorm_min(), 0.0, -0.0, 1e-3, 0.5);
-  auto pick = [&special] { return *rc::gen::weightedOneOf<double>({{3, rc::gen::arbitrary<double>()}, {1, special}}); };
+  const auto special =
+      rc::gen::element(std::numeric_limits<double>::quiet_NaN(), std::numeric_limits<double>::infinity(),
+                       -std::numeric_limits<double>::infinity(), std::numeric_limits<double>::denorm_min(),
+                       0.0, -0.0, 1e-3, 0.5);
+  auto pick = [&special] {
+    return *rc::gen::weightedOneOf<double>({{3, rc::gen::arbitrary<double>()}, {1, special}});
+  };
   put(pick());
   put(pick());
   put(any<std::uint16_t>());

@@ -40,7 +40,8 @@ inline int u(std::uint8_t v) { return v; }
 }  // namespace test_detail
 
 inline std::ostream& operator<<(std::ostream& os, const IdentifyRequest& m) {
-  return os << "IdentifyRequest{" << test_detail::u(m.host_major) << '.' << test_detail::u(m.host_minor) << '}';
+  return os << "IdentifyRequest{" << test_detail::u(m.host_major) << '.' << test_detail::u(m.host_minor)
+            << '}';
 }
 inline std::ostream& operator<<(std::ostream& os, const Identity& m) {
   using test_detail::u;
@@ -61,12 +62,14 @@ inline std::ostream& operator<<(std::ostream& os, const CellTargets& m) {
   os << "CellTargets{first=" << m.first << " count=" << test_detail::u(m.count);
   for (std::size_t i = 0; i < std::min<std::size_t>(m.count, kMaxCellTargets); ++i) {
     const CellTarget& t = m.targets[i];
-    os << " (" << t.stiffness << ',' << t.offset << ',' << t.ceiling << ',' << test_detail::u(t.validity) << ')';
+    os << " (" << t.stiffness << ',' << t.offset << ',' << t.ceiling << ',' << test_detail::u(t.validity)
+       << ')';
   }
   return os << '}';
 }
 inline std::ostream& operator<<(std::ostream& os, const Telemetry& m) {
-  os << "Telemetry{t=" << m.device_time_us << " first=" << m.first << " count=" << test_detail::u(m.count) << ' ';
+  os << "Telemetry{t=" << m.device_time_us << " first=" << m.first << " count=" << test_detail::u(m.count)
+     << ' ';
   test_detail::list(os, m.counts, std::min<std::size_t>(m.count, kMaxTelemetryValues));
   return os << '}';
 }
@@ -85,11 +88,12 @@ inline std::ostream& operator<<(std::ostream& os, const StateRequest& m) {
   return os << "StateRequest{" << test_detail::u(m.request) << '}';
 }
 inline std::ostream& operator<<(std::ostream& os, const ConfigRead& m) {
-  return os << "ConfigRead{key=" << m.key << " offset=" << m.offset << " length=" << test_detail::u(m.length) << '}';
+  return os << "ConfigRead{key=" << m.key << " offset=" << m.offset << " length=" << test_detail::u(m.length)
+            << '}';
 }
 inline std::ostream& operator<<(std::ostream& os, const ConfigChunk& m) {
-  os << "{key=" << m.key << " offset=" << m.offset << " total=" << m.total << " length=" << test_detail::u(m.length)
-     << ' ';
+  os << "{key=" << m.key << " offset=" << m.offset << " total=" << m.total
+     << " length=" << test_detail::u(m.length) << ' ';
   test_detail::list(os, m.bytes, std::min<std::size_t>(m.length, kMaxConfigBytes));
   return os << '}';
 }
@@ -100,7 +104,8 @@ inline std::ostream& operator<<(std::ostream& os, const ConfigWrite& m) {
   return os << "ConfigWrite" << static_cast<const ConfigChunk&>(m);
 }
 inline std::ostream& operator<<(std::ostream& os, const ConfigAck& m) {
-  return os << "ConfigAck{key=" << m.key << " offset=" << m.offset << " status=" << test_detail::u(m.status) << '}';
+  return os << "ConfigAck{key=" << m.key << " offset=" << m.offset << " status=" << test_detail::u(m.status)
+            << '}';
 }
 inline std::ostream& operator<<(std::ostream& os, const Message& m) {
   std::visit([&os](const auto& v) { os << v; }, m);
@@ -346,7 +351,8 @@ inline std::vector<std::string> golden_lines_for(const NamedMessage& nm) {
   }
   lines.push_back(can.str());
   CanFrame fd;
-  if (encode_canfd(nm.message, kGoldenNode, direction_of(nm.message), kGoldenSequence, fd).error != Error::ok) {
+  if (encode_canfd(nm.message, kGoldenNode, direction_of(nm.message), kGoldenSequence, fd).error !=
+      Error::ok) {
     throw std::runtime_error("encode_canfd failed");
   }
   std::ostringstream canfd;
