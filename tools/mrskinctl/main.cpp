@@ -5,6 +5,7 @@
 #include <cstdio>
 #include <string>
 
+#include "model_command.hpp"
 #include "mrskin/driver/device.hpp"
 #include "mrskin/driver/version.hpp"
 
@@ -120,7 +121,6 @@ int guarded_main(int argc, char** argv) {
   };
   static constexpr Planned kPlanned[] = {
       {"list", "list attached devices on every bus", "Driver II (#7)"},
-      {"model", "evaluate the device model's laws and profiles", "Device model I (#4)"},
       {"monitor", "show the grid live: force, displacement, current, temperature",
        "mrskinctl complete (#11)"},
       {"set", "send per-valve currents or per-cell targets", "mrskinctl complete (#11)"},
@@ -140,7 +140,12 @@ int guarded_main(int argc, char** argv) {
     sub->allow_extras();
     sub->callback([&chosen, &p] { chosen = &p; });
   }
+  int model_exit = 0;
+  CLI::App* model = mrskin::ctl::add_model_command(app, model_exit);
   CLI11_PARSE(app, argc, argv);
+  if (model->parsed()) {
+    return model_exit;
+  }
   if (chosen != nullptr) {
     fmt::print(stderr, "mrskinctl {}: not available in this build (planned in {})\n", chosen->name,
                chosen->issue);
