@@ -203,7 +203,7 @@ int main(int argc, char** argv) {
   stats[2].name = "fast";
   std::ofstream grid(out + "/valve_errors.csv");
   if (!grid) {
-    std::cerr << "cannot write to " << out << "\n";
+    std::cerr << "cannot write to " << out << ": create the directory first, or pass another --out DIR\n";
     return 1;
   }
   grid << "q_m3_s,tau_y_pa,dp_exact_pa,rel_err_fast,rel_err_wereley_pang,round_trip_rel_err_exact\n";
