@@ -141,6 +141,7 @@ DeviceLock::DeviceLock(std::string_view uri) {
   std::string name(uri.substr(0, uri.find('?')));
   if (uri.starts_with("mock://")) {
     name = fmt::format("{}@{}", name, ::getpid());
+    per_process_ = true;
   }
   for (char& c : name) {
     if (std::isalnum(static_cast<unsigned char>(c)) == 0 && c != '@' && c != '-') {
@@ -181,6 +182,9 @@ DeviceLock::DeviceLock(std::string_view uri) {
 
 DeviceLock::~DeviceLock() {
   if (fd_ >= 0) {
+    if (per_process_) {
+      ::unlink(path_.c_str());  // nobody else can want a lock named after our PID
+    }
     ::flock(fd_, LOCK_UN);
     ::close(fd_);
   }

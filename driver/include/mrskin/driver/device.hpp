@@ -41,6 +41,7 @@ class DeviceLock {
  private:
   std::string path_;
   int fd_ = -1;
+  bool per_process_ = false;
 };
 
 struct OpenedDevice {
