@@ -6,30 +6,9 @@
 #include <new>
 #include <vector>
 
+#include "counting_new.hpp"
 #include "mrskin/bridge/bridge.hpp"
 #include "mrskin/driver/device.hpp"
-
-namespace {
-std::atomic<std::uint64_t> g_allocations{0};
-}  // namespace
-
-// Replaceable global allocation functions, counting every call. g++ flags the inlined
-// malloc/free pairing as mismatched; it is the definition of these very operators.
-#if defined(__GNUC__) && !defined(__clang__)
-#pragma GCC diagnostic ignored "-Wmismatched-new-delete"
-#endif
-void* operator new(std::size_t n) {
-  g_allocations.fetch_add(1, std::memory_order_relaxed);
-  if (void* p = std::malloc(n == 0 ? 1 : n)) {
-    return p;
-  }
-  throw std::bad_alloc();
-}
-void* operator new[](std::size_t n) { return ::operator new(n); }
-void operator delete(void* p) noexcept { std::free(p); }
-void operator delete[](void* p) noexcept { std::free(p); }
-void operator delete(void* p, std::size_t /*n*/) noexcept { std::free(p); }
-void operator delete[](void* p, std::size_t /*n*/) noexcept { std::free(p); }
 
 namespace mrskin::bridge {
 namespace {
@@ -55,11 +34,11 @@ TEST(Allocation, NoHeapAllocationPerTickAfterStartUp) {
   for (int k = 0; k < 100; ++k) {  // start-up
     tick();
   }
-  const std::uint64_t before = g_allocations.load();
+  const std::uint64_t before = mrskin::test::allocation_count();
   for (int k = 0; k < 5000; ++k) {  // press, hold and release: every code path of the tick
     tick();
   }
-  EXPECT_EQ(g_allocations.load() - before, 0U);
+  EXPECT_EQ(mrskin::test::allocation_count() - before, 0U);
   EXPECT_EQ(loop.stats().ticks, 5100U);
 }
 

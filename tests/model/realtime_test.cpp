@@ -7,29 +7,8 @@
 #include <string>
 #include <vector>
 
+#include "counting_new.hpp"
 #include "mrskin/driver/model/device_model.hpp"
-
-namespace {
-std::atomic<long> g_allocations{0};
-}  // namespace
-
-// Counting replacements of the global allocation functions (this test binary only). GCC
-// cannot see that free() matches the malloc() inside the replaced operator new.
-#if defined(__GNUC__) && !defined(__clang__)
-#pragma GCC diagnostic ignored "-Wmismatched-new-delete"
-#endif
-void* operator new(std::size_t n) {
-  g_allocations.fetch_add(1, std::memory_order_relaxed);
-  if (void* p = std::malloc(n == 0 ? 1 : n)) {
-    return p;
-  }
-  throw std::bad_alloc();
-}
-void* operator new[](std::size_t n) { return ::operator new(n); }
-void operator delete(void* p) noexcept { std::free(p); }
-void operator delete[](void* p) noexcept { std::free(p); }
-void operator delete(void* p, std::size_t) noexcept { std::free(p); }
-void operator delete[](void* p, std::size_t) noexcept { std::free(p); }
 
 namespace {
 
@@ -41,7 +20,7 @@ TEST(ModelRealtime, LoopLawsAllocateNothing) {
   const std::size_t centre = m.fluid_cell_index(2, 2).value;
   const ValveLaw& v = m.valve_law();
   double sink = 0.0;
-  const long before = g_allocations.load();
+  const auto before = mrskin::test::allocation_count();
   for (int k = 0; k < 100; ++k) {
     const double q = 1e-9 * (k + 1);
     sink += v.pressure_fast_Pa(q, 30.0).value + v.pressure_exact_Pa(q, 30.0).value +
@@ -54,7 +33,7 @@ TEST(ModelRealtime, LoopLawsAllocateNothing) {
     CoilState s{};
     sink += coil_step(m.profile().coil, s, 0.05, 1e-3).value.current_A;
   }
-  EXPECT_EQ(g_allocations.load(), before);
+  EXPECT_EQ(mrskin::test::allocation_count(), before);
   EXPECT_GT(sink, 0.0);
   static_assert(noexcept(m.cell_force(centre, 0.0, 0.0, currents)));
   static_assert(noexcept(m.envelope(centre, 0.0, 0.0)));
