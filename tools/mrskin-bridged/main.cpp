@@ -9,6 +9,7 @@
 #include <optional>
 #include <vector>
 
+#include "exit_codes.hpp"
 #include "mrskin/bridge/bridge.hpp"
 #include "mrskin/bridge/scene.hpp"
 #include "mrskin/driver/device.hpp"
@@ -29,9 +30,7 @@ class MockTruth final : public mrskin::bridge::ForceTruth {
   const mrskin::MockDevice& mock_;
 };
 
-// Exit codes: 0 ok, 1 runtime failure, 2 usage, 3 device not found/denied, 4 protocol mismatch,
-// 5 device owned by another process.
-enum Exit : int { kOk = 0, kFailure = 1, kUsage = 2, kNoDevice = 3, kMismatch = 4, kBusy = 5 };
+using namespace mrskin::tools;  // exit codes
 
 struct Settings {
   std::string device = "mock://";
@@ -144,24 +143,7 @@ int guarded_main(int argc, char** argv) {
   }
   (void)std::signal(SIGINT, on_signal);
   (void)std::signal(SIGTERM, on_signal);
-  try {
-    return run(cfg);
-  } catch (const mrskin::InvalidArgument& e) {
-    fmt::print(stderr, "error: {}\n", e.what());
-    return kUsage;
-  } catch (const mrskin::DeviceNotFound& e) {
-    fmt::print(stderr, "error: {}\n", e.what());
-    return kNoDevice;
-  } catch (const mrskin::PermissionDenied& e) {
-    fmt::print(stderr, "error: {}\n", e.what());
-    return kNoDevice;
-  } catch (const mrskin::DeviceBusy& e) {
-    fmt::print(stderr, "error: {}\n", e.what());
-    return kBusy;
-  } catch (const mrskin::ProtocolMismatch& e) {
-    fmt::print(stderr, "error: {}\n", e.what());
-    return kMismatch;
-  }
+  return run(cfg);
 }
 
 }  // namespace
@@ -169,12 +151,7 @@ int guarded_main(int argc, char** argv) {
 int main(int argc, char** argv) {
   try {
     return guarded_main(argc, argv);
-  } catch (const std::exception& e) {
-    std::fputs("error: ", stderr);
-    std::fputs(e.what(), stderr);
-    std::fputs("\n", stderr);
   } catch (...) {
-    std::fputs("error: unknown exception\n", stderr);
+    return mrskin::tools::exit_code_for_current_exception();
   }
-  return kFailure;
 }

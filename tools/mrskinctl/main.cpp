@@ -5,16 +5,14 @@
 #include <cstdio>
 #include <string>
 
+#include "exit_codes.hpp"
 #include "model_command.hpp"
 #include "mrskin/driver/device.hpp"
 #include "mrskin/driver/version.hpp"
 
 namespace {
 
-// Exit codes (sysexits-style): 0 ok, 1 failure, 2 usage, 3 device not found or denied,
-// 4 protocol mismatch, 5 device owned by another process, 69 command not available in
-// this build.
-constexpr int kExitUnavailable = 69;
+// Exit codes: tools/common/exit_codes.hpp.
 
 std::string json_escape(const std::string& text) {
   std::string out;
@@ -149,27 +147,10 @@ int guarded_main(int argc, char** argv) {
   if (chosen != nullptr) {
     fmt::print(stderr, "mrskinctl {}: not available in this build (planned in {})\n", chosen->name,
                chosen->issue);
-    return kExitUnavailable;
+    return mrskin::tools::kUnavailable;
   }
-  try {
-    if (info->parsed()) {
-      return cmd_info(device, json, sample_s);
-    }
-  } catch (const mrskin::InvalidArgument& e) {
-    fmt::print(stderr, "error: {}\n", e.what());
-    return 2;
-  } catch (const mrskin::DeviceNotFound& e) {
-    fmt::print(stderr, "error: {}\n", e.what());
-    return 3;
-  } catch (const mrskin::PermissionDenied& e) {
-    fmt::print(stderr, "error: {}\n", e.what());
-    return 3;
-  } catch (const mrskin::DeviceBusy& e) {
-    fmt::print(stderr, "error: {}\n", e.what());
-    return 5;
-  } catch (const mrskin::ProtocolMismatch& e) {
-    fmt::print(stderr, "error: {}\n", e.what());
-    return 4;
+  if (info->parsed()) {
+    return cmd_info(device, json, sample_s);
   }
   return 0;
 }
@@ -179,12 +160,7 @@ int guarded_main(int argc, char** argv) {
 int main(int argc, char** argv) {
   try {
     return guarded_main(argc, argv);
-  } catch (const std::exception& e) {
-    std::fputs("error: ", stderr);
-    std::fputs(e.what(), stderr);
-    std::fputs("\n", stderr);
   } catch (...) {
-    std::fputs("error: unknown exception\n", stderr);
+    return mrskin::tools::exit_code_for_current_exception();
   }
-  return 1;
 }
