@@ -1,0 +1,135 @@
+// The skin as a hydraulic network: fluid cells (pad + free membrane), valve chambers and the
+// reservoir, joined by the profile's Bingham passages (HydraulicLink), stepped in time.
+//
+// Nodes and their stored energy (all pressures gauge, Pa; volumes m^3):
+//   fluid cell i   bulge volume s_i = A_eff d_i + e_i (d_i: pad depth under the finger, e_i: the
+//                  cell's net fluid gain through its passages); p_i = p_b(s_i) (cell.hpp), stored
+//                  energy U_pad(d_i) + U_bulge(s_i); force on the finger F_i = F_m(d_i) + A_eff p_i.
+//   chamber v      rigid housing, fluid compressibility only: p = e_v / C_ch (C_ch small).
+//   reservoir      p = p0 + e_r / C_r (profile [reservoir]).
+// Link l from a to b carries q_l = Q_l(p_a - p_b): the exact Bingham law of valve.hpp at the
+// yield stress of its coil (zero flow inside the yield band: the passage locks), or a
+// regularised law for the fast steppers. Node balance: de_n/dt = sum of inflows.
+//
+// Invariants (tests): sum_n e_n is constant (volume), and for the energy-consistent stepper
+// work_J == stored_J - stored_J(initial) + dissipated_J to round-off.
+//
+// Setup (constructor) may throw mrskin::InvalidArgument. After construction nothing allocates:
+// set_*, step() and the accessors are noexcept and allocation-free.
+#pragma once
+
+#include <cstddef>
+#include <cstdint>
+#include <memory>
+#include <span>
+
+#include "mrskin/driver/model/common.hpp"
+#include "mrskin/driver/model/device_model.hpp"
+
+namespace mrskin::model {
+
+enum class Stepper : unsigned char {
+  // Discrete-gradient implicit step with the exact Bingham law (stick and slip), solved by damped
+  // Newton on the step's convex potential; exact energy balance; stable when valves lock.
+  implicit_exact,
+  // Same scheme, regularised yield (smooth law, one conductance floor inside the yield band).
+  implicit_regularised,
+  // One linearised (Rosenbrock-Euler) solve per step with the regularised law: the fast stepper.
+  linearly_implicit_regularised,
+  // Forward Euler with the regularised law: a benchmark baseline only (unstable at large dt).
+  explicit_euler,
+};
+const char* to_string(Stepper s) noexcept;
+
+struct NetworkOptions {
+  Stepper stepper = Stepper::implicit_exact;
+  // Regularised law: inside the yield band the passage conducts as a Newtonian slot whose
+  // viscosity is this factor times the fluid's (large: nearly locked).
+  double regularisation_viscosity_factor = 1.0e4;
+  // Compliance of a valve chamber (fluid bulk modulus ~1.5 GPa on the chamber's volume).
+  double chamber_compliance_m3_per_Pa = 1.0e-14;
+  int max_newton_iterations = 50;
+  // Newton stops when every node's volume residual is below this, m^3.
+  double volume_tolerance_m3 = 1.0e-15;
+};
+
+// A fingertip on the skin: a sphere of radius radius_m whose lowest point is at (x_m, y_m) in the
+// skin's frame (origin at the centre of cell (0,0), x along columns, y along rows, pitch
+// apart). Each fluid cell's pad depth is indentation_m - r^2 / (2 radius_m), r the distance from
+// the contact point to the cell centre, floored at 0; several contacts take the deepest.
+// In force mode the indentation is solved so that the contact's total force equals force_N.
+struct Contact {
+  enum class Mode : unsigned char { indentation, force };
+  double x_m = 0.0;
+  double y_m = 0.0;
+  double radius_m = 8.0e-3;
+  Mode mode = Mode::indentation;
+  double indentation_m = 0.0;
+  double force_N = 0.0;
+};
+
+struct StepReport {
+  int iterations = 0;                 // Newton iterations (1 for the one-solve steppers)
+  double volume_residual_m3 = 0.0;    // largest node balance residual after the step
+  std::size_t locked_links = 0;       // passages inside their yield band
+};
+
+struct NetworkEnergy {
+  double work_J = 0.0;        // done by the finger on the skin since construction (or reset)
+  double stored_J = 0.0;      // membranes, chambers and reservoir, now
+  double dissipated_J = 0.0;  // in the passages since construction (or reset)
+  double stored_initial_J = 0.0;
+};
+
+class NetworkSimulation {
+ public:
+  // Builds the network of the model's profile. Starts at rest: every pressure p0, no contact.
+  NetworkSimulation(const DeviceModel& model, const NetworkOptions& options);
+  ~NetworkSimulation();
+  NetworkSimulation(const NetworkSimulation&) = delete;
+  NetworkSimulation& operator=(const NetworkSimulation&) = delete;
+  NetworkSimulation(NetworkSimulation&&) noexcept;
+  NetworkSimulation& operator=(NetworkSimulation&&) noexcept;
+
+  [[nodiscard]] const DeviceModel& model() const noexcept;
+  [[nodiscard]] std::size_t fluid_cell_count() const noexcept;
+  [[nodiscard]] std::size_t valve_count() const noexcept;
+  [[nodiscard]] std::size_t link_count() const noexcept;
+  [[nodiscard]] std::size_t sensor_count() const noexcept;  // the profile's sensors
+
+  // Inputs, taking effect at the next step. out_of_range on a size mismatch, not_finite or
+  // negative on bad values (the previous inputs stay).
+  Status set_valve_yield_stress_Pa(std::span<const double> yield_Pa) noexcept;  // one per valve
+  Status set_contacts(std::span<const Contact> contacts) noexcept;              // at most 16
+  Status set_cell_indentation_m(std::span<const double> depth_m) noexcept;       // one per fluid cell
+  // Back to rest, counters and energy zeroed.
+  void reset() noexcept;
+
+  // Advances dt_s (> 0). Errors: out_of_range (dt), no_convergence, not_finite (state kept).
+  Result<StepReport> step(double dt_s) noexcept;
+
+  // State after the last step.
+  [[nodiscard]] std::span<const double> cell_indentation_m() const noexcept;
+  [[nodiscard]] std::span<const double> cell_velocity_m_per_s() const noexcept;
+  [[nodiscard]] std::span<const double> cell_pressure_Pa() const noexcept;
+  [[nodiscard]] std::span<const double> cell_force_N() const noexcept;  // on the finger (truth)
+  [[nodiscard]] std::span<const double> chamber_pressure_Pa() const noexcept;  // one per valve (0 if none)
+  [[nodiscard]] double reservoir_pressure_Pa() const noexcept;
+  [[nodiscard]] std::span<const double> link_flow_m3_per_s() const noexcept;  // a -> b positive
+  [[nodiscard]] double total_fluid_volume_change_m3() const noexcept;         // sum of e_n: stays 0
+  [[nodiscard]] NetworkEnergy energy() const noexcept;
+  // Contact force of each contact (force mode: the solved indentation is in contact_indentation_m).
+  [[nodiscard]] std::span<const double> contact_force_N() const noexcept;
+  [[nodiscard]] std::span<const double> contact_indentation_m() const noexcept;
+  // The profile's sensors, in their SI unit, noise-free and unquantised:
+  //   displacement at a fluid cell: its pad depth; at a valve: the mean pad depth of the fluid
+  //   cells it joins (the valve cell's plate rests on their rims);
+  //   force: the same with contact forces; pressure: the node's pressure (valve: its chamber).
+  void read_sensors(std::span<double> out) const noexcept;
+
+ private:
+  struct Impl;
+  std::unique_ptr<Impl> impl_;
+};
+
+}  // namespace mrskin::model

@@ -1,0 +1,1 @@
+// Implemented in this translation unit: see mrskin/driver/model/network.hpp.
