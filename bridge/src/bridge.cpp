@@ -116,7 +116,7 @@ void Bridge::allocate_currents() noexcept {
   // valves are one allocation: least squares over contacted cells with 0 <= f <= f_max,
   // solved by projected coordinate descent.
   const double max_A = session_.info().max_current_A;
-  const double max_yield_N = placeholder_yield_force(options_.model, max_A);
+  const double max_yield_N = placeholder_yield_force(options_.model, max_A, max_A);
   constexpr double kRidge = 1e-6;
   // Start from each valve carrying the mean demand of the cells it touches.
   for (std::size_t v = 0; v < valve_yield_N_.size(); ++v) {

@@ -73,7 +73,11 @@ MockFaults parse_faults(std::string_view list) {
     } else if (name == "noisy") {
       f.noisy_sensor = parse_number<int>(name, value);
     } else if (name == "overheat") {
-      f.overheat_valve = parse_number<int>(name, value);
+      const auto plus = value.find('+');
+      f.overheat_valve = parse_number<int>(name, value.substr(0, plus));
+      if (plus != std::string_view::npos) {
+        f.overheat_for_s = parse_number<double>(name, value.substr(plus + 1));
+      }
     } else if (name == "busoff") {
       f.bus_off_at_s = parse_number<double>(name, value);
     } else {
@@ -87,19 +91,16 @@ MockFaults parse_faults(std::string_view list) {
 
 }  // namespace
 
-MockOptions parse_mock_uri(std::string_view uri, int& rows, int& cols) {
-  MockOptions options;
-  rows = 5;
-  cols = 5;
+MockUri parse_mock_uri(std::string_view uri) {
+  MockUri parsed;
+  MockOptions& options = parsed.options;
   constexpr std::string_view scheme = "mock://";
+  if (!uri.starts_with(scheme)) {
+    throw InvalidArgument("'" + std::string(uri) + "' is not a mock:// URI");
+  }
   uri.remove_prefix(scheme.size());
   const auto q = uri.find('?');
-  const std::string_view profile = uri.substr(0, q);
-  if (!profile.empty() && profile != "default") {
-    throw InvalidArgument(
-        "mock:// profile '" + std::string(profile) +
-        "' is unknown: device profiles arrive with the device model; use mock:// for the 5 x 5");
-  }
+  parsed.profile = std::string(uri.substr(0, q));
   std::string_view query = q == std::string_view::npos ? std::string_view{} : uri.substr(q + 1);
   while (!query.empty()) {
     const auto amp = query.find('&');
@@ -125,16 +126,16 @@ MockOptions parse_mock_uri(std::string_view uri, int& rows, int& cols) {
       if (!(options.time_scale >= 1.0 && options.time_scale <= 1000.0)) {
         throw InvalidArgument("mock:// time_scale must be in [1, 1000]");
       }
-    } else if (key == "rows") {
-      rows = parse_number<int>(key, value);
-    } else if (key == "cols") {
-      cols = parse_number<int>(key, value);
+    } else if (key == "rows" || key == "cols") {
+      throw InvalidArgument("mock:// parameter '" + std::string(key) +
+                            "' is gone: the grid comes from the device profile; name one "
+                            "(mock://fingertip-16x16) or give a profile file (mock:///path/to/unit.toml)");
     } else {
       throw InvalidArgument("mock:// parameter '" + std::string(key) +
-                            "' is unknown: use seed, perturbation, faults, time_scale, rows or cols");
+                            "' is unknown: use seed, perturbation, faults or time_scale");
     }
   }
-  return options;
+  return parsed;
 }
 
 DeviceLock::DeviceLock(std::string_view uri) {
@@ -197,12 +198,11 @@ OpenedDevice open_device(std::string_view uri, Clock& clock, const OpenOptions& 
     session_options.time_scale = parse_number<double>("MRSKIN_TIME_SCALE", scale);
   }
   if (uri.starts_with("mock://")) {
+    MockUri parsed = parse_mock_uri(uri);
+    const LoadedProfile profile = load_profile_with_text(parsed.profile);
     opened.lock = std::make_unique<DeviceLock>(uri);
-    int rows = 5;
-    int cols = 5;
-    MockOptions mock_options = parse_mock_uri(uri, rows, cols);
-    mock_options.time_scale = std::max(mock_options.time_scale, session_options.time_scale);
-    opened.mock = MockDevice::make_placeholder(mock_options, rows, cols);
+    parsed.options.time_scale = std::max(parsed.options.time_scale, session_options.time_scale);
+    opened.mock = MockDevice::make_placeholder(parsed.options, profile);
     if (!options.synchronous_mock) {
       opened.mock->start(clock);
     }
@@ -216,7 +216,7 @@ OpenedDevice open_device(std::string_view uri, Clock& clock, const OpenOptions& 
                             " transport is not in this build yet; use mock://");
     }
   }
-  throw InvalidArgument("'" + std::string(uri) + "' is not a device URI: use mock://[?seed=N]");
+  throw InvalidArgument("'" + std::string(uri) + "' is not a device URI: use mock://[PROFILE][?seed=N]");
 }
 
 }  // namespace mrskin

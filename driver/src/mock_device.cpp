@@ -1,9 +1,16 @@
 #include "mrskin/driver/mock_device.hpp"
 
+#include <fmt/format.h>
+
 #include <algorithm>
 #include <cmath>
+#include <filesystem>
+#include <fstream>
+#include <set>
+#include <sstream>
 #include <string>
 
+#include "mrskin/driver/errors.hpp"
 #include "mrskin/protocol/packet.hpp"
 #include "mrskin/protocol/units.hpp"
 
@@ -34,7 +41,80 @@ double gaussian(std::uint64_t& s) noexcept {
 
 std::vector<std::uint8_t> to_bytes(const std::string& text) { return {text.begin(), text.end()}; }
 
+proto::SensorQuantity wire_quantity(model::SensorQuantity q) noexcept {
+  switch (q) {
+    case model::SensorQuantity::displacement:
+      return proto::SensorQuantity::displacement_m;
+    case model::SensorQuantity::force:
+      return proto::SensorQuantity::force_N;
+    case model::SensorQuantity::pressure:
+      return proto::SensorQuantity::pressure_Pa;
+  }
+  return proto::SensorQuantity::displacement_m;
+}
+
+bool is_path(std::string_view name) noexcept {
+  return name.find('/') != std::string_view::npos || name.ends_with(".toml");
+}
+
 }  // namespace
+
+std::vector<std::string> available_profile_names() {
+  std::set<std::string> names;
+  for (const std::string& dir : model::profile_search_path()) {
+    std::error_code ec;
+    for (const auto& entry : std::filesystem::directory_iterator(dir, ec)) {
+      if (entry.path().extension() == ".toml") {
+        names.insert(entry.path().stem().string());
+      }
+    }
+  }
+  return {names.begin(), names.end()};
+}
+
+LoadedProfile load_profile_with_text(std::string_view name_or_path) {
+  const std::string name = name_or_path.empty() || name_or_path == "default"
+                               ? std::string(model::kDefaultProfileName)
+                               : std::string(name_or_path);
+  std::string path;
+  if (is_path(name)) {
+    path = model::find_profile(name);  // InvalidArgument when unreadable
+  } else {
+    std::string looked;
+    for (const std::string& dir : model::profile_search_path()) {
+      const std::string candidate = fmt::format("{}/{}.toml", dir, name);
+      if (std::ifstream(candidate).good()) {
+        path = candidate;
+        break;
+      }
+      looked += looked.empty() ? dir : ", " + dir;
+    }
+    if (path.empty()) {
+      const std::vector<std::string> names = available_profile_names();
+      std::string list;
+      for (const std::string& n : names) {
+        list += list.empty() ? n : ", " + n;
+      }
+      throw ProfileNotFound(
+          fmt::format("device profile \"{}\" not found; searched {}; available: {}. Use one of those names "
+                      "(mock://NAME), a file path (mock:///path/to/profile.toml), or add its directory to "
+                      "MRSKIN_PROFILE_PATH",
+                      name, looked.empty() ? std::string("no directory") : looked,
+                      list.empty() ? std::string("none") : list));
+    }
+  }
+  std::ifstream in(path);
+  std::ostringstream text;
+  text << in.rdbuf();
+  if (!in.good() && !in.eof()) {
+    throw InvalidArgument("profile file " + path + " could not be read; check its permissions");
+  }
+  LoadedProfile loaded;
+  loaded.text = text.str();
+  loaded.profile = model::parse_profile(loaded.text, path);
+  loaded.path = path;
+  return loaded;
+}
 
 bool MockFaults::any() const noexcept {
   return drop_probability > 0.0 || duplicate_probability > 0.0 || corrupt_probability > 0.0 ||
@@ -82,22 +162,67 @@ class MockDevice::HostTransport final : public Transport {
   bool synchronous_;
 };
 
-MockDevice::MockDevice(const GridLayout& layout, const MockOptions& options, std::unique_ptr<Plant> plant)
-    : layout_(layout),
+MockDevice::MockDevice(const model::DeviceProfile& profile, std::string_view profile_text,
+                       const MockOptions& options, std::unique_ptr<Plant> plant)
+    : profile_(profile),
+      layout_(profile.rows, profile.cols),
       options_(options),
+      max_current_A_(profile.coil.max_current_A),
+      current_lsb_A_(profile.coil.current_resolution_A),
+      coil_resistance_ohm_(profile.coil.resistance_ohm),
+      seeder_(profile),
+      targets_held_(layout_.fluid_cell_count()),
       plant_(std::move(plant)),
-      commanded_A_(layout.valve_count(), 0.0),
-      coil_A_(layout.valve_count(), 0.0),
-      coil_C_(layout.valve_count(), options.ambient_C),
-      stuck_value_(plant_->sensor_count(), 0.0),
+      commanded_A_(layout_.valve_count(), 0.0),
+      coil_A_(layout_.valve_count(), 0.0),
+      coil_C_(layout_.valve_count(), options.ambient_C),
       delay_line_(kDelayLineCapacity),
       fault_rng_(options.seed ^ 0x5EEDFA017ULL),
-      sensor_si_(plant_->sensor_count(), 0.0),
-      finger_m_(layout.fluid_cell_count()),
-      truth_N_(layout.fluid_cell_count()),
-      applied_A_(layout.valve_count()),
-      scratch_(std::max(layout.fluid_cell_count(), layout.valve_count()), 0.0),
+      finger_m_(layout_.fluid_cell_count()),
+      truth_N_(layout_.fluid_cell_count()),
+      applied_A_(layout_.valve_count()),
+      scratch_(std::max(layout_.fluid_cell_count(), layout_.valve_count()), 0.0),
       noise_state_(options.seed ^ 0xA5A5A5A5ULL) {
+  const std::string& name = profile.name;
+  if (!plant_) {
+    throw InvalidArgument("mock device for profile " + name + " needs a plant");
+  }
+  if (plant_->sensor_count() != profile.sensors.size()) {
+    throw InvalidArgument(fmt::format("profile {} declares {} sensors but the plant has {}", name,
+                                      profile.sensors.size(), plant_->sensor_count()));
+  }
+  const double counts = max_current_A_ / current_lsb_A_;
+  if (!(current_lsb_A_ >= 1e-9) || !(counts >= 1.0) || counts > proto::kCurrentCountMax + 0.5) {
+    throw InvalidArgument(fmt::format(
+        "profile {}: [coil] max_current_A = {} A in steps of current_resolution_A = {} A is {:.0f} counts; "
+        "protocol v1 carries 1..{} counts of at least 1 nA: coarsen the resolution or lower the maximum",
+        name, max_current_A_, current_lsb_A_, counts, proto::kCurrentCountMax));
+  }
+  const model::SensorSpec& first = profile.sensors.front();
+  for (const model::SensorSpec& s : profile.sensors) {
+    if (s.quantity != first.quantity ||
+        std::abs(s.resolution - first.resolution) > 1e-12 * first.resolution) {
+      throw InvalidArgument(
+          fmt::format("profile {}: its sensors differ in quantity or resolution ({} in {} vs {} in {}); "
+                      "protocol v1's Identity "
+                      "declares one quantity and resolution for all sensors: give them one",
+                      name, model::to_string(first.quantity), first.resolution, model::to_string(s.quantity),
+                      s.resolution));
+    }
+  }
+  sensor_lsb_ = first.resolution;
+  if (!(sensor_lsb_ >= 1e-9 && sensor_lsb_ <= 4.0)) {
+    throw InvalidArgument(
+        fmt::format("profile {}: sensor resolution {} {} is outside what protocol v1 carries "
+                    "(1e-9 .. 4 of the SI unit)",
+                    name, sensor_lsb_, model::unit_of(first.quantity)));
+  }
+  for (const model::SensorSpec& s : profile.sensors) {
+    sensor_noise_.push_back(s.noise_std * options.sensor_noise_scale);
+  }
+  stuck_value_.assign(plant_->sensor_count(), 0.0);
+  sensor_si_.assign(plant_->sensor_count(), 0.0);
+  reported_.assign(plant_->sensor_count(), 0.0);
   for (auto& f : finger_m_) {
     f.store(0.0);
   }
@@ -110,18 +235,30 @@ MockDevice::MockDevice(const GridLayout& layout, const MockOptions& options, std
   // What a factory writes: a versioned calibration and the profile the unit was built to.
   calibration_blob_ =
       to_bytes("# mrskin calibration\nversion = " + std::to_string(options.calibration_version) +
-               "\nserial = " + std::to_string(options.serial) + "\nvalve_yield_gain = 1.0\n");
-  profile_blob_ =
-      to_bytes("# mrskin profile\nname = \"placeholder\"\nrows = " + std::to_string(layout.rows()) +
-               "\ncols = " + std::to_string(layout.cols()) + "\n");
+               "\nserial = " + std::to_string(options.serial) + "\nprofile = \"" + name +
+               "\"\nvalve_yield_gain = 1.0\n");
   calibration_blob_.reserve(kConfigCapacity);
+  if (profile_text.size() > 0xFFFF) {
+    throw InvalidArgument(fmt::format("profile {} is {} bytes; the configuration memory holds at most 65535",
+                                      name, profile_text.size()));
+  }
+  profile_blob_.assign(profile_text.begin(), profile_text.end());
 }
 
-std::shared_ptr<MockDevice> MockDevice::make_placeholder(const MockOptions& options, int rows, int cols) {
-  const GridLayout layout(rows, cols);
+std::shared_ptr<MockDevice> MockDevice::make_placeholder(const MockOptions& options,
+                                                         const LoadedProfile& loaded) {
+  // TEMPORARY (until the network plant): the placeholder's sensors replace the profile's.
+  const std::string text = placeholder_profile_text(loaded.text, loaded.profile);
+  const model::DeviceProfile profile =
+      text == loaded.text ? loaded.profile : model::parse_profile(text, loaded.path + " (mock placeholder)");
   auto plant =
-      std::make_unique<PlaceholderPlant>(layout, PlaceholderParams{}, options.perturbation, options.seed);
-  return std::make_shared<MockDevice>(layout, options, std::move(plant));
+      std::make_unique<PlaceholderPlant>(profile, PlaceholderParams{}, options.perturbation, options.seed);
+  return std::make_shared<MockDevice>(profile, text, options, std::move(plant));
+}
+
+std::shared_ptr<MockDevice> MockDevice::make_placeholder(const MockOptions& options,
+                                                         std::string_view profile_name_or_path) {
+  return make_placeholder(options, load_profile_with_text(profile_name_or_path));
 }
 
 MockDevice::~MockDevice() { stop(); }
@@ -282,6 +419,21 @@ void MockDevice::release_valves() noexcept {
   }
 }
 
+void MockDevice::reseed(TimePoint now) noexcept {
+  // The host's last currents and targets predate this enable: currents restart at zero and
+  // each cell's target is re-seeded from the last reading sent (TargetSeeder), its validity
+  // starting now.
+  std::fill(commanded_A_.begin(), commanded_A_.end(), 0.0);
+  for (std::size_t c = 0; c < targets_held_.size(); ++c) {
+    targets_held_[c].target = seeder_.seed(c, reported_, targets_held_[c].target.validity);
+    targets_held_[c].validity_start = now;
+  }
+}
+
+MockDevice::HeldTarget MockDevice::held_target(std::size_t cell) const noexcept {
+  return cell < targets_held_.size() ? targets_held_[cell] : HeldTarget{};
+}
+
 void MockDevice::enter_fault(proto::FaultCode code) noexcept {
   state_.store(static_cast<std::uint8_t>(proto::DeviceState::fault));
   fault_.store(static_cast<std::uint8_t>(code));  // latched until an explicit enable
@@ -380,11 +532,11 @@ void MockDevice::handle(const std::uint8_t* bytes, std::size_t length, TimePoint
     id.valves = static_cast<std::uint16_t>(layout_.valve_count());
     id.sensors = static_cast<std::uint16_t>(sensor_si_.size());
     id.serial = options_.serial;
-    id.current_lsb_nA = static_cast<std::uint32_t>(std::lround(options_.current_lsb_A * 1e9));
-    id.current_max_counts = static_cast<std::uint16_t>(std::min<long>(
-        std::lround(options_.max_current_A / options_.current_lsb_A), proto::kCurrentCountMax));
-    id.sensor_quantity = static_cast<std::uint8_t>(proto::SensorQuantity::displacement_m);
-    id.sensor_lsb_nano = static_cast<std::uint32_t>(std::lround(options_.sensor_lsb_m * 1e9));
+    id.current_lsb_nA = static_cast<std::uint32_t>(std::lround(current_lsb_A_ * 1e9));
+    id.current_max_counts = static_cast<std::uint16_t>(
+        std::min<long>(std::lround(max_current_A_ / current_lsb_A_), proto::kCurrentCountMax));
+    id.sensor_quantity = static_cast<std::uint8_t>(wire_quantity(profile_.sensors.front().quantity));
+    id.sensor_lsb_nano = static_cast<std::uint32_t>(std::lround(sensor_lsb_ * 1e9));
     id.heartbeat_timeout_ms =
         static_cast<std::uint16_t>(std::lround(options_.heartbeat_timeout_s * options_.time_scale * 1e3));
     id.telemetry_rate_hz = static_cast<std::uint16_t>(std::lround(1.0 / options_.telemetry_period_s));
@@ -395,6 +547,7 @@ void MockDevice::handle(const std::uint8_t* bytes, std::size_t length, TimePoint
       case proto::StateRequestCode::enable:
         state_.store(static_cast<std::uint8_t>(proto::DeviceState::enabled));
         fault_.store(0);
+        reseed(now);  // no stale command survives an enable
         break;
       case proto::StateRequestCode::disable:
         state_.store(static_cast<std::uint8_t>(proto::DeviceState::disabled));
@@ -415,7 +568,17 @@ void MockDevice::handle(const std::uint8_t* bytes, std::size_t length, TimePoint
     for (std::size_t i = 0; i < v->count; ++i) {
       const std::size_t valve = v->first + i;
       if (valve < commanded_A_.size()) {
-        commanded_A_[valve] = std::min(v->counts[i] * options_.current_lsb_A, options_.max_current_A);
+        commanded_A_[valve] = std::min(v->counts[i] * current_lsb_A_, max_current_A_);
+      }
+    }
+  } else if (const auto* c = std::get_if<proto::CellTargets>(&p.message)) {
+    if (state != proto::DeviceState::enabled) {
+      return;  // as currents: only an enabled unit takes commands
+    }
+    for (std::size_t i = 0; i < c->count; ++i) {
+      const std::size_t cell = c->first + i;
+      if (cell < targets_held_.size()) {
+        targets_held_[cell] = HeldTarget{c->targets[i], now};
       }
     }
   } else if (const auto* h = std::get_if<proto::Heartbeat>(&p.message)) {
@@ -427,7 +590,8 @@ void MockDevice::handle(const std::uint8_t* bytes, std::size_t length, TimePoint
 
 void MockDevice::update_coils(double dt_s) noexcept {
   const MockFaults& f = options_.faults;
-  const double max_step_A = options_.slew_A_per_s * dt_s;
+  const double max_step_A = max_current_A_ * dt_s / options_.slew_time_s;
+  const bool heating = f.overheat_for_s < 0.0 || to_seconds(last_step_ - start_) < f.overheat_for_s;
   double hottest = options_.ambient_C;
   bool derated = false;
   bool overheated = false;
@@ -436,11 +600,11 @@ void MockDevice::update_coils(double dt_s) noexcept {
     const double t = coil_C_[v];
     const double limit_fraction =
         std::clamp((options_.fault_C - t) / (options_.fault_C - options_.derate_start_C), 0.0, 1.0);
-    const double wanted = std::min(commanded_A_[v], options_.max_current_A * limit_fraction);
+    const double wanted = std::min(commanded_A_[v], max_current_A_ * limit_fraction);
     derated = derated || wanted < commanded_A_[v];
     coil_A_[v] += std::clamp(wanted - coil_A_[v], -max_step_A, max_step_A);
-    const double extra_W = static_cast<int>(v) == f.overheat_valve ? f.overheat_power_W : 0.0;
-    const double heat_W = options_.coil_resistance_ohm * coil_A_[v] * coil_A_[v] + extra_W -
+    const double extra_W = heating && static_cast<int>(v) == f.overheat_valve ? f.overheat_power_W : 0.0;
+    const double heat_W = coil_resistance_ohm_ * coil_A_[v] * coil_A_[v] + extra_W -
                           (t - options_.ambient_C) / options_.coil_thermal_resistance_K_per_W;
     coil_C_[v] = t + dt_s * heat_W / options_.coil_heat_capacity_J_per_K;
     hottest = std::max(hottest, coil_C_[v]);
@@ -474,14 +638,15 @@ void MockDevice::emit_telemetry(TimePoint now) noexcept {
     for (std::size_t i = 0; i < t.count; ++i) {
       const std::size_t s = first + i;
       const double sigma =
-          static_cast<int>(s) == f.noisy_sensor ? f.noisy_sensor_noise_m : options_.sensor_noise_m;
+          static_cast<int>(s) == f.noisy_sensor ? f.noisy_sensor_noise_lsb * sensor_lsb_ : sensor_noise_[s];
       double value = sensor_si_[s] + sigma * gaussian(noise_state_);
       if (static_cast<int>(s) == f.stuck_sensor) {
         value = stuck_value_[s];
       }
-      const double counts = std::nearbyint(value / options_.sensor_lsb_m);
+      const double counts = std::nearbyint(value / sensor_lsb_);
       t.counts[i] = static_cast<std::int16_t>(std::clamp(counts, static_cast<double>(proto::kSensorCountMin),
                                                          static_cast<double>(proto::kSensorCountMax)));
+      reported_[s] = static_cast<double>(t.counts[i]) * sensor_lsb_;
     }
     send_message(t);
     first += t.count;

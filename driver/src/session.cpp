@@ -6,6 +6,7 @@
 #include <cmath>
 #include <string>
 
+#include "mrskin/driver/layout.hpp"
 #include "mrskin/protocol/packet.hpp"
 #include "mrskin/protocol/units.hpp"
 
@@ -13,11 +14,82 @@ namespace mrskin {
 namespace proto = mrskin::protocol;
 
 namespace {
-constexpr std::size_t kRingCapacity = 256;
+constexpr std::size_t kConfigWindow = 16;  // configuration chunks in flight
 
 Duration scaled(Duration d, double scale) noexcept {
   return Duration{static_cast<Duration::rep>(static_cast<double>(d.count()) * scale)};
 }
+
+const char* quantity_name(std::uint8_t q) noexcept {
+  switch (static_cast<proto::SensorQuantity>(q)) {
+    case proto::SensorQuantity::displacement_m:
+      return "displacement";
+    case proto::SensorQuantity::force_N:
+      return "force";
+    case proto::SensorQuantity::pressure_Pa:
+      return "pressure";
+  }
+  return "unknown";
+}
+const char* quantity_unit(std::uint8_t q) noexcept {
+  switch (static_cast<proto::SensorQuantity>(q)) {
+    case proto::SensorQuantity::displacement_m:
+      return "m";
+    case proto::SensorQuantity::force_N:
+      return "N";
+    case proto::SensorQuantity::pressure_Pa:
+      return "Pa";
+  }
+  return "?";
+}
+
+std::uint16_t clamp_counts(double value, double lsb, std::uint16_t max_counts) noexcept {
+  if (!(value > 0.0)) {
+    return 0;  // also NaN
+  }
+  return static_cast<std::uint16_t>(std::min(std::nearbyint(value / lsb), static_cast<double>(max_counts)));
+}
+
+const char* request_name(std::uint8_t r) noexcept {
+  switch (static_cast<proto::StateRequestCode>(r)) {
+    case proto::StateRequestCode::disable:
+      return "disable";
+    case proto::StateRequestCode::enable:
+      return "enable";
+    case proto::StateRequestCode::pause:
+      return "pause";
+    case proto::StateRequestCode::estop:
+      return "e-stop";
+  }
+  return "unknown";
+}
+
+const char* config_key_name(std::uint16_t key) noexcept {
+  switch (static_cast<proto::ConfigKey>(key)) {
+    case proto::ConfigKey::profile:
+      return "profile";
+    case proto::ConfigKey::calibration:
+      return "calibration";
+  }
+  return "unknown key";
+}
+
+const char* config_status_name(std::uint8_t s) noexcept {
+  switch (static_cast<proto::ConfigStatus>(s)) {
+    case proto::ConfigStatus::ok:
+      return "ok";
+    case proto::ConfigStatus::bad_key:
+      return "bad key";
+    case proto::ConfigStatus::bad_range:
+      return "bad range";
+    case proto::ConfigStatus::rejected:
+      return "rejected";
+    case proto::ConfigStatus::busy:
+      return "busy";
+  }
+  return "unknown status";
+}
+
 }  // namespace
 
 const char* to_string(DeviceState s) noexcept {
@@ -56,15 +128,94 @@ const char* fault_name(std::uint8_t fault_code) noexcept {
   return "unknown fault";
 }
 
+// --- TargetSeeder ---------------------------------------------------------------------------
+
+TargetSeeder::TargetSeeder(const model::DeviceProfile& profile) {
+  const GridLayout layout(profile.rows, profile.cols);
+  const std::size_t cells = layout.fluid_cell_count();
+  displacement_begin_.assign(1, 0);
+  force_begin_.assign(1, 0);
+  auto add = [&profile](std::vector<Term>& out, model::SensorQuantity q, model::PlaceKind place,
+                        std::span<const std::size_t> indices) {
+    const std::size_t before = out.size();
+    for (std::size_t s = 0; s < profile.sensors.size(); ++s) {
+      const model::SensorSpec& spec = profile.sensors[s];
+      if (spec.quantity == q && spec.place == place &&
+          std::find(indices.begin(), indices.end(), spec.index) != indices.end()) {
+        out.push_back({s, 1.0});
+      }
+    }
+    const std::size_t n = out.size() - before;
+    for (std::size_t i = before; i < out.size(); ++i) {
+      out[i].weight = 1.0 / static_cast<double>(n);
+    }
+    return n;
+  };
+  for (std::size_t c = 0; c < cells; ++c) {
+    const std::size_t self[] = {c};
+    if (add(displacement_, model::SensorQuantity::displacement, model::PlaceKind::fluid_cell, self) == 0) {
+      (void)add(displacement_, model::SensorQuantity::displacement, model::PlaceKind::valve,
+                layout.valves_of_cell(c));
+    }
+    (void)add(force_, model::SensorQuantity::force, model::PlaceKind::fluid_cell, self);
+    displacement_begin_.push_back(displacement_.size());
+    force_begin_.push_back(force_.size());
+  }
+}
+
+double TargetSeeder::sum(std::span<const Term> terms, std::span<const double> sensors) noexcept {
+  double total = 0.0;
+  for (const Term& t : terms) {
+    if (t.sensor < sensors.size()) {
+      total += t.weight * sensors[t.sensor];
+    }
+  }
+  return total;
+}
+
+double TargetSeeder::displacement_m(std::size_t cell, std::span<const double> sensors) const noexcept {
+  if (cell + 1 >= displacement_begin_.size()) {
+    return 0.0;
+  }
+  return sum(
+      std::span<const Term>(displacement_)
+          .subspan(displacement_begin_[cell], displacement_begin_[cell + 1] - displacement_begin_[cell]),
+      sensors);
+}
+
+double TargetSeeder::force_N(std::size_t cell, std::span<const double> sensors) const noexcept {
+  if (cell + 1 >= force_begin_.size()) {
+    return 0.0;
+  }
+  return sum(
+      std::span<const Term>(force_).subspan(force_begin_[cell], force_begin_[cell + 1] - force_begin_[cell]),
+      sensors);
+}
+
+proto::CellTarget TargetSeeder::seed(std::size_t cell, std::span<const double> sensors,
+                                     std::uint8_t validity_counts) const noexcept {
+  proto::CellTarget t;
+  t.stiffness = 0;
+  t.offset = clamp_counts(displacement_m(cell, sensors), proto::kOffsetLsb_m, proto::kOffsetCountMax);
+  t.ceiling = clamp_counts(force_N(cell, sensors), proto::kCeilingLsb_N, proto::kCeilingCountMax);
+  t.validity = std::min(validity_counts, proto::kValidityCountMax);
+  return t;
+}
+
+// --- DeviceSession: setup -------------------------------------------------------------------
+
 DeviceSession::DeviceSession(std::unique_ptr<Transport> transport, Clock& clock, SessionOptions options)
-    : transport_(std::move(transport)),
-      clock_(clock),
-      options_(options),
-      ring_(kRingCapacity),
-      fault_ring_(kRingCapacity) {
+    : transport_(std::move(transport)), clock_(clock), options_(options) {
   if (!(options_.time_scale >= 1.0 && options_.time_scale <= 1000.0)) {
     throw InvalidArgument(fmt::format("time scale {} is outside [1, 1000]", options_.time_scale));
   }
+  if (options_.ring_log_packets < 1 || options_.ring_log_packets > 65536) {
+    throw InvalidArgument(
+        fmt::format("ring log of {} packets is outside 1..65536: set SessionOptions::ring_log_packets",
+                    options_.ring_log_packets));
+  }
+  ring_.resize(options_.ring_log_packets);
+  fault_ring_.resize(options_.ring_log_packets);
   options_.handshake_timeout = scaled(options_.handshake_timeout, options_.time_scale);
   options_.handshake_retry = scaled(options_.handshake_retry, options_.time_scale);
   options_.heartbeat_period = scaled(options_.heartbeat_period, options_.time_scale);
@@ -76,14 +227,17 @@ DeviceSession::DeviceSession(std::unique_ptr<Transport> transport, Clock& clock,
         "no device answers on {}: check the cable and the URI (mrskinctl list shows what is attached)",
         transport_ ? std::string(transport_->uri()) : std::string("(null transport)")));
   }
-  const TimePoint deadline = clock_.now() + options_.handshake_timeout;
-  await_identity(deadline);
+  await_identity(clock_.now() + options_.handshake_timeout);
   if (options_.read_configuration) {
-    info_.profile = read_config(proto::ConfigKey::profile, deadline);
-    info_.calibration = read_config(proto::ConfigKey::calibration, deadline);
+    info_.profile = read_config(proto::ConfigKey::profile);
+    info_.calibration = read_config(proto::ConfigKey::calibration);
+    load_profile();
   }
   sensors_.assign(info_.sensors, 0.0);
   current_counts_.assign(info_.valves, 0);
+  commanded_A_.assign(info_.valves, 0.0);
+  targets_.assign(info_.fluid_cells, proto::CellTarget{});
+  targeted_.assign(info_.fluid_cells, 0);
   next_heartbeat_ = clock_.now();
   last_telemetry_ = clock_.now();
 }
@@ -96,11 +250,11 @@ DeviceSession::~DeviceSession() {
 void DeviceSession::apply_identity(const proto::Identity& id) {
   if (id.proto_major != proto::kVersionMajor) {
     throw ProtocolMismatch(fmt::format(
-        "device on {} reports protocol v{}.{}, this library speaks v{}.{}: update the device firmware or use "
-        "a "
-        "matching mrskin release",
+        "device on {} reports protocol v{}.{}, this library speaks v{}.{}: update the device "
+        "firmware or use a matching mrskin release",
         transport_->uri(), id.proto_major, id.proto_minor, proto::kVersionMajor, proto::kVersionMinor));
   }
+  identity_ = id;
   info_.protocol_major = id.proto_major;
   info_.protocol_minor = id.proto_minor;
   info_.firmware = fmt::format("{}.{}.{}", id.fw_major, id.fw_minor, id.fw_patch);
@@ -113,11 +267,21 @@ void DeviceSession::apply_identity(const proto::Identity& id) {
   info_.current_lsb_A = static_cast<double>(id.current_lsb_nA) * 1e-9;
   info_.max_current_A = info_.current_lsb_A * id.current_max_counts;
   info_.sensor_lsb = static_cast<double>(id.sensor_lsb_nano) * 1e-9;
+  info_.sensor_quantity = quantity_name(id.sensor_quantity);
+  info_.sensor_unit = quantity_unit(id.sensor_quantity);
   info_.heartbeat_timeout_s = id.heartbeat_timeout_ms * 1e-3;
   info_.telemetry_rate_hz = id.telemetry_rate_hz;
   current_lsb_nA_ = id.current_lsb_nA;
   current_max_counts_ = id.current_max_counts;
   sensor_lsb_ = info_.sensor_lsb;
+}
+
+bool DeviceSession::same_unit(const proto::Identity& id) const noexcept {
+  return id.serial == identity_.serial && id.rows == identity_.rows && id.cols == identity_.cols &&
+         id.fluid_cells == identity_.fluid_cells && id.valves == identity_.valves &&
+         id.sensors == identity_.sensors && id.current_lsb_nA == identity_.current_lsb_nA &&
+         id.current_max_counts == identity_.current_max_counts &&
+         id.sensor_quantity == identity_.sensor_quantity && id.sensor_lsb_nano == identity_.sensor_lsb_nano;
 }
 
 void DeviceSession::await_identity(TimePoint deadline) {
@@ -161,57 +325,122 @@ void DeviceSession::await_identity(TimePoint deadline) {
     if (now >= deadline) {
       throw Timeout(
           fmt::format("device on {} did not identify within {:.3f} s: check power, firmware and that no "
-                      "other process owns it "
-                      "(raise the time scale in slow environments)",
+                      "other process owns it (raise the time scale in slow environments)",
                       transport_->uri(), to_seconds(options_.handshake_timeout)));
     }
     clock_.sleep_until(now + std::chrono::microseconds(200));
   }
 }
 
-std::string DeviceSession::read_config(proto::ConfigKey key, TimePoint deadline) {
-  std::string text;
-  std::uint16_t offset = 0;
+std::string DeviceSession::read_config(proto::ConfigKey key) {
+  constexpr std::size_t chunk = proto::kMaxConfigBytes;
+  config_ = ConfigTransfer{};
+  config_.active = true;
+  config_.key = static_cast<std::uint16_t>(key);
+  std::vector<TimePoint> asked;  // per chunk, when last requested (-1: never)
+  TimePoint first_asked{-1};
+  TimePoint last_progress = clock_.now();
+  auto request = [&](std::size_t index) {
+    proto::ConfigRead r;
+    r.key = config_.key;
+    r.offset = static_cast<std::uint16_t>(index * chunk);
+    r.length = static_cast<std::uint8_t>(chunk);
+    (void)send_packet(r);
+  };
   for (;;) {
-    proto::ConfigRead request;
-    request.key = static_cast<std::uint16_t>(key);
-    request.offset = offset;
-    request.length = static_cast<std::uint8_t>(proto::kMaxConfigBytes);
-    config_reply_ready_ = false;
-    config_ack_ready_ = false;
-    (void)send_packet(request);
-    TimePoint retry = clock_.now() + options_.handshake_retry;
-    while (!config_reply_ready_ && !config_ack_ready_) {
-      const TimePoint now = clock_.now();
-      Datagram d;
-      if (transport_->receive(d) == ResultCode::ok) {
-        handle(d, now);
-        continue;
+    const TimePoint now = clock_.now();
+    if (config_.total < 0) {
+      // The first chunk tells the blob's length; ask again until it comes.
+      if (first_asked.count() < 0 || now - first_asked >= options_.handshake_retry) {
+        request(0);
+        first_asked = now;
       }
-      if (now >= deadline) {
-        throw Timeout(fmt::format("device on {} did not return its configuration (key {}) in time",
-                                  transport_->uri(), static_cast<int>(key)));
+    } else {
+      if (asked.empty()) {
+        asked.assign(config_.have.size(), TimePoint{-1});
       }
-      if (now >= retry) {
-        (void)send_packet(request);
-        retry = now + options_.handshake_retry;
+      std::size_t in_flight = 0;
+      for (std::size_t i = 0; i < asked.size(); ++i) {
+        in_flight +=
+            config_.have[i] == 0 && asked[i].count() >= 0 && now - asked[i] < options_.handshake_retry ? 1U
+                                                                                                       : 0U;
       }
-      clock_.sleep_until(now + std::chrono::microseconds(200));
+      for (std::size_t i = 0; i < asked.size() && in_flight < kConfigWindow; ++i) {
+        if (config_.have[i] == 0 && (asked[i].count() < 0 || now - asked[i] >= options_.handshake_retry)) {
+          request(i);
+          asked[i] = now;
+          ++in_flight;
+        }
+      }
     }
-    if (config_ack_ready_) {
-      throw Error(fmt::format("device on {} refused to read configuration key {} (status {})",
-                              transport_->uri(), static_cast<int>(key), config_ack_.status));
+    Datagram d;
+    while (transport_->receive(d) == ResultCode::ok) {
+      handle(d, now);
     }
-    if (config_reply_.key != request.key || config_reply_.offset != offset) {
-      continue;  // a stale answer to an earlier retry
+    if (config_.refused) {
+      config_.active = false;
+      throw Error(fmt::format("device on {} refused to read its {} (key {}): {}; service the unit",
+                              transport_->uri(), config_key_name(config_.key), config_.key,
+                              config_status_name(config_.refusal)));
     }
-    text.append(config_reply_.bytes.begin(), config_reply_.bytes.begin() + config_reply_.length);
-    offset = static_cast<std::uint16_t>(offset + config_reply_.length);
-    if (offset >= config_reply_.total || config_reply_.length == 0) {
-      return text;
+    if (config_.total >= 0 && config_.received == config_.have.size()) {
+      config_.active = false;
+      return std::move(config_.text);
     }
+    if (config_.progress) {
+      config_.progress = false;
+      last_progress = now;
+    } else if (now - last_progress > options_.handshake_timeout) {
+      config_.active = false;
+      throw Timeout(fmt::format(
+          "device on {} stopped returning its {} ({} of {} bytes after {:.3f} s without progress): check the "
+          "link (raise the time scale in slow environments)",
+          transport_->uri(), config_key_name(config_.key), config_.received * chunk,
+          config_.total < 0 ? std::string("?") : std::to_string(config_.total),
+          to_seconds(options_.handshake_timeout)));
+    }
+    clock_.sleep_until(now + std::chrono::microseconds(200));
   }
 }
+
+void DeviceSession::load_profile() {
+  try {
+    profile_ = std::make_unique<model::DeviceProfile>(
+        model::parse_profile(info_.profile, fmt::format("profile stored on {}", transport_->uri())));
+  } catch (const InvalidArgument& e) {
+    throw InvalidArgument(
+        fmt::format("{}: the device's configuration memory holds a bad profile; write a "
+                    "valid one to it (mrskinctl calibrate) or service the unit",
+                    e.what()));
+  }
+  const model::DeviceProfile& p = *profile_;
+  const GridLayout layout(p.rows, p.cols);
+  const double lsb_A = info_.current_lsb_A;
+  std::string mismatch;
+  if (p.rows != info_.rows || p.cols != info_.cols) {
+    mismatch = fmt::format("grid {} x {} in the profile, {} x {} in the identity", p.rows, p.cols, info_.rows,
+                           info_.cols);
+  } else if (layout.fluid_cell_count() != info_.fluid_cells || layout.valve_count() != info_.valves) {
+    mismatch = fmt::format("{} fluid cells and {} valves in the profile, {} and {} in the identity",
+                           layout.fluid_cell_count(), layout.valve_count(), info_.fluid_cells, info_.valves);
+  } else if (p.sensors.size() != info_.sensors) {
+    mismatch = fmt::format("{} sensors in the profile, {} in the identity", p.sensors.size(), info_.sensors);
+  } else if (std::abs(p.coil.max_current_A - info_.max_current_A) > lsb_A ||
+             std::abs(p.coil.current_resolution_A - lsb_A) > 1e-9) {
+    mismatch = fmt::format(
+        "current range {} A in steps of {} A in the profile, {} A in steps of {} A in the identity",
+        p.coil.max_current_A, p.coil.current_resolution_A, info_.max_current_A, lsb_A);
+  }
+  if (!mismatch.empty()) {
+    throw InvalidArgument(
+        fmt::format("device on {} disagrees with the profile it stores ({}): the unit's "
+                    "configuration memory needs servicing",
+                    transport_->uri(), mismatch));
+  }
+  seeder_ = TargetSeeder(p);
+}
+
+// --- DeviceSession: the tick ----------------------------------------------------------------
 
 void DeviceSession::log(const Datagram& d, bool sent, TimePoint now) noexcept {
   TrafficRecord& r = ring_[ring_next_];
@@ -281,7 +510,9 @@ void DeviceSession::handle(const Datagram& d, TimePoint now) noexcept {
     const auto state = static_cast<DeviceState>(s->state);
     if (state == DeviceState::fault && state_ != DeviceState::fault) {
       ++counters_.faults;
-      fault_ring_ = ring_;  // same size: copies into the preallocated buffers
+      last_fault_time_ = now;
+      last_fault_code_ = s->fault;
+      std::copy(ring_.begin(), ring_.end(), fault_ring_.begin());  // same size: no allocation
       fault_ring_size_ = ring_size_;
       fault_ring_next_ = ring_next_;
     }
@@ -295,14 +526,40 @@ void DeviceSession::handle(const Datagram& d, TimePoint now) noexcept {
       counters_.round_trip.add((now - sent).count());
     }
   } else if (const auto* cd = std::get_if<proto::ConfigData>(&p.message)) {
-    config_reply_ = *cd;
-    config_reply_ready_ = true;
+    ConfigTransfer& c = config_;
+    if (!c.active || cd->key != c.key) {
+      return;  // a late answer to a finished read
+    }
+    if (c.total < 0) {
+      c.total = cd->total;  // setup only: the one allocation of the transfer
+      c.text.assign(cd->total, '\0');
+      c.have.assign((cd->total + proto::kMaxConfigBytes - 1) / proto::kMaxConfigBytes, 0);
+    }
+    const std::size_t index = cd->offset / proto::kMaxConfigBytes;
+    const std::size_t expected =
+        std::min<std::size_t>(proto::kMaxConfigBytes,
+                              static_cast<std::size_t>(c.total) - std::min<std::size_t>(cd->offset, c.total));
+    if (cd->total != c.total || cd->offset % proto::kMaxConfigBytes != 0 || index >= c.have.size() ||
+        cd->length != expected || c.have[index] != 0) {
+      return;
+    }
+    std::copy_n(cd->bytes.begin(), cd->length, c.text.begin() + cd->offset);
+    c.have[index] = 1;
+    ++c.received;
+    c.progress = true;
   } else if (const auto* ca = std::get_if<proto::ConfigAck>(&p.message)) {
-    config_ack_ = *ca;
-    config_ack_ready_ = true;
+    if (config_.active && ca->key == config_.key &&
+        ca->status != static_cast<std::uint8_t>(proto::ConfigStatus::ok)) {
+      config_.refused = true;
+      config_.refusal = ca->status;
+    }
   } else if (const auto* id = std::get_if<proto::Identity>(&p.message)) {
     if (identify_pending_ && id->proto_major == proto::kVersionMajor) {
       identify_pending_ = false;
+      if (!same_unit(*id)) {
+        ++counters_.identity_changes;  // not our unit: stay disconnected, the host must reopen
+        return;
+      }
       connected_ = true;
       ++counters_.reconnects;
       backoff_ = Duration{0};
@@ -326,14 +583,14 @@ ResultCode DeviceSession::poll(TimePoint now) noexcept {
     }
     return ResultCode::disconnected;
   }
-  if (!connected_) {
+  if (!connected_ && counters_.identity_changes == 0) {
     // Link is back: identify again, with exponential backoff between attempts.
     if (now >= next_reconnect_) {
       identify_pending_ = true;
       rx_last_sequence_ = -1;
       (void)send_packet(proto::IdentifyRequest{});
-      backoff_ = std::min(backoff_ * 2, options_.reconnect_backoff_max);
       next_reconnect_ = now + backoff_;
+      backoff_ = std::min(backoff_ * 2, options_.reconnect_backoff_max);
     }
   }
   Datagram d;
@@ -373,14 +630,17 @@ ResultCode DeviceSession::send_valve_currents(std::span<const double> current_A)
   proto::Identity scale;
   scale.current_lsb_nA = current_lsb_nA_;
   scale.current_max_counts = current_max_counts_;
-  for (std::size_t v = 0; v < current_A.size(); ++v) {
-    const auto q = proto::quantize_current(current_A[v], scale);
-    if (q.error != proto::Error::ok) {
+  for (const double a : current_A) {
+    if (proto::quantize_current(a, scale).error != proto::Error::ok) {
       ++counters_.invalid_commands;
       return ResultCode::invalid_value;
     }
-    current_counts_[v] = q.counts;
   }
+  for (std::size_t v = 0; v < current_A.size(); ++v) {
+    current_counts_[v] = proto::quantize_current(current_A[v], scale).counts;
+    commanded_A_[v] = static_cast<double>(current_counts_[v]) * info_.current_lsb_A;
+  }
+  currents_commanded_ = true;
   for (std::size_t first = 0; first < current_counts_.size(); first += proto::kMaxValveCurrents) {
     proto::ValveCurrents m;
     m.first = static_cast<std::uint16_t>(first);
@@ -400,6 +660,10 @@ ResultCode DeviceSession::send_cell_targets(std::uint16_t first_cell,
     ++counters_.invalid_commands;
     return ResultCode::invalid_value;
   }
+  for (std::size_t i = 0; i < targets.size(); ++i) {
+    targets_[first_cell + i] = targets[i];
+    targeted_[first_cell + i] = 1;
+  }
   for (std::size_t done = 0; done < targets.size(); done += proto::kMaxCellTargets) {
     proto::CellTargets m;
     m.first = static_cast<std::uint16_t>(first_cell + done);
@@ -413,9 +677,44 @@ ResultCode DeviceSession::send_cell_targets(std::uint16_t first_cell,
   return ResultCode::ok;
 }
 
+void DeviceSession::reseed_and_send() noexcept {
+  ++counters_.reseeds;
+  std::fill(current_counts_.begin(), current_counts_.end(), std::uint16_t{0});
+  std::fill(commanded_A_.begin(), commanded_A_.end(), 0.0);
+  if (currents_commanded_) {
+    for (std::size_t first = 0; first < current_counts_.size(); first += proto::kMaxValveCurrents) {
+      proto::ValveCurrents m;
+      m.first = static_cast<std::uint16_t>(first);
+      m.count = static_cast<std::uint8_t>(std::min(proto::kMaxValveCurrents, current_counts_.size() - first));
+      (void)send_packet(m);  // all zero: released until the host commands again
+    }
+  }
+  // Targets: one message per run of targeted cells, at most kMaxCellTargets long.
+  proto::CellTargets m;
+  for (std::size_t c = 0; c <= targets_.size(); ++c) {
+    const bool take = c < targets_.size() && targeted_[c] != 0;
+    if (take) {
+      targets_[c] = seeder_.seed(c, sensors_, targets_[c].validity);
+      if (m.count == 0) {
+        m.first = static_cast<std::uint16_t>(c);
+      }
+      m.targets[m.count++] = targets_[c];
+    }
+    if (m.count > 0 && (!take || m.count == proto::kMaxCellTargets)) {
+      (void)send_packet(m);
+      m.count = 0;
+    }
+  }
+}
+
 ResultCode DeviceSession::request_enable() noexcept {
   wanted_state_ = DeviceState::enabled;
-  return send_packet(proto::StateRequest{static_cast<std::uint8_t>(proto::StateRequestCode::enable)});
+  const ResultCode rc =
+      send_packet(proto::StateRequest{static_cast<std::uint8_t>(proto::StateRequestCode::enable)});
+  if (rc == ResultCode::ok) {
+    reseed_and_send();
+  }
+  return rc;
 }
 ResultCode DeviceSession::request_disable() noexcept {
   wanted_state_ = DeviceState::disabled;
@@ -429,6 +728,8 @@ ResultCode DeviceSession::request_estop() noexcept {
   wanted_state_ = DeviceState::disabled;
   return send_packet(proto::StateRequest{static_cast<std::uint8_t>(proto::StateRequestCode::estop)});
 }
+
+// --- DeviceSession: logs --------------------------------------------------------------------
 
 std::vector<TrafficRecord> DeviceSession::ring_log() const {
   std::vector<TrafficRecord> out;
@@ -450,19 +751,158 @@ std::vector<TrafficRecord> DeviceSession::fault_log() const {
   return out;
 }
 
-std::string DeviceSession::format_log(const std::vector<TrafficRecord>& records) {
-  std::string out;
+std::vector<LogEntry> DeviceSession::decode_log(const std::vector<TrafficRecord>& records) const {
+  std::vector<LogEntry> out;
+  out.reserve(records.size());
   for (const TrafficRecord& r : records) {
+    LogEntry e;
+    e.host_time = r.time;
+    e.sent = r.sent;
     const proto::PacketDecoded p =
         proto::decode_packet(std::span<const std::uint8_t>(r.datagram.bytes.data(), r.datagram.length));
-    out += fmt::format("{:14.6f} {} type 0x{:02x} seq {:3} {}:", to_seconds(r.time), r.sent ? "tx" : "rx",
-                       r.datagram.length > 1 ? r.datagram.bytes[1] : 0, p.sequence,
-                       p.error == proto::Error::ok ? "ok" : std::string(proto::to_string(p.error)));
-    for (std::size_t i = 0; i < r.datagram.length; ++i) {
-      out += fmt::format(" {:02x}", r.datagram.bytes[i]);
+    if (p.error != proto::Error::ok) {
+      e.kind = "undecodable";
+      e.error = proto::to_string(p.error);
+      std::string hex;
+      for (std::size_t i = 0; i < r.datagram.length; ++i) {
+        hex += fmt::format("{}{:02x}", i == 0 ? "" : " ", r.datagram.bytes[i]);
+      }
+      e.detail = hex;
+      out.push_back(std::move(e));
+      continue;
+    }
+    e.sequence = p.sequence;
+    if (const auto* v = std::get_if<proto::ValveCurrents>(&p.message)) {
+      e.kind = "currents";
+      e.first = v->first;
+      e.unit = "A";
+      for (std::size_t i = 0; i < v->count; ++i) {
+        e.values.push_back(static_cast<double>(v->counts[i]) * info_.current_lsb_A);
+      }
+    } else if (const auto* t = std::get_if<proto::CellTargets>(&p.message)) {
+      e.kind = "targets";
+      e.first = t->first;
+      for (std::size_t i = 0; i < t->count; ++i) {
+        e.targets.push_back(proto::cell_target_to_si(t->targets[i]));
+      }
+    } else if (const auto* m = std::get_if<proto::Telemetry>(&p.message)) {
+      e.kind = "telemetry";
+      e.has_device_time = true;
+      e.device_time_us = m->device_time_us;
+      e.first = m->first;
+      e.unit = quantity_unit(identity_.sensor_quantity);
+      for (std::size_t i = 0; i < m->count; ++i) {
+        e.values.push_back(static_cast<double>(m->counts[i]) * info_.sensor_lsb);
+      }
+    } else if (const auto* ts = std::get_if<proto::TimeSync>(&p.message)) {
+      e.kind = "time sync";
+      e.has_device_time = true;
+      e.device_time_us = ts->device_time_us;
+    } else if (const auto* s = std::get_if<proto::Status>(&p.message)) {
+      e.kind = "status";
+      e.state = to_string(static_cast<DeviceState>(s->state));
+      e.fault = fault_name(s->fault);
+      std::string flags;
+      for (const auto& [bit, name] :
+           {std::pair{proto::kFlagValvesReleased, "valves released"},
+            std::pair{proto::kFlagDerated, "derated"}, std::pair{proto::kFlagCalibrated, "calibrated"}}) {
+        if ((s->flags & bit) != 0) {
+          flags += flags.empty() ? name : fmt::format(", {}", name);
+        }
+      }
+      e.detail = flags.empty() ? std::string("no flags") : flags;
+      if (s->fault_detail != 0) {
+        e.detail += fmt::format("; detail {}", s->fault_detail);
+      }
+    } else if (const auto* h = std::get_if<proto::Heartbeat>(&p.message)) {
+      e.kind = "heartbeat";
+      e.detail = fmt::format("counter {}", h->counter);
+    } else if (const auto* q = std::get_if<proto::StateRequest>(&p.message)) {
+      e.kind = "state request";
+      e.state = request_name(q->request);
+    } else if (const auto* ir = std::get_if<proto::IdentifyRequest>(&p.message)) {
+      e.kind = "identify";
+      e.detail = fmt::format("host speaks v{}.{}", ir->host_major, ir->host_minor);
+    } else if (const auto* id = std::get_if<proto::Identity>(&p.message)) {
+      e.kind = "identity";
+      e.detail =
+          fmt::format("v{}.{}, firmware {}.{}.{}, serial {:08X}, {} x {}", id->proto_major, id->proto_minor,
+                      id->fw_major, id->fw_minor, id->fw_patch, id->serial, id->rows, id->cols);
+    } else if (const auto* cr = std::get_if<proto::ConfigRead>(&p.message)) {
+      e.kind = "config read";
+      e.detail =
+          fmt::format("{} bytes {}..{}", config_key_name(cr->key), cr->offset, cr->offset + cr->length);
+    } else if (const auto* cd = std::get_if<proto::ConfigData>(&p.message)) {
+      e.kind = "config data";
+      e.detail = fmt::format("{} bytes {}..{} of {}", config_key_name(cd->key), cd->offset,
+                             cd->offset + cd->length, cd->total);
+    } else if (const auto* cw = std::get_if<proto::ConfigWrite>(&p.message)) {
+      e.kind = "config write";
+      e.detail = fmt::format("{} bytes {}..{} of {}", config_key_name(cw->key), cw->offset,
+                             cw->offset + cw->length, cw->total);
+    } else if (const auto* ca = std::get_if<proto::ConfigAck>(&p.message)) {
+      e.kind = "config ack";
+      e.detail =
+          fmt::format("{} at {}: {}", config_key_name(ca->key), ca->offset, config_status_name(ca->status));
+    }
+    out.push_back(std::move(e));
+  }
+  return out;
+}
+
+std::string DeviceSession::format_log(const std::vector<TrafficRecord>& records) const {
+  std::string out;
+  for (const LogEntry& e : decode_log(records)) {
+    out += fmt::format("{:12.6f} s {} ", to_seconds(e.host_time), e.sent ? "tx" : "rx");
+    if (e.sequence >= 0) {
+      out += fmt::format("#{:<3} ", e.sequence);
+    } else {
+      out += "#?   ";
+    }
+    out += fmt::format("{:<13}", e.kind);
+    if (e.has_device_time) {
+      out += fmt::format(" device {:.6f} s", static_cast<double>(e.device_time_us) * 1e-6);
+    }
+    if (!e.error.empty()) {
+      out += fmt::format(" {}:", e.error);
+    }
+    if (e.kind == "currents" || e.kind == "telemetry") {
+      out += fmt::format(" {} {}..{} [{}]:", e.kind == "currents" ? "valves" : "sensors", e.first,
+                         e.first + e.values.size() - 1, e.unit);
+      for (const double v : e.values) {
+        out += e.kind == "currents" ? fmt::format(" {:.6f}", v) : fmt::format(" {:.4g}", v);
+      }
+    }
+    std::size_t cell = e.first;
+    for (const proto::CellTargetSi& t : e.targets) {
+      out += fmt::format(" cell {}: {:g} N/m from {:.3f} mm, ceiling {:.3f} N, valid {:.2f} s;", cell++,
+                         t.stiffness_N_per_m, t.offset_m * 1e3, t.ceiling_N, t.validity_s);
+    }
+    if (!e.state.empty()) {
+      out += fmt::format(" {}", e.state);
+    }
+    if (!e.fault.empty()) {
+      out += fmt::format(" (fault: {})", e.fault);
+    }
+    if (!e.detail.empty()) {
+      out += fmt::format(" {}", e.detail);
     }
     out += '\n';
   }
+  return out;
+}
+
+std::string DeviceSession::fault_report() const {
+  if (counters_.faults == 0) {
+    return {};
+  }
+  std::string out = fmt::format(
+      "fault: {} at {:.6f} s (host time); {} fault(s) so far; state now {}{}\n"
+      "last {} packets before it, oldest first:\n",
+      fault_name(last_fault_code_), to_seconds(last_fault_time_), counters_.faults, to_string(state_),
+      state_ == DeviceState::fault ? fmt::format(" ({})", fault_name(fault_)) : std::string(),
+      fault_ring_size_);
+  out += format_log(fault_log());
   return out;
 }
 

@@ -1,8 +1,11 @@
 // The device session against the mock device's firmware, on the simulated clock.
 #include <gtest/gtest.h>
+#include <unistd.h>
 
 #include <cmath>
+#include <cstdio>
 #include <deque>
+#include <fstream>
 #include <functional>
 #include <string>
 #include <vector>
@@ -54,10 +57,22 @@ TEST(Session, HandshakeReadsIdentityProfileAndCalibration) {
   EXPECT_EQ(info.cols, 5);
   EXPECT_EQ(info.fluid_cells, 13U);
   EXPECT_EQ(info.valves, 12U);
-  EXPECT_NEAR(info.current_lsb_A, 125e-6, 1e-12);
-  EXPECT_NEAR(info.max_current_A, 0.5, 1e-9);
+  // From the default profile's [coil]: 0.1 A in steps of 25 uA.
+  EXPECT_NEAR(info.current_lsb_A, 25e-6, 1e-12);
+  EXPECT_NEAR(info.max_current_A, 0.1, 1e-9);
+  EXPECT_EQ(info.sensor_quantity, "displacement");
+  EXPECT_EQ(info.sensor_unit, "m");
+  EXPECT_NEAR(info.sensor_lsb, 2.5e-6, 1e-12);
   EXPECT_NE(info.calibration.find("version = 1"), std::string::npos) << info.calibration;
-  EXPECT_NE(info.profile.find("rows = 5"), std::string::npos) << info.profile;
+  EXPECT_NE(info.profile.find("name = \"mr-skin-5x5\""), std::string::npos) << info.profile;
+  const model::DeviceProfile* profile = rig.dev.session->profile();
+  ASSERT_NE(profile, nullptr);
+  EXPECT_EQ(profile->name, "mr-skin-5x5");
+  EXPECT_EQ(profile->rows, 5);
+  EXPECT_DOUBLE_EQ(profile->coil.max_current_A, 0.1);
+  // The placeholder plant measures at the fluid cells: the stored profile says so.
+  EXPECT_EQ(profile->sensors.size(), 13U);
+  EXPECT_EQ(info.sensors, 13U);
   rig.run(10);
   EXPECT_EQ(rig.dev.session->state(), DeviceState::disabled);
   EXPECT_GT(rig.dev.session->counters().telemetry, 5U);
@@ -134,12 +149,12 @@ TEST(Session, SilentDeviceTimesOutWithAHint) {
 TEST(Session, HeartbeatLossLeadsToSafeStateAndEnableRecovers) {
   Rig rig("mock://?seed=2");
   ASSERT_EQ(rig.dev.session->request_enable(), ResultCode::ok);
-  std::fill(rig.currents.begin(), rig.currents.end(), 0.2);
+  std::fill(rig.currents.begin(), rig.currents.end(), 0.05);
   rig.run(50);
   EXPECT_EQ(rig.dev.session->state(), DeviceState::enabled);
   std::vector<double> applied(rig.currents.size());
   rig.dev.mock->applied_currents(applied);
-  EXPECT_NEAR(applied[0], 0.2, 1e-3);
+  EXPECT_NEAR(applied[0], 0.05, 1e-4);
   rig.run(150, /*host_alive=*/false);
   rig.dev.mock->applied_currents(applied);
   for (const double a : applied) {
@@ -241,7 +256,7 @@ TEST(Session, NoisySensorIsNoisy) {
 TEST(Session, OverheatedCoilDeratesThenFaults) {
   Rig rig("mock://?seed=11&faults=overheat:2");
   ASSERT_EQ(rig.dev.session->request_enable(), ResultCode::ok);
-  std::fill(rig.currents.begin(), rig.currents.end(), 0.3);
+  std::fill(rig.currents.begin(), rig.currents.end(), 0.08);
   bool saw_derated = false;
   for (int k = 0; k < 60 && rig.dev.session->state() != DeviceState::fault; ++k) {
     rig.run(100);
@@ -268,7 +283,7 @@ TEST(Session, BusOffFaultsAndEnableRecovers) {
 TEST(Session, EstopReleasesEverythingAndLatches) {
   Rig rig("mock://?seed=13");
   ASSERT_EQ(rig.dev.session->request_enable(), ResultCode::ok);
-  std::fill(rig.currents.begin(), rig.currents.end(), 0.2);
+  std::fill(rig.currents.begin(), rig.currents.end(), 0.05);
   rig.run(20);
   ASSERT_EQ(rig.dev.session->request_estop(), ResultCode::ok);
   rig.run(1);
@@ -285,10 +300,10 @@ TEST(Session, InvalidCurrentsAreRefusedAndNothingIsSent) {
   Rig rig("mock://?seed=14");
   rig.run(5);
   const auto sent = rig.dev.session->counters().sent;
-  std::vector<double> bad(rig.currents.size(), 0.1);
+  std::vector<double> bad(rig.currents.size(), 0.05);
   bad[3] = std::nan("");
   EXPECT_EQ(rig.dev.session->send_valve_currents(bad), ResultCode::invalid_value);
-  bad[3] = 5.0;  // above the device's limit
+  bad[3] = 0.2;  // above the device's 0.1 A
   EXPECT_EQ(rig.dev.session->send_valve_currents(bad), ResultCode::invalid_value);
   bad.pop_back();
   EXPECT_EQ(rig.dev.session->send_valve_currents(bad), ResultCode::invalid_value);
@@ -312,9 +327,10 @@ TEST(Session, RingLogKeepsTheLastPackets) {
   const auto log = rig.dev.session->ring_log();
   EXPECT_EQ(log.size(), 256U);
   EXPECT_LE(log.front().time, log.back().time);
-  const std::string text = DeviceSession::format_log(log);
-  EXPECT_NE(text.find(" rx type 0x20"), std::string::npos);
-  EXPECT_NE(text.find(" tx type 0x31"), std::string::npos);
+  const std::string text = rig.dev.session->format_log(log);
+  EXPECT_NE(text.find(" rx #"), std::string::npos) << text;
+  EXPECT_NE(text.find("telemetry"), std::string::npos) << text;
+  EXPECT_NE(text.find("heartbeat"), std::string::npos) << text;
 }
 
 TEST(Session, TimeScaleStretchesTheDeviceWatchdog) {
@@ -342,15 +358,136 @@ TEST(Session, TelemetryCallbackSeesEveryPacket) {
   EXPECT_GE(calls, 95);
 }
 
+TEST(MockProfiles, GridCurrentRangeAndSensorsComeFromTheProfile) {
+  struct Case {
+    const char* uri;
+    int rows;
+    double max_current_A;
+    double current_lsb_A;
+    double sensor_lsb_m;
+  };
+  for (const Case& c : {Case{"mock://default?seed=1", 5, 0.1, 25e-6, 2.5e-6},
+                        Case{"mock://mr-skin-5x5?seed=1", 5, 0.1, 25e-6, 2.5e-6},
+                        Case{"mock://fingertip-16x16?seed=1", 16, 0.04, 10e-6, 0.5e-6},
+                        Case{"mock://palm-64x64?seed=1", 64, 0.05, 12.5e-6, 1e-6}}) {
+    SCOPED_TRACE(c.uri);
+    Rig rig(c.uri);
+    const DeviceInfo& info = rig.dev.session->info();
+    const GridLayout layout(c.rows, c.rows);
+    EXPECT_EQ(info.rows, c.rows);
+    EXPECT_EQ(info.cols, c.rows);
+    EXPECT_EQ(info.fluid_cells, layout.fluid_cell_count());
+    EXPECT_EQ(info.valves, layout.valve_count());
+    EXPECT_NEAR(info.max_current_A, c.max_current_A, 1e-12);
+    EXPECT_NEAR(info.current_lsb_A, c.current_lsb_A, 1e-12);
+    EXPECT_NEAR(info.sensor_lsb, c.sensor_lsb_m, 1e-12);
+    ASSERT_NE(rig.dev.session->profile(), nullptr);
+    EXPECT_EQ(rig.dev.session->profile()->rows, c.rows);
+    EXPECT_EQ(rig.dev.session->profile()->sensors.size(), info.sensors);
+    EXPECT_EQ(rig.dev.mock->profile().name, rig.dev.session->profile()->name);
+    // Every sensor reports: telemetry covers the whole grid.
+    rig.finger.back() = 1e-4;
+    rig.run(20);
+    EXPECT_NEAR(rig.dev.session->sensors().back(), 1e-4, 10 * c.sensor_lsb_m);
+  }
+}
+
+TEST(MockProfiles, UnknownProfileListsTheSearchPathAndTheNames) {
+  SimulatedClock clock;
+  try {
+    (void)open_device("mock://no-such-skin", clock);
+    FAIL() << "an unknown profile was accepted";
+  } catch (const ProfileNotFound& e) {
+    const std::string what = e.what();
+    EXPECT_NE(what.find("no-such-skin"), std::string::npos) << what;
+    for (const std::string& dir : model::profile_search_path()) {
+      EXPECT_NE(what.find(dir), std::string::npos) << what;
+    }
+    for (const char* name : {"mr-skin-5x5", "fingertip-16x16", "palm-64x64"}) {
+      EXPECT_NE(what.find(name), std::string::npos) << what;
+    }
+  }
+  EXPECT_THROW((void)open_device("mock://no-such-skin", clock), InvalidArgument);  // a kind of
+  EXPECT_THROW((void)open_device("mock:///nonexistent/unit.toml", clock), InvalidArgument);
+  try {
+    (void)parse_mock_uri("mock://?rows=7");
+    FAIL() << "rows= was accepted";
+  } catch (const InvalidArgument& e) {
+    EXPECT_NE(std::string(e.what()).find("profile"), std::string::npos) << e.what();
+  }
+}
+
+// A profile written to a temporary file, opened as mock:///path.
+struct TempProfile {
+  explicit TempProfile(const std::string& text) {
+    path = testing::TempDir() + "mrskin-test-" + std::to_string(::getpid()) + "-" +
+           std::to_string(counter++) + ".toml";
+    std::ofstream(path) << text;
+  }
+  TempProfile(const TempProfile&) = delete;
+  TempProfile& operator=(const TempProfile&) = delete;
+  TempProfile(TempProfile&&) = delete;
+  TempProfile& operator=(TempProfile&&) = delete;
+  ~TempProfile() { std::remove(path.c_str()); }
+  std::string path;
+  static inline int counter = 0;
+};
+
+std::string default_profile_text() { return load_profile_with_text("").text; }
+
+TEST(MockProfiles, AProfileFileIsStoredVerbatimWhenThePlaceholderCanServeItsSensors) {
+  const std::string text =
+      replace_sensors_section(default_profile_text(),
+                              "[sensors]\ngenerate = \"per_fluid_cell\"\nquantity = \"force\"\nunit = \"N\"\n"
+                              "resolution = 1.0e-3\nnoise_std = 0.0\n");
+  const TempProfile file(text);
+  Rig rig("mock://" + file.path + "?seed=2");
+  const DeviceInfo& info = rig.dev.session->info();
+  EXPECT_EQ(info.profile, text);
+  EXPECT_EQ(info.sensor_quantity, "force");
+  EXPECT_EQ(info.sensor_unit, "N");
+  EXPECT_NEAR(info.sensor_lsb, 1e-3, 1e-12);
+  rig.finger[6] = 1e-3;
+  rig.run(20);
+  std::vector<double> truth(rig.finger.size());
+  rig.dev.mock->true_contact_forces(truth);
+  EXPECT_GT(truth[6], 0.1);
+  EXPECT_NEAR(rig.dev.session->sensors()[6], truth[6], 2e-3);
+}
+
+TEST(MockProfiles, ProfilesBeyondProtocolV1AreRefusedWithTheReason) {
+  SimulatedClock clock;
+  std::string text = default_profile_text();
+  const auto at = text.find("current_resolution_A = 25.0e-6");
+  ASSERT_NE(at, std::string::npos);
+  text.replace(at, std::string("current_resolution_A = 25.0e-6").size(), "current_resolution_A = 1.0e-6");
+  const TempProfile file(text);
+  try {
+    (void)open_device("mock://" + file.path, clock);
+    FAIL() << "100000 current counts were accepted";
+  } catch (const InvalidArgument& e) {
+    EXPECT_NE(std::string(e.what()).find("4095"), std::string::npos) << e.what();
+  }
+}
+
+TEST(Session, ReadsALargeProfileOverAThreadedMockInTime) {
+  MonotonicClock clock;
+  OpenedDevice dev = open_device("mock://palm-64x64?seed=3", clock);  // the mock runs its own thread
+  ASSERT_NE(dev.session->profile(), nullptr);
+  const LoadedProfile file = load_profile_with_text("palm-64x64");
+  EXPECT_EQ(dev.session->info().profile, placeholder_profile_text(file.text, file.profile));
+  EXPECT_EQ(dev.session->profile()->sensors.size(), dev.session->info().fluid_cells);
+}
+
 TEST(MockUri, BadParametersAreNamed) {
-  int rows = 0;
-  int cols = 0;
-  EXPECT_THROW(parse_mock_uri("mock://?faults=drop:1.5", rows, cols), InvalidArgument);
-  EXPECT_THROW(parse_mock_uri("mock://?faults=melt:1", rows, cols), InvalidArgument);
-  EXPECT_THROW(parse_mock_uri("mock://?seed=abc", rows, cols), InvalidArgument);
-  EXPECT_THROW(parse_mock_uri("mock://?colour=red", rows, cols), InvalidArgument);
-  const MockOptions o =
-      parse_mock_uri("mock://?seed=3&faults=drop:0.1,disconnect:2+0.5,overheat:4", rows, cols);
+  EXPECT_THROW(parse_mock_uri("mock://?faults=drop:1.5"), InvalidArgument);
+  EXPECT_THROW(parse_mock_uri("mock://?faults=melt:1"), InvalidArgument);
+  EXPECT_THROW(parse_mock_uri("mock://?seed=abc"), InvalidArgument);
+  EXPECT_THROW(parse_mock_uri("mock://?colour=red"), InvalidArgument);
+  const MockUri u =
+      parse_mock_uri("mock://fingertip-16x16?seed=3&faults=drop:0.1,disconnect:2+0.5,overheat:4");
+  EXPECT_EQ(u.profile, "fingertip-16x16");
+  const MockOptions& o = u.options;
   EXPECT_EQ(o.seed, 3U);
   EXPECT_DOUBLE_EQ(o.faults.drop_probability, 0.1);
   EXPECT_DOUBLE_EQ(o.faults.disconnect_at_s, 2.0);

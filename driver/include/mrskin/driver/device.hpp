@@ -1,8 +1,12 @@
 // Opening a device by URI. Setup only: throws typed exceptions that say what to do.
-//   mock://[?seed=N&perturbation=F&faults=LIST&time_scale=K&rows=R&cols=C]
-//     the simulated unit, in-process. faults is a comma list of drop:P, dup:P, corrupt:P,
-//     reorder:P, delay:S, disconnect:AT+FOR, stuck:SENSOR, noisy:SENSOR, overheat:VALVE,
-//     busoff:AT (probabilities per datagram, times in seconds of device time).
+//   mock://[PROFILE][?seed=N&perturbation=F&faults=LIST&time_scale=K]
+//     the simulated unit, in-process, built to a device profile: PROFILE is a name in the
+//     profile search path (mr-skin-5x5, fingertip-16x16, palm-64x64, ...), a file path
+//     (mock:///path/to/unit.toml), or empty / "default" for the default profile. The grid,
+//     the current range and resolution and the sensors come from the profile. faults is a
+//     comma list of drop:P, dup:P, corrupt:P, reorder:P, delay:S, disconnect:AT+FOR,
+//     stuck:SENSOR, noisy:SENSOR, overheat:VALVE[+FOR], busoff:AT (probabilities per
+//     datagram, times in seconds of device time).
 // hid://, usb:// and can:// are recognised and refused until their transports land.
 #pragma once
 
@@ -52,8 +56,13 @@ struct OpenedDevice {
   std::unique_ptr<DeviceSession> session;
 };
 
-// Parses a mock:// URI into options; throws InvalidArgument naming the bad parameter.
-MockOptions parse_mock_uri(std::string_view uri, int& rows, int& cols);
+struct MockUri {
+  std::string profile;  // name or path as written ("" for the default)
+  MockOptions options;
+};
+// Parses a mock:// URI; throws InvalidArgument naming the bad parameter. The profile is not
+// loaded here (load_profile_with_text does that).
+MockUri parse_mock_uri(std::string_view uri);
 
 OpenedDevice open_device(std::string_view uri, Clock& clock, const OpenOptions& options = {});
 

@@ -16,6 +16,12 @@ class InvalidArgument : public Error {
  public:
   using Error::Error;
 };
+// A profile name that is in none of the profile directories; the message lists the search path
+// and the names available there.
+class ProfileNotFound : public InvalidArgument {
+ public:
+  using InvalidArgument::InvalidArgument;
+};
 // No device answers at the given address.
 class DeviceNotFound : public Error {
  public:

@@ -9,12 +9,16 @@
 #include <cstdint>
 #include <memory>
 #include <span>
+#include <string>
+#include <string_view>
 #include <thread>
 #include <vector>
 
 #include "mrskin/driver/clock.hpp"
 #include "mrskin/driver/layout.hpp"
+#include "mrskin/driver/model/profile.hpp"
 #include "mrskin/driver/plant.hpp"
+#include "mrskin/driver/session.hpp"
 #include "mrskin/driver/spsc_queue.hpp"
 #include "mrskin/driver/transport.hpp"
 #include "mrskin/protocol/messages.hpp"
@@ -23,23 +27,26 @@ namespace mrskin {
 
 // Faults the mock injects, seeded like everything else (mock://?faults=...).
 struct MockFaults {
-  double drop_probability = 0.0;       // each datagram, each direction
-  double duplicate_probability = 0.0;  // each datagram, each direction
-  double corrupt_probability = 0.0;    // one bit flipped, each datagram, each direction
-  double reorder_probability = 0.0;    // device->host datagram held back behind the next
-  double delay_s = 0.0;                // extra device->host latency
-  double disconnect_at_s = -1.0;       // cable pulled at this device time (< 0: never)...
-  double disconnect_for_s = 0.0;       // ...for this long; the unit reboots DISABLED
-  int stuck_sensor = -1;               // this sensor freezes at its first reading
-  int noisy_sensor = -1;               // this sensor gets noisy_sensor_noise_m of noise
-  double noisy_sensor_noise_m = 50e-6;
-  int overheat_valve = -1;  // this coil gets overheat_power_W of extra heat
+  double drop_probability = 0.0;         // each datagram, each direction
+  double duplicate_probability = 0.0;    // each datagram, each direction
+  double corrupt_probability = 0.0;      // one bit flipped, each datagram, each direction
+  double reorder_probability = 0.0;      // device->host datagram held back behind the next
+  double delay_s = 0.0;                  // extra device->host latency
+  double disconnect_at_s = -1.0;         // cable pulled at this device time (< 0: never)...
+  double disconnect_for_s = 0.0;         // ...for this long; the unit reboots DISABLED
+  int stuck_sensor = -1;                 // this sensor freezes at its first reading
+  int noisy_sensor = -1;                 // this sensor gets noisy_sensor_noise_lsb of noise
+  double noisy_sensor_noise_lsb = 20.0;  // standard deviation, in the sensor's resolution
+  int overheat_valve = -1;               // this coil gets overheat_power_W of extra heat...
   double overheat_power_W = 10.0;
-  double bus_off_at_s = -1.0;  // bus-off at this device time (< 0: never)
-  double bus_off_for_s = 0.1;  // silent this long, then back in FAULT
+  double overheat_for_s = -1.0;  // ...for this long from power-up (< 0: for ever)
+  double bus_off_at_s = -1.0;    // bus-off at this device time (< 0: never)
+  double bus_off_for_s = 0.1;    // silent this long, then back in FAULT
   [[nodiscard]] bool any() const noexcept;
 };
 
+// How the unit behaves. What it is (grid, current range and resolution, sensors, coil
+// resistance) comes from its device profile, not from here.
 struct MockOptions {
   std::uint64_t seed = 1;
   double perturbation = 0.15;        // plant parameters within +-15 % of nominal
@@ -47,14 +54,10 @@ struct MockOptions {
   double telemetry_period_s = 1e-3;  // one telemetry packet per period
   double status_period_s = 0.1;      // status also goes out on every change
   double heartbeat_timeout_s = 0.1;  // valves released after this silence
-  double max_current_A = 0.5;
-  double current_lsb_A = 125e-6;
-  double sensor_lsb_m = 2.5e-6;
-  double sensor_noise_m = 1e-6;  // standard deviation, before quantisation
+  double sensor_noise_scale = 1.0;   // multiplies the profile's noise_std (0: noise-free)
   std::uint32_t serial = 0x4D520001;
-  double slew_A_per_s = 200.0;  // coil current slew limit of the current driver
-  // Coil thermal model: C dT/dt = R I^2 + P_extra - (T - T_ambient) / R_th.
-  double coil_resistance_ohm = 4.0;
+  double slew_time_s = 2.5e-3;  // current driver's slew limit: a full-scale step takes this long
+  // Coil thermal model: C dT/dt = R I^2 + P_extra - (T - T_ambient) / R_th (R: the profile's).
   double coil_heat_capacity_J_per_K = 0.5;
   double coil_thermal_resistance_K_per_W = 20.0;
   double ambient_C = 25.0;
@@ -65,11 +68,34 @@ struct MockOptions {
   std::uint16_t calibration_version = 1;
 };
 
+// A device profile found by name or path, with the text it was read from.
+struct LoadedProfile {
+  model::DeviceProfile profile;
+  std::string text;
+  std::string path;
+};
+// name_or_path: "" or "default" (the default profile, mr-skin-5x5), a profile name looked up in
+// model::profile_search_path(), or a file path (containing '/' or ending in .toml). Throws
+// ProfileNotFound (listing the search path and the names found there) or InvalidArgument (a
+// file that cannot be read or parsed).
+LoadedProfile load_profile_with_text(std::string_view name_or_path);
+// The profile names (file stems) in the search path, sorted, without duplicates.
+std::vector<std::string> available_profile_names();
+
 class MockDevice {
  public:
-  MockDevice(const GridLayout& layout, const MockOptions& options, std::unique_ptr<Plant> plant);
-  // The placeholder plant on a layout (default the paper's 5 x 5).
-  static std::shared_ptr<MockDevice> make_placeholder(const MockOptions& options, int rows = 5, int cols = 5);
+  // A unit built to profile, whose configuration memory holds profile_text (read back by the
+  // host during the handshake) and a versioned calibration. The plant has one sensor per
+  // profile sensor. Throws InvalidArgument when the profile does not fit protocol v1 (current
+  // range above 4095 counts, sensors of several quantities or resolutions) or the plant.
+  MockDevice(const model::DeviceProfile& profile, std::string_view profile_text, const MockOptions& options,
+             std::unique_ptr<Plant> plant);
+  // TEMPORARY: the placeholder plant on a profile (default: the default profile), until the
+  // network plant replaces it. The stored profile is placeholder_profile_text() of the file's.
+  static std::shared_ptr<MockDevice> make_placeholder(const MockOptions& options,
+                                                      std::string_view profile_name_or_path = "");
+  static std::shared_ptr<MockDevice> make_placeholder(const MockOptions& options,
+                                                      const LoadedProfile& loaded);
   MockDevice(const MockDevice&) = delete;
   MockDevice& operator=(const MockDevice&) = delete;
   MockDevice(MockDevice&&) = delete;
@@ -97,6 +123,8 @@ class MockDevice {
   void applied_currents(std::span<double> out_A) const noexcept;
 
   [[nodiscard]] const GridLayout& layout() const noexcept { return layout_; }
+  // The profile the unit was built to (as stored in its configuration memory).
+  [[nodiscard]] const model::DeviceProfile& profile() const noexcept { return profile_; }
   [[nodiscard]] std::uint8_t state() const noexcept { return state_.load(std::memory_order_acquire); }
   [[nodiscard]] std::uint8_t fault() const noexcept { return fault_.load(std::memory_order_acquire); }
   // Pulls (false) or re-plugs (true) the cable. A re-plugged unit boots DISABLED.
@@ -115,6 +143,17 @@ class MockDevice {
   };
   [[nodiscard]] FaultCounters fault_counters() const noexcept;
 
+  // --- firmware state, for tests: call from the thread that steps the device ---------------
+  // The per-cell impedance target the firmware holds and when its validity started. The
+  // firmware stores targets; rendering them is the network plant's and Bridge I's work.
+  struct HeldTarget {
+    protocol::CellTarget target{};
+    TimePoint validity_start{};
+  };
+  [[nodiscard]] HeldTarget held_target(std::size_t cell) const noexcept;
+  // Currents the host commanded (before slew limit and derating), A.
+  [[nodiscard]] std::span<const double> commanded_currents() const noexcept { return commanded_A_; }
+
  private:
   class HostTransport;
   friend class HostTransport;
@@ -131,9 +170,19 @@ class MockDevice {
   void apply_link_faults(TimePoint now) noexcept;
   bool chance(double probability) noexcept;
   void handle_config(const protocol::Message& message) noexcept;
+  void reseed(TimePoint now) noexcept;
 
+  model::DeviceProfile profile_;
   GridLayout layout_;
   MockOptions options_;
+  double max_current_A_ = 0.0;
+  double current_lsb_A_ = 0.0;
+  double sensor_lsb_ = 0.0;           // the sensors' resolution, in their SI unit
+  std::vector<double> sensor_noise_;  // standard deviation per sensor, SI
+  double coil_resistance_ohm_ = 0.0;
+  TargetSeeder seeder_;
+  std::vector<HeldTarget> targets_held_;
+  std::vector<double> reported_;  // last telemetry sent, SI (what the host saw)
   std::unique_ptr<Plant> plant_;
   SpscQueue<Datagram> to_device_{256};
   SpscQueue<Datagram> to_host_{1024};

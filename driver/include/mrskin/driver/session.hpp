@@ -10,13 +10,16 @@
 #include <memory>
 #include <span>
 #include <string>
+#include <string_view>
 #include <vector>
 
 #include "mrskin/driver/clock.hpp"
 #include "mrskin/driver/errors.hpp"
 #include "mrskin/driver/histogram.hpp"
+#include "mrskin/driver/model/profile.hpp"
 #include "mrskin/driver/transport.hpp"
 #include "mrskin/protocol/messages.hpp"
+#include "mrskin/protocol/units.hpp"
 
 namespace mrskin {
 
@@ -37,10 +40,12 @@ struct DeviceInfo {
   std::size_t sensors = 0;
   double current_lsb_A = 0.0;
   double max_current_A = 0.0;
-  double sensor_lsb = 0.0;  // in the sensor's SI unit
+  double sensor_lsb = 0.0;      // in the sensor's SI unit
+  std::string sensor_quantity;  // "displacement", "force" or "pressure"
+  std::string sensor_unit;      // "m", "N" or "Pa"
   double heartbeat_timeout_s = 0.0;
   double telemetry_rate_hz = 0.0;
-  std::string profile;      // profile text stored on the device
+  std::string profile;      // profile text stored on the device (DeviceSession::profile() parses it)
   std::string calibration;  // calibration text stored on the device (versioned)
 };
 
@@ -55,7 +60,10 @@ struct SessionOptions {
   Duration reconnect_backoff_min = std::chrono::milliseconds(10);
   Duration reconnect_backoff_max = std::chrono::milliseconds(1000);
   Duration telemetry_timeout = std::chrono::milliseconds(50);
-  bool read_configuration = true;  // read profile and calibration during the handshake
+  // Read profile and calibration during the handshake; the configuration read fails with
+  // Timeout when no chunk arrives within handshake_timeout.
+  bool read_configuration = true;
+  std::size_t ring_log_packets = 256;  // N of the ring log (1..65536)
 };
 
 // Counters the session keeps; read from the tick thread or after it stops.
@@ -74,14 +82,68 @@ struct SessionCounters {
   std::uint64_t disconnects = 0;
   std::uint64_t reconnects = 0;
   std::uint64_t faults = 0;
-  DurationHistogram round_trip;  // heartbeat sent -> its echo received
+  std::uint64_t reseeds = 0;           // explicit enables that re-seeded the command state
+  std::uint64_t identity_changes = 0;  // another unit answered a reconnect: refused
+  DurationHistogram round_trip;        // heartbeat sent -> its echo received
 };
 
-// One packet in the ring log.
+// One packet in the ring log, as it crossed the link.
 struct TrafficRecord {
   TimePoint time{};
   bool sent = false;  // host -> device
   Datagram datagram{};
+};
+
+// A ring-log record decoded into SI units with the device's identity (DeviceSession::decode_log).
+struct LogEntry {
+  TimePoint host_time{};
+  bool sent = false;  // host -> device
+  // "currents", "targets", "telemetry", "status", "heartbeat", "state request", "identify",
+  // "identity", "config read", "config data", "config write", "config ack", "time sync",
+  // or "undecodable"
+  std::string_view kind = "undecodable";
+  int sequence = -1;       // packet sequence number (-1: undecodable)
+  std::string_view error;  // decode error ("" when the packet decoded)
+  bool has_device_time = false;
+  std::uint32_t device_time_us = 0;  // telemetry: device clock at sampling
+  std::size_t first = 0;             // first valve (currents), cell (targets) or sensor (telemetry)
+  std::vector<double> values;        // currents in A, or sensor readings in unit
+  std::string_view unit;             // "A", or the sensors' SI unit
+  std::vector<protocol::CellTargetSi> targets;
+  std::string_view state;  // status: "DISABLED", "ENABLED", "PAUSED", "FAULT"; state request: the request
+  std::string_view fault;  // status: the fault cause ("none", "heartbeat lost", ...)
+  std::string detail;      // anything else, in words (flags, heartbeat counter, config key and range)
+};
+
+// The re-seeding rule of an explicit enable (docs/api.md, "Enabling re-seeds the targets"),
+// shared by the session and the mock device's firmware. A fluid cell's measured displacement is
+// the mean of the displacement sensors on that cell, or else of those on its valves (an
+// estimate until the network observer lands), or else 0; its measured force is the mean of the
+// force sensors on that cell, or else 0. The seeded target is offset = measured displacement,
+// stiffness 0, ceiling = measured force, and the validity given. Built at setup (allocates);
+// the rest is noexcept and allocation-free.
+class TargetSeeder {
+ public:
+  TargetSeeder() = default;
+  explicit TargetSeeder(const model::DeviceProfile& profile);
+  [[nodiscard]] std::size_t fluid_cells() const noexcept {
+    return displacement_begin_.empty() ? 0 : displacement_begin_.size() - 1;
+  }
+  [[nodiscard]] double displacement_m(std::size_t cell, std::span<const double> sensors) const noexcept;
+  [[nodiscard]] double force_N(std::size_t cell, std::span<const double> sensors) const noexcept;
+  [[nodiscard]] protocol::CellTarget seed(std::size_t cell, std::span<const double> sensors,
+                                          std::uint8_t validity_counts) const noexcept;
+
+ private:
+  struct Term {
+    std::size_t sensor = 0;
+    double weight = 0.0;
+  };
+  static double sum(std::span<const Term> terms, std::span<const double> sensors) noexcept;
+  std::vector<std::size_t> displacement_begin_;  // cells + 1 offsets into displacement_
+  std::vector<Term> displacement_;
+  std::vector<std::size_t> force_begin_;
+  std::vector<Term> force_;
 };
 
 // Called on the tick thread for every telemetry packet, inside poll(); must not block.
@@ -95,7 +157,8 @@ using TelemetryCallback = void (*)(void* context, const TelemetryView& view) noe
 class DeviceSession {
  public:
   // Runs the handshake on transport. Throws ProtocolMismatch (both versions named),
-  // Timeout, or DeviceNotFound when the transport is down.
+  // Timeout, DeviceNotFound when the transport is down, or InvalidArgument when the profile
+  // stored on the device is invalid or disagrees with its identity.
   DeviceSession(std::unique_ptr<Transport> transport, Clock& clock, SessionOptions options = {});
   DeviceSession(const DeviceSession&) = delete;
   DeviceSession& operator=(const DeviceSession&) = delete;
@@ -104,6 +167,8 @@ class DeviceSession {
   ~DeviceSession();
 
   [[nodiscard]] const DeviceInfo& info() const noexcept { return info_; }
+  // The profile read from the device, parsed (nullptr with read_configuration = false).
+  [[nodiscard]] const model::DeviceProfile* profile() const noexcept { return profile_.get(); }
   void set_telemetry_callback(TelemetryCallback callback, void* context) noexcept {
     telemetry_callback_ = callback;
     telemetry_context_ = context;
@@ -119,8 +184,10 @@ class DeviceSession {
   // Per-cell impedance targets (wire counts; see protocol/units.hpp for SI conversion).
   ResultCode send_cell_targets(std::uint16_t first_cell,
                                std::span<const protocol::CellTarget> targets) noexcept;
-  // Leaves DISABLED, PAUSED or a latched FAULT. The caller re-seeds its targets from the
-  // measured state before the next command.
+  // Leaves DISABLED, PAUSED or a latched FAULT, and re-seeds the command state from the
+  // measured state (docs/api.md): the valve currents become 0 A, the targets of the cells the
+  // host has targeted become TargetSeeder::seed() of the latest telemetry, and both are sent
+  // right after the state request, so no stale command is resumed. The firmware does the same.
   ResultCode request_enable() noexcept;
   ResultCode request_disable() noexcept;
   ResultCode request_pause() noexcept;
@@ -131,6 +198,10 @@ class DeviceSession {
   // Latest sensor values in SI, one per sensor, and their device timestamp.
   [[nodiscard]] std::span<const double> sensors() const noexcept { return sensors_; }
   [[nodiscard]] std::uint32_t sensor_device_time_us() const noexcept { return sensor_time_us_; }
+  // The command state as last sent (or re-seeded): per-valve currents in A, per-cell targets.
+  [[nodiscard]] std::span<const double> commanded_currents() const noexcept { return commanded_A_; }
+  [[nodiscard]] std::span<const protocol::CellTarget> cell_targets() const noexcept { return targets_; }
+  [[nodiscard]] const TargetSeeder& seeder() const noexcept { return seeder_; }
   [[nodiscard]] TimePoint last_telemetry_time() const noexcept { return last_telemetry_; }
   [[nodiscard]] DeviceState state() const noexcept { return state_; }
   [[nodiscard]] std::uint8_t fault_code() const noexcept { return fault_; }
@@ -145,23 +216,41 @@ class DeviceSession {
   [[nodiscard]] std::vector<TrafficRecord> ring_log() const;
   // The ring log as it was when the last fault arrived (empty if none).
   [[nodiscard]] std::vector<TrafficRecord> fault_log() const;
-  // Text dump of a log, one packet per line (allocates).
-  static std::string format_log(const std::vector<TrafficRecord>& records);
+  // When the last fault arrived, and its cause (fault code; 0 if none so far).
+  [[nodiscard]] TimePoint last_fault_time() const noexcept { return last_fault_time_; }
+  [[nodiscard]] std::uint8_t last_fault_code() const noexcept { return last_fault_code_; }
+  // Records decoded into SI units with this device's identity (allocates).
+  [[nodiscard]] std::vector<LogEntry> decode_log(const std::vector<TrafficRecord>& records) const;
+  // Human-readable dump, one record per line: host time, direction, kind, device time,
+  // currents in A, sensor readings in their unit, targets, state and fault cause (allocates).
+  [[nodiscard]] std::string format_log(const std::vector<TrafficRecord>& records) const;
+  // The last fault (cause, time, state now) followed by format_log(fault_log()); "" if no fault.
+  [[nodiscard]] std::string fault_report() const;
 
  private:
   ResultCode send_packet(const protocol::Message& message) noexcept;
   void handle(const Datagram& d, TimePoint now) noexcept;
   void log(const Datagram& d, bool sent, TimePoint now) noexcept;
   void apply_identity(const protocol::Identity& id);
-  std::string read_config(protocol::ConfigKey key, TimePoint deadline);
+  [[nodiscard]] bool same_unit(const protocol::Identity& id) const noexcept;
+  std::string read_config(protocol::ConfigKey key);
   void await_identity(TimePoint deadline);
+  void load_profile();
+  void reseed_and_send() noexcept;
 
   std::unique_ptr<Transport> transport_;
   Clock& clock_;
   SessionOptions options_;
   DeviceInfo info_;
+  protocol::Identity identity_{};
+  std::unique_ptr<model::DeviceProfile> profile_;
+  TargetSeeder seeder_;
   std::vector<double> sensors_;
   std::vector<std::uint16_t> current_counts_;
+  std::vector<double> commanded_A_;
+  bool currents_commanded_ = false;  // the host has sent currents since the handshake
+  std::vector<protocol::CellTarget> targets_;
+  std::vector<std::uint8_t> targeted_;  // per cell: the host has targeted it
   std::uint32_t sensor_time_us_ = 0;
   TimePoint last_telemetry_{};
   bool telemetry_timed_out_ = false;
@@ -192,11 +281,21 @@ class DeviceSession {
   std::vector<TrafficRecord> fault_ring_;
   std::size_t fault_ring_size_ = 0;
   std::size_t fault_ring_next_ = 0;
-  // Pending configuration reply while reading configuration at setup.
-  protocol::ConfigData config_reply_{};
-  bool config_reply_ready_ = false;
-  protocol::ConfigAck config_ack_{};
-  bool config_ack_ready_ = false;
+  TimePoint last_fault_time_{};
+  std::uint8_t last_fault_code_ = 0;
+  // The configuration blob being read at setup (chunks may arrive in any order).
+  struct ConfigTransfer {
+    bool active = false;
+    std::uint16_t key = 0;
+    int total = -1;  // unknown until the first chunk
+    std::string text;
+    std::vector<std::uint8_t> have;  // per chunk
+    std::size_t received = 0;
+    bool progress = false;
+    bool refused = false;
+    std::uint8_t refusal = 0;
+  };
+  ConfigTransfer config_;
 };
 
 }  // namespace mrskin
