@@ -2,6 +2,7 @@
 #include <gtest/gtest.h>
 #include <unistd.h>
 
+#include <algorithm>
 #include <cmath>
 #include <cstdio>
 #include <deque>
@@ -12,6 +13,7 @@
 
 #include "mrskin/driver/device.hpp"
 #include "mrskin/protocol/packet.hpp"
+#include "mrskin/protocol/units.hpp"
 
 namespace mrskin {
 namespace {
@@ -333,6 +335,58 @@ TEST(Session, RingLogKeepsTheLastPackets) {
   EXPECT_NE(text.find("heartbeat"), std::string::npos) << text;
 }
 
+TEST(RingLog, FaultReportIsDecodedIntoSiUnits) {
+  SessionOptions options;
+  options.ring_log_packets = 64;
+  Rig rig("mock://?seed=22", options);
+  DeviceSession& session = *rig.dev.session;
+  EXPECT_EQ(session.fault_report(), "");
+  ASSERT_EQ(session.request_enable(), ResultCode::ok);
+  rig.finger[6] = 2e-3;
+  std::fill(rig.currents.begin(), rig.currents.end(), 0.05);
+  rig.run(30);
+  ASSERT_EQ(session.request_estop(), ResultCode::ok);
+  rig.run(30);
+  ASSERT_EQ(session.state(), DeviceState::fault);
+  const std::vector<TrafficRecord> frozen = session.fault_log();
+  ASSERT_EQ(frozen.size(), 64U);
+  EXPECT_EQ(session.last_fault_code(), static_cast<std::uint8_t>(proto::FaultCode::estop));
+  const std::vector<LogEntry> entries = session.decode_log(frozen);
+  // The frozen log ends with the FAULT status, after the e-stop request.
+  EXPECT_EQ(entries.back().kind, "status");
+  EXPECT_EQ(entries.back().state, "FAULT");
+  EXPECT_EQ(entries.back().fault, "emergency stop");
+  bool saw_currents = false;
+  bool saw_telemetry = false;
+  for (const LogEntry& e : entries) {
+    if (e.kind == "currents") {
+      saw_currents = true;
+      EXPECT_EQ(e.unit, "A");
+      ASSERT_EQ(e.values.size(), 12U);
+      EXPECT_NEAR(e.values[0], 0.05, 1e-9);
+    } else if (e.kind == "telemetry") {
+      saw_telemetry = true;
+      EXPECT_TRUE(e.has_device_time);
+      EXPECT_EQ(e.unit, "m");
+      ASSERT_EQ(e.values.size(), 13U);
+      EXPECT_NEAR(e.values[6], 2e-3, 1e-4);
+    }
+  }
+  EXPECT_TRUE(saw_currents);
+  EXPECT_TRUE(saw_telemetry);
+  const std::string report = session.fault_report();
+  for (const char* needle : {"fault: emergency stop at ", "last 64 packets", "tx #", "rx #", "currents",
+                             "valves 0..11 [A]: 0.050000", "telemetry", "device ", "sensors 0..12 [m]:",
+                             "state request e-stop", "status", "FAULT (fault: emergency stop)"}) {
+    EXPECT_NE(report.find(needle), std::string::npos) << needle << "\n" << report;
+  }
+  // An undecodable record is shown as such, with its bytes.
+  std::vector<TrafficRecord> bad(1);
+  bad[0].datagram.length = 3;
+  bad[0].datagram.bytes = {1, 2, 3};
+  EXPECT_NE(session.format_log(bad).find("undecodable"), std::string::npos);
+}
+
 TEST(Session, TimeScaleStretchesTheDeviceWatchdog) {
   SessionOptions options;
   options.time_scale = 10.0;
@@ -477,6 +531,140 @@ TEST(Session, ReadsALargeProfileOverAThreadedMockInTime) {
   const LoadedProfile file = load_profile_with_text("palm-64x64");
   EXPECT_EQ(dev.session->info().profile, placeholder_profile_text(file.text, file.profile));
   EXPECT_EQ(dev.session->profile()->sensors.size(), dev.session->info().fluid_cells);
+}
+
+// Packets the session sent after a point of its ring log, decoded.
+std::vector<LogEntry> sent_since(const DeviceSession& session, TimePoint since) {
+  std::vector<LogEntry> out;
+  for (LogEntry& e : session.decode_log(session.ring_log())) {
+    if (e.sent && e.host_time >= since) {
+      out.push_back(std::move(e));
+    }
+  }
+  return out;
+}
+
+TEST(Enable, ReseedsTargetsFromTheMeasuredStateAfterAFault) {
+  Rig rig("mock://?seed=20");
+  DeviceSession& session = *rig.dev.session;
+  ASSERT_EQ(session.request_enable(), ResultCode::ok);
+  rig.finger[6] = 2e-3;
+  std::fill(rig.currents.begin(), rig.currents.end(), 0.05);
+  rig.run(20);
+  // Stale commands: a stiff spring from the surface on every cell, valid 0.5 s.
+  const auto stale = proto::quantize_cell_target({1000.0, 0.0, 2.0, 0.5});
+  ASSERT_EQ(stale.error, proto::Error::ok);
+  const std::vector<proto::CellTarget> targets(rig.finger.size(), stale.counts);
+  ASSERT_EQ(session.send_cell_targets(0, targets), ResultCode::ok);
+  rig.run(20);
+  EXPECT_EQ(rig.dev.mock->held_target(6).target, stale.counts);
+  EXPECT_NEAR(rig.dev.mock->commanded_currents()[0], 0.05, 1e-9);
+
+  ASSERT_EQ(session.request_estop(), ResultCode::ok);
+  rig.run(5);
+  ASSERT_EQ(session.state(), DeviceState::fault);
+  rig.finger[6] = 3e-3;  // the finger moves while the unit is in FAULT
+  rig.run(30);           // the session polls; it sends no currents in FAULT
+  const double measured_m = session.sensors()[6];
+  EXPECT_NEAR(measured_m, 3e-3, 2e-5);
+
+  const TimePoint enabled_at = rig.clock.now();
+  ASSERT_EQ(session.request_enable(), ResultCode::ok);
+  EXPECT_EQ(session.counters().reseeds, 2U);
+  // The first frames after the enable carry the re-seeded command state.
+  const std::vector<LogEntry> frames = sent_since(session, enabled_at);
+  ASSERT_GE(frames.size(), 4U);
+  EXPECT_EQ(frames[0].kind, "state request");
+  EXPECT_EQ(frames[0].state, "enable");
+  EXPECT_EQ(frames[1].kind, "currents");
+  for (const double a : frames[1].values) {
+    EXPECT_EQ(a, 0.0);
+  }
+  ASSERT_EQ(frames[2].kind, "targets");
+  ASSERT_EQ(frames[3].kind, "targets");
+  ASSERT_EQ(frames[2].targets.size() + frames[3].targets.size(), rig.finger.size());
+  const proto::CellTargetSi cell6 = frames[2].targets[6];
+  EXPECT_EQ(cell6.stiffness_N_per_m, 0.0);
+  EXPECT_NEAR(cell6.offset_m, measured_m, 1e-6);  // quantised to 2 um
+  EXPECT_EQ(cell6.ceiling_N, 0.0);                // displacement sensors: no measured force
+  EXPECT_NEAR(cell6.validity_s, 0.5, 1e-9);       // the host's validity, from now
+  EXPECT_NEAR(frames[2].targets[0].offset_m, 0.0, 1e-5);
+  // The session's command mirror holds the same.
+  EXPECT_EQ(session.cell_targets()[6], proto::quantize_cell_target(cell6).counts);
+  for (const double a : session.commanded_currents()) {
+    EXPECT_EQ(a, 0.0);
+  }
+
+  // The firmware re-seeds too, and drives nothing until the host commands again.
+  rig.run(1, /*host_alive=*/false);
+  EXPECT_EQ(session.state(), DeviceState::fault);  // the status is not polled yet
+  const MockDevice::HeldTarget held = rig.dev.mock->held_target(6);
+  EXPECT_EQ(held.target.stiffness, 0);
+  EXPECT_NEAR(held.target.offset * proto::kOffsetLsb_m, measured_m, 2e-5);
+  EXPECT_EQ(held.target.validity, stale.counts.validity);
+  EXPECT_GE(held.validity_start, enabled_at);
+  for (const double a : rig.dev.mock->commanded_currents()) {
+    EXPECT_EQ(a, 0.0);
+  }
+  std::vector<double> applied(rig.currents.size());
+  rig.dev.mock->applied_currents(applied);
+  EXPECT_EQ(*std::max_element(applied.begin(), applied.end()), 0.0);
+  rig.run(5);  // the host commands again
+  EXPECT_EQ(session.state(), DeviceState::enabled);
+  EXPECT_NEAR(rig.dev.mock->commanded_currents()[0], 0.05, 1e-9);
+}
+
+TEST(Enable, LeavingPauseDoesNotResumeStaleCurrents) {
+  Rig rig("mock://?seed=21");
+  ASSERT_EQ(rig.dev.session->request_enable(), ResultCode::ok);
+  std::fill(rig.currents.begin(), rig.currents.end(), 0.06);
+  rig.run(20);
+  ASSERT_EQ(rig.dev.session->request_pause(), ResultCode::ok);
+  rig.run(5, /*host_alive=*/false);
+  EXPECT_NEAR(rig.dev.mock->commanded_currents()[3], 0.06, 1e-9);  // PAUSED holds
+  ASSERT_EQ(rig.dev.session->request_enable(), ResultCode::ok);
+  rig.run(1, /*host_alive=*/false);
+  for (const double a : rig.dev.mock->commanded_currents()) {
+    EXPECT_EQ(a, 0.0);
+  }
+}
+
+TEST(Enable, SeederUsesTheProfilesSensors) {
+  // The default profile's 12 displacement sensors under the valves, plus a force sensor on
+  // the centre cell: the cell's displacement is the mean over its valves, its force measured.
+  const std::string text = default_profile_text() +
+                           "\n[[sensors.sensor]]\nquantity = \"force\"\nunit = \"N\"\n"
+                           "place = \"cell 2,2\"\nresolution = 1.0e-3\nnoise_std = 0.0\n";
+  const model::DeviceProfile profile = model::parse_profile(text, "test");
+  ASSERT_EQ(profile.sensors.size(), 13U);
+  const TargetSeeder seeder(profile);
+  const GridLayout layout(5, 5);
+  std::vector<double> sensors(13, 0.0);
+  for (std::size_t v = 0; v < 12; ++v) {
+    sensors[v] = 1e-4 * static_cast<double>(v + 1);
+  }
+  sensors[12] = 0.75;  // N on the centre cell
+  const std::size_t centre = 6;
+  ASSERT_EQ(layout.fluid_cells()[centre].row, 2);
+  double mean = 0.0;
+  for (const std::size_t v : layout.valves_of_cell(centre)) {
+    mean += sensors[v] / static_cast<double>(layout.valves_of_cell(centre).size());
+  }
+  EXPECT_NEAR(seeder.displacement_m(centre, sensors), mean, 1e-15);
+  EXPECT_NEAR(seeder.force_N(centre, sensors), 0.75, 1e-15);
+  EXPECT_EQ(seeder.force_N(0, sensors), 0.0);
+  const proto::CellTarget t = seeder.seed(centre, sensors, 7);
+  EXPECT_EQ(t.stiffness, 0);
+  EXPECT_EQ(t.offset, static_cast<std::uint16_t>(std::lround(mean / proto::kOffsetLsb_m)));
+  EXPECT_EQ(t.ceiling, 750);
+  EXPECT_EQ(t.validity, 7);
+  // Out-of-range and non-finite readings clamp into the target's fields.
+  sensors[12] = std::nan("");
+  std::fill(sensors.begin(), sensors.begin() + 12, 1.0);
+  const proto::CellTarget c = seeder.seed(centre, sensors, 200);
+  EXPECT_EQ(c.offset, proto::kOffsetCountMax);
+  EXPECT_EQ(c.ceiling, 0);
+  EXPECT_EQ(c.validity, proto::kValidityCountMax);
 }
 
 TEST(MockUri, BadParametersAreNamed) {

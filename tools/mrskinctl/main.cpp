@@ -2,19 +2,24 @@
 #include <fmt/format.h>
 
 #include <CLI/CLI.hpp>
+#include <cmath>
 #include <cstdio>
 #include <string>
+#include <string_view>
+#include <utility>
+#include <vector>
 
 #include "exit_codes.hpp"
 #include "model_command.hpp"
 #include "mrskin/driver/device.hpp"
 #include "mrskin/driver/version.hpp"
+#include "mrskin/protocol/messages.hpp"
 
 namespace {
 
 // Exit codes: tools/common/exit_codes.hpp.
 
-std::string json_escape(const std::string& text) {
+std::string json_escape(std::string_view text) {
   std::string out;
   for (const char c : text) {
     switch (c) {
@@ -27,52 +32,184 @@ std::string json_escape(const std::string& text) {
       case '\n':
         out += "\\n";
         break;
+      case '\r':
+        out += "\\r";
+        break;
+      case '\t':
+        out += "\\t";
+        break;
       default:
-        out += c;
+        if (static_cast<unsigned char>(c) < 0x20) {
+          out += fmt::format("\\u{:04x}", static_cast<unsigned>(static_cast<unsigned char>(c)));
+        } else {
+          out += c;
+        }
     }
   }
   return out;
 }
 
-int cmd_info(const std::string& uri, bool json, double sample_s) {
+std::string json_number(double v) { return std::isfinite(v) ? fmt::format("{:.9g}", v) : "null"; }
+
+std::string json_numbers(const std::vector<double>& values) {
+  std::string out = "[";
+  for (std::size_t i = 0; i < values.size(); ++i) {
+    out += (i == 0 ? "" : ", ") + json_number(values[i]);
+  }
+  return out + "]";
+}
+
+std::string json_log(const std::vector<mrskin::LogEntry>& entries) {
+  std::string out = "[";
+  for (std::size_t k = 0; k < entries.size(); ++k) {
+    const mrskin::LogEntry& e = entries[k];
+    out += fmt::format("{}{{\"host_time_s\": {}, \"dir\": \"{}\", \"kind\": \"{}\", \"seq\": {}",
+                       k == 0 ? "" : ", ", json_number(mrskin::to_seconds(e.host_time)), e.sent ? "tx" : "rx",
+                       e.kind, e.sequence);
+    if (!e.error.empty()) {
+      out += fmt::format(", \"error\": \"{}\"", json_escape(e.error));
+    }
+    if (e.has_device_time) {
+      out +=
+          fmt::format(", \"device_time_s\": {}", json_number(static_cast<double>(e.device_time_us) * 1e-6));
+    }
+    if (!e.values.empty()) {
+      out += fmt::format(", \"first\": {}, \"unit\": \"{}\", \"values\": {}", e.first, e.unit,
+                         json_numbers(e.values));
+    }
+    if (!e.targets.empty()) {
+      out += fmt::format(", \"first\": {}, \"targets\": [", e.first);
+      for (std::size_t i = 0; i < e.targets.size(); ++i) {
+        const auto& t = e.targets[i];
+        out += fmt::format(
+            "{}{{\"stiffness_n_per_m\": {}, \"offset_m\": {}, \"ceiling_n\": {}, \"validity_s\": {}}}",
+            i == 0 ? "" : ", ", json_number(t.stiffness_N_per_m), json_number(t.offset_m),
+            json_number(t.ceiling_N), json_number(t.validity_s));
+      }
+      out += "]";
+    }
+    if (!e.state.empty()) {
+      out += fmt::format(", \"state\": \"{}\"", e.state);
+    }
+    if (!e.fault.empty()) {
+      out += fmt::format(", \"fault\": \"{}\"", e.fault);
+    }
+    if (!e.detail.empty()) {
+      out += fmt::format(", \"detail\": \"{}\"", json_escape(e.detail));
+    }
+    out += "}";
+  }
+  return out + "]";
+}
+
+// "13 at fluid cells" / "12 under valves, 1 at fluid cells".
+std::string sensor_places(const mrskin::model::DeviceProfile* profile) {
+  if (profile == nullptr) {
+    return "layout unknown (no profile read)";
+  }
+  std::size_t at_cells = 0;
+  std::size_t at_valves = 0;
+  std::size_t in_reservoir = 0;
+  for (const auto& s : profile->sensors) {
+    at_cells += s.place == mrskin::model::PlaceKind::fluid_cell ? 1U : 0U;
+    at_valves += s.place == mrskin::model::PlaceKind::valve ? 1U : 0U;
+    in_reservoir += s.place == mrskin::model::PlaceKind::reservoir ? 1U : 0U;
+  }
+  std::string out;
+  for (const auto& [n, where] : {std::pair{at_cells, "at fluid cells"}, std::pair{at_valves, "under valves"},
+                                 std::pair{in_reservoir, "in the reservoir"}}) {
+    if (n > 0) {
+      out += fmt::format("{}{} {}", out.empty() ? "" : ", ", n, where);
+    }
+  }
+  return out;
+}
+
+struct InfoOptions {
+  std::string uri;
+  bool json = false;
+  double sample_s = 0.2;
+  bool log = false;
+};
+
+int cmd_info(const InfoOptions& o) {
   mrskin::MonotonicClock clock;
-  const mrskin::OpenedDevice dev = mrskin::open_device(uri, clock);
+  const mrskin::OpenedDevice dev = mrskin::open_device(o.uri, clock);
   mrskin::DeviceSession& session = *dev.session;
   // Listen for a moment so the statistics mean something.
-  const mrskin::TimePoint end = clock.now() + mrskin::from_seconds(sample_s);
+  const mrskin::TimePoint end = clock.now() + mrskin::from_seconds(o.sample_s);
   while (clock.now() < end) {
     (void)session.poll(clock.now());
     clock.sleep_until(clock.now() + std::chrono::milliseconds(1));
   }
   const mrskin::DeviceInfo& i = session.info();
   const mrskin::SessionCounters& c = session.counters();
-  if (json) {
-    fmt::print(
+  const mrskin::model::DeviceProfile* profile = session.profile();
+  const double sensor_min = mrskin::protocol::kSensorCountMin * i.sensor_lsb;
+  const double sensor_max = mrskin::protocol::kSensorCountMax * i.sensor_lsb;
+  const double rtt_p50_s = c.round_trip.percentile_ns(0.5) * 1e-9;
+  const double rtt_p99_s = c.round_trip.percentile_ns(0.99) * 1e-9;
+  const double rtt_max_s = static_cast<double>(c.round_trip.max_ns()) * 1e-9;
+  const bool faulted = c.faults > 0;
+  if (o.json) {
+    std::string out = fmt::format(
         "{{\"uri\": \"{}\", \"serial\": \"{:08X}\", \"firmware\": \"{}\", \"protocol\": \"{}.{}\", "
+        "\"library_protocol\": \"{}.{}\", \"profile\": {{\"name\": \"{}\", \"description\": \"{}\"}}, "
         "\"rows\": {}, \"cols\": {}, \"fluid_cells\": {}, \"valves\": {}, \"sensors\": {}, "
-        "\"current_lsb_a\": {:.9g}, \"max_current_a\": {:.9g}, \"sensor_lsb_si\": {:.9g}, "
-        "\"heartbeat_timeout_s\": {:.6g}, \"telemetry_rate_hz\": {:.6g}, \"state\": \"{}\", \"fault\": "
-        "\"{}\", "
-        "\"calibration\": \"{}\", \"stats\": {{\"sent\": {}, \"received\": {}, \"telemetry\": {}, "
-        "\"crc_errors\": {}, \"decode_errors\": {}, \"sequence_gaps\": {}, \"telemetry_timeouts\": {}, "
-        "\"reconnects\": {}, \"rtt_p50_s\": {:.6g}, \"rtt_p99_s\": {:.6g}}}}}\n",
-        uri, i.serial, i.firmware, i.protocol_major, i.protocol_minor, i.rows, i.cols, i.fluid_cells,
-        i.valves, i.sensors, i.current_lsb_A, i.max_current_A, i.sensor_lsb, i.heartbeat_timeout_s,
-        i.telemetry_rate_hz, mrskin::to_string(session.state()), mrskin::fault_name(session.fault_code()),
-        json_escape(i.calibration), c.sent, c.received, c.telemetry, c.crc_errors, c.decode_errors,
-        c.sequence_gaps, c.telemetry_timeouts, c.reconnects, c.round_trip.percentile_ns(0.5) * 1e-9,
-        c.round_trip.percentile_ns(0.99) * 1e-9);
-    return 0;
+        "\"sensor_quantity\": \"{}\", \"sensor_unit\": \"{}\", \"sensor_places\": \"{}\", ",
+        json_escape(o.uri), i.serial, i.firmware, i.protocol_major, i.protocol_minor,
+        mrskin::protocol_version_major(), mrskin::protocol_version_minor(),
+        json_escape(profile != nullptr ? profile->name : ""),
+        json_escape(profile != nullptr ? profile->description : ""), i.rows, i.cols, i.fluid_cells, i.valves,
+        i.sensors, i.sensor_quantity, i.sensor_unit, sensor_places(profile));
+    out += fmt::format(
+        "\"current_lsb_a\": {}, \"max_current_a\": {}, \"sensor_lsb_si\": {}, \"sensor_min_si\": {}, "
+        "\"sensor_max_si\": {}, \"heartbeat_timeout_s\": {}, \"telemetry_rate_hz\": {}, \"state\": \"{}\", "
+        "\"fault\": \"{}\", \"valves_released\": {}, \"derated\": {}, \"calibration\": \"{}\", ",
+        json_number(i.current_lsb_A), json_number(i.max_current_A), json_number(i.sensor_lsb),
+        json_number(sensor_min), json_number(sensor_max), json_number(i.heartbeat_timeout_s),
+        json_number(i.telemetry_rate_hz), mrskin::to_string(session.state()),
+        mrskin::fault_name(session.fault_code()), session.valves_released(), session.derated(),
+        json_escape(i.calibration));
+    out += fmt::format(
+        "\"stats\": {{\"sample_s\": {}, \"sent\": {}, \"received\": {}, \"telemetry\": {}, \"crc_errors\": "
+        "{}, "
+        "\"decode_errors\": {}, \"sequence_gaps\": {}, \"duplicates\": {}, \"heartbeats\": {}, "
+        "\"send_would_block\": {}, \"invalid_commands\": {}, \"telemetry_timeouts\": {}, \"disconnects\": "
+        "{}, "
+        "\"reconnects\": {}, \"faults\": {}, \"reseeds\": {}, \"rtt_count\": {}, \"rtt_p50_s\": {}, "
+        "\"rtt_p99_s\": {}, \"rtt_max_s\": {}}}",
+        json_number(o.sample_s), c.sent, c.received, c.telemetry, c.crc_errors, c.decode_errors,
+        c.sequence_gaps, c.duplicates, c.heartbeats, c.send_would_block, c.invalid_commands,
+        c.telemetry_timeouts, c.disconnects, c.reconnects, c.faults, c.reseeds, c.round_trip.count(),
+        json_number(rtt_p50_s), json_number(rtt_p99_s), json_number(rtt_max_s));
+    if (o.log) {
+      out += fmt::format(", \"log\": {{\"kind\": \"{}\", \"fault\": \"{}\", \"records\": {}}}",
+                         faulted ? "fault" : "ring",
+                         faulted ? mrskin::fault_name(session.last_fault_code()) : "",
+                         json_log(session.decode_log(faulted ? session.fault_log() : session.ring_log())));
+    }
+    fmt::print("{}}}\n", out);
+    return mrskin::tools::kOk;
   }
   fmt::print(
-      "device      {}\nserial      {:08X}\nfirmware    {}\nprotocol    v{}.{} (library speaks v{}.{})\n"
-      "grid        {} x {}: {} fluid cells, {} valves, {} sensors\n"
-      "current     {:.3f} mA per count, max {:.4f} A\nsensor LSB  {:.3g} (SI)\nheartbeat   {:.3f} s timeout\n"
-      "telemetry   {:.0f} Hz\nstate       {} (fault: {})\n",
-      uri, i.serial, i.firmware, i.protocol_major, i.protocol_minor, mrskin::protocol_version_major(),
-      mrskin::protocol_version_minor(), i.rows, i.cols, i.fluid_cells, i.valves, i.sensors,
-      i.current_lsb_A * 1e3, i.max_current_A, i.sensor_lsb, i.heartbeat_timeout_s, i.telemetry_rate_hz,
-      mrskin::to_string(session.state()), mrskin::fault_name(session.fault_code()));
+      "device       {}\nserial       {:08X}\nfirmware     {}\nprotocol     v{}.{} (library speaks v{}.{})\n"
+      "profile      {}{}\n"
+      "grid         {} x {}: {} fluid cells, {} valves\n"
+      "sensors      {} {} sensors in {} ({})\n",
+      o.uri, i.serial, i.firmware, i.protocol_major, i.protocol_minor, mrskin::protocol_version_major(),
+      mrskin::protocol_version_minor(), profile != nullptr ? profile->name : "(not read)",
+      profile != nullptr && !profile->description.empty() ? " - " + profile->description : "", i.rows, i.cols,
+      i.fluid_cells, i.valves, i.sensors, i.sensor_quantity, i.sensor_unit, sensor_places(profile));
+  fmt::print(
+      "limits       current 0..{:.4f} A in steps of {:.1f} uA; sensors {:.4g}..{:.4g} {} in steps of {:.4g} "
+      "{}\n"
+      "             heartbeat timeout {:.3f} s; telemetry {:.0f} Hz\n"
+      "state        {} (fault: {}){}{}\n",
+      i.max_current_A, i.current_lsb_A * 1e6, sensor_min, sensor_max, i.sensor_unit, i.sensor_lsb,
+      i.sensor_unit, i.heartbeat_timeout_s, i.telemetry_rate_hz, mrskin::to_string(session.state()),
+      mrskin::fault_name(session.fault_code()), session.valves_released() ? ", valves released" : "",
+      session.derated() ? ", derated" : "");
   fmt::print("calibration\n");
   std::size_t start = 0;
   while (start < i.calibration.size()) {
@@ -81,13 +218,25 @@ int cmd_info(const std::string& uri, bool json, double sample_s) {
     start = end_line == std::string::npos ? i.calibration.size() : end_line + 1;
   }
   fmt::print(
-      "statistics over {:.2f} s: {} sent, {} received ({} telemetry), {} CRC errors, {} decode errors, {} "
-      "sequence "
-      "gaps, {} telemetry timeouts, {} reconnects, round trip p50 {:.3f} ms p99 {:.3f} ms\n",
-      sample_s, c.sent, c.received, c.telemetry, c.crc_errors, c.decode_errors, c.sequence_gaps,
-      c.telemetry_timeouts, c.reconnects, c.round_trip.percentile_ns(0.5) * 1e-6,
-      c.round_trip.percentile_ns(0.99) * 1e-6);
-  return 0;
+      "statistics over {:.2f} s\n"
+      "  packets    {} sent ({} heartbeats, {} refused by a full queue), {} received ({} telemetry)\n"
+      "  errors     {} CRC, {} decode in all, {} sequence gaps, {} duplicates, {} invalid commands\n"
+      "  link       {} telemetry timeouts, {} disconnects, {} reconnects, {} faults, {} re-seeds\n"
+      "  round trip {} samples, p50 {:.3f} ms, p99 {:.3f} ms, max {:.3f} ms\n",
+      o.sample_s, c.sent, c.heartbeats, c.send_would_block, c.received, c.telemetry, c.crc_errors,
+      c.decode_errors, c.sequence_gaps, c.duplicates, c.invalid_commands, c.telemetry_timeouts, c.disconnects,
+      c.reconnects, c.faults, c.reseeds, c.round_trip.count(), rtt_p50_s * 1e3, rtt_p99_s * 1e3,
+      rtt_max_s * 1e3);
+  if (o.log) {
+    if (faulted) {
+      fmt::print("{}", session.fault_report());
+    } else {
+      const auto records = session.ring_log();
+      fmt::print("ring log: no fault during the sample; the last {} packets, oldest first:\n{}",
+                 records.size(), session.format_log(records));
+    }
+  }
+  return mrskin::tools::kOk;
 }
 
 }  // namespace
@@ -105,12 +254,20 @@ int guarded_main(int argc, char** argv) {
   app.add_flag("--json", json, "machine-readable output");
   std::string device = "mock://";
 
-  auto* info = app.add_subcommand("info", "open a device, run the handshake and print its identity");
-  info->add_option("--device", device, "device URI")->capture_default_str();
-  double sample_s = 0.2;
-  info->add_option("--sample", sample_s, "seconds to listen for statistics")
+  auto* info = app.add_subcommand(
+      "info",
+      "open a device, run the handshake and print its identity, profile, layout, limits, calibration and "
+      "statistics");
+  info->add_option("--device", device, "device URI (mock://[PROFILE][?seed=N&faults=...])")
+      ->capture_default_str();
+  InfoOptions info_options;
+  info->add_option("--sample", info_options.sample_s, "seconds to listen for statistics")
       ->check(CLI::Range(0.0, 60.0))
       ->capture_default_str();
+  info->add_flag(
+      "--log", info_options.log,
+      "also print the decoded ring log: the fault report if a fault arrived during the sample, else "
+      "the last packets");
 
   struct Planned {
     const char* name;
@@ -150,7 +307,9 @@ int guarded_main(int argc, char** argv) {
     return mrskin::tools::kUnavailable;
   }
   if (info->parsed()) {
-    return cmd_info(device, json, sample_s);
+    info_options.uri = device;
+    info_options.json = json;
+    return cmd_info(info_options);
   }
   return 0;
 }

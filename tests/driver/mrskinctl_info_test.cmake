@@ -1,0 +1,49 @@
+# mrskinctl info against the mock: what it prints, and its exit codes on failure.
+# cmake -DMRSKINCTL=path/to/mrskinctl -P mrskinctl_info_test.cmake
+function(run_info expected_exit)
+  execute_process(COMMAND ${MRSKINCTL} info ${ARGN} RESULT_VARIABLE code OUTPUT_VARIABLE out ERROR_VARIABLE err)
+  if(NOT code EQUAL expected_exit)
+    message(FATAL_ERROR "mrskinctl info ${ARGN}: exit ${code}, expected ${expected_exit}\n${out}\n${err}")
+  endif()
+  set(out "${out}" PARENT_SCOPE)
+  set(err "${err}" PARENT_SCOPE)
+endfunction()
+
+function(expect text haystack)
+  string(FIND "${haystack}" "${text}" at)
+  if(at EQUAL -1)
+    message(FATAL_ERROR "expected '${text}' in:\n${haystack}")
+  endif()
+endfunction()
+
+# Identity, protocol, profile, layout, limits, calibration, state and statistics.
+run_info(0 --device "mock://?seed=1" --sample 0.05)
+foreach(t "protocol     v1.0 (library speaks v1.0)" "profile      mr-skin-5x5" "grid         5 x 5: 13 fluid cells, 12 valves"
+          "sensors      13 displacement sensors in m" "limits       current 0..0.1000 A in steps of 25.0 uA"
+          "heartbeat timeout 0.100 s" "state        DISABLED" "calibration" "version = 1" "statistics over 0.05 s"
+          "round trip")
+  expect("${t}" "${out}")
+endforeach()
+
+run_info(0 --device "mock://fingertip-16x16?seed=1" --sample 0.05 --json)
+foreach(t "\"profile\": {\"name\": \"fingertip-16x16\"" "\"rows\": 16" "\"max_current_a\": 0.04" "\"stats\": {")
+  expect("${t}" "${out}")
+endforeach()
+
+# A fault during the sample: --log prints the decoded fault report.
+run_info(0 --device "mock://?seed=2&faults=busoff:0.02" --sample 0.15 --log)
+foreach(t "state        FAULT (fault: bus off)" "fault: bus off at" "packets before it, oldest first" "telemetry"
+          "sensors 0..12 [m]:" "status        FAULT (fault: bus off)")
+  expect("${t}" "${out}")
+endforeach()
+run_info(0 --device "mock://?seed=2&faults=busoff:0.02" --sample 0.15 --log --json)
+expect("\"log\": {\"kind\": \"fault\", \"fault\": \"bus off\", \"records\": [" "${out}")
+
+# Failures: a clear message on stderr and a non-zero exit (tools/common/exit_codes.hpp).
+run_info(2 --device "mock://no-such-skin")
+expect("\"no-such-skin\" not found; searched" "${err}")
+expect("available: " "${err}")
+run_info(2 --device "mock://?rows=3")
+expect("the grid comes from the device profile" "${err}")
+run_info(2 --device "hid://0001:0002")
+expect("not in this build yet" "${err}")
