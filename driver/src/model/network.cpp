@@ -1,1 +1,1066 @@
-// Implemented in this translation unit: see mrskin/driver/model/network.hpp.
+// The skin's hydraulic network in time: see mrskin/driver/model/network.hpp and
+// docs/model-network.md. Everything after the constructor is noexcept and allocation-free:
+// the state, the Newton workspaces and the sparse factorisation are sized once.
+#include "mrskin/driver/model/network.hpp"
+
+#include <algorithm>
+#include <array>
+#include <cmath>
+#include <limits>
+#include <string>
+#include <utility>
+#include <vector>
+
+#include "mrskin/driver/errors.hpp"
+#include "network_ldl.hpp"
+
+namespace mrskin::model {
+
+const char* to_string(Stepper s) noexcept {
+  switch (s) {
+    case Stepper::implicit_exact:
+      return "implicit_exact";
+    case Stepper::implicit_regularised:
+      return "implicit_regularised";
+    case Stepper::linearly_implicit_regularised:
+      return "linearly_implicit_regularised";
+    case Stepper::explicit_euler:
+      return "explicit_euler";
+  }
+  return "unknown";
+}
+
+namespace {
+
+constexpr std::size_t kMaxContacts = 16;
+constexpr std::int64_t kNone = -1;
+constexpr int kScalarIterations = 200;
+constexpr int kForceEvaluations = 100;
+constexpr int kForceSweeps = 30;
+constexpr double kArmijo = 1e-4;
+constexpr double kMinStep = 1.0 / 1024.0;
+
+bool finite(double x) noexcept { return std::isfinite(x); }
+
+// One input per valve or cell: out_of_range on a size mismatch or a value at or above `limit`,
+// not_finite, negative.
+Status check_inputs(std::span<const double> v, std::size_t size, double limit) noexcept {
+  if (v.size() != size) {
+    return Status::out_of_range;
+  }
+  for (const double x : v) {
+    if (!finite(x)) {
+      return Status::not_finite;
+    }
+    if (x < 0.0) {
+      return Status::negative;
+    }
+    if (x >= limit) {
+      return Status::out_of_range;
+    }
+  }
+  return Status::ok;
+}
+
+// An energy k1 x^2 / 2 + k3 x^4 / 4 (pad: x = depth; bulge: x = bulge volume). Its discrete
+// gradient (U(x1) - U(x0)) / (x1 - x0) is a polynomial, evaluated without the subtraction, so
+// it needs no special case for a tiny increment.
+struct Quartic {
+  double k1 = 0.0;
+  double k3 = 0.0;
+  [[nodiscard]] double grad(double x) const noexcept { return (k1 + k3 * x * x) * x; }
+  [[nodiscard]] double stiffness(double x) const noexcept { return k1 + 3.0 * k3 * x * x; }
+  [[nodiscard]] double discrete_grad(double x0, double x1) const noexcept {
+    return 0.5 * (x0 + x1) * (k1 + 0.5 * k3 * (x0 * x0 + x1 * x1));
+  }
+  // d/dx1 of discrete_grad: k1/2 + k3 ((x0 + x1)^2 + 2 x1^2) / 4 > 0.
+  [[nodiscard]] double discrete_stiffness(double x0, double x1) const noexcept {
+    const double m = x0 + x1;
+    return 0.5 * k1 + 0.25 * k3 * (m * m + 2.0 * x1 * x1);
+  }
+  // dg: the discrete gradient between x0 and x1, else the gradient at x1.
+  [[nodiscard]] double value(double x0, double x1, bool dg) const noexcept {
+    return dg ? discrete_grad(x0, x1) : grad(x1);
+  }
+  [[nodiscard]] double slope(double x0, double x1, bool dg) const noexcept {
+    return dg ? discrete_stiffness(x0, x1) : stiffness(x1);
+  }
+};
+
+// Node state of one evaluation of the step's balance at trial volumes e.
+struct Eval {
+  std::vector<double> e;                  // node volume gain, m^3
+  std::vector<double> p;                  // node pressure used by the law (discrete gradient or point), Pa
+  std::vector<double> c;                  // node compliance 1 / (dp/de), m^3/Pa
+  std::vector<double> d;                  // cells: pad depth, m
+  std::vector<unsigned char> in_contact;  // cells: pad held at the contact depth
+  std::vector<double> r;                  // node residual e - e0 + dt * outflow, m^3
+  std::vector<double> q;                  // link flow, m^3/s
+  std::vector<double> g;                  // link conductance dq/dx, m^3/(s Pa)
+  std::vector<double> x;                  // link pressure difference the law was evaluated at, Pa
+  double norm2 = 0.0;
+  double norm_inf = 0.0;
+
+  void resize(std::size_t nodes, std::size_t cells, std::size_t links) {
+    e.assign(nodes, 0.0);
+    p.assign(nodes, 0.0);
+    c.assign(nodes, 0.0);
+    r.assign(nodes, 0.0);
+    d.assign(cells, 0.0);
+    in_contact.assign(cells, 1);
+    q.assign(links, 0.0);
+    g.assign(links, 0.0);
+    x.assign(links, 0.0);
+  }
+  void swap(Eval& o) noexcept {
+    e.swap(o.e);
+    p.swap(o.p);
+    c.swap(o.c);
+    d.swap(o.d);
+    in_contact.swap(o.in_contact);
+    r.swap(o.r);
+    q.swap(o.q);
+    g.swap(o.g);
+    x.swap(o.x);
+    std::swap(norm2, o.norm2);
+    std::swap(norm_inf, o.norm_inf);
+  }
+};
+
+struct Link {
+  std::uint32_t a = 0;
+  std::uint32_t b = 0;
+  std::int32_t valve = -1;
+};
+
+struct SensorPlan {
+  SensorQuantity quantity = SensorQuantity::displacement;
+  PlaceKind place = PlaceKind::valve;
+  std::size_t index = 0;
+  std::uint32_t cells_begin = 0;  // into sensor_cells (displacement/force at a valve)
+  std::uint32_t cells_end = 0;
+};
+
+}  // namespace
+
+struct NetworkSimulation::Impl {
+  Impl(DeviceModel m, const NetworkOptions& o);
+
+  // ---- constants ----
+  DeviceModel model;
+  NetworkOptions opt;
+  std::size_t cells = 0;
+  std::size_t valves = 0;
+  std::size_t nodes = 0;
+  std::vector<Link> links;
+  std::vector<std::int64_t> chamber_node;  // per valve
+  std::int64_t reservoir_node = kNone;
+  std::vector<double> node_compliance;  // chambers and reservoir, m^3/Pa
+  std::vector<double> cell_x;
+  std::vector<double> cell_y;
+  double area = 0.0;  // A_eff
+  Quartic pad;
+  Quartic bulge;
+  double s_rest = 0.0;  // bulge volume at p0
+  double p0 = 0.0;
+  double cell_depth = 0.0;
+  double floor_conductance = 0.0;  // regularised law's conductance inside the yield band
+  std::vector<SensorPlan> sensors;
+  std::vector<std::uint32_t> sensor_cells;
+  detail::SparseLdl ldl;
+
+  // ---- inputs ----
+  std::vector<double> valve_tau;
+  std::array<Contact, kMaxContacts> contacts{};
+  std::size_t contact_count = 0;
+  bool direct_depths = true;  // set_cell_indentation_m (true) or contacts
+  std::vector<double> direct_depth;
+  std::array<double, kMaxContacts> contact_ind{};  // solved indentation of each contact
+
+  // ---- committed state ----
+  std::vector<double> e;
+  std::vector<double> d;
+  std::vector<double> velocity;
+  std::vector<double> node_p;
+  std::vector<double> force;
+  std::vector<double> chamber_p;
+  std::vector<double> q;
+  std::array<double, kMaxContacts> contact_force{};
+  double work = 0.0;
+  double stored = 0.0;
+  double stored_initial = 0.0;
+  double dissipated = 0.0;
+
+  // ---- one step's workspace ----
+  std::vector<double> dc;           // contact depth of each cell for the step
+  std::vector<std::int64_t> owner;  // contact that sets it
+  Eval cur;
+  Eval trial;
+  std::vector<double> y;
+  std::vector<double> de;
+  // The step's result, committed by commit().
+  std::vector<double> new_e;
+  std::vector<double> new_d;
+  std::vector<unsigned char> new_in_contact;
+  std::vector<double> new_q;
+  std::vector<double> new_p;
+  std::vector<double> new_force;
+  std::array<double, kMaxContacts> new_contact_force{};
+  double new_dissipated = 0.0;
+  StepReport report;
+
+  // ---- laws ----
+  [[nodiscard]] double s_of(double depth, double gain) const noexcept { return s_rest + area * depth + gain; }
+  Status link_law(std::size_t l, double x, bool regularised, double& flow, double& cond) const noexcept;
+  Status resolve_cell(std::size_t i, double e1, bool dg, Eval& ev) const noexcept;
+  Status evaluate(Eval& ev, double dt, bool dg, bool regularised) const noexcept;
+  bool assemble_and_factorize(const Eval& ev, double dt) noexcept;
+  Status newton(double dt, bool regularised) noexcept;
+  Status one_solve(double dt) noexcept;
+  Status forward_euler(double dt) noexcept;
+  Status run_trial(double dt) noexcept;
+  void finish_volumes(const Eval& at, double dt) noexcept;
+  void finish_state(const Eval& depths) noexcept;
+  void compute_depths() noexcept;
+  Status solve_force_contacts(double dt) noexcept;
+  Status solve_one_contact(std::size_t c, double dt) noexcept;
+  [[nodiscard]] double contact_error(std::size_t c) const noexcept {
+    return new_contact_force[c] - contacts[c].force_N;
+  }
+  void commit(double dt) noexcept;
+  [[nodiscard]] double stored_energy() const noexcept;
+  void reset() noexcept;
+};
+
+NetworkSimulation::Impl::Impl(DeviceModel m, const NetworkOptions& o)
+    : model(std::move(m)), opt(o), ldl(0, {}) {
+  const DeviceProfile& prof = model.profile();
+  const std::string origin = prof.origin + ": network: ";
+  if (!(opt.chamber_compliance_m3_per_Pa > 0.0) || !finite(opt.chamber_compliance_m3_per_Pa)) {
+    throw InvalidArgument(origin + "chamber_compliance_m3_per_Pa must be > 0");
+  }
+  if (!(opt.regularisation_viscosity_factor > 0.0) || !finite(opt.regularisation_viscosity_factor)) {
+    throw InvalidArgument(origin + "regularisation_viscosity_factor must be > 0");
+  }
+  if (opt.max_newton_iterations < 1) {
+    throw InvalidArgument(origin + "max_newton_iterations must be >= 1");
+  }
+  if (!(opt.volume_tolerance_m3 > 0.0) || !(opt.pressure_tolerance_Pa > 0.0) ||
+      !(opt.force_tolerance_N > 0.0)) {
+    throw InvalidArgument(origin + "tolerances must be > 0");
+  }
+  const GridLayout& lay = model.layout();
+  cells = lay.fluid_cell_count();
+  valves = lay.valve_count();
+  p0 = prof.reservoir.initial_pressure_Pa;
+  cell_depth = prof.cell_depth_m;
+
+  // Nodes: fluid cells, then the chambers the links use, then the reservoir if linked.
+  chamber_node.assign(valves, kNone);
+  for (const HydraulicLink& k : prof.links) {
+    for (const NodeRef n : {k.a, k.b}) {
+      if (n.kind == NodeKind::chamber && n.index < valves) {
+        chamber_node[n.index] = 0;
+      }
+    }
+  }
+  nodes = cells;
+  node_compliance.assign(cells, 0.0);
+  for (std::size_t v = 0; v < valves; ++v) {
+    if (chamber_node[v] != kNone) {
+      chamber_node[v] = static_cast<std::int64_t>(nodes++);
+      node_compliance.push_back(opt.chamber_compliance_m3_per_Pa);
+    }
+  }
+  auto node_of = [&](const NodeRef& n) -> std::uint32_t {
+    switch (n.kind) {
+      case NodeKind::fluid_cell:
+        if (n.index >= cells) {
+          throw InvalidArgument(origin + "a link names fluid cell " + std::to_string(n.index) +
+                                " of a grid with " + std::to_string(cells));
+        }
+        return n.index;
+      case NodeKind::chamber:
+        if (n.index >= valves) {
+          throw InvalidArgument(origin + "a link names chamber " + std::to_string(n.index) +
+                                " of a grid with " + std::to_string(valves) + " valves");
+        }
+        return static_cast<std::uint32_t>(chamber_node[n.index]);
+      case NodeKind::reservoir:
+        if (reservoir_node == kNone) {
+          reservoir_node = static_cast<std::int64_t>(nodes++);
+          node_compliance.push_back(prof.reservoir.compliance_m3_per_Pa);
+        }
+        return static_cast<std::uint32_t>(reservoir_node);
+    }
+    return 0;
+  };
+  std::vector<detail::SparseLdl::Pair> pairs;
+  for (const HydraulicLink& k : prof.links) {
+    Link l;
+    l.a = node_of(k.a);
+    l.b = node_of(k.b);
+    l.valve = k.valve;
+    links.push_back(l);
+    pairs.emplace_back(l.a, l.b);
+  }
+  ldl = detail::SparseLdl(nodes, pairs);
+
+  // Cell laws: the contact patch of the profile's finger (cell.hpp). The pad's energy
+  // coefficients come from the point-load law itself at unit depth.
+  const ContactPatch& patch = model.contact();
+  area = patch.effective_area_m2;
+  const Result<LoadSplit> unit =
+      point_load_force_N(patch.membrane, patch.cell_radius_m, patch.contact_radius_m, 1.0);
+  if (!unit.ok()) {
+    throw InvalidArgument(origin + "membrane point-load law: " + to_string(unit.status));
+  }
+  pad = Quartic{unit.value.bending + unit.value.pretension, unit.value.stretching};
+  bulge = Quartic{patch.bulge_linear_Pa_per_m3, patch.bulge_cubic_Pa_per_m9};
+  if (!(pad.k1 > 0.0) || !(bulge.k1 > 0.0)) {
+    throw InvalidArgument(origin + "the membrane needs a positive linear stiffness (pre-tension or bending)");
+  }
+  const Result<double> rest = bulge_volume_m3(patch, p0);
+  if (!rest.ok()) {
+    throw InvalidArgument(origin + "[reservoir] initial_pressure_Pa: " + to_string(rest.status));
+  }
+  s_rest = rest.value;
+  const double newton_k = model.valve_law().newtonian_pressure_Pa(1.0);
+  floor_conductance = 1.0 / (opt.regularisation_viscosity_factor * newton_k);
+  for (const GridCell& gc : lay.fluid_cells()) {
+    cell_x.push_back(gc.col * prof.cell_pitch_m);
+    cell_y.push_back(gc.row * prof.cell_pitch_m);
+  }
+
+  for (const SensorSpec& s : prof.sensors) {
+    SensorPlan sp;
+    sp.quantity = s.quantity;
+    sp.place = s.place;
+    sp.index = s.index;
+    sp.cells_begin = static_cast<std::uint32_t>(sensor_cells.size());
+    if (s.place == PlaceKind::valve && s.index < valves) {
+      for (const std::size_t c : lay.cells_of_valve(s.index)) {
+        sensor_cells.push_back(static_cast<std::uint32_t>(c));
+      }
+    }
+    sp.cells_end = static_cast<std::uint32_t>(sensor_cells.size());
+    sensors.push_back(sp);
+  }
+
+  valve_tau.assign(valves, 0.0);
+  direct_depth.assign(cells, 0.0);
+  e.assign(nodes, 0.0);
+  d.assign(cells, 0.0);
+  velocity.assign(cells, 0.0);
+  node_p.assign(nodes, p0);
+  force.assign(cells, 0.0);
+  chamber_p.assign(valves, 0.0);
+  q.assign(links.size(), 0.0);
+  dc.assign(cells, 0.0);
+  owner.assign(cells, kNone);
+  cur.resize(nodes, cells, links.size());
+  trial.resize(nodes, cells, links.size());
+  y.assign(nodes, 0.0);
+  de.assign(nodes, 0.0);
+  new_e.assign(nodes, 0.0);
+  new_d.assign(cells, 0.0);
+  new_in_contact.assign(cells, 1);
+  new_q.assign(links.size(), 0.0);
+  new_p.assign(nodes, p0);
+  new_force.assign(cells, 0.0);
+  reset();
+}
+
+Status NetworkSimulation::Impl::link_law(std::size_t l, double x, bool regularised, double& flow,
+                                         double& cond) const noexcept {
+  const Link& k = links[l];
+  const double tau = k.valve < 0 ? 0.0 : valve_tau[static_cast<std::size_t>(k.valve)];
+  const Result<FlowPoint> f = model.valve_law().flow_point(x, tau);
+  if (!f.ok()) {
+    return f.status == Status::overflow || f.status == Status::not_finite ? Status::not_finite : f.status;
+  }
+  flow = f.value.flow_m3_per_s;
+  cond = f.value.conductance_m3_per_s_Pa;
+  if (regularised) {
+    // A Newtonian floor 1/factor of the open passage's: smooth, strictly monotone, and inside
+    // the yield band the slow creep of a "nearly locked" valve.
+    flow += floor_conductance * x;
+    cond += floor_conductance;
+  }
+  return Status::ok;
+}
+
+// Pad depth, pressure and compliance of cell i at gain e1. The finger is a one-sided obstacle:
+// the pad sits at the contact depth while the finger pushes (force >= 0), and deeper, where its
+// force vanishes, when the membrane is sucked in faster than the finger retreats.
+Status NetworkSimulation::Impl::resolve_cell(std::size_t i, double e1, bool dg, Eval& ev) const noexcept {
+  const double d0 = d[i];
+  const double s0 = s_of(d0, e[i]);
+  const double lo = dc[i];
+  auto force_at = [&](double depth) {
+    return pad.value(d0, depth, dg) + area * bulge.value(s0, s_of(depth, e1), dg);
+  };
+  auto force_slope = [&](double depth) {
+    return pad.slope(d0, depth, dg) + area * area * bulge.slope(s0, s_of(depth, e1), dg);
+  };
+  double depth = lo;
+  bool pinned = true;
+  if (force_at(lo) < 0.0) {
+    pinned = false;
+    // Bracket the free depth (the force rises with depth), then safeguarded Newton.
+    double a = lo;
+    double step = std::max(std::fabs(d0 - lo), 1e-3 * cell_depth);
+    double b = lo + step;
+    int n = 0;
+    while (force_at(b) < 0.0) {
+      a = b;
+      step *= 2.0;
+      b = lo + step;
+      if (++n > kScalarIterations || !finite(b)) {
+        return Status::no_convergence;
+      }
+    }
+    depth = b;
+    bool done = false;
+    for (int it = 0; it < kScalarIterations && !done; ++it) {
+      const double f = force_at(depth);
+      if (!finite(f)) {
+        return Status::not_finite;
+      }
+      if (f == 0.0) {
+        done = true;
+        break;
+      }
+      (f > 0.0 ? b : a) = depth;
+      double next = depth - f / force_slope(depth);
+      if (!(next > a && next < b)) {
+        next = 0.5 * (a + b);
+      }
+      done = std::fabs(next - depth) <= 1e-15 * depth || b - a <= 1e-15 * b;
+      depth = next;
+    }
+    if (!done) {
+      return Status::no_convergence;
+    }
+  }
+  const double s1 = s_of(depth, e1);
+  const double b_s = bulge.slope(s0, s1, dg);
+  ev.d[i] = depth;
+  ev.in_contact[i] = pinned ? 1 : 0;
+  ev.p[i] = bulge.value(s0, s1, dg);
+  if (pinned) {
+    ev.c[i] = 1.0 / b_s;
+  } else {
+    // The pad follows the fluid: pad and bulge stiffnesses in series.
+    const double a_d = pad.slope(d0, depth, dg);
+    ev.c[i] = (a_d + area * area * b_s) / (a_d * b_s);
+  }
+  return Status::ok;
+}
+
+Status NetworkSimulation::Impl::evaluate(Eval& ev, double dt, bool dg, bool regularised) const noexcept {
+  for (std::size_t i = 0; i < cells; ++i) {
+    if (const Status s = resolve_cell(i, ev.e[i], dg, ev); s != Status::ok) {
+      return s;
+    }
+  }
+  for (std::size_t n = cells; n < nodes; ++n) {
+    const double cn = node_compliance[n];
+    ev.p[n] = p0 + (dg ? 0.5 * (e[n] + ev.e[n]) : ev.e[n]) / cn;
+    ev.c[n] = dg ? 2.0 * cn : cn;
+  }
+  for (std::size_t n = 0; n < nodes; ++n) {
+    ev.r[n] = ev.e[n] - e[n];
+  }
+  for (std::size_t l = 0; l < links.size(); ++l) {
+    const Link& k = links[l];
+    const double x = ev.p[k.a] - ev.p[k.b];
+    ev.x[l] = x;
+    if (const Status s = link_law(l, x, regularised, ev.q[l], ev.g[l]); s != Status::ok) {
+      return s;
+    }
+    ev.r[k.a] += dt * ev.q[l];
+    ev.r[k.b] -= dt * ev.q[l];
+  }
+  double n2 = 0.0;
+  double ni = 0.0;
+  for (std::size_t n = 0; n < nodes; ++n) {
+    n2 += ev.r[n] * ev.r[n];
+    ni = std::max(ni, std::fabs(ev.r[n]));
+  }
+  ev.norm2 = n2;
+  ev.norm_inf = ni;
+  return finite(n2) ? Status::ok : Status::not_finite;
+}
+
+// M = diag(c) + dt B^T G B: J = I + dt B^T G B diag(1/c) times diag(1/c), symmetric positive
+// definite even with every passage locked (G = 0) because every node has a compliance.
+bool NetworkSimulation::Impl::assemble_and_factorize(const Eval& ev, double dt) noexcept {
+  const std::span<double> a = ldl.values();
+  std::fill(a.begin(), a.end(), 0.0);
+  for (std::size_t n = 0; n < nodes; ++n) {
+    a[ldl.diagonal_slot(n)] += ev.c[n];
+  }
+  for (std::size_t l = 0; l < links.size(); ++l) {
+    const double w = dt * ev.g[l];
+    a[ldl.diagonal_slot(links[l].a)] += w;
+    a[ldl.diagonal_slot(links[l].b)] += w;
+    a[ldl.pair_slot(l)] -= w;
+  }
+  return ldl.factorize();
+}
+
+// Damped Newton on the discrete-gradient step: unknowns e1, J de = -R solved as M y = -R,
+// de = c y (y: the pressure correction), backtracking on |R|.
+Status NetworkSimulation::Impl::newton(double dt, bool regularised) noexcept {
+  std::copy(e.begin(), e.end(), cur.e.begin());
+  if (const Status s = evaluate(cur, dt, true, regularised); s != Status::ok) {
+    return s;
+  }
+  double last_update = std::numeric_limits<double>::infinity();
+  double scale = 0.0;
+  for (const double v : cur.e) {
+    scale = std::max(scale, std::fabs(v));
+  }
+  const double round_off = 1e-14 * scale;
+  int it = 0;
+  bool converged = false;
+  bool factorized = false;
+  bool chorded = false;
+  for (;; ++it) {
+    const bool met = cur.norm_inf <= opt.volume_tolerance_m3;
+    converged = met && (cur.norm_inf <= round_off || last_update <= opt.pressure_tolerance_Pa);
+    if (converged || it >= opt.max_newton_iterations) {
+      break;
+    }
+    // Once the residual is met, polish with the last factorisation (a chord step): the energy
+    // balance wants round-off, the Jacobian barely changes.
+    const bool chord = met && factorized && !chorded;
+    if (!chord) {
+      if (!assemble_and_factorize(cur, dt)) {
+        return Status::no_convergence;
+      }
+      factorized = true;
+    }
+    chorded = chord;
+    for (std::size_t n = 0; n < nodes; ++n) {
+      y[n] = -cur.r[n];
+    }
+    ldl.solve(y);
+    double y_inf = 0.0;
+    for (std::size_t n = 0; n < nodes; ++n) {
+      de[n] = cur.c[n] * y[n];
+      y_inf = std::max(y_inf, std::fabs(y[n]));
+    }
+    if (!finite(y_inf)) {
+      return Status::not_finite;
+    }
+    double alpha = 1.0;
+    for (;;) {
+      for (std::size_t n = 0; n < nodes; ++n) {
+        trial.e[n] = cur.e[n] + alpha * de[n];
+      }
+      const Status s = evaluate(trial, dt, true, regularised);
+      const bool ok = s == Status::ok;
+      if (ok && trial.norm2 <= (1.0 - kArmijo * alpha) * cur.norm2) {
+        break;
+      }
+      if (alpha <= kMinStep) {
+        if (!ok) {
+          return s;
+        }
+        break;  // no decrease along the direction: take the short step, the cap bounds the loop
+      }
+      alpha *= 0.5;
+    }
+    cur.swap(trial);
+    last_update = alpha * y_inf;
+  }
+  report.iterations = it;
+  report.volume_residual_m3 = cur.norm_inf;
+  if (!converged && cur.norm_inf > opt.volume_tolerance_m3) {
+    return Status::no_convergence;
+  }
+  finish_volumes(cur, dt);
+  return Status::ok;
+}
+
+// Rosenbrock-Euler: one Newton step of implicit Euler from e0, point pressures, regularised law.
+Status NetworkSimulation::Impl::one_solve(double dt) noexcept {
+  std::copy(e.begin(), e.end(), cur.e.begin());
+  if (const Status s = evaluate(cur, dt, false, true); s != Status::ok) {
+    return s;
+  }
+  if (!assemble_and_factorize(cur, dt)) {
+    return Status::no_convergence;
+  }
+  for (std::size_t n = 0; n < nodes; ++n) {
+    y[n] = -cur.r[n];
+  }
+  ldl.solve(y);
+  // Linearised flows at the predicted pressures.
+  for (std::size_t l = 0; l < links.size(); ++l) {
+    const double dx = y[links[l].a] - y[links[l].b];
+    cur.q[l] += cur.g[l] * dx;
+    cur.x[l] += dx;
+  }
+  report.iterations = 1;
+  report.volume_residual_m3 = 0.0;
+  finish_volumes(cur, dt);
+  return Status::ok;
+}
+
+Status NetworkSimulation::Impl::forward_euler(double dt) noexcept {
+  std::copy(e.begin(), e.end(), cur.e.begin());
+  if (const Status s = evaluate(cur, dt, false, true); s != Status::ok) {
+    return s;
+  }
+  report.iterations = 1;
+  report.volume_residual_m3 = 0.0;
+  finish_volumes(cur, dt);
+  return Status::ok;
+}
+
+// The new volumes are e0 + dt * (inflow of the flows the stepper moved): volume is conserved to
+// round-off whatever the stepper. Dissipation: each passage's flow times the pressure difference
+// its law was evaluated at (for the one-solve steppers that is their energy error's source).
+void NetworkSimulation::Impl::finish_volumes(const Eval& at, double dt) noexcept {
+  std::copy(e.begin(), e.end(), new_e.begin());
+  std::size_t locked = 0;
+  double diss = 0.0;
+  for (std::size_t l = 0; l < links.size(); ++l) {
+    const Link& k = links[l];
+    new_e[k.a] -= dt * at.q[l];
+    new_e[k.b] += dt * at.q[l];
+    new_q[l] = at.q[l];
+    diss += dt * at.q[l] * at.x[l];
+    const double tau = k.valve < 0 ? 0.0 : valve_tau[static_cast<std::size_t>(k.valve)];
+    locked += std::fabs(at.x[l]) <= model.valve_law().yield_pressure_Pa(tau) ? 1U : 0U;
+  }
+  report.locked_links = locked;
+  new_dissipated = diss;
+}
+
+// Pad depths from `depths`, then pressures and forces at the new volumes.
+void NetworkSimulation::Impl::finish_state(const Eval& depths) noexcept {
+  std::copy(depths.d.begin(), depths.d.end(), new_d.begin());
+  std::copy(depths.in_contact.begin(), depths.in_contact.end(), new_in_contact.begin());
+  new_contact_force.fill(0.0);
+  for (std::size_t i = 0; i < cells; ++i) {
+    new_p[i] = bulge.grad(s_of(new_d[i], new_e[i]));
+    const bool touching = new_in_contact[i] != 0 && dc[i] > 0.0;
+    // The finger only pushes.
+    new_force[i] = touching ? std::max(0.0, pad.grad(new_d[i]) + area * new_p[i]) : 0.0;
+    if (touching && owner[i] != kNone) {
+      new_contact_force[static_cast<std::size_t>(owner[i])] += new_force[i];
+    }
+  }
+  for (std::size_t n = cells; n < nodes; ++n) {
+    new_p[n] = p0 + new_e[n] / node_compliance[n];
+  }
+}
+
+Status NetworkSimulation::Impl::run_trial(double dt) noexcept {
+  report = StepReport{};
+  Status s = Status::ok;
+  switch (opt.stepper) {
+    case Stepper::implicit_exact:
+    case Stepper::implicit_regularised:
+      s = newton(dt, opt.stepper == Stepper::implicit_regularised);
+      if (s == Status::ok) {
+        finish_state(cur);
+      }
+      break;
+    case Stepper::linearly_implicit_regularised:
+    case Stepper::explicit_euler:
+      s = opt.stepper == Stepper::explicit_euler ? forward_euler(dt) : one_solve(dt);
+      if (s != Status::ok) {
+        break;
+      }
+      // Their pad depths were those of the start volumes: settle them at the new ones.
+      for (std::size_t i = 0; i < cells && s == Status::ok; ++i) {
+        s = resolve_cell(i, new_e[i], false, trial);
+      }
+      if (s == Status::ok) {
+        finish_state(trial);
+      }
+      break;
+  }
+  if (s != Status::ok) {
+    return s;
+  }
+  double check = new_dissipated;
+  for (std::size_t n = 0; n < nodes; ++n) {
+    check += new_e[n] + new_p[n];
+  }
+  for (std::size_t i = 0; i < cells; ++i) {
+    check += new_d[i] + new_force[i];
+  }
+  return finite(check) ? Status::ok : Status::not_finite;
+}
+
+void NetworkSimulation::Impl::compute_depths() noexcept {
+  if (direct_depths) {
+    std::copy(direct_depth.begin(), direct_depth.end(), dc.begin());
+    std::fill(owner.begin(), owner.end(), kNone);
+    return;
+  }
+  for (std::size_t i = 0; i < cells; ++i) {
+    double best = 0.0;
+    std::int64_t who = kNone;
+    for (std::size_t c = 0; c < contact_count; ++c) {
+      const Contact& k = contacts[c];
+      const double dx = cell_x[i] - k.x_m;
+      const double dy = cell_y[i] - k.y_m;
+      const double depth = contact_ind[c] - (dx * dx + dy * dy) / (2.0 * k.radius_m);
+      if (depth > best) {
+        best = depth;
+        who = static_cast<std::int64_t>(c);
+      }
+    }
+    dc[i] = best;
+    owner[i] = who;
+  }
+}
+
+// One force-mode contact: its indentation by a bracketed Illinois (regula falsi) search on the
+// monotone force(indentation), every evaluation a full trial step.
+Status NetworkSimulation::Impl::solve_one_contact(std::size_t c, double dt) noexcept {
+  const Contact& k = contacts[c];
+  auto eval = [&](double ind) {
+    contact_ind[c] = ind;
+    compute_depths();
+    return run_trial(dt);
+  };
+  double touch = std::numeric_limits<double>::infinity();  // indentation at which it reaches a cell
+  for (std::size_t i = 0; i < cells; ++i) {
+    const double dx = cell_x[i] - k.x_m;
+    const double dy = cell_y[i] - k.y_m;
+    touch = std::min(touch, (dx * dx + dy * dy) / (2.0 * k.radius_m));
+  }
+  const double deepest = touch + cell_depth * (1.0 - 1e-9);
+  const double tol = opt.force_tolerance_N;
+  double lo = touch;
+  double flo = -k.force_N;
+  if (k.force_N <= tol) {
+    return eval(lo);
+  }
+  const double start = std::clamp(contact_ind[c], lo, deepest);
+  double hi = start;
+  double fhi = flo;
+  if (start > lo) {
+    if (const Status s = eval(start); s != Status::ok) {
+      return s;
+    }
+    fhi = contact_error(c);
+    if (std::fabs(fhi) <= tol) {
+      return Status::ok;
+    }
+    if (fhi < 0.0) {
+      lo = start;
+      flo = fhi;
+    }
+  }
+  double step = std::max(start - touch, 1e-3 * cell_depth);
+  for (int n = 0; fhi < 0.0; ++n) {
+    if (lo >= deepest || n > kScalarIterations) {
+      return Status::out_of_range;  // the finger would reach the cell's floor first
+    }
+    hi = std::min(lo + step, deepest);
+    if (const Status s = eval(hi); s != Status::ok) {
+      return s;
+    }
+    fhi = contact_error(c);
+    if (fhi < 0.0) {
+      lo = hi;
+      flo = fhi;
+      step *= 2.0;
+    }
+  }
+  int side = 0;
+  for (int n = 0; n < kForceEvaluations; ++n) {
+    if (hi - lo <= 1e-12 * cell_depth) {
+      break;  // a jump in force (a cell touched at a pressure): the nearest force above the target
+    }
+    double x = hi - fhi * (hi - lo) / (fhi - flo);
+    if (!(x > lo && x < hi)) {
+      x = 0.5 * (lo + hi);
+    }
+    if (const Status s = eval(x); s != Status::ok) {
+      return s;
+    }
+    const double f = contact_error(c);
+    if (std::fabs(f) <= tol) {
+      return Status::ok;
+    }
+    if (f > 0.0) {
+      hi = x;
+      fhi = f;
+      flo *= side == 1 ? 0.5 : 1.0;
+      side = 1;
+    } else {
+      lo = x;
+      flo = f;
+      fhi *= side == -1 ? 0.5 : 1.0;
+      side = -1;
+    }
+  }
+  return eval(hi);
+}
+
+// Several force-mode contacts: nonlinear Gauss-Seidel over them until their indentations settle.
+Status NetworkSimulation::Impl::solve_force_contacts(double dt) noexcept {
+  std::array<double, kMaxContacts> before{};
+  for (int sweep = 0; sweep < kForceSweeps; ++sweep) {
+    std::copy(contact_ind.begin(), contact_ind.end(), before.begin());
+    std::size_t solved = 0;
+    for (std::size_t c = 0; c < contact_count; ++c) {
+      if (contacts[c].mode != Contact::Mode::force) {
+        continue;
+      }
+      if (const Status s = solve_one_contact(c, dt); s != Status::ok) {
+        return s;
+      }
+      ++solved;
+    }
+    if (solved <= 1) {
+      return Status::ok;
+    }
+    bool settled = true;
+    for (std::size_t c = 0; c < contact_count; ++c) {
+      if (contacts[c].mode == Contact::Mode::force) {
+        settled = settled && (std::fabs(contact_error(c)) <= opt.force_tolerance_N ||
+                              std::fabs(contact_ind[c] - before[c]) <= 1e-12 * cell_depth);
+      }
+    }
+    if (settled) {
+      return Status::ok;
+    }
+  }
+  return Status::no_convergence;
+}
+
+double NetworkSimulation::Impl::stored_energy() const noexcept {
+  double u = 0.0;
+  for (std::size_t i = 0; i < cells; ++i) {
+    u += stored_energy_J(model.contact(), d[i], s_of(d[i], e[i])).value;
+  }
+  for (std::size_t n = cells; n < nodes; ++n) {
+    u += e[n] * (p0 + 0.5 * e[n] / node_compliance[n]);
+  }
+  return u;
+}
+
+// Work: the discrete-gradient force between the two states times the pad's travel, so that
+// work = stored change + dissipated exactly for the discrete-gradient steppers.
+void NetworkSimulation::Impl::commit(double dt) noexcept {
+  for (std::size_t i = 0; i < cells; ++i) {
+    const double d0 = d[i];
+    const double d1 = new_d[i];
+    const double f =
+        pad.discrete_grad(d0, d1) + area * bulge.discrete_grad(s_of(d0, e[i]), s_of(d1, new_e[i]));
+    work += f * (d1 - d0);
+    velocity[i] = (d1 - d0) / dt;
+  }
+  dissipated += new_dissipated;
+  e.swap(new_e);
+  d.swap(new_d);
+  q.swap(new_q);
+  node_p.swap(new_p);
+  force.swap(new_force);
+  contact_force = new_contact_force;
+  for (std::size_t v = 0; v < valves; ++v) {
+    chamber_p[v] = chamber_node[v] == kNone ? 0.0 : node_p[static_cast<std::size_t>(chamber_node[v])];
+  }
+  stored = stored_energy();
+}
+
+void NetworkSimulation::Impl::reset() noexcept {
+  std::fill(e.begin(), e.end(), 0.0);
+  std::fill(d.begin(), d.end(), 0.0);
+  std::fill(velocity.begin(), velocity.end(), 0.0);
+  std::fill(force.begin(), force.end(), 0.0);
+  std::fill(q.begin(), q.end(), 0.0);
+  for (std::size_t i = 0; i < cells; ++i) {
+    node_p[i] = bulge.grad(s_rest);
+  }
+  std::fill(node_p.begin() + static_cast<std::ptrdiff_t>(cells), node_p.end(), p0);
+  for (std::size_t v = 0; v < valves; ++v) {
+    chamber_p[v] = chamber_node[v] == kNone ? 0.0 : p0;
+  }
+  contact_count = 0;
+  contact_ind.fill(0.0);
+  contact_force.fill(0.0);
+  direct_depths = true;
+  std::fill(direct_depth.begin(), direct_depth.end(), 0.0);
+  work = 0.0;
+  dissipated = 0.0;
+  stored = stored_energy();
+  stored_initial = stored;
+}
+
+// ---- public interface ----
+
+NetworkSimulation::NetworkSimulation(const DeviceModel& model, const NetworkOptions& options)
+    : impl_(std::make_unique<Impl>(model, options)) {}
+NetworkSimulation::~NetworkSimulation() = default;
+NetworkSimulation::NetworkSimulation(NetworkSimulation&&) noexcept = default;
+NetworkSimulation& NetworkSimulation::operator=(NetworkSimulation&&) noexcept = default;
+
+const DeviceModel& NetworkSimulation::model() const noexcept { return impl_->model; }
+const NetworkOptions& NetworkSimulation::options() const noexcept { return impl_->opt; }
+std::size_t NetworkSimulation::fluid_cell_count() const noexcept { return impl_->cells; }
+std::size_t NetworkSimulation::valve_count() const noexcept { return impl_->valves; }
+std::size_t NetworkSimulation::link_count() const noexcept { return impl_->links.size(); }
+std::size_t NetworkSimulation::sensor_count() const noexcept { return impl_->sensors.size(); }
+std::size_t NetworkSimulation::node_count() const noexcept { return impl_->nodes; }
+std::size_t NetworkSimulation::factor_nonzeros() const noexcept { return impl_->ldl.factor_nonzeros(); }
+
+Status NetworkSimulation::set_valve_yield_stress_Pa(std::span<const double> yield_Pa) noexcept {
+  Impl& m = *impl_;
+  if (const Status s = check_inputs(yield_Pa, m.valves, std::numeric_limits<double>::infinity());
+      s != Status::ok) {
+    return s;
+  }
+  std::copy(yield_Pa.begin(), yield_Pa.end(), m.valve_tau.begin());
+  return Status::ok;
+}
+
+Status NetworkSimulation::set_contacts(std::span<const Contact> contacts) noexcept {
+  Impl& m = *impl_;
+  if (contacts.size() > kMaxContacts) {
+    return Status::out_of_range;
+  }
+  for (const Contact& c : contacts) {
+    if (!finite(c.x_m) || !finite(c.y_m) || !finite(c.radius_m) || !finite(c.indentation_m) ||
+        !finite(c.force_N)) {
+      return Status::not_finite;
+    }
+    if (c.radius_m < 0.0 || c.force_N < 0.0) {
+      return Status::negative;
+    }
+    if (c.radius_m == 0.0 || (c.mode == Contact::Mode::indentation && c.indentation_m >= m.cell_depth) ||
+        (c.mode != Contact::Mode::indentation && c.mode != Contact::Mode::force)) {
+      return Status::out_of_range;
+    }
+  }
+  for (std::size_t c = 0; c < contacts.size(); ++c) {
+    // A force-mode contact already in place starts its search from its last indentation.
+    const bool keep = contacts[c].mode == Contact::Mode::force && c < m.contact_count && !m.direct_depths;
+    if (!keep) {
+      m.contact_ind[c] = contacts[c].indentation_m;
+    }
+    m.contacts[c] = contacts[c];
+  }
+  for (std::size_t c = contacts.size(); c < kMaxContacts; ++c) {
+    m.contact_ind[c] = 0.0;
+    m.contact_force[c] = 0.0;
+  }
+  m.contact_count = contacts.size();
+  m.direct_depths = false;
+  return Status::ok;
+}
+
+Status NetworkSimulation::set_cell_indentation_m(std::span<const double> depth_m) noexcept {
+  Impl& m = *impl_;
+  if (const Status s = check_inputs(depth_m, m.cells, m.cell_depth); s != Status::ok) {
+    return s;
+  }
+  std::copy(depth_m.begin(), depth_m.end(), m.direct_depth.begin());
+  m.direct_depths = true;
+  m.contact_count = 0;
+  m.contact_ind.fill(0.0);
+  m.contact_force.fill(0.0);
+  return Status::ok;
+}
+
+void NetworkSimulation::reset() noexcept { impl_->reset(); }
+
+Result<StepReport> NetworkSimulation::step(double dt_s) noexcept {
+  Impl& m = *impl_;
+  if (!finite(dt_s)) {
+    return failure<StepReport>(Status::not_finite);
+  }
+  if (!(dt_s > 0.0)) {
+    return failure<StepReport>(Status::out_of_range);
+  }
+  bool force_mode = false;
+  for (std::size_t c = 0; c < m.contact_count && !m.direct_depths; ++c) {
+    force_mode = force_mode || m.contacts[c].mode == Contact::Mode::force;
+  }
+  const std::array<double, kMaxContacts> ind_before = m.contact_ind;
+  Status s = Status::ok;
+  if (force_mode) {
+    s = m.solve_force_contacts(dt_s);
+  } else {
+    m.compute_depths();
+    s = m.run_trial(dt_s);
+  }
+  if (s != Status::ok) {
+    m.contact_ind = ind_before;  // the state and inputs stay as they were
+    return failure<StepReport>(s);
+  }
+  m.commit(dt_s);
+  return {m.report};
+}
+
+std::span<const double> NetworkSimulation::cell_indentation_m() const noexcept { return impl_->d; }
+std::span<const double> NetworkSimulation::cell_velocity_m_per_s() const noexcept { return impl_->velocity; }
+std::span<const double> NetworkSimulation::cell_pressure_Pa() const noexcept {
+  return std::span<const double>(impl_->node_p).first(impl_->cells);
+}
+std::span<const double> NetworkSimulation::cell_force_N() const noexcept { return impl_->force; }
+std::span<const double> NetworkSimulation::chamber_pressure_Pa() const noexcept { return impl_->chamber_p; }
+double NetworkSimulation::reservoir_pressure_Pa() const noexcept {
+  const Impl& m = *impl_;
+  return m.reservoir_node == kNone ? m.p0 : m.node_p[static_cast<std::size_t>(m.reservoir_node)];
+}
+std::span<const double> NetworkSimulation::link_flow_m3_per_s() const noexcept { return impl_->q; }
+double NetworkSimulation::total_fluid_volume_change_m3() const noexcept {
+  double v = 0.0;
+  for (const double x : impl_->e) {
+    v += x;
+  }
+  return v;
+}
+NetworkEnergy NetworkSimulation::energy() const noexcept {
+  const Impl& m = *impl_;
+  return NetworkEnergy{m.work, m.stored, m.dissipated, m.stored_initial};
+}
+std::span<const double> NetworkSimulation::contact_force_N() const noexcept {
+  return std::span<const double>(impl_->contact_force).first(impl_->contact_count);
+}
+std::span<const double> NetworkSimulation::contact_indentation_m() const noexcept {
+  return std::span<const double>(impl_->contact_ind).first(impl_->contact_count);
+}
+
+void NetworkSimulation::read_sensors(std::span<double> out) const noexcept {
+  const Impl& m = *impl_;
+  const std::size_t n = std::min(out.size(), m.sensors.size());
+  for (std::size_t k = 0; k < n; ++k) {
+    const SensorPlan& s = m.sensors[k];
+    double v = 0.0;
+    if (s.quantity == SensorQuantity::pressure) {
+      if (s.place == PlaceKind::fluid_cell) {
+        v = m.node_p[s.index];
+      } else if (s.place == PlaceKind::valve) {
+        v = m.chamber_p[s.index];
+      } else {
+        v = reservoir_pressure_Pa();
+      }
+    } else {
+      const std::vector<double>& per_cell = s.quantity == SensorQuantity::displacement ? m.d : m.force;
+      if (s.place == PlaceKind::fluid_cell) {
+        v = per_cell[s.index];
+      } else if (s.cells_end > s.cells_begin) {
+        for (std::uint32_t j = s.cells_begin; j < s.cells_end; ++j) {
+          v += per_cell[m.sensor_cells[j]];
+        }
+        v /= static_cast<double>(s.cells_end - s.cells_begin);
+      }
+    }
+    out[k] = v;
+  }
+}
+
+}  // namespace mrskin::model

@@ -49,8 +49,14 @@ struct NetworkOptions {
   // Compliance of a valve chamber (fluid bulk modulus ~1.5 GPa on the chamber's volume).
   double chamber_compliance_m3_per_Pa = 1.0e-14;
   int max_newton_iterations = 50;
-  // Newton stops when every node's volume residual is below this, m^3.
+  // Newton stops when every node's volume residual is below this, m^3, and the last pressure
+  // correction was below pressure_tolerance_Pa (the step after that is at round-off: what the
+  // energy balance needs, since a chamber turns 1e-15 m^3 into 0.05 Pa). A step that reaches
+  // the iteration cap with the volume residual met is accepted (reported in StepReport).
   double volume_tolerance_m3 = 1.0e-15;
+  double pressure_tolerance_Pa = 1.0e-6;
+  // Force-mode contacts: |contact force - force_N| at which the indentation solve stops, N.
+  double force_tolerance_N = 1.0e-9;
 };
 
 // A fingertip on the skin: a sphere of radius radius_m whose lowest point is at (x_m, y_m) in the
@@ -69,9 +75,9 @@ struct Contact {
 };
 
 struct StepReport {
-  int iterations = 0;                 // Newton iterations (1 for the one-solve steppers)
-  double volume_residual_m3 = 0.0;    // largest node balance residual after the step
-  std::size_t locked_links = 0;       // passages inside their yield band
+  int iterations = 0;               // Newton iterations (1 for the one-solve steppers)
+  double volume_residual_m3 = 0.0;  // largest node balance residual after the step
+  std::size_t locked_links = 0;     // passages inside their yield band
 };
 
 struct NetworkEnergy {
@@ -88,20 +94,25 @@ class NetworkSimulation {
   ~NetworkSimulation();
   NetworkSimulation(const NetworkSimulation&) = delete;
   NetworkSimulation& operator=(const NetworkSimulation&) = delete;
-  NetworkSimulation(NetworkSimulation&&) noexcept;
-  NetworkSimulation& operator=(NetworkSimulation&&) noexcept;
+  NetworkSimulation(NetworkSimulation&& other) noexcept;
+  NetworkSimulation& operator=(NetworkSimulation&& other) noexcept;
 
   [[nodiscard]] const DeviceModel& model() const noexcept;
   [[nodiscard]] std::size_t fluid_cell_count() const noexcept;
   [[nodiscard]] std::size_t valve_count() const noexcept;
   [[nodiscard]] std::size_t link_count() const noexcept;
   [[nodiscard]] std::size_t sensor_count() const noexcept;  // the profile's sensors
+  [[nodiscard]] const NetworkOptions& options() const noexcept;
+  // Unknowns of the step (fluid cells + chambers + reservoir) and non-zeros of the sparse
+  // factor (fixed at construction), for reports.
+  [[nodiscard]] std::size_t node_count() const noexcept;
+  [[nodiscard]] std::size_t factor_nonzeros() const noexcept;
 
   // Inputs, taking effect at the next step. out_of_range on a size mismatch, not_finite or
   // negative on bad values (the previous inputs stay).
   Status set_valve_yield_stress_Pa(std::span<const double> yield_Pa) noexcept;  // one per valve
   Status set_contacts(std::span<const Contact> contacts) noexcept;              // at most 16
-  Status set_cell_indentation_m(std::span<const double> depth_m) noexcept;       // one per fluid cell
+  Status set_cell_indentation_m(std::span<const double> depth_m) noexcept;      // one per fluid cell
   // Back to rest, counters and energy zeroed.
   void reset() noexcept;
 
@@ -112,7 +123,7 @@ class NetworkSimulation {
   [[nodiscard]] std::span<const double> cell_indentation_m() const noexcept;
   [[nodiscard]] std::span<const double> cell_velocity_m_per_s() const noexcept;
   [[nodiscard]] std::span<const double> cell_pressure_Pa() const noexcept;
-  [[nodiscard]] std::span<const double> cell_force_N() const noexcept;  // on the finger (truth)
+  [[nodiscard]] std::span<const double> cell_force_N() const noexcept;         // on the finger (truth)
   [[nodiscard]] std::span<const double> chamber_pressure_Pa() const noexcept;  // one per valve (0 if none)
   [[nodiscard]] double reservoir_pressure_Pa() const noexcept;
   [[nodiscard]] std::span<const double> link_flow_m3_per_s() const noexcept;  // a -> b positive

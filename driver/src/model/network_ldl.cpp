@@ -1,0 +1,182 @@
+#include "network_ldl.hpp"
+
+#include <Eigen/OrderingMethods>
+#include <Eigen/SparseCore>
+#include <algorithm>
+#include <cmath>
+
+namespace mrskin::model::detail {
+
+namespace {
+constexpr std::int64_t kNoParent = -1;
+}  // namespace
+
+SparseLdl::SparseLdl(std::size_t n, std::span<const Pair> pairs)
+    : n_(n), new_of_old_(n), diag_slot_(n), pair_slot_(pairs.size()) {
+  // Fill-reducing ordering on the full symmetric pattern. AMD returns perm with
+  // perm[new] = old (Eigen's SimplicialCholesky convention).
+  {
+    using SpMat = Eigen::SparseMatrix<double, Eigen::ColMajor, int>;
+    std::vector<Eigen::Triplet<double, int>> t;
+    t.reserve(n + 2 * pairs.size());
+    for (std::size_t i = 0; i < n; ++i) {
+      t.emplace_back(static_cast<int>(i), static_cast<int>(i), 1.0);
+    }
+    for (const Pair& p : pairs) {
+      t.emplace_back(static_cast<int>(p.first), static_cast<int>(p.second), 1.0);
+      t.emplace_back(static_cast<int>(p.second), static_cast<int>(p.first), 1.0);
+    }
+    SpMat a(static_cast<int>(n), static_cast<int>(n));
+    a.setFromTriplets(t.begin(), t.end());
+    Eigen::PermutationMatrix<Eigen::Dynamic, Eigen::Dynamic, int> perm;
+    Eigen::AMDOrdering<int> amd;
+    amd(a, perm);
+    if (static_cast<std::size_t>(perm.size()) == n) {
+      for (std::size_t k = 0; k < n; ++k) {
+        new_of_old_[static_cast<std::size_t>(perm.indices()[static_cast<int>(k)])] =
+            static_cast<std::uint32_t>(k);
+      }
+    } else {
+      for (std::size_t k = 0; k < n; ++k) {
+        new_of_old_[k] = static_cast<std::uint32_t>(k);
+      }
+    }
+  }
+
+  // Permuted upper triangle: entry (min, max) of each pair lives in column max.
+  std::vector<std::vector<std::uint32_t>> rows(n);
+  for (std::size_t i = 0; i < n; ++i) {
+    rows[new_of_old_[i]].push_back(new_of_old_[i]);
+  }
+  for (const Pair& p : pairs) {
+    const std::uint32_t a = new_of_old_[p.first];
+    const std::uint32_t b = new_of_old_[p.second];
+    rows[std::max(a, b)].push_back(std::min(a, b));
+  }
+  ap_.assign(n + 1, 0);
+  for (std::size_t k = 0; k < n; ++k) {
+    std::sort(rows[k].begin(), rows[k].end());
+    rows[k].erase(std::unique(rows[k].begin(), rows[k].end()), rows[k].end());
+    ap_[k + 1] = ap_[k] + static_cast<std::uint32_t>(rows[k].size());
+    ai_.insert(ai_.end(), rows[k].begin(), rows[k].end());
+  }
+  ax_.assign(ai_.size(), 0.0);
+  auto slot = [&](std::uint32_t r, std::uint32_t c) {
+    const auto first = ai_.begin() + ap_[c];
+    const auto last = ai_.begin() + ap_[c + 1];
+    return static_cast<std::size_t>(std::lower_bound(first, last, r) - ai_.begin());
+  };
+  for (std::size_t i = 0; i < n; ++i) {
+    diag_slot_[i] = slot(new_of_old_[i], new_of_old_[i]);
+  }
+  for (std::size_t k = 0; k < pairs.size(); ++k) {
+    const std::uint32_t a = new_of_old_[pairs[k].first];
+    const std::uint32_t b = new_of_old_[pairs[k].second];
+    pair_slot_[k] = slot(std::min(a, b), std::max(a, b));
+  }
+
+  // Symbolic: elimination tree and column counts of L (ldl_symbolic).
+  parent_.assign(n, kNoParent);
+  lnz_.assign(n, 0);
+  flag_.assign(n, 0);
+  for (std::size_t k = 0; k < n; ++k) {
+    flag_[k] = static_cast<std::uint32_t>(k);
+    for (std::uint32_t p = ap_[k]; p < ap_[k + 1]; ++p) {
+      std::size_t i = ai_[p];
+      if (i >= k) {
+        continue;
+      }
+      while (flag_[i] != k) {
+        if (parent_[i] == kNoParent) {
+          parent_[i] = static_cast<std::int64_t>(k);
+        }
+        ++lnz_[i];
+        flag_[i] = static_cast<std::uint32_t>(k);
+        i = static_cast<std::size_t>(parent_[i]);
+      }
+    }
+  }
+  lp_.assign(n + 1, 0);
+  for (std::size_t k = 0; k < n; ++k) {
+    lp_[k + 1] = lp_[k] + lnz_[k];
+  }
+  li_.assign(lp_[n], 0);
+  lx_.assign(lp_[n], 0.0);
+  d_.assign(n, 0.0);
+  pattern_.assign(n, 0);
+  y_.assign(n, 0.0);
+  w_.assign(n, 0.0);
+}
+
+bool SparseLdl::factorize() noexcept {
+  // ldl_numeric: row k of L by a sparse triangular solve along the elimination tree.
+  const std::size_t n = n_;
+  for (std::size_t k = 0; k < n; ++k) {
+    y_[k] = 0.0;
+    std::size_t top = n;
+    flag_[k] = static_cast<std::uint32_t>(k);
+    lnz_[k] = 0;
+    for (std::uint32_t p = ap_[k]; p < ap_[k + 1]; ++p) {
+      std::size_t i = ai_[p];
+      y_[i] += ax_[p];
+      std::size_t len = 0;
+      while (flag_[i] != k) {
+        pattern_[len++] = static_cast<std::uint32_t>(i);
+        flag_[i] = static_cast<std::uint32_t>(k);
+        i = static_cast<std::size_t>(parent_[i]);
+      }
+      while (len > 0) {
+        pattern_[--top] = pattern_[--len];
+      }
+    }
+    double dk = y_[k];
+    y_[k] = 0.0;
+    for (; top < n; ++top) {
+      const std::size_t i = pattern_[top];
+      const double yi = y_[i];
+      y_[i] = 0.0;
+      const std::uint32_t p_end = lp_[i] + lnz_[i];
+      for (std::uint32_t p = lp_[i]; p < p_end; ++p) {
+        y_[li_[p]] -= lx_[p] * yi;
+      }
+      const double l_ki = yi / d_[i];
+      dk -= l_ki * yi;
+      li_[p_end] = static_cast<std::uint32_t>(k);
+      lx_[p_end] = l_ki;
+      ++lnz_[i];
+    }
+    if (!(dk > 0.0) || !std::isfinite(dk)) {
+      return false;
+    }
+    d_[k] = dk;
+  }
+  return true;
+}
+
+void SparseLdl::solve(std::span<double> x) noexcept {
+  const std::size_t n = n_;
+  for (std::size_t i = 0; i < n; ++i) {
+    w_[new_of_old_[i]] = x[i];
+  }
+  for (std::size_t j = 0; j < n; ++j) {
+    const double yj = w_[j];
+    for (std::uint32_t p = lp_[j]; p < lp_[j + 1]; ++p) {
+      w_[li_[p]] -= lx_[p] * yj;
+    }
+  }
+  for (std::size_t j = 0; j < n; ++j) {
+    w_[j] /= d_[j];
+  }
+  for (std::size_t j = n; j-- > 0;) {
+    double yj = w_[j];
+    for (std::uint32_t p = lp_[j]; p < lp_[j + 1]; ++p) {
+      yj -= lx_[p] * w_[li_[p]];
+    }
+    w_[j] = yj;
+  }
+  for (std::size_t i = 0; i < n; ++i) {
+    x[i] = w_[new_of_old_[i]];
+  }
+}
+
+}  // namespace mrskin::model::detail

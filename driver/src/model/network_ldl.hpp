@@ -1,0 +1,62 @@
+// Sparse LDL^T factorisation of the network's step matrix (symmetric positive definite).
+//
+// The pattern is fixed by the hydraulic graph, so everything that allocates happens once, in the
+// constructor: a fill-reducing ordering (Eigen's AMD), the elimination tree and the column
+// counts of L (Davis' LDL algorithm, "Algorithm 849", ACM TOMS 31 (2005) 587). factorize() and
+// solve() then only touch preallocated arrays: no heap, no exceptions. Eigen's own
+// SimplicialLDLT allocates a permuted copy of the matrix on every factorize(), which the
+// stepper's "nothing allocates after construction" rules out.
+#pragma once
+
+#include <cstddef>
+#include <cstdint>
+#include <span>
+#include <utility>
+#include <vector>
+
+namespace mrskin::model::detail {
+
+class SparseLdl {
+ public:
+  using Pair = std::pair<std::uint32_t, std::uint32_t>;
+  // n unknowns; the off-diagonal pattern as unordered pairs (i != j; repeats allowed, they share a
+  // slot). Throws std::bad_alloc only.
+  SparseLdl(std::size_t n, std::span<const Pair> pairs);
+
+  [[nodiscard]] std::size_t size() const noexcept { return n_; }
+  // Where the caller writes the matrix: values()[diagonal_slot(i)] is A(i, i),
+  // values()[pair_slot(k)] is A(i, j) of pairs[k].
+  [[nodiscard]] std::size_t diagonal_slot(std::size_t i) const noexcept { return diag_slot_[i]; }
+  [[nodiscard]] std::size_t pair_slot(std::size_t k) const noexcept { return pair_slot_[k]; }
+  [[nodiscard]] std::span<double> values() noexcept { return ax_; }
+  // Non-zeros of L (below the diagonal), for reports.
+  [[nodiscard]] std::size_t factor_nonzeros() const noexcept { return lx_.size(); }
+
+  // Numeric factorisation of values(). false if a pivot is not positive and finite.
+  bool factorize() noexcept;
+  // x <- A^-1 x, with the last successful factorisation.
+  void solve(std::span<double> x) noexcept;
+
+ private:
+  std::size_t n_;
+  std::vector<std::uint32_t> new_of_old_;  // fill-reducing permutation
+  // Upper triangle (diagonal included) of the permuted matrix, compressed by column.
+  std::vector<std::uint32_t> ap_;
+  std::vector<std::uint32_t> ai_;
+  std::vector<double> ax_;
+  std::vector<std::size_t> diag_slot_;
+  std::vector<std::size_t> pair_slot_;
+  // L (strictly lower, by column), D, the elimination tree and workspaces.
+  std::vector<std::uint32_t> lp_;
+  std::vector<std::uint32_t> li_;
+  std::vector<double> lx_;
+  std::vector<double> d_;
+  std::vector<std::int64_t> parent_;
+  std::vector<std::uint32_t> lnz_;
+  std::vector<std::uint32_t> flag_;
+  std::vector<std::uint32_t> pattern_;
+  std::vector<double> y_;
+  std::vector<double> w_;  // solve()'s permuted right-hand side
+};
+
+}  // namespace mrskin::model::detail

@@ -1,0 +1,610 @@
+// The hydraulic network simulation: invariants (volume, energy), stability when valves lock,
+// the physics it must show (coupling, the pressed cell's own membrane, the design point, the
+// reservoir), no allocation per step, and explicit errors on bad input.
+#include <gtest/gtest.h>
+
+#include <algorithm>
+#include <array>
+#include <cmath>
+#include <cstdio>
+#include <string>
+#include <vector>
+
+#include "counting_new.hpp"
+#include "mrskin/driver/errors.hpp"
+#include "network_scenarios.hpp"
+
+namespace {
+
+using namespace mrskin::model;
+using nettest::design_cell;
+using nettest::design_contact;
+using nettest::Invariants;
+using nettest::max_yield_Pa;
+using nettest::model_of;
+using nettest::PressCycle;
+
+const DeviceModel& skin() { return model_of("mr-skin-5x5"); }
+
+NetworkOptions with(Stepper s) {
+  NetworkOptions o;
+  o.stepper = s;
+  return o;
+}
+
+void set_uniform_yield(NetworkSimulation& sim, double tau_Pa) {
+  const std::vector<double> y(sim.valve_count(), tau_Pa);
+  ASSERT_EQ(sim.set_valve_yield_stress_Pa(y), Status::ok);
+}
+
+// Indentation of one cell, the others untouched.
+void press_cell(NetworkSimulation& sim, std::size_t cell, double depth_m) {
+  std::vector<double> d(sim.fluid_cell_count(), 0.0);
+  d[cell] = depth_m;
+  ASSERT_EQ(sim.set_cell_indentation_m(d), Status::ok);
+}
+
+bool all_finite(std::span<const double> v) {
+  return std::all_of(v.begin(), v.end(), [](double x) { return std::isfinite(x); });
+}
+
+TEST(ModelNetwork, BuildsTheProfilesGraphAtRest) {
+  const NetworkSimulation sim(skin(), NetworkOptions{});
+  EXPECT_EQ(sim.fluid_cell_count(), 13U);
+  EXPECT_EQ(sim.valve_count(), 12U);
+  EXPECT_EQ(sim.link_count(), 48U);
+  EXPECT_EQ(sim.sensor_count(), 12U);
+  EXPECT_EQ(sim.node_count(), 13U + 12U + 1U);  // cells, chambers, reservoir
+  EXPECT_GT(sim.factor_nonzeros(), 0U);
+  for (const double p : sim.cell_pressure_Pa()) {
+    EXPECT_EQ(p, skin().profile().reservoir.initial_pressure_Pa);
+  }
+  for (const double f : sim.cell_force_N()) {
+    EXPECT_EQ(f, 0.0);
+  }
+  EXPECT_EQ(sim.total_fluid_volume_change_m3(), 0.0);
+  EXPECT_EQ(sim.energy().work_J, 0.0);
+  EXPECT_STREQ(to_string(Stepper::implicit_exact), "implicit_exact");
+  EXPECT_STREQ(to_string(Stepper::explicit_euler), "explicit_euler");
+}
+
+// Press, hold and release cycles with a fingertip, the valves' yield changing mid-cycle.
+Invariants run_cycles(NetworkSimulation& sim, double dt, int cycles, bool print) {
+  const DeviceModel& m = sim.model();
+  Invariants inv(sim);
+  const PressCycle cyc{m.profile().design.indentation_m, 0.2, 0.3, 0.2, 0.1};
+  Contact c = design_contact(m, 0.02);
+  const auto steps = static_cast<int>(std::lround(cycles * cyc.period_s() / dt));
+  const double tau_max = max_yield_Pa(m);
+  for (int k = 0; k < steps; ++k) {
+    const double t = (k + 1) * dt;
+    // Yield stress steps through 0, 30 %, 100 %, 60 % of the maximum within each cycle.
+    const double phase = std::fmod(t, cyc.period_s()) / cyc.period_s();
+    static constexpr std::array<double, 4> kYield = {0.0, 0.3, 1.0, 0.6};
+    const auto which = static_cast<std::size_t>(std::min(3.0, std::floor(phase * 4.0)));
+    set_uniform_yield(sim, kYield[which] * tau_max);
+    c.indentation_m = cyc.at(t);
+    const std::array<Contact, 1> cs = {c};
+    EXPECT_EQ(sim.set_contacts(cs), Status::ok);
+    const Result<StepReport> r = sim.step(dt);
+    EXPECT_TRUE(r.ok()) << "step " << k << ": " << to_string(r.status);
+    if (!r.ok()) {
+      break;
+    }
+    inv.check(sim);
+  }
+  if (print) {
+    const NetworkEnergy e = sim.energy();
+    std::printf("%-30s dt %.0e: volume %.2e, energy gap %.2e (abs %.2e J), work %.4e J, dissipated %.4e J\n",
+                to_string(sim.options().stepper), dt, inv.worst_volume_rel, inv.worst_energy_rel,
+                inv.worst_energy_abs_J, e.work_J, e.dissipated_J);
+  }
+  return inv;
+}
+
+TEST(ModelNetwork, VolumeAndEnergyBalanceOfTheExactStepper) {
+  // Volume: |sum e| <= 1e-12 of the largest volume the pads can displace (it is in fact at
+  // round-off: every step moves e0 + dt * inflow, each flow counted once out and once in).
+  // Energy: |work - stored change - dissipated| <= 1e-6 of the largest of the three.
+  for (const char* name : {"mr-skin-5x5", "fingertip-16x16"}) {
+    NetworkSimulation sim(model_of(name), with(Stepper::implicit_exact));
+    const Invariants inv = run_cycles(sim, 1e-3, 2, true);
+    EXPECT_LE(inv.worst_volume_rel, 1e-12) << name;
+    EXPECT_LE(inv.worst_energy_rel, 1e-6) << name;
+    EXPECT_GE(inv.min_dissipation_increment_J, -1e-18) << name;  // passive: never negative
+    EXPECT_GT(sim.energy().dissipated_J, 0.0);
+  }
+}
+
+TEST(ModelNetwork, VolumeAndEnergyOfTheOtherSteppersAreReported) {
+  // Volume is conserved by construction for every stepper; the energy gap of the
+  // non-discrete-gradient steppers is their energy error, printed, not asserted.
+  NetworkSimulation reg(skin(), with(Stepper::implicit_regularised));
+  const Invariants a = run_cycles(reg, 1e-3, 1, true);
+  EXPECT_LE(a.worst_volume_rel, 1e-12);
+  EXPECT_LE(a.worst_energy_rel, 1e-6);  // also a discrete-gradient scheme
+  NetworkSimulation ros(skin(), with(Stepper::linearly_implicit_regularised));
+  const Invariants b = run_cycles(ros, 1e-3, 1, true);
+  EXPECT_LE(b.worst_volume_rel, 1e-12);
+  NetworkSimulation eul(skin(), with(Stepper::explicit_euler));
+  const Invariants c = run_cycles(eul, 2e-6, 1, true);
+  EXPECT_LE(c.worst_volume_rel, 1e-12);
+}
+
+TEST(ModelNetwork, StableWhenEveryValveLocks) {
+  // Every valve at its highest yield, the finger pressing fast (5 mm in 20 ms) and holding: no
+  // NaN, Newton converges, and no pressure exceeds what the pressed cell's own membrane could
+  // reach with all its volume locked in (fluid only ever leaves it).
+  const DeviceModel& m = skin();
+  for (const Stepper s :
+       {Stepper::implicit_exact, Stepper::implicit_regularised, Stepper::linearly_implicit_regularised}) {
+    NetworkSimulation sim(m, with(s));
+    set_uniform_yield(sim, max_yield_Pa(m));
+    const std::size_t cell = design_cell(m);
+    const double depth = m.profile().design.indentation_m;
+    const double bound = bulge_pressure_Pa(m.contact(), m.contact().effective_area_m2 * depth) * (1 + 1e-9);
+    const double dt = 1e-3;
+    for (int k = 0; k < 500; ++k) {
+      press_cell(sim, cell, std::min(depth, depth * (k + 1) * dt / 0.02));
+      const Result<StepReport> r = sim.step(dt);
+      ASSERT_TRUE(r.ok()) << to_string(s) << " step " << k << ": " << to_string(r.status);
+      EXPECT_LT(r.value.iterations, sim.options().max_newton_iterations);
+      ASSERT_TRUE(all_finite(sim.cell_pressure_Pa()));
+      for (const double p : sim.cell_pressure_Pa()) {
+        EXPECT_LE(std::fabs(p), bound);
+      }
+      for (const double p : sim.chamber_pressure_Pa()) {
+        EXPECT_LE(std::fabs(p), bound);
+      }
+    }
+    EXPECT_GT(sim.cell_force_N()[cell], 1.0) << to_string(s);
+  }
+}
+
+TEST(ModelNetwork, ImplicitSteppersStayStableOverADtSweep) {
+  // dt from 1e-5 to 1e-2 s over the same press/hold/release (200 steps each); the hold force
+  // stays within the physical bounds (open-valve membrane force, locked-cell force).
+  const DeviceModel& m = skin();
+  const std::size_t cell = design_cell(m);
+  const double depth = m.profile().design.indentation_m;
+  const double lock_force =
+      pad_membrane_force_N(m.contact(), depth).value +
+      m.contact().effective_area_m2 * bulge_pressure_Pa(m.contact(), m.contact().effective_area_m2 * depth);
+  for (const Stepper s :
+       {Stepper::implicit_exact, Stepper::implicit_regularised, Stepper::linearly_implicit_regularised}) {
+    for (const double dt : {1e-5, 1e-4, 1e-3, 1e-2}) {
+      NetworkSimulation sim(m, with(s));
+      set_uniform_yield(sim, 0.5 * max_yield_Pa(m));
+      const PressCycle cyc{depth, 60 * dt, 80 * dt, 40 * dt, 20 * dt};
+      for (int k = 0; k < 200; ++k) {
+        press_cell(sim, cell, cyc.at((k + 1) * dt));
+        const Result<StepReport> r = sim.step(dt);
+        ASSERT_TRUE(r.ok()) << to_string(s) << " dt " << dt << " step " << k << ": " << to_string(r.status);
+        ASSERT_TRUE(all_finite(sim.cell_force_N()));
+        const double f = sim.cell_force_N()[cell];
+        EXPECT_GE(f, 0.0);
+        EXPECT_LE(f, lock_force * (1 + 1e-9)) << to_string(s) << " dt " << dt;
+      }
+    }
+  }
+}
+
+TEST(ModelNetwork, ExplicitEulerAboveItsStiffLimitIsReportedNotCrashing) {
+  // The chambers' tiny compliance makes the network stiff: forward Euler needs dt below
+  // ~C_chamber / G_passage. Above it the step must fail with an explicit status (or the state
+  // run away), never crash or return NaN as success; the state stays the last good one.
+  const DeviceModel& m = skin();
+  NetworkSimulation sim(m, with(Stepper::explicit_euler));
+  set_uniform_yield(sim, 0.0);
+  const std::size_t cell = design_cell(m);
+  bool failed = false;
+  double worst = 0.0;
+  for (int k = 0; k < 2000 && !failed; ++k) {
+    press_cell(sim, cell, std::min(3e-3, 3e-3 * (k + 1) / 200.0));
+    const std::vector<double> before(sim.cell_pressure_Pa().begin(), sim.cell_pressure_Pa().end());
+    const Result<StepReport> r = sim.step(1e-3);
+    if (!r.ok()) {
+      failed = true;
+      EXPECT_NE(r.status, Status::ok);
+      const std::vector<double> after(sim.cell_pressure_Pa().begin(), sim.cell_pressure_Pa().end());
+      EXPECT_EQ(before, after);  // state kept
+      std::printf("explicit_euler dt 1e-3: step %d fails with \"%s\"\n", k, to_string(r.status));
+    } else {
+      ASSERT_TRUE(all_finite(sim.cell_pressure_Pa()));
+      for (const double p : sim.chamber_pressure_Pa()) {
+        worst = std::max(worst, std::fabs(p));
+      }
+    }
+  }
+  // Either an explicit failure or pressures far beyond anything physical (the locked-cell
+  // pressure at 3 mm is a few kPa).
+  EXPECT_TRUE(failed || worst > 1e6) << "worst chamber pressure " << worst;
+  // A small step is fine: the same press at dt = 2e-6 stays finite and bounded.
+  NetworkSimulation fine(m, with(Stepper::explicit_euler));
+  for (int k = 0; k < 20000; ++k) {
+    press_cell(fine, cell, std::min(3e-3, 3e-3 * (k + 1) * 2e-6 / 0.02));
+    ASSERT_TRUE(fine.step(2e-6).ok()) << k;
+  }
+  EXPECT_TRUE(all_finite(fine.chamber_pressure_Pa()));
+}
+
+TEST(ModelNetwork, OpenValvesCoupleThePressedCellToItsNeighbours) {
+  const DeviceModel& m = skin();
+  NetworkSimulation sim(m, NetworkOptions{});
+  set_uniform_yield(sim, 0.0);
+  const std::size_t cell = design_cell(m);
+  for (int k = 0; k < 1500; ++k) {
+    press_cell(sim, cell, std::min(3e-3, 3e-3 * (k + 1) / 300.0));
+    ASSERT_TRUE(sim.step(1e-3).ok());
+  }
+  // Every other cell bulges (its pressure rose from p0 with fluid that came through the
+  // valves), the nearest most. (Equalising takes seconds: a cell's free annulus holds ~4e-9
+  // m^3/Pa and two open passages in series conduct ~5e-10 m^3/(s Pa).)
+  const auto p = sim.cell_pressure_Pa();
+  const std::size_t nb = m.fluid_cell_index(1, 1).value;
+  const std::size_t corner = m.fluid_cell_index(0, 0).value;
+  EXPECT_GT(p[corner], 0.0);
+  EXPECT_GT(p[nb], p[corner]);
+  EXPECT_GT(p[cell], p[nb]);
+  EXPECT_GT(sim.reservoir_pressure_Pa(), 0.0);
+  // The pressed cell's pressure is far below its locked-in value.
+  const double locked = bulge_pressure_Pa(m.contact(), m.contact().effective_area_m2 * 3e-3);
+  EXPECT_LT(p[cell], 0.2 * locked);
+}
+
+TEST(ModelNetwork, LockedValvesLeaveTheVolumeInThePressedCellsMembrane) {
+  // Below the valves' threshold nothing flows: the pressed cell is exactly the cell law's
+  // "bulging" mode and every other node stays at p0.
+  const DeviceModel& m = skin();
+  const std::size_t cell = design_cell(m);
+  const double depth = 2e-3;
+  for (const Stepper s : {Stepper::implicit_exact, Stepper::implicit_regularised}) {
+    NetworkSimulation sim(m, with(s));
+    set_uniform_yield(sim, max_yield_Pa(m));
+    for (int k = 0; k < 400; ++k) {
+      press_cell(sim, cell, std::min(depth, depth * (k + 1) / 200.0));
+      ASSERT_TRUE(sim.step(1e-3).ok());
+    }
+    const Result<CellLoad> law = m.cell_force_uniform(cell, depth, 0.0, m.profile().coil.max_current_A);
+    ASSERT_TRUE(law.ok());
+    EXPECT_EQ(law.value.mode, CellMode::bulging);
+    const double tol = s == Stepper::implicit_exact ? 1e-9 : 2e-3;  // regularised: creep
+    EXPECT_NEAR(sim.cell_force_N()[cell] / law.value.force_N, 1.0, tol) << to_string(s);
+    EXPECT_NEAR(sim.cell_pressure_Pa()[cell] / law.value.pressure_Pa, 1.0, tol);
+    for (std::size_t i = 0; i < sim.fluid_cell_count(); ++i) {
+      if (i != cell && s == Stepper::implicit_exact) {
+        EXPECT_EQ(sim.cell_pressure_Pa()[i], m.profile().reservoir.initial_pressure_Pa);
+      }
+    }
+  }
+}
+
+TEST(ModelNetwork, DesignPointHoldForceComparesWithTheCellLaw) {
+  // 5 mm at max current on the centre cell, pressed slowly (1 s) and held 2 s. The cell law's
+  // zero-rate force puts every other node at p0; in the network the fluid that broke through
+  // the valves raises the neighbours' bulge pressure, which adds to the holding threshold, and
+  // Bingham flow near the threshold relaxes slowly (Q ~ (1 - zeta)^2). So the network holds
+  // a little more: within +5 %, never less.
+  const DeviceModel& m = skin();
+  NetworkSimulation sim(m, NetworkOptions{});
+  set_uniform_yield(sim, max_yield_Pa(m));
+  const std::size_t cell = design_cell(m);
+  const double depth = m.profile().design.indentation_m;
+  for (int k = 0; k < 3000; ++k) {
+    press_cell(sim, cell, std::min(depth, depth * (k + 1) / 1000.0));
+    ASSERT_TRUE(sim.step(1e-3).ok());
+  }
+  const Result<CellLoad> law = m.cell_force_uniform(cell, depth, 0.0, m.profile().coil.max_current_A);
+  ASSERT_TRUE(law.ok());
+  const double f = sim.cell_force_N()[cell];
+  std::printf("design point: network %.4f N, cell law %.4f N (%+.2f %%)\n", f, law.value.force_N,
+              100 * (f / law.value.force_N - 1));
+  EXPECT_GE(f, law.value.force_N * (1 - 1e-6));
+  EXPECT_LE(f, law.value.force_N * 1.05);
+}
+
+TEST(ModelNetwork, ReservoirTakesAWholeHandPress) {
+  // Every cell pressed 3 mm with the valves open. With the default membrane the cells' own
+  // free annuli are far more compliant than the reservoir, so a stiff-membrane variant of the
+  // profile is where "without a reservoir nothing indents" shows: there the reservoir takes
+  // most of the displaced volume. In both, at equilibrium every pressure is the same and the
+  // reservoir holds C_r (p - p0).
+  for (const double pretension : {5.0, 500.0}) {
+    DeviceProfile prof = skin().profile();
+    prof.membrane.pretension_N_per_m = pretension;
+    const DeviceModel m(prof);
+    NetworkSimulation sim(m, NetworkOptions{});
+    set_uniform_yield(sim, 0.0);
+    const double depth = 3e-3;
+    for (int k = 0; k < 3000; ++k) {
+      const std::vector<double> d(sim.fluid_cell_count(), std::min(depth, depth * (k + 1) / 500.0));
+      ASSERT_EQ(sim.set_cell_indentation_m(d), Status::ok);
+      ASSERT_TRUE(sim.step(1e-3).ok());
+    }
+    const double displaced =
+        m.contact().effective_area_m2 * depth * static_cast<double>(sim.fluid_cell_count());
+    const double pr = sim.reservoir_pressure_Pa();
+    const double taken = (pr - prof.reservoir.initial_pressure_Pa) * prof.reservoir.compliance_m3_per_Pa;
+    std::printf("whole-hand press, T0 %.0f N/m: reservoir %.1f Pa, takes %.1f %% of %.3g m^3\n", pretension,
+                pr, 100 * taken / displaced, displaced);
+    EXPECT_GT(taken, 0.0);
+    for (const double p : sim.cell_pressure_Pa()) {
+      EXPECT_NEAR(p, pr, 1e-3 * pr);
+    }
+    if (pretension > 100.0) {
+      EXPECT_GT(taken, 0.5 * displaced);
+    }
+  }
+  // With every valve locked the reservoir takes nothing.
+  NetworkSimulation shut(skin(), NetworkOptions{});
+  set_uniform_yield(shut, max_yield_Pa(skin()));
+  for (int k = 0; k < 500; ++k) {
+    const std::vector<double> d(shut.fluid_cell_count(), std::min(2e-3, 2e-3 * (k + 1) / 200.0));
+    ASSERT_EQ(shut.set_cell_indentation_m(d), Status::ok);
+    ASSERT_TRUE(shut.step(1e-3).ok());
+  }
+  EXPECT_EQ(shut.reservoir_pressure_Pa(), skin().profile().reservoir.initial_pressure_Pa);
+}
+
+TEST(ModelNetwork, TheFingerOnlyPushes) {
+  // Press with open valves (fluid leaves), hold, then lock the valves and retract fast: the
+  // cell cannot refill, its membrane stays sucked in below the retreating finger, and the
+  // contact force falls to zero, never below.
+  const DeviceModel& m = skin();
+  NetworkSimulation sim(m, NetworkOptions{});
+  const std::size_t cell = design_cell(m);
+  set_uniform_yield(sim, 0.0);
+  for (int k = 0; k < 800; ++k) {
+    press_cell(sim, cell, std::min(4e-3, 4e-3 * (k + 1) / 200.0));
+    ASSERT_TRUE(sim.step(1e-3).ok());
+  }
+  set_uniform_yield(sim, max_yield_Pa(m));
+  bool released = false;
+  for (int k = 0; k < 100; ++k) {
+    const double finger = std::max(0.0, 4e-3 * (1.0 - (k + 1) / 50.0));
+    press_cell(sim, cell, finger);
+    ASSERT_TRUE(sim.step(1e-3).ok());
+    EXPECT_GE(sim.cell_force_N()[cell], 0.0);
+    EXPECT_GE(sim.cell_indentation_m()[cell], finger - 1e-15);
+    released = released || (sim.cell_force_N()[cell] == 0.0 && sim.cell_indentation_m()[cell] > finger);
+  }
+  EXPECT_TRUE(released);
+  EXPECT_LT(sim.cell_pressure_Pa()[cell], 0.0);  // suction holds the membrane down
+}
+
+TEST(ModelNetwork, ForceModeContactRendersItsForce) {
+  const DeviceModel& m = skin();
+  NetworkSimulation sim(m, NetworkOptions{});
+  set_uniform_yield(sim, 0.5 * max_yield_Pa(m));
+  Contact c = design_contact(m, 0.01);
+  c.mode = Contact::Mode::force;
+  double prev = 0.0;
+  for (const double target : {0.2, 0.5, 1.0, 1.5}) {
+    c.force_N = target;
+    const std::array<Contact, 1> cs = {c};
+    ASSERT_EQ(sim.set_contacts(cs), Status::ok);
+    for (int k = 0; k < 50; ++k) {
+      const Result<StepReport> r = sim.step(1e-3);
+      ASSERT_TRUE(r.ok()) << to_string(r.status);
+      EXPECT_NEAR(sim.contact_force_N()[0], target, 1e-6);
+    }
+    EXPECT_GT(sim.contact_indentation_m()[0], prev);
+    prev = sim.contact_indentation_m()[0];
+  }
+  // Two fingers at once, one in force mode, one by indentation.
+  Contact other = c;
+  other.mode = Contact::Mode::indentation;
+  other.x_m = 0.0;
+  other.y_m = 0.0;
+  other.indentation_m = 2e-3;
+  c.force_N = 0.8;
+  const std::array<Contact, 2> two = {c, other};
+  ASSERT_EQ(sim.set_contacts(two), Status::ok);
+  for (int k = 0; k < 50; ++k) {
+    ASSERT_TRUE(sim.step(1e-3).ok());
+  }
+  EXPECT_NEAR(sim.contact_force_N()[0], 0.8, 1e-6);
+  EXPECT_GT(sim.contact_force_N()[1], 0.0);
+  EXPECT_EQ(sim.contact_indentation_m()[1], 2e-3);
+  // A force the skin cannot give before the finger reaches the cell's floor.
+  c.force_N = 1e6;
+  const std::array<Contact, 1> big = {c};
+  ASSERT_EQ(sim.set_contacts(big), Status::ok);
+  EXPECT_EQ(sim.step(1e-3).status, Status::out_of_range);
+}
+
+TEST(ModelNetwork, SphereContactDepthsAndSensors) {
+  // Depth at each cell centre is indentation - r^2 / (2 R); the deepest contact wins. Sensors
+  // follow the header: valve displacement = mean pad depth of the cells it joins.
+  DeviceProfile prof = skin().profile();
+  SensorSpec ps;
+  ps.quantity = SensorQuantity::pressure;
+  ps.place = PlaceKind::fluid_cell;
+  ps.index = design_cell(skin());
+  prof.sensors.push_back(ps);
+  ps.place = PlaceKind::valve;
+  ps.index = 0;
+  prof.sensors.push_back(ps);
+  ps.place = PlaceKind::reservoir;
+  prof.sensors.push_back(ps);
+  SensorSpec fs;
+  fs.quantity = SensorQuantity::force;
+  fs.place = PlaceKind::fluid_cell;
+  fs.index = design_cell(skin());
+  prof.sensors.push_back(fs);
+  const DeviceModel m(prof);
+  NetworkSimulation sim(m, NetworkOptions{});
+  Contact c = design_contact(m, 1.0);
+  c.indentation_m = 2e-3;
+  const std::array<Contact, 1> cs = {c};
+  ASSERT_EQ(sim.set_contacts(cs), Status::ok);
+  ASSERT_TRUE(sim.step(1e-3).ok());
+  const double pitch = prof.cell_pitch_m;
+  const std::size_t centre = design_cell(m);
+  const std::size_t diag = m.fluid_cell_index(1, 1).value;
+  const std::size_t far = m.fluid_cell_index(0, 0).value;
+  EXPECT_DOUBLE_EQ(sim.cell_indentation_m()[centre], 2e-3);
+  EXPECT_NEAR(sim.cell_indentation_m()[diag], 2e-3 - 2 * pitch * pitch / (2 * 1.0), 1e-15);
+  EXPECT_EQ(sim.cell_indentation_m()[far], 0.0);  // 2e-3 - 8 pitch^2 / 2 < 0
+  EXPECT_GT(sim.contact_force_N()[0], 0.0);
+  EXPECT_NEAR(sim.contact_force_N()[0],
+              sim.cell_force_N()[centre] + 4 * sim.cell_force_N()[diag] +
+                  sim.cell_force_N()[m.fluid_cell_index(2, 0).value] * 4,
+              1e-12);
+  std::vector<double> out(sim.sensor_count());
+  sim.read_sensors(out);
+  const mrskin::GridLayout& lay = m.layout();
+  for (std::size_t k = 0; k < 12; ++k) {
+    const SensorSpec& s = prof.sensors[k];
+    ASSERT_EQ(s.quantity, SensorQuantity::displacement);
+    double mean = 0.0;
+    for (const std::size_t cell : lay.cells_of_valve(s.index)) {
+      mean += sim.cell_indentation_m()[cell];
+    }
+    EXPECT_NEAR(out[k], mean / static_cast<double>(lay.cells_of_valve(s.index).size()), 1e-18);
+  }
+  EXPECT_EQ(out[12], sim.cell_pressure_Pa()[centre]);
+  EXPECT_EQ(out[13], sim.chamber_pressure_Pa()[0]);
+  EXPECT_EQ(out[14], sim.reservoir_pressure_Pa());
+  EXPECT_EQ(out[15], sim.cell_force_N()[centre]);
+}
+
+TEST(ModelNetwork, StepsAllocateNothing) {
+  for (const Stepper s : {Stepper::implicit_exact, Stepper::implicit_regularised,
+                          Stepper::linearly_implicit_regularised, Stepper::explicit_euler}) {
+    const DeviceModel& m = skin();
+    NetworkSimulation sim(m, with(s));
+    std::vector<double> yield(sim.valve_count(), 0.3 * max_yield_Pa(m));
+    std::vector<double> depth(sim.fluid_cell_count(), 0.0);
+    std::vector<double> sensors(sim.sensor_count());
+    Contact c = design_contact(m, 0.01);
+    const double dt = s == Stepper::explicit_euler ? 2e-6 : 1e-3;
+    double sink = 0.0;
+    const auto before = mrskin::test::allocation_count();
+    for (int k = 0; k < 300; ++k) {
+      yield[static_cast<std::size_t>(k) % yield.size()] = (k % 3) * 0.4 * max_yield_Pa(m);
+      EXPECT_EQ(sim.set_valve_yield_stress_Pa(yield), Status::ok);
+      if (k < 100) {
+        depth[design_cell(m)] = 4e-5 * k;
+        EXPECT_EQ(sim.set_cell_indentation_m(depth), Status::ok);
+      } else {
+        c.mode = k < 200 ? Contact::Mode::indentation : Contact::Mode::force;
+        c.indentation_m = 3e-3;
+        c.force_N = 0.5;
+        const std::array<Contact, 1> cs = {c};
+        EXPECT_EQ(sim.set_contacts(cs), Status::ok);
+      }
+      const Result<StepReport> r = sim.step(dt);
+      EXPECT_TRUE(r.ok()) << to_string(s) << " " << k << ": " << to_string(r.status);
+      sim.read_sensors(sensors);
+      sink += sensors[0] + sim.energy().work_J + sim.cell_force_N()[0] + sim.total_fluid_volume_change_m3();
+    }
+    EXPECT_EQ(sim.step(-1.0).status, Status::out_of_range);
+    EXPECT_EQ(mrskin::test::allocation_count(), before) << to_string(s);
+    EXPECT_TRUE(std::isfinite(sink));
+  }
+  static_assert(noexcept(std::declval<NetworkSimulation&>().step(1e-3)));
+  static_assert(noexcept(std::declval<NetworkSimulation&>().set_contacts({})));
+  static_assert(noexcept(std::declval<const NetworkSimulation&>().read_sensors({})));
+}
+
+struct Snapshot {
+  std::vector<double> depth;
+  std::vector<double> pressure;
+  std::vector<double> force;
+  double work = 0.0;
+  double volume = 0.0;
+  explicit Snapshot(const NetworkSimulation& s)
+      : depth(s.cell_indentation_m().begin(), s.cell_indentation_m().end()),
+        pressure(s.cell_pressure_Pa().begin(), s.cell_pressure_Pa().end()),
+        force(s.cell_force_N().begin(), s.cell_force_N().end()),
+        work(s.energy().work_J),
+        volume(s.total_fluid_volume_change_m3()) {}
+  bool operator==(const Snapshot&) const = default;
+};
+
+TEST(ModelNetwork, BadInputsGiveExplicitErrorsAndLeaveTheStateAlone) {
+  const DeviceModel& m = skin();
+  NetworkSimulation sim(m, NetworkOptions{});
+  set_uniform_yield(sim, 0.2 * max_yield_Pa(m));
+  press_cell(sim, design_cell(m), 2e-3);
+  ASSERT_TRUE(sim.step(1e-3).ok());
+  const Snapshot before(sim);
+  const double nan = std::nan("");
+  const double inf = HUGE_VAL;
+
+  EXPECT_EQ(sim.step(nan).status, Status::not_finite);
+  EXPECT_EQ(sim.step(inf).status, Status::not_finite);
+  EXPECT_EQ(sim.step(0.0).status, Status::out_of_range);
+  EXPECT_EQ(sim.step(-1e-3).status, Status::out_of_range);
+
+  std::vector<double> y(sim.valve_count(), 10.0);
+  EXPECT_EQ(sim.set_valve_yield_stress_Pa(std::span<const double>(y).first(3)), Status::out_of_range);
+  y[2] = nan;
+  EXPECT_EQ(sim.set_valve_yield_stress_Pa(y), Status::not_finite);
+  y[2] = -1.0;
+  EXPECT_EQ(sim.set_valve_yield_stress_Pa(y), Status::negative);
+
+  std::vector<double> d(sim.fluid_cell_count(), 1e-3);
+  EXPECT_EQ(sim.set_cell_indentation_m(std::span<const double>(d).first(12)), Status::out_of_range);
+  d.push_back(0.0);
+  EXPECT_EQ(sim.set_cell_indentation_m(d), Status::out_of_range);
+  d.pop_back();
+  d[4] = nan;
+  EXPECT_EQ(sim.set_cell_indentation_m(d), Status::not_finite);
+  d[4] = -1e-6;
+  EXPECT_EQ(sim.set_cell_indentation_m(d), Status::negative);
+  d[4] = m.profile().cell_depth_m;  // the pad would reach the floor
+  EXPECT_EQ(sim.set_cell_indentation_m(d), Status::out_of_range);
+
+  Contact c = design_contact(m, 0.01);
+  std::array<Contact, 17> many{};
+  EXPECT_EQ(sim.set_contacts(many), Status::out_of_range);
+  c.x_m = nan;
+  EXPECT_EQ(sim.set_contacts(std::span<const Contact>(&c, 1)), Status::not_finite);
+  c = design_contact(m, -0.01);
+  EXPECT_EQ(sim.set_contacts(std::span<const Contact>(&c, 1)), Status::negative);
+  c = design_contact(m, 0.0);
+  EXPECT_EQ(sim.set_contacts(std::span<const Contact>(&c, 1)), Status::out_of_range);
+  c = design_contact(m, 0.01);
+  c.force_N = -1.0;
+  EXPECT_EQ(sim.set_contacts(std::span<const Contact>(&c, 1)), Status::negative);
+  c.force_N = 0.0;
+  c.indentation_m = inf;
+  EXPECT_EQ(sim.set_contacts(std::span<const Contact>(&c, 1)), Status::not_finite);
+
+  EXPECT_TRUE(Snapshot(sim) == before);
+  // The previous inputs still hold: the next step continues from them (2 mm, 20 % yield).
+  ASSERT_TRUE(sim.step(1e-3).ok());
+  EXPECT_EQ(sim.cell_indentation_m()[design_cell(m)], 2e-3);
+  // A finger above the skin is valid input, not an error.
+  c = design_contact(m, 0.01);
+  c.indentation_m = -1e-3;
+  EXPECT_EQ(sim.set_contacts(std::span<const Contact>(&c, 1)), Status::ok);
+  EXPECT_TRUE(sim.step(1e-3).ok());
+
+  // Options that make no sense are rejected at construction.
+  NetworkOptions bad;
+  bad.chamber_compliance_m3_per_Pa = 0.0;
+  EXPECT_THROW(NetworkSimulation(m, bad), mrskin::InvalidArgument);
+  bad = NetworkOptions{};
+  bad.max_newton_iterations = 0;
+  EXPECT_THROW(NetworkSimulation(m, bad), mrskin::InvalidArgument);
+}
+
+TEST(ModelNetwork, ResetAndMoveKeepItUsable) {
+  const DeviceModel& m = skin();
+  NetworkSimulation sim(m, NetworkOptions{});
+  press_cell(sim, design_cell(m), 3e-3);
+  ASSERT_TRUE(sim.step(1e-3).ok());
+  EXPECT_GT(sim.energy().work_J, 0.0);
+  NetworkSimulation moved(std::move(sim));
+  EXPECT_GT(moved.cell_force_N()[design_cell(m)], 0.0);
+  moved.reset();
+  EXPECT_EQ(moved.energy().work_J, 0.0);
+  EXPECT_EQ(moved.cell_indentation_m()[design_cell(m)], 0.0);
+  ASSERT_TRUE(moved.step(1e-3).ok());
+  EXPECT_EQ(moved.cell_force_N()[design_cell(m)], 0.0);  // reset also lifted the finger
+}
+
+}  // namespace
