@@ -1,0 +1,65 @@
+// The mock device's plant: the hydraulic network simulation (model/network.hpp) run with the
+// reference laws on a profile perturbed from the nominal one, so that the controller, which knows
+// only the nominal profile and the stored calibration, never grades itself.
+//
+// What differs from the nominal profile (seeded, uniform within +-perturbation unless noted):
+//   fluid viscosity and yield scale (carrier factor), membrane modulus and pre-tension, reservoir
+//   compliance, coil turns (+-perturbation / 3), valve gap (+-perturbation / 5: flow goes as h^3),
+//   and a yield gain per valve (manufacturing spread).
+// What the controller's model leaves out:
+//   coil current loop and eddy lag (model/coil.hpp), steel hysteresis (play operator, the
+//   profile's coercivity times hysteresis_scale), a bus delay on commands, sensor noise and
+//   quantisation to the profile's resolution.
+#pragma once
+
+#include <cstddef>
+#include <cstdint>
+#include <memory>
+#include <span>
+
+#include "mrskin/driver/model/network.hpp"
+#include "mrskin/driver/model/profile.hpp"
+#include "mrskin/driver/plant.hpp"
+
+namespace mrskin {
+
+struct NetworkPlantOptions {
+  double perturbation = 0.15;  // relative half-width of the parameter spread
+  std::uint64_t seed = 1;
+  double command_delay_s = 1.5e-3;  // bus delay from command to coil driver (BRIEF: 1-2 ms)
+  double hysteresis_scale = 1.0;    // multiplies the profile's steel coercivity (0: none)
+  double sensor_noise_scale = 1.0;  // multiplies every sensor's noise_std (0: noise-free)
+  bool quantise_sensors = true;     // round readings to the sensor's resolution
+  model::Stepper stepper = model::Stepper::implicit_exact;
+};
+
+// The perturbed profile the plant runs on (exposed so tests can show the spread).
+model::DeviceProfile perturbed_profile(const model::DeviceProfile& nominal, double perturbation,
+                                       std::uint64_t seed);
+
+class NetworkPlant final : public Plant {
+ public:
+  // Throws InvalidArgument for a profile the network cannot simulate.
+  NetworkPlant(const model::DeviceProfile& nominal, const NetworkPlantOptions& options);
+  ~NetworkPlant() override;
+
+  [[nodiscard]] std::size_t sensor_count() const noexcept override;
+  void set_valve_currents(std::span<const double> current_A) noexcept override;
+  void set_finger_indentation(std::span<const double> indentation_m) noexcept override;
+  void step(double dt_s) noexcept override;
+  void read_sensors(std::span<double> out) const noexcept override;
+  void contact_forces(std::span<double> out_N) const noexcept override;
+
+  // Ground truth for tests and statistics (never sent to the controller).
+  [[nodiscard]] const model::NetworkSimulation& network() const noexcept;
+  [[nodiscard]] std::span<const double> valve_yield_stress_Pa() const noexcept;
+  [[nodiscard]] std::span<const double> coil_current_A() const noexcept;
+  // Steps whose network solve failed (state kept, counted; never expected).
+  [[nodiscard]] std::uint64_t failed_steps() const noexcept;
+
+ private:
+  struct Impl;
+  std::unique_ptr<Impl> impl_;
+};
+
+}  // namespace mrskin

@@ -1,0 +1,196 @@
+// The cell observer against the network plant: exact recovery without noise or perturbation,
+// and its measured error on the perturbed, noisy plant (printed; docs/model.md quotes it).
+#include "mrskin/driver/model/observer.hpp"
+
+#include <gtest/gtest.h>
+
+#include <algorithm>
+#include <cmath>
+#include <cstdio>
+#include <limits>
+#include <vector>
+
+#include "counting_new.hpp"
+#include "mrskin/driver/errors.hpp"
+#include "mrskin/driver/model/device_model.hpp"
+#include "mrskin/driver/network_plant.hpp"
+
+namespace {
+
+using mrskin::NetworkPlant;
+using mrskin::NetworkPlantOptions;
+using mrskin::model::CellObserver;
+using mrskin::model::DeviceModel;
+using mrskin::model::ObserverOptions;
+using mrskin::model::Status;
+
+constexpr double kTick_s = 1e-3;
+constexpr int kSubsteps = 10;
+
+// Press-hold-release of a set of cells (depth profile per cell), valves at one current.
+struct Press {
+  std::vector<std::size_t> cells;
+  std::vector<double> peak_m;
+};
+
+struct Errors {
+  double depth_rms_m = 0.0;
+  double depth_max_m = 0.0;
+  double rate_rms_m_per_s = 0.0;
+  double force_rms_N = 0.0;
+  double force_max_N = 0.0;
+  std::size_t samples = 0;
+};
+
+double envelope(double t_s) {  // 0 -> 1 over 1 s, hold 0.5 s, back to 0 over 1 s
+  if (t_s < 1.0) {
+    return t_s;
+  }
+  if (t_s < 1.5) {
+    return 1.0;
+  }
+  return std::max(0.0, 1.0 - (t_s - 1.5));
+}
+
+Errors run(const Press& press, const NetworkPlantOptions& plant_options, double current_A) {
+  const DeviceModel nominal(mrskin::model::default_profile());
+  NetworkPlant plant(nominal.profile(), plant_options);
+  CellObserver observer(nominal, ObserverOptions{});
+  const std::size_t cells = nominal.layout().fluid_cell_count();
+  std::vector<double> depth(cells, 0.0);
+  std::vector<double> previous(cells, 0.0);
+  std::vector<double> current(nominal.layout().valve_count(), current_A);
+  std::vector<double> sensors(plant.sensor_count());
+  std::vector<double> truth_N(cells);
+  Errors e;
+  double d2 = 0.0;
+  double v2 = 0.0;
+  double f2 = 0.0;
+  plant.set_valve_currents(current);
+  for (int tick = 0; tick < 2600; ++tick) {
+    const double t = (tick + 1) * kTick_s;
+    std::fill(depth.begin(), depth.end(), 0.0);
+    for (std::size_t k = 0; k < press.cells.size(); ++k) {
+      depth[press.cells[k]] = press.peak_m[k] * envelope(t);
+    }
+    plant.set_finger_indentation(depth);
+    for (int s = 0; s < kSubsteps; ++s) {
+      plant.step(kTick_s / kSubsteps);
+    }
+    plant.read_sensors(sensors);
+    plant.contact_forces(truth_N);
+    // Truth is the pad's depth, which leaves the finger when the membrane is sucked in.
+    const std::span<const double> pad_m = plant.network().cell_indentation_m();
+    EXPECT_EQ(observer.update(sensors, current, kTick_s), Status::ok);
+    if (tick < 50) {  // the rate filter's start-up
+      previous.assign(pad_m.begin(), pad_m.end());
+      continue;
+    }
+    for (std::size_t c = 0; c < cells; ++c) {
+      const double dd = observer.indentation_m()[c] - pad_m[c];
+      const double dv = observer.velocity_m_per_s()[c] - (pad_m[c] - previous[c]) / kTick_s;
+      const double df = observer.force_N()[c] - truth_N[c];
+      d2 += dd * dd;
+      v2 += dv * dv;
+      f2 += df * df;
+      e.depth_max_m = std::max(e.depth_max_m, std::abs(dd));
+      e.force_max_N = std::max(e.force_max_N, std::abs(df));
+      ++e.samples;
+    }
+    previous.assign(pad_m.begin(), pad_m.end());
+  }
+  const auto n = static_cast<double>(e.samples);
+  e.depth_rms_m = std::sqrt(d2 / n);
+  e.rate_rms_m_per_s = std::sqrt(v2 / n);
+  e.force_rms_N = std::sqrt(f2 / n);
+  return e;
+}
+
+void print(const char* name, const Errors& e) {
+  std::printf(
+      "observer %-28s depth rms %6.1f um max %6.1f um | rate rms %5.2f mm/s | force rms %.4f N max %.4f N\n",
+      name, e.depth_rms_m * 1e6, e.depth_max_m * 1e6, e.rate_rms_m_per_s * 1e3, e.force_rms_N, e.force_max_N);
+}
+
+NetworkPlantOptions ideal() {
+  NetworkPlantOptions o;
+  o.perturbation = 0.0;
+  o.command_delay_s = 0.0;
+  o.hysteresis_scale = 0.0;
+  o.sensor_noise_scale = 0.0;
+  o.quantise_sensors = false;
+  return o;
+}
+
+// Fluid-cell indices of the default 5 x 5: 0..2 row 0, 3..4 row 1, 5..7 row 2 (6: centre).
+const Press kCentre{{6}, {4e-3}};
+const Press kCorner{{0}, {4e-3}};
+const Press kEdge{{5}, {3e-3}};
+const Press kTwoCells{{6, 3}, {3e-3, 2e-3}};
+
+TEST(ObserverIdeal, RecoversPressedCellsWithoutNoiseOrPerturbation) {
+  for (const Press* p : {&kCentre, &kCorner, &kEdge, &kTwoCells}) {
+    const Errors e = run(*p, ideal(), 0.03);
+    print("ideal", e);
+    EXPECT_LT(e.depth_max_m, 1e-6);  // non-negativity identifies the pressed cells exactly
+    EXPECT_LT(e.force_max_N, 0.1);   // the observer's fast stepper against the plant's exact one
+  }
+}
+
+TEST(ObserverPerturbed, ErrorOnThePerturbedNoisyPlant) {
+  struct Case {
+    const char* name;
+    const Press* press;
+    double current_A;
+  };
+  const Case cases[] = {{"centre 4 mm, 0.03 A", &kCentre, 0.03},
+                        {"centre 4 mm, 0.08 A", &kCentre, 0.08},
+                        {"corner 4 mm, 0.05 A", &kCorner, 0.05},
+                        {"edge 3 mm, 0.05 A", &kEdge, 0.05},
+                        {"two cells, 0.05 A", &kTwoCells, 0.05}};
+  for (const Case& c : cases) {
+    NetworkPlantOptions o;
+    o.seed = 3;
+    const Errors e = run(*c.press, o, c.current_A);
+    print(c.name, e);
+    // Bounds well above what is measured: they catch a broken observer, not a tuning change.
+    EXPECT_LT(e.depth_rms_m, 10e-6) << c.name;
+    EXPECT_LT(e.force_rms_N, 0.1) << c.name;
+  }
+}
+
+TEST(ObserverInputs, BadInputsAreRefusedAndStateKept) {
+  const DeviceModel nominal(mrskin::model::default_profile());
+  CellObserver observer(nominal, ObserverOptions{});
+  std::vector<double> sensors(nominal.profile().sensors.size(), 1e-3);
+  std::vector<double> current(nominal.layout().valve_count(), 0.0);
+  ASSERT_EQ(observer.update(sensors, current, 1e-3), Status::ok);
+  const std::vector<double> before(observer.indentation_m().begin(), observer.indentation_m().end());
+  std::vector<double> bad = sensors;
+  bad[3] = std::numeric_limits<double>::quiet_NaN();
+  EXPECT_EQ(observer.update(bad, current, 1e-3), Status::not_finite);
+  EXPECT_EQ(observer.update(std::span<const double>(sensors.data(), 5), current, 1e-3), Status::out_of_range);
+  EXPECT_EQ(observer.update(sensors, current, 0.0), Status::out_of_range);
+  EXPECT_EQ(observer.update(sensors, current, std::nan("")), Status::out_of_range);
+  const std::vector<double> after(observer.indentation_m().begin(), observer.indentation_m().end());
+  EXPECT_EQ(before, after);
+  ObserverOptions wrong;
+  wrong.sweeps = 0;
+  EXPECT_THROW(CellObserver(nominal, wrong), mrskin::InvalidArgument);
+}
+
+TEST(ObserverHotPath, UpdateDoesNotAllocate) {
+  const DeviceModel nominal(mrskin::model::default_profile());
+  CellObserver observer(nominal, ObserverOptions{});
+  std::vector<double> sensors(nominal.profile().sensors.size(), 0.0);
+  std::vector<double> current(nominal.layout().valve_count(), 0.04);
+  ASSERT_EQ(observer.update(sensors, current, 1e-3), Status::ok);
+  const auto before = mrskin::test::allocation_count();
+  for (int i = 0; i < 300; ++i) {
+    sensors[4] = 1e-3 * std::sin(i * 0.02);
+    (void)observer.update(sensors, current, 1e-3);
+  }
+  EXPECT_EQ(mrskin::test::allocation_count(), before);
+}
+
+}  // namespace

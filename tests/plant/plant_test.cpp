@@ -1,0 +1,123 @@
+// The perturbed network plant under the mock device: spread, delay, sensors, allocation.
+#include <gtest/gtest.h>
+
+#include <algorithm>
+#include <cmath>
+#include <vector>
+
+#include "counting_new.hpp"
+#include "mrskin/driver/errors.hpp"
+#include "mrskin/driver/model/profile.hpp"
+#include "mrskin/driver/network_plant.hpp"
+
+namespace {
+
+using mrskin::NetworkPlant;
+using mrskin::NetworkPlantOptions;
+using mrskin::model::DeviceProfile;
+
+TEST(PlantPerturbation, WithinSpreadAndRepeatablePerSeed) {
+  const DeviceProfile nominal = mrskin::model::default_profile();
+  const DeviceProfile a = mrskin::perturbed_profile(nominal, 0.15, 7);
+  const DeviceProfile b = mrskin::perturbed_profile(nominal, 0.15, 7);
+  const DeviceProfile c = mrskin::perturbed_profile(nominal, 0.15, 8);
+  EXPECT_EQ(a.fluid.viscosity_Pa_s, b.fluid.viscosity_Pa_s);
+  EXPECT_NE(a.fluid.viscosity_Pa_s, c.fluid.viscosity_Pa_s);
+  const auto within = [](double x, double x0, double w) { return std::abs(x / x0 - 1.0) <= w + 1e-12; };
+  for (const DeviceProfile* p : {&a, &c}) {
+    EXPECT_TRUE(within(p->fluid.viscosity_Pa_s, nominal.fluid.viscosity_Pa_s, 0.15));
+    EXPECT_TRUE(within(p->fluid.carrier_factor, nominal.fluid.carrier_factor, 0.15));
+    EXPECT_TRUE(within(p->membrane.youngs_modulus_Pa, nominal.membrane.youngs_modulus_Pa, 0.15));
+    EXPECT_TRUE(within(p->valve.gap_m, nominal.valve.gap_m, 0.03));
+    EXPECT_EQ(p->magnetic.fluid_gap_m, p->valve.gap_m);
+  }
+  EXPECT_THROW((void)mrskin::perturbed_profile(nominal, 0.7, 1), mrskin::InvalidArgument);
+}
+
+TEST(PlantSensors, TwelveDisplacementSensorsQuantisedToTheirResolution) {
+  const DeviceProfile nominal = mrskin::model::default_profile();
+  NetworkPlant plant(nominal, NetworkPlantOptions{});
+  ASSERT_EQ(plant.sensor_count(), 12U);
+  std::vector<double> depth(13, 0.0);
+  depth[6] = 2e-3;  // centre cell
+  plant.set_finger_indentation(depth);
+  for (int i = 0; i < 20; ++i) {
+    plant.step(1e-4);
+  }
+  std::vector<double> y(plant.sensor_count());
+  plant.read_sensors(y);
+  const double res = nominal.sensors[0].resolution;
+  double sum = 0.0;
+  for (const double v : y) {
+    EXPECT_NEAR(v / res, std::round(v / res), 1e-6);
+    sum += v;
+  }
+  // The four valves around the centre read a quarter of its depth each (plus noise).
+  EXPECT_NEAR(sum, 4.0 * 2e-3 / 4.0, 8 * 4 * nominal.sensors[0].noise_std + 12 * res);
+  EXPECT_EQ(plant.failed_steps(), 0U);
+}
+
+TEST(PlantCommands, CurrentsReachTheCoilsOnlyAfterTheBusDelay) {
+  NetworkPlantOptions o;
+  o.command_delay_s = 1.5e-3;
+  NetworkPlant plant(mrskin::model::default_profile(), o);
+  std::vector<double> current(12, 0.05);
+  plant.set_valve_currents(current);
+  for (int i = 0; i < 14; ++i) {  // 1.4 ms
+    plant.step(1e-4);
+  }
+  for (const double i : plant.coil_current_A()) {
+    EXPECT_EQ(i, 0.0);
+  }
+  for (int i = 0; i < 30; ++i) {
+    plant.step(1e-4);
+  }
+  for (const double i : plant.coil_current_A()) {
+    EXPECT_GT(i, 0.0);
+  }
+  for (const double tau : plant.valve_yield_stress_Pa()) {
+    EXPECT_GT(tau, 0.0);
+  }
+}
+
+TEST(PlantCommands, BadCommandsAreClampedOrIgnored) {
+  NetworkPlantOptions o;
+  o.command_delay_s = 0.0;
+  NetworkPlant plant(mrskin::model::default_profile(), o);
+  std::vector<double> current(12, 5.0);  // above the coil's limit
+  current[0] = std::nan("");
+  plant.set_valve_currents(current);
+  std::vector<double> wrong(3, 0.01);
+  plant.set_valve_currents(wrong);  // wrong size: ignored
+  for (int i = 0; i < 200; ++i) {
+    plant.step(1e-4);
+  }
+  const double max_A = mrskin::model::default_profile().coil.max_current_A;
+  EXPECT_EQ(plant.coil_current_A()[0], 0.0);
+  for (std::size_t v = 1; v < 12; ++v) {
+    EXPECT_LE(plant.coil_current_A()[v], max_A * (1 + 1e-9));
+    EXPECT_GT(plant.coil_current_A()[v], 0.5 * max_A);
+  }
+  EXPECT_EQ(plant.failed_steps(), 0U);
+}
+
+TEST(PlantHotPath, SteppingDoesNotAllocate) {
+  NetworkPlant plant(mrskin::model::default_profile(), NetworkPlantOptions{});
+  std::vector<double> depth(13, 0.0);
+  std::vector<double> current(12, 0.02);
+  std::vector<double> y(plant.sensor_count());
+  std::vector<double> f(13);
+  plant.step(1e-4);
+  const auto before = mrskin::test::allocation_count();
+  for (int i = 0; i < 500; ++i) {
+    depth[6] = 4e-3 * std::sin(i * 0.01);
+    plant.set_finger_indentation(depth);
+    plant.set_valve_currents(current);
+    plant.step(1e-4);
+    plant.read_sensors(y);
+    plant.contact_forces(f);
+  }
+  EXPECT_EQ(mrskin::test::allocation_count(), before);
+}
+
+}  // namespace
