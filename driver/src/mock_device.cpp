@@ -53,6 +53,37 @@ proto::SensorQuantity wire_quantity(model::SensorQuantity q) noexcept {
   return proto::SensorQuantity::displacement_m;
 }
 
+// The N of the first "version = N" line of a calibration, or -1.
+long calibration_version(std::span<const std::uint8_t> blob) noexcept {
+  constexpr std::string_view key = "version";
+  std::size_t i = 0;
+  while (i < blob.size()) {  // i is at a line start
+    std::size_t k = 0;
+    while (k < key.size() && i + k < blob.size() && blob[i + k] == static_cast<std::uint8_t>(key[k])) {
+      ++k;
+    }
+    if (k == key.size()) {
+      std::size_t j = i + k;
+      while (j < blob.size() && (blob[j] == ' ' || blob[j] == '=')) {
+        ++j;
+      }
+      long version = 0;
+      bool digits = false;
+      while (j < blob.size() && blob[j] >= '0' && blob[j] <= '9' && version < 100000000) {
+        version = version * 10 + (blob[j] - '0');
+        digits = true;
+        ++j;
+      }
+      return digits ? version : -1;
+    }
+    while (i < blob.size() && blob[i] != '\n') {
+      ++i;
+    }
+    ++i;
+  }
+  return -1;
+}
+
 bool is_path(std::string_view name) noexcept {
   return name.find('/') != std::string_view::npos || name.ends_with(".toml");
 }
@@ -238,6 +269,7 @@ MockDevice::MockDevice(const model::DeviceProfile& profile, std::string_view pro
                "\nserial = " + std::to_string(options.serial) + "\nprofile = \"" + name +
                "\"\nvalve_yield_gain = 1.0\n");
   calibration_blob_.reserve(kConfigCapacity);
+  calibration_pending_.reserve(kConfigCapacity);
   if (profile_text.size() > 0xFFFF) {
     throw InvalidArgument(fmt::format("profile {} is {} bytes; the configuration memory holds at most 65535",
                                       name, profile_text.size()));
@@ -492,22 +524,38 @@ void MockDevice::handle_config(const proto::Message& message) noexcept {
     std::copy_n(blob->begin() + r->offset, data.length, data.bytes.begin());
     send_message(data);
   } else if (const auto* w = std::get_if<proto::ConfigWrite>(&message)) {
-    // Only the calibration is writable, and only while the coils are off.
+    // Only the calibration is writable, only while the coils are off, in order, and only
+    // with a version above the stored one (checked when the last chunk arrives).
     auto status = proto::ConfigStatus::ok;
+    std::vector<std::uint8_t>& pending = calibration_pending_;
     if (static_cast<proto::ConfigKey>(w->key) != proto::ConfigKey::calibration) {
       status = proto::ConfigStatus::rejected;
     } else if (state_.load() == static_cast<std::uint8_t>(proto::DeviceState::enabled)) {
       status = proto::ConfigStatus::busy;
-    } else if (w->total > kConfigCapacity) {
+    } else if (w->total > kConfigCapacity || w->total == 0 || w->offset + w->length > w->total) {
       status = proto::ConfigStatus::bad_range;
     } else {
+      const bool repeat_of_committed =
+          pending.empty() && w->total == calibration_blob_.size() && w->offset + w->length == w->total &&
+          std::equal(w->bytes.begin(), w->bytes.begin() + w->length, calibration_blob_.begin() + w->offset);
       if (w->offset == 0) {
-        calibration_blob_.clear();  // within reserve: no allocation
+        pending.clear();  // a new write (or its first chunk again); within reserve: no allocation
       }
-      if (w->offset != calibration_blob_.size()) {
-        status = proto::ConfigStatus::bad_range;  // chunks must arrive in order
-      } else {
-        calibration_blob_.insert(calibration_blob_.end(), w->bytes.begin(), w->bytes.begin() + w->length);
+      if (repeat_of_committed) {
+        // The last chunk again (its ack was lost): already stored.
+      } else if (w->offset == pending.size()) {
+        pending.insert(pending.end(), w->bytes.begin(), w->bytes.begin() + w->length);
+      } else if (w->offset + w->length != pending.size()) {
+        status = proto::ConfigStatus::bad_range;  // chunks must arrive in order (a repeat is fine)
+      }
+      if (status == proto::ConfigStatus::ok && !repeat_of_committed && pending.size() == w->total &&
+          w->offset + w->length == w->total) {
+        if (calibration_version(pending) > calibration_version(calibration_blob_)) {
+          calibration_blob_.swap(pending);  // both reserved: no allocation
+        } else {
+          status = proto::ConfigStatus::rejected;
+        }
+        pending.clear();
       }
     }
     send_message(proto::ConfigAck{w->key, w->offset, static_cast<std::uint8_t>(status)});
@@ -545,6 +593,10 @@ void MockDevice::handle(const std::uint8_t* bytes, std::size_t length, TimePoint
   } else if (const auto* r = std::get_if<proto::StateRequest>(&p.message)) {
     switch (static_cast<proto::StateRequestCode>(r->request)) {
       case proto::StateRequestCode::enable:
+        if (std::any_of(coil_C_.begin(), coil_C_.end(), [this](double c) { return c >= options_.fault_C; })) {
+          enter_fault(proto::FaultCode::overtemperature);  // too hot to enable: stays latched
+          return;
+        }
         state_.store(static_cast<std::uint8_t>(proto::DeviceState::enabled));
         fault_.store(0);
         reseed(now);  // no stale command survives an enable

@@ -377,11 +377,11 @@ std::string DeviceSession::read_config(proto::ConfigKey key) {
     while (transport_->receive(d) == ResultCode::ok) {
       handle(d, now);
     }
-    if (config_.refused) {
+    if (config_.acked && config_.ack_status != static_cast<std::uint8_t>(proto::ConfigStatus::ok)) {
       config_.active = false;
       throw Error(fmt::format("device on {} refused to read its {} (key {}): {}; service the unit",
                               transport_->uri(), config_key_name(config_.key), config_.key,
-                              config_status_name(config_.refusal)));
+                              config_status_name(config_.ack_status)));
     }
     if (config_.total >= 0 && config_.received == config_.have.size()) {
       config_.active = false;
@@ -508,6 +508,10 @@ void DeviceSession::handle(const Datagram& d, TimePoint now) noexcept {
     }
   } else if (const auto* s = std::get_if<proto::Status>(&p.message)) {
     const auto state = static_cast<DeviceState>(s->state);
+    if (state_request_pending_ &&
+        (state == wanted_state_ || (state == DeviceState::fault && state_ != DeviceState::fault))) {
+      state_request_pending_ = false;  // confirmed, or a new fault overrides the request
+    }
     if (state == DeviceState::fault && state_ != DeviceState::fault) {
       ++counters_.faults;
       last_fault_time_ = now;
@@ -548,10 +552,10 @@ void DeviceSession::handle(const Datagram& d, TimePoint now) noexcept {
     ++c.received;
     c.progress = true;
   } else if (const auto* ca = std::get_if<proto::ConfigAck>(&p.message)) {
-    if (config_.active && ca->key == config_.key &&
-        ca->status != static_cast<std::uint8_t>(proto::ConfigStatus::ok)) {
-      config_.refused = true;
-      config_.refusal = ca->status;
+    if (config_.active && ca->key == config_.key) {
+      config_.acked = true;
+      config_.ack_offset = ca->offset;
+      config_.ack_status = ca->status;
     }
   } else if (const auto* id = std::get_if<proto::Identity>(&p.message)) {
     if (identify_pending_ && id->proto_major == proto::kVersionMajor) {
@@ -607,6 +611,16 @@ ResultCode DeviceSession::poll(TimePoint now) noexcept {
   if (!telemetry_timed_out_ && now - last_telemetry_ > options_.telemetry_timeout) {
     telemetry_timed_out_ = true;
     ++counters_.telemetry_timeouts;
+  }
+  if (state_request_pending_ && now >= next_state_retry_) {
+    if (state_retries_left_ > 0) {
+      --state_retries_left_;
+      ++counters_.state_retries;
+      next_state_retry_ = now + options_.handshake_retry;
+      (void)send_packet(proto::StateRequest{pending_request_});
+    } else {
+      state_request_pending_ = false;  // the device does not take it: state() tells the host
+    }
   }
   if (!suppress_heartbeat_ && now >= next_heartbeat_) {
     next_heartbeat_ = now + options_.heartbeat_period;
@@ -707,10 +721,17 @@ void DeviceSession::reseed_and_send() noexcept {
   }
 }
 
+ResultCode DeviceSession::send_state_request(proto::StateRequestCode request) noexcept {
+  pending_request_ = static_cast<std::uint8_t>(request);
+  state_request_pending_ = true;
+  state_retries_left_ = 10;
+  next_state_retry_ = clock_.now() + options_.handshake_retry;
+  return send_packet(proto::StateRequest{pending_request_});
+}
+
 ResultCode DeviceSession::request_enable() noexcept {
   wanted_state_ = DeviceState::enabled;
-  const ResultCode rc =
-      send_packet(proto::StateRequest{static_cast<std::uint8_t>(proto::StateRequestCode::enable)});
+  const ResultCode rc = send_state_request(proto::StateRequestCode::enable);
   if (rc == ResultCode::ok) {
     reseed_and_send();
   }
@@ -718,15 +739,100 @@ ResultCode DeviceSession::request_enable() noexcept {
 }
 ResultCode DeviceSession::request_disable() noexcept {
   wanted_state_ = DeviceState::disabled;
-  return send_packet(proto::StateRequest{static_cast<std::uint8_t>(proto::StateRequestCode::disable)});
+  return send_state_request(proto::StateRequestCode::disable);
 }
 ResultCode DeviceSession::request_pause() noexcept {
   wanted_state_ = DeviceState::paused;
-  return send_packet(proto::StateRequest{static_cast<std::uint8_t>(proto::StateRequestCode::pause)});
+  return send_state_request(proto::StateRequestCode::pause);
 }
 ResultCode DeviceSession::request_estop() noexcept {
-  wanted_state_ = DeviceState::disabled;
-  return send_packet(proto::StateRequest{static_cast<std::uint8_t>(proto::StateRequestCode::estop)});
+  wanted_state_ = DeviceState::disabled;  // FAULT (e-stop) confirms it
+  return send_state_request(proto::StateRequestCode::estop);
+}
+
+void DeviceSession::await_config_ack(std::uint16_t offset) {
+  TimePoint last_progress = clock_.now();
+  while (!config_.acked || config_.ack_offset != offset) {
+    const TimePoint now = clock_.now();
+    Datagram d;
+    const ResultCode rc = transport_->receive(d);
+    if (rc == ResultCode::ok) {
+      handle(d, now);
+      continue;
+    }
+    if (rc == ResultCode::disconnected) {
+      config_.active = false;
+      throw DeviceNotFound(
+          fmt::format("device on {} disconnected while its configuration was written", transport_->uri()));
+    }
+    if (now - last_progress > options_.handshake_timeout) {
+      config_.active = false;
+      throw Timeout(fmt::format("device on {} did not acknowledge its configuration write within {:.3f} s",
+                                transport_->uri(), to_seconds(options_.handshake_timeout)));
+    }
+    clock_.sleep_until(now + std::chrono::microseconds(200));
+  }
+}
+
+void DeviceSession::write_calibration(std::string_view text) {
+  constexpr std::size_t chunk = proto::kMaxConfigBytes;
+  if (text.empty() || text.size() > 4096) {
+    throw InvalidArgument(fmt::format(
+        "a calibration of {} bytes cannot be stored: the configuration memory takes 1..4096", text.size()));
+  }
+  if (!connected_ || transport_->state() != TransportState::open) {
+    throw DeviceNotFound(fmt::format(
+        "device on {} is not connected: reconnect before writing its calibration", transport_->uri()));
+  }
+  const auto key = static_cast<std::uint16_t>(proto::ConfigKey::calibration);
+  for (std::size_t offset = 0; offset < text.size(); offset += chunk) {
+    proto::ConfigWrite w;
+    w.key = key;
+    w.offset = static_cast<std::uint16_t>(offset);
+    w.total = static_cast<std::uint16_t>(text.size());
+    w.length = static_cast<std::uint8_t>(std::min(chunk, text.size() - offset));
+    std::copy_n(text.begin() + static_cast<std::ptrdiff_t>(offset), w.length, w.bytes.begin());
+    auto status = proto::ConfigStatus::ok;
+    for (int attempt = 0;; ++attempt) {
+      config_ = ConfigTransfer{};
+      config_.active = true;
+      config_.key = key;
+      (void)send_packet(w);
+      try {
+        await_config_ack(w.offset);
+        status = static_cast<proto::ConfigStatus>(config_.ack_status);
+        break;
+      } catch (const Timeout&) {
+        if (attempt == 3) {
+          throw;
+        }  // the chunk or its ack was lost: the device takes a repeated chunk again
+      }
+    }
+    config_.active = false;
+    if (status == proto::ConfigStatus::busy) {
+      throw Error(fmt::format("device on {} is ENABLED: disable it before writing its calibration",
+                              transport_->uri()));
+    }
+    if (status == proto::ConfigStatus::rejected) {
+      throw InvalidArgument(fmt::format(
+          "device on {} refused the calibration: it needs a \"version = N\" line with N above the stored "
+          "calibration's",
+          transport_->uri()));
+    }
+    if (status != proto::ConfigStatus::ok) {
+      throw Error(
+          fmt::format("device on {} refused calibration bytes {}..{} ({}): write again from the start",
+                      transport_->uri(), offset, offset + w.length, config_status_name(config_.ack_status)));
+    }
+  }
+  std::string stored = read_config(proto::ConfigKey::calibration);
+  if (stored != text) {
+    throw Error(
+        fmt::format("device on {} stored a different calibration than was written ({} bytes read back, "
+                    "{} written): write it again",
+                    transport_->uri(), stored.size(), text.size()));
+  }
+  info_.calibration = std::move(stored);
 }
 
 // --- DeviceSession: logs --------------------------------------------------------------------

@@ -14,42 +14,14 @@
 #include "mrskin/driver/device.hpp"
 #include "mrskin/protocol/packet.hpp"
 #include "mrskin/protocol/units.hpp"
+#include "rig.hpp"
 
 namespace mrskin {
 namespace {
 
 namespace proto = mrskin::protocol;
 
-// A synchronous mock stepped at 1 kHz with the session polled after every step.
-struct Rig {
-  explicit Rig(const std::string& uri, SessionOptions session = {}) {
-    OpenOptions open;
-    open.synchronous_mock = true;
-    open.session = session;
-    dev = open_device(uri, clock, open);
-    currents.assign(dev.mock->layout().valve_count(), 0.0);
-    finger.assign(dev.mock->layout().fluid_cell_count(), 0.0);
-  }
-  // Runs for ms milliseconds; commands the currents each tick unless the host is silent.
-  void run(int ms, bool host_alive = true) {
-    for (int k = 0; k < ms; ++k) {
-      dev.mock->set_finger_indentation(finger);
-      dev.mock->step(clock.now());
-      if (host_alive) {
-        last = dev.session->poll(clock.now());
-        if (last == ResultCode::ok) {
-          (void)dev.session->send_valve_currents(currents);
-        }
-      }
-      clock.advance(std::chrono::milliseconds(1));
-    }
-  }
-  SimulatedClock clock;
-  OpenedDevice dev;
-  std::vector<double> currents;
-  std::vector<double> finger;
-  ResultCode last = ResultCode::ok;
-};
+using test::Rig;
 
 TEST(Session, HandshakeReadsIdentityProfileAndCalibration) {
   Rig rig("mock://?seed=1");
@@ -134,18 +106,6 @@ TEST(Session, VersionMismatchNamesBothVersions) {
     EXPECT_NE(std::string(e.what()).find("v7"), std::string::npos) << e.what();
     EXPECT_NE(std::string(e.what()).find("v1"), std::string::npos) << e.what();
   }
-}
-
-TEST(Session, SilentDeviceTimesOutWithAHint) {
-  SimulatedClock clock;
-  class Silent final : public Transport {
-   public:
-    ResultCode send(std::span<const std::uint8_t> /*b*/) noexcept override { return ResultCode::ok; }
-    ResultCode receive(Datagram& /*d*/) noexcept override { return ResultCode::would_block; }
-    [[nodiscard]] TransportState state() const noexcept override { return TransportState::open; }
-    [[nodiscard]] std::string_view uri() const noexcept override { return "silent://"; }
-  };
-  EXPECT_THROW(DeviceSession(std::make_unique<Silent>(), clock), Timeout);
 }
 
 TEST(Session, HeartbeatLossLeadsToSafeStateAndEnableRecovers) {
@@ -475,7 +435,7 @@ TEST(MockProfiles, UnknownProfileListsTheSearchPathAndTheNames) {
 struct TempProfile {
   explicit TempProfile(const std::string& text) {
     path = testing::TempDir() + "mrskin-test-" + std::to_string(::getpid()) + "-" +
-           std::to_string(counter++) + ".toml";
+           std::to_string(next_index()) + ".toml";
     std::ofstream(path) << text;
   }
   TempProfile(const TempProfile&) = delete;
@@ -484,7 +444,10 @@ struct TempProfile {
   TempProfile& operator=(TempProfile&&) = delete;
   ~TempProfile() { std::remove(path.c_str()); }
   std::string path;
-  static inline int counter = 0;
+  static int next_index() {
+    static int next = 0;
+    return next++;
+  }
 };
 
 std::string default_profile_text() { return load_profile_with_text("").text; }

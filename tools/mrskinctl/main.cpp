@@ -63,39 +63,39 @@ std::string json_log(const std::vector<mrskin::LogEntry>& entries) {
   std::string out = "[";
   for (std::size_t k = 0; k < entries.size(); ++k) {
     const mrskin::LogEntry& e = entries[k];
-    out += fmt::format("{}{{\"host_time_s\": {}, \"dir\": \"{}\", \"kind\": \"{}\", \"seq\": {}",
-                       k == 0 ? "" : ", ", json_number(mrskin::to_seconds(e.host_time)), e.sent ? "tx" : "rx",
-                       e.kind, e.sequence);
+    out +=
+        fmt::format(R"({}{{"host_time_s": {}, "dir": "{}", "kind": "{}", "seq": {})", k == 0 ? "" : ", ",
+                    json_number(mrskin::to_seconds(e.host_time)), e.sent ? "tx" : "rx", e.kind, e.sequence);
     if (!e.error.empty()) {
-      out += fmt::format(", \"error\": \"{}\"", json_escape(e.error));
+      out += fmt::format(R"(, "error": "{}")", json_escape(e.error));
     }
     if (e.has_device_time) {
       out +=
           fmt::format(", \"device_time_s\": {}", json_number(static_cast<double>(e.device_time_us) * 1e-6));
     }
     if (!e.values.empty()) {
-      out += fmt::format(", \"first\": {}, \"unit\": \"{}\", \"values\": {}", e.first, e.unit,
+      out += fmt::format(R"(, "first": {}, "unit": "{}", "values": {})", e.first, e.unit,
                          json_numbers(e.values));
     }
     if (!e.targets.empty()) {
-      out += fmt::format(", \"first\": {}, \"targets\": [", e.first);
+      out += fmt::format(R"(, "first": {}, "targets": [)", e.first);
       for (std::size_t i = 0; i < e.targets.size(); ++i) {
         const auto& t = e.targets[i];
-        out += fmt::format(
-            "{}{{\"stiffness_n_per_m\": {}, \"offset_m\": {}, \"ceiling_n\": {}, \"validity_s\": {}}}",
-            i == 0 ? "" : ", ", json_number(t.stiffness_N_per_m), json_number(t.offset_m),
-            json_number(t.ceiling_N), json_number(t.validity_s));
+        out +=
+            fmt::format(R"({}{{"stiffness_n_per_m": {}, "offset_m": {}, "ceiling_n": {}, "validity_s": {}}})",
+                        i == 0 ? "" : ", ", json_number(t.stiffness_N_per_m), json_number(t.offset_m),
+                        json_number(t.ceiling_N), json_number(t.validity_s));
       }
       out += "]";
     }
     if (!e.state.empty()) {
-      out += fmt::format(", \"state\": \"{}\"", e.state);
+      out += fmt::format(R"(, "state": "{}")", e.state);
     }
     if (!e.fault.empty()) {
-      out += fmt::format(", \"fault\": \"{}\"", e.fault);
+      out += fmt::format(R"(, "fault": "{}")", e.fault);
     }
     if (!e.detail.empty()) {
-      out += fmt::format(", \"detail\": \"{}\"", json_escape(e.detail));
+      out += fmt::format(R"(, "detail": "{}")", json_escape(e.detail));
     }
     out += "}";
   }
@@ -184,7 +184,7 @@ int cmd_info(const InfoOptions& o) {
         c.telemetry_timeouts, c.disconnects, c.reconnects, c.faults, c.reseeds, c.round_trip.count(),
         json_number(rtt_p50_s), json_number(rtt_p99_s), json_number(rtt_max_s));
     if (o.log) {
-      out += fmt::format(", \"log\": {{\"kind\": \"{}\", \"fault\": \"{}\", \"records\": {}}}",
+      out += fmt::format(R"(, "log": {{"kind": "{}", "fault": "{}", "records": {}}})",
                          faulted ? "fault" : "ring",
                          faulted ? mrskin::fault_name(session.last_fault_code()) : "",
                          json_log(session.decode_log(faulted ? session.fault_log() : session.ring_log())));

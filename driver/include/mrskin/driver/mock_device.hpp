@@ -200,6 +200,7 @@ class MockDevice {
   Datagram held_{};  // reorder: the datagram held back
   bool holding_ = false;
   std::vector<std::uint8_t> calibration_blob_;
+  std::vector<std::uint8_t> calibration_pending_;  // a write in progress
   std::vector<std::uint8_t> profile_blob_;
   std::atomic<double> max_coil_C_{25.0};
   std::atomic<std::uint64_t> dropped_{0};

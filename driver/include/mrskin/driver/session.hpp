@@ -83,6 +83,7 @@ struct SessionCounters {
   std::uint64_t reconnects = 0;
   std::uint64_t faults = 0;
   std::uint64_t reseeds = 0;           // explicit enables that re-seeded the command state
+  std::uint64_t state_retries = 0;     // state requests sent again: no status confirmed them
   std::uint64_t identity_changes = 0;  // another unit answered a reconnect: refused
   DurationHistogram round_trip;        // heartbeat sent -> its echo received
 };
@@ -192,6 +193,8 @@ class DeviceSession {
   ResultCode request_disable() noexcept;
   ResultCode request_pause() noexcept;
   ResultCode request_estop() noexcept;
+  // A state request is repeated every handshake_retry (at most 10 times) until a status
+  // confirms the state, or a new FAULT overrides it: a lossy link cannot eat an enable.
   // Stops heartbeats (used to test the device's watchdog).
   void suppress_heartbeat(bool suppress) noexcept { suppress_heartbeat_ = suppress; }
 
@@ -212,6 +215,14 @@ class DeviceSession {
   [[nodiscard]] TransportState transport_state() const noexcept { return transport_->state(); }
 
   // --- off the tick thread -------------------------------------------------------------
+  // Writes the calibration into the device's configuration memory and reads it back
+  // (info().calibration then holds it). Call between ticks, like the constructor: blocks up
+  // to handshake_timeout without progress. The device takes it only while not ENABLED and
+  // only with a "version = N" line above the stored calibration's. Throws InvalidArgument
+  // (too long, version not above the stored one), Error (device ENABLED or refusing),
+  // Timeout, DeviceNotFound (link down).
+  void write_calibration(std::string_view text);
+
   // The last N packets, oldest first (allocates).
   [[nodiscard]] std::vector<TrafficRecord> ring_log() const;
   // The ring log as it was when the last fault arrived (empty if none).
@@ -234,6 +245,8 @@ class DeviceSession {
   void apply_identity(const protocol::Identity& id);
   [[nodiscard]] bool same_unit(const protocol::Identity& id) const noexcept;
   std::string read_config(protocol::ConfigKey key);
+  void await_config_ack(std::uint16_t offset);
+  ResultCode send_state_request(protocol::StateRequestCode request) noexcept;
   void await_identity(TimePoint deadline);
   void load_profile();
   void reseed_and_send() noexcept;
@@ -260,6 +273,10 @@ class DeviceSession {
   bool valves_released_ = true;
   bool derated_ = false;
   bool suppress_heartbeat_ = false;
+  bool state_request_pending_ = false;
+  std::uint8_t pending_request_ = 0;
+  int state_retries_left_ = 0;
+  TimePoint next_state_retry_{};
   bool connected_ = true;
   bool identify_pending_ = false;
   TimePoint next_reconnect_{};
@@ -292,8 +309,9 @@ class DeviceSession {
     std::vector<std::uint8_t> have;  // per chunk
     std::size_t received = 0;
     bool progress = false;
-    bool refused = false;
-    std::uint8_t refusal = 0;
+    bool acked = false;  // a ConfigAck for key arrived
+    std::uint16_t ack_offset = 0;
+    std::uint8_t ack_status = 0;
   };
   ConfigTransfer config_;
 };
