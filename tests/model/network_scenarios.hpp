@@ -4,8 +4,10 @@
 
 #include <algorithm>
 #include <cmath>
+#include <fstream>
 #include <map>
 #include <memory>
+#include <sstream>
 #include <string>
 #include <vector>
 
@@ -23,6 +25,25 @@ inline const DeviceModel& model_of(const std::string& name) {
     m = std::make_unique<DeviceModel>(load_profile(kProfileDir + "/" + name + ".toml"));
   }
   return *m;
+}
+
+// The palm profile's small, stiff cells on a 5 x 5 grid: nodes far stiffer than a 1 ms step
+// (a cell's free annulus holds ~6e-17 m^3/Pa, its passages conduct ~7e-12 m^3/(s Pa)).
+inline DeviceModel palm_cells_5x5() {
+  std::ifstream f(kProfileDir + "/palm-64x64.toml");
+  std::stringstream text;
+  text << f.rdbuf();
+  std::string t = text.str();
+  auto replace = [&t](const std::string& from, const std::string& to) {
+    const std::size_t at = t.find(from);
+    if (at != std::string::npos) {
+      t.replace(at, from.size(), to);
+    }
+  };
+  replace("rows = 64", "rows = 5");
+  replace("cols = 64", "cols = 5");
+  replace("cell = \"32,32\"", "cell = \"2,2\"");
+  return DeviceModel(parse_profile(t, "palm-cells-5x5"));
 }
 
 inline double max_yield_Pa(const DeviceModel& m) {

@@ -185,6 +185,8 @@ struct NetworkSimulation::Impl {
   std::vector<double> force;
   std::vector<double> chamber_p;
   std::vector<double> q;
+  std::vector<double> prev_e;  // the step before (Newton's predictor)
+  double prev_dt = 0.0;        // 0: no step since construction or reset
   std::array<double, kMaxContacts> contact_force{};
   double work = 0.0;
   double stored = 0.0;
@@ -219,6 +221,7 @@ struct NetworkSimulation::Impl {
   Status one_solve(double dt) noexcept;
   Status forward_euler(double dt) noexcept;
   Status run_trial(double dt) noexcept;
+  Status check_linearisation() noexcept;
   void finish_volumes(const Eval& at, double dt) noexcept;
   void finish_state(const Eval& depths) noexcept;
   void compute_depths() noexcept;
@@ -350,6 +353,7 @@ NetworkSimulation::Impl::Impl(DeviceModel m, const NetworkOptions& o)
   valve_tau.assign(valves, 0.0);
   direct_depth.assign(cells, 0.0);
   e.assign(nodes, 0.0);
+  prev_e.assign(nodes, 0.0);
   d.assign(cells, 0.0);
   velocity.assign(cells, 0.0);
   node_p.assign(nodes, p0);
@@ -513,9 +517,25 @@ bool NetworkSimulation::Impl::assemble_and_factorize(const Eval& ev, double dt) 
 // Damped Newton on the discrete-gradient step: unknowns e1, J de = -R solved as M y = -R,
 // de = c y (y: the pressure correction), backtracking on |R|.
 Status NetworkSimulation::Impl::newton(double dt, bool regularised) noexcept {
-  std::copy(e.begin(), e.end(), cur.e.begin());
-  if (const Status s = evaluate(cur, dt, true, regularised); s != Status::ok) {
-    return s;
+  // Start from the last step's flows carried on (e0 + dt/dt_prev (e0 - e_prev)): while the
+  // flows change smoothly that is within a Newton step or two of the answer.
+  const double ratio = prev_dt > 0.0 ? std::min(dt / prev_dt, 4.0) : 0.0;
+  for (std::size_t n = 0; n < nodes; ++n) {
+    cur.e[n] = e[n] + ratio * (e[n] - prev_e[n]);
+  }
+  const bool dg = !opt.backward_euler;
+  Status first = evaluate(cur, dt, dg, regularised);
+  if (ratio > 0.0) {
+    // After a jump in the inputs the start state may be the better guess: keep the smaller residual.
+    std::copy(e.begin(), e.end(), trial.e.begin());
+    if (evaluate(trial, dt, dg, regularised) == Status::ok &&
+        (first != Status::ok || trial.norm2 < cur.norm2)) {
+      cur.swap(trial);
+      first = Status::ok;
+    }
+  }
+  if (first != Status::ok) {
+    return first;
   }
   double last_update = std::numeric_limits<double>::infinity();
   double scale = 0.0;
@@ -560,7 +580,7 @@ Status NetworkSimulation::Impl::newton(double dt, bool regularised) noexcept {
       for (std::size_t n = 0; n < nodes; ++n) {
         trial.e[n] = cur.e[n] + alpha * de[n];
       }
-      const Status s = evaluate(trial, dt, true, regularised);
+      const Status s = evaluate(trial, dt, dg, regularised);
       const bool ok = s == Status::ok;
       if (ok && trial.norm2 <= (1.0 - kArmijo * alpha) * cur.norm2) {
         break;
@@ -608,6 +628,24 @@ Status NetworkSimulation::Impl::one_solve(double dt) noexcept {
   report.volume_residual_m3 = 0.0;
   finish_volumes(cur, dt);
   return Status::ok;
+}
+
+// The one solve predicted the new pressures as p0 + y; the laws at the new volumes give new_p.
+// Far apart, the step was too long for its linearisation (stiff cells, a jump in the inputs):
+// say so rather than return a state the model does not support.
+Status NetworkSimulation::Impl::check_linearisation() noexcept {
+  double scale = 1.0;
+  double worst = 0.0;
+  for (std::size_t n = 0; n < nodes; ++n) {
+    const double predicted = cur.p[n] + y[n];
+    scale = std::max({scale, std::fabs(predicted), std::fabs(new_p[n])});
+    worst = std::max(worst, std::fabs(new_p[n] - predicted));
+  }
+  for (const double t : valve_tau) {
+    scale = std::max(scale, model.valve_law().yield_pressure_Pa(t));
+  }
+  report.linearisation_error = worst / scale;
+  return report.linearisation_error <= opt.linearisation_tolerance ? Status::ok : Status::out_of_regime;
 }
 
 Status NetworkSimulation::Impl::forward_euler(double dt) noexcept {
@@ -684,6 +722,9 @@ Status NetworkSimulation::Impl::run_trial(double dt) noexcept {
       if (s == Status::ok) {
         finish_state(trial);
       }
+      if (s == Status::ok && opt.stepper == Stepper::linearly_implicit_regularised) {
+        s = check_linearisation();
+      }
       break;
   }
   if (s != Status::ok) {
@@ -745,20 +786,24 @@ Status NetworkSimulation::Impl::solve_one_contact(std::size_t c, double dt) noex
   if (k.force_N <= tol) {
     return eval(lo);
   }
-  const double start = std::clamp(contact_ind[c], lo, deepest);
+  double start = std::clamp(contact_ind[c], lo, deepest);
   double hi = start;
   double fhi = flo;
   if (start > lo) {
-    if (const Status s = eval(start); s != Status::ok) {
+    const Status s = eval(start);
+    if (s == Status::out_of_regime) {
+      start = lo;  // a warm start too far for the linearised stepper: search up from the touch
+    } else if (s != Status::ok) {
       return s;
-    }
-    fhi = contact_error(c);
-    if (std::fabs(fhi) <= tol) {
-      return Status::ok;
-    }
-    if (fhi < 0.0) {
-      lo = start;
-      flo = fhi;
+    } else {
+      fhi = contact_error(c);
+      if (std::fabs(fhi) <= tol) {
+        return Status::ok;
+      }
+      if (fhi < 0.0) {
+        lo = start;
+        flo = fhi;
+      }
     }
   }
   double step = std::max(start - touch, 1e-3 * cell_depth);
@@ -767,7 +812,13 @@ Status NetworkSimulation::Impl::solve_one_contact(std::size_t c, double dt) noex
       return Status::out_of_range;  // the finger would reach the cell's floor first
     }
     hi = std::min(lo + step, deepest);
-    if (const Status s = eval(hi); s != Status::ok) {
+    const Status s = eval(hi);
+    if (s == Status::out_of_regime && step > 1e-9 * cell_depth) {
+      step *= 0.25;  // too long a stride for the linearised stepper's one solve
+      fhi = -1.0;
+      continue;
+    }
+    if (s != Status::ok) {
       return s;
     }
     fhi = contact_error(c);
@@ -854,15 +905,23 @@ double NetworkSimulation::Impl::stored_energy() const noexcept {
 // Work: the discrete-gradient force between the two states times the pad's travel, so that
 // work = stored change + dissipated exactly for the discrete-gradient steppers.
 void NetworkSimulation::Impl::commit(double dt) noexcept {
+  // Backward Euler pairs with the end-of-step force (then work - stored change - dissipated is
+  // its numerical dissipation, >= 0 by convexity); the discrete gradient with its own.
+  const bool end_force = opt.backward_euler && (opt.stepper == Stepper::implicit_exact ||
+                                                opt.stepper == Stepper::implicit_regularised);
   for (std::size_t i = 0; i < cells; ++i) {
     const double d0 = d[i];
     const double d1 = new_d[i];
-    const double f =
-        pad.discrete_grad(d0, d1) + area * bulge.discrete_grad(s_of(d0, e[i]), s_of(d1, new_e[i]));
+    const double s0 = s_of(d0, e[i]);
+    const double s1 = s_of(d1, new_e[i]);
+    const double f = end_force ? pad.grad(d1) + area * bulge.grad(s1)
+                               : pad.discrete_grad(d0, d1) + area * bulge.discrete_grad(s0, s1);
     work += f * (d1 - d0);
     velocity[i] = (d1 - d0) / dt;
   }
   dissipated += new_dissipated;
+  std::copy(e.begin(), e.end(), prev_e.begin());
+  prev_dt = dt;
   e.swap(new_e);
   d.swap(new_d);
   q.swap(new_q);
@@ -877,6 +936,8 @@ void NetworkSimulation::Impl::commit(double dt) noexcept {
 
 void NetworkSimulation::Impl::reset() noexcept {
   std::fill(e.begin(), e.end(), 0.0);
+  std::fill(prev_e.begin(), prev_e.end(), 0.0);
+  prev_dt = 0.0;
   std::fill(d.begin(), d.end(), 0.0);
   std::fill(velocity.begin(), velocity.end(), 0.0);
   std::fill(force.begin(), force.end(), 0.0);

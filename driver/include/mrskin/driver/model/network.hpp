@@ -57,6 +57,17 @@ struct NetworkOptions {
   double pressure_tolerance_Pa = 1.0e-6;
   // Force-mode contacts: |contact force - force_N| at which the indentation solve stops, N.
   double force_tolerance_N = 1.0e-9;
+  // Implicit steppers: evaluate the passages at the end-of-step pressures (backward Euler)
+  // instead of the discrete gradient. L-stable: no ringing of nodes much stiffer than dt (the
+  // small cells of 16x16 and 64x64 profiles), first order, and it dissipates numerically: the
+  // energy gap work - stored change - dissipated is then that numerical dissipation (>= 0).
+  bool backward_euler = false;
+  // linearly_implicit_regularised: the step fails with out_of_regime when the pressures its one
+  // solve predicted differ from the laws' at the new volumes by more than this fraction of the
+  // pressure scale (largest predicted or new pressure, or yield threshold): dt too long for the
+  // linearisation (stiff cells, a jump in the inputs). StepReport::linearisation_error reports
+  // the fraction.
+  double linearisation_tolerance = 0.25;
 };
 
 // A fingertip on the skin: a sphere of radius radius_m whose lowest point is at (x_m, y_m) in the
@@ -75,9 +86,10 @@ struct Contact {
 };
 
 struct StepReport {
-  int iterations = 0;               // Newton iterations (1 for the one-solve steppers)
-  double volume_residual_m3 = 0.0;  // largest node balance residual after the step
-  std::size_t locked_links = 0;     // passages inside their yield band
+  int iterations = 0;                // Newton iterations (1 for the one-solve steppers)
+  double volume_residual_m3 = 0.0;   // largest node balance residual after the step
+  std::size_t locked_links = 0;      // passages inside their yield band
+  double linearisation_error = 0.0;  // linearly_implicit_regularised only (see NetworkOptions)
 };
 
 struct NetworkEnergy {

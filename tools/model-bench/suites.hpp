@@ -1,0 +1,12 @@
+// The model-bench suites, selected by `--suite`. Each writes its CSV and SVG files into
+// options.out, prints a summary and returns the process exit code.
+#pragma once
+
+#include "bench_common.hpp"
+
+namespace mrskin::bench {
+
+int run_valve_suite(const BenchOptions& o);    // valve laws: exact, Wereley-Pang, fast
+int run_network_suite(const BenchOptions& o);  // network steppers and scaling
+
+}  // namespace mrskin::bench
