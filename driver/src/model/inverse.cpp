@@ -280,6 +280,7 @@ struct CellInverse::Impl {
     bool one_sided = false;  // aim at the lock: any valve pressure above it renders the same
     double demand_Pa = 0.0;  // uniform level that renders the aim alone (< 0: not computed yet)
     double p_open_Pa = 0.0;  // valves' pressure with every valve open
+    double p_full_Pa = 0.0;  // ... at the maximum current (capped at the lock)
     // x^n expanded about the last base instead of a pow() a tick (see derive).
     double pow_base_m = 0.0;
     double pow_value = 0.0;
@@ -563,9 +564,13 @@ struct CellInverse::Impl {
   double demand_of(std::size_t cell) noexcept {
     Derived& d = derived[2 * cell + cache[cell].sel];
     if (d.demand_Pa < 0.0) {
-      d.demand_Pa = d.aim_Pa <= d.p_open_Pa
-                        ? t_min  // the floor (or a lock at or below it)
-                        : std::clamp(demand(cell, d.flow_m3_per_s, d.aim_Pa), t_min, t_max);
+      if (d.aim_Pa <= d.p_open_Pa) {
+        d.demand_Pa = t_min;  // the floor (or a lock at or below it)
+      } else if (d.aim_Pa >= d.p_full_Pa && !d.one_sided) {
+        d.demand_Pa = t_max;  // the ceiling: exactly the maximum current
+      } else {
+        d.demand_Pa = std::clamp(demand(cell, d.flow_m3_per_s, d.aim_Pa), t_min, t_max);
+      }
     }
     return d.demand_Pa;
   }
@@ -992,6 +997,7 @@ Status CellInverse::Impl::derive(std::size_t cell, const CellImpedanceTarget& g,
     d.aim_Pa = lock;
   }
   d.p_open_Pa = p_open;
+  d.p_full_Pa = p_full;
   d.demand_Pa = -1.0;  // computed when a cold solve needs it (demand_of)
   return Status::ok;
 }
@@ -1307,6 +1313,30 @@ void CellInverse::Impl::solve_component(std::size_t comp) noexcept {
         merit = evaluate_rows();  // far from the aim: relinearise where needed
       }
       merit = gauss_newton(warm ? kMinDamping : kStartDamping, converged, merit);
+      if (!converged && warm) {
+        // The last solve's levels led nowhere (e.g. a press turned into a hold, where the weakest
+        // valve rules): start again from the demands, as a cold solve would.
+        for (std::size_t k = 0; k < comp_valves.size(); ++k) {
+          double level = t_min;
+          for (std::uint32_t j = inc_begin[k]; j < inc_begin[k + 1]; ++j) {
+            level = std::max(level, demand_of(comp_cells[inc_row[j]]));
+          }
+          best[k] = t[comp_valves[k]];
+          t[comp_valves[k]] = level;
+        }
+        bool cold_converged = false;
+        const double cold = gauss_newton(kStartDamping, cold_converged, evaluate_rows());
+        if (cold < merit) {
+          merit = cold;
+          converged = cold_converged;
+        } else {
+          for (std::size_t k = 0; k < comp_valves.size(); ++k) {
+            t[comp_valves[k]] = best[k];
+          }
+          merit = evaluate_rows();
+        }
+        warm = false;  // and the escapes below if still short
+      }
     }
     if (!converged && !warm) {
       // A cold start can stall where two cells pull a shared valve both ways and symmetry keeps
@@ -1737,17 +1767,23 @@ bool CellInverse::Impl::chord_step() noexcept {
   bool clamped = false;
   const double* tp = t.data();
   const std::uint32_t* vp = comp_valves.data();
+  const double eps = 1e-9 * t_max;
   for (std::size_t k = 0; k < nv; ++k) {
     const double tk = tp[vp[k]];
-    if (pb[k] != 0) {
-      t1[k] = tk;
-      continue;
-    }
     const std::uint32_t lo = inc_begin[k];
     const std::uint32_t hi = inc_begin[k + 1];
     double u = tk;
     for (std::uint32_t j = lo; j < hi; ++j) {
       u += ij[j] * dual[inc_row[j]];
+    }
+    if (pb[k] != 0) {
+      // A bound valve the step would pull inside: the active set changed, refactorise.
+      if ((pb[k] == 1 && u > t_min + eps) || (pb[k] == 2 && u < t_max - eps)) {
+        factor_age[comp_id] = -1;
+        return false;
+      }
+      t1[k] = tk;
+      continue;
     }
     clamped = clamped || u < t_min || u > t_max;
     u = std::clamp(u, t_min, t_max);
