@@ -24,6 +24,7 @@ constexpr std::uint8_t kFirmwareMinor = 2;
 constexpr std::uint8_t kFirmwarePatch = 0;
 constexpr std::size_t kDelayLineCapacity = 4096;
 constexpr std::size_t kConfigCapacity = 4096;
+constexpr std::size_t kAnswerReserve = 64;  // device->host slots telemetry may not take
 
 std::uint64_t splitmix(std::uint64_t& s) noexcept {
   std::uint64_t z = (s += 0x9E3779B97F4A7C15ULL);
@@ -332,7 +333,7 @@ void MockDevice::set_link_up(bool up) noexcept {
 }
 
 MockDevice::FaultCounters MockDevice::fault_counters() const noexcept {
-  return {dropped_.load(), duplicated_.load(), corrupted_.load(), reordered_.load()};
+  return {dropped_.load(), duplicated_.load(), corrupted_.load(), reordered_.load(), congested_.load()};
 }
 
 void MockDevice::set_finger_indentation(std::span<const double> indentation_m) noexcept {
@@ -405,7 +406,15 @@ void MockDevice::flush_delayed(TimePoint now) noexcept {
     if (slot.due > now) {
       break;
     }
-    (void)to_host_.try_push(slot.datagram);  // a full queue drops the datagram, as a bus would
+    // The host is not reading fast enough: like a unit's transmit buffer, the link keeps room
+    // for answers (identity, configuration, status, echoes) and drops telemetry first, whose
+    // next sample supersedes it.
+    const bool telemetry = slot.datagram.length > 1 &&
+                           slot.datagram.bytes[1] == static_cast<std::uint8_t>(proto::MessageType::telemetry);
+    const bool room = to_host_.size_approx() + (telemetry ? kAnswerReserve : 0) < to_host_.capacity();
+    if (!room || !to_host_.try_push(slot.datagram)) {
+      congested_.fetch_add(1, std::memory_order_relaxed);
+    }
     delay_head_ = (delay_head_ + 1) % delay_line_.size();
     --delay_count_;
   }
@@ -754,6 +763,21 @@ void MockDevice::step(TimePoint now) noexcept {
   }
   plant_->set_finger_indentation(std::span<const double>(scratch_.data(), finger_m_.size()));
   const Duration dt = from_seconds(options_.physics_dt_s);
+  const Duration max_behind = from_seconds(options_.max_catch_up_s);
+  if (now - last_step_ > max_behind) {
+    // Too slow for real time (an overloaded or sanitised build): skip whole substeps rather
+    // than spiral, so the unit keeps answering; telemetry resumes at the new time.
+    const auto substeps = (now - max_behind - last_step_) / dt;
+    last_step_ += substeps * dt;
+    skipped_ns_.fetch_add((substeps * dt).count(), std::memory_order_relaxed);
+    const Duration period = from_seconds(options_.telemetry_period_s);
+    if (next_telemetry_ < last_step_) {
+      next_telemetry_ += ((last_step_ - next_telemetry_) / period + 1) * period;
+    }
+    if (next_status_ + from_seconds(options_.status_period_s) < now) {
+      next_status_ = now;
+    }
+  }
   while (last_step_ + dt <= now) {
     update_coils(options_.physics_dt_s);
     plant_->step(options_.physics_dt_s);
@@ -761,6 +785,7 @@ void MockDevice::step(TimePoint now) noexcept {
     if (last_step_ >= next_telemetry_) {
       emit_telemetry(last_step_);
       next_telemetry_ += from_seconds(options_.telemetry_period_s);
+      handle_host_input(last_step_);  // a long catch-up still answers within a period
     }
   }
   plant_->contact_forces(std::span<double>(scratch_.data(), truth_N_.size()));

@@ -52,6 +52,7 @@ struct MockOptions {
   double perturbation = 0.15;        // plant parameters within +-15 % of nominal
   double physics_dt_s = 1e-4;        // plant substep
   double telemetry_period_s = 1e-3;  // one telemetry packet per period
+  double max_catch_up_s = 0.05;      // a step() further behind skips the excess (skipped_time_s())
   double status_period_s = 0.1;      // status also goes out on every change
   double heartbeat_timeout_s = 0.1;  // valves released after this silence
   double sensor_noise_scale = 1.0;   // multiplies the profile's noise_std (0: noise-free)
@@ -130,16 +131,23 @@ class MockDevice {
   // Pulls (false) or re-plugs (true) the cable. A re-plugged unit boots DISABLED.
   void set_link_up(bool up) noexcept;
   [[nodiscard]] bool link_up() const noexcept { return link_up_.load(std::memory_order_acquire); }
+  // Simulated time skipped because step() fell further behind than max_catch_up_s, s; any
+  // thread. Zero when stepped at least every max_catch_up_s (every test rig).
+  [[nodiscard]] double skipped_time_s() const noexcept {
+    return static_cast<double>(skipped_ns_.load(std::memory_order_relaxed)) * 1e-9;
+  }
   // Hottest coil temperature, deg C; callable from any thread.
   [[nodiscard]] double max_coil_temperature_C() const noexcept {
     return max_coil_C_.load(std::memory_order_relaxed);
   }
-  // Datagrams the fault injector dropped, duplicated, corrupted, in both directions.
+  // Datagrams the fault injector dropped, duplicated, corrupted, reordered (both directions),
+  // and the device->host datagrams the link lost because the host was not reading.
   struct FaultCounters {
     std::uint64_t dropped = 0;
     std::uint64_t duplicated = 0;
     std::uint64_t corrupted = 0;
     std::uint64_t reordered = 0;
+    std::uint64_t congested = 0;  // device->host datagrams lost because the host did not read
   };
   [[nodiscard]] FaultCounters fault_counters() const noexcept;
 
@@ -207,6 +215,8 @@ class MockDevice {
   std::atomic<std::uint64_t> duplicated_{0};
   std::atomic<std::uint64_t> corrupted_{0};
   std::atomic<std::uint64_t> reordered_{0};
+  std::atomic<std::uint64_t> congested_{0};
+  std::atomic<std::int64_t> skipped_ns_{0};
   std::uint64_t fault_rng_;
   TimePoint start_{};
   TimePoint bus_off_until_{};
