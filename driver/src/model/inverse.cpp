@@ -11,6 +11,7 @@
 #endif
 #include <limits>
 #include <string>
+#include <type_traits>
 #include <utility>
 
 #include "mrskin/driver/errors.hpp"
@@ -106,7 +107,7 @@ inline HermiteValue linear(const double* tab, double u) noexcept {
   constexpr double kK = kLinearSegments;
   const double su = u * kK;
   const int k = std::min(static_cast<int>(su), kLinearSegments - 1);
-  const double* p = tab + 2 * k;
+  const double* p = tab + 2 * static_cast<std::ptrdiff_t>(k);
   return {p[0] + (su - k) * p[1], p[1] * kK};
 }
 
@@ -231,7 +232,15 @@ Status check_target(const CellImpedanceTarget& t) noexcept {
 }
 
 // Targets compare without their validity time: refreshing it is not a change of the law.
-// Bitwise: the cache holds only validated laws, so a bitwise match needs no new validation.
+// Bitwise equality, on purpose: the cache holds the last call's validated inputs, so a bitwise
+// match needs no new validation (a -0 for a +0, or any NaN, differs and is examined again).
+template <class T>
+bool same_bits(const T& a, const T& b) noexcept {
+  static_assert(std::is_trivially_copyable_v<T>);
+  return std::memcmp(&a, &b, sizeof(T)) == 0;  // NOLINT(bugprone-suspicious-memory-comparison)
+}
+
+// The law without its validity time, bitwise (as above).
 bool same_law(const CellImpedanceTarget& a, const CellImpedanceTarget& b) noexcept {
   static_assert(offsetof(CellImpedanceTarget, valid_until_s) == 6 * sizeof(double));
   return std::memcmp(&a, &b, 6 * sizeof(double)) == 0;
@@ -412,7 +421,7 @@ struct CellInverse::Impl {
     double dq_dp = 0.0;
     double dq_dt = 0.0;
   };
-  Flow branch_flow(const Branch& b, double p, double tv) const noexcept {
+  static Flow branch_flow(const Branch& b, double p, double tv) noexcept {
     if (tv <= 0.0) {  // also every unmagnetised branch
       return {p * b.inv_gn, b.inv_gn, -b.a * b.inv_gn};
     }
@@ -426,7 +435,7 @@ struct CellInverse::Impl {
     return {h.value * over * b.inv_gn, (k * tv + h.value) * b.inv_gn, (-k * p - b.s * h.value) * b.inv_gn};
   }
   // Flow and dq/dP only (the residual-only rows).
-  void branch_q(const Branch& b, double p, double tv, double& q, double& dq_dp) const noexcept {
+  static void branch_q(const Branch& b, double p, double tv, double& q, double& dq_dp) noexcept {
     if (tv <= 0.0) {
       q += p * b.inv_gn;
       dq_dp += b.inv_gn;
@@ -554,7 +563,7 @@ struct CellInverse::Impl {
     const double u =
         std::clamp((tau_Pa - tau_min) * current_scale, 0.0, static_cast<double>(kCurrentSegments));
     const int k = std::min(static_cast<int>(u), kCurrentSegments - 1);
-    const double* p = current_lerp.data() + 2 * k;
+    const double* p = current_lerp.data() + 2 * static_cast<std::ptrdiff_t>(k);
     return p[0] + (u - k) * p[1];
   }
 
@@ -856,7 +865,7 @@ void CellInverse::Impl::build_tables() {
       ty.omega.y[ku] = sh.s / phi;
       ty.omega.dy[ku] = -sh.s / (phi * phi) * dphi_dkappa * 2.0 * sigma / sh.g;
     }
-    ty.psi_linear.assign(2 * (kLinearSegments + 1), 0.0);
+    ty.psi_linear.assign(2 * (static_cast<std::size_t>(kLinearSegments) + 1), 0.0);
     for (int k = 0; k <= kLinearSegments; ++k) {
       const double zk = static_cast<double>(k) / kLinearSegments;
       ty.psi_linear[2 * static_cast<std::size_t>(k)] = hermite(ty.psi.y.data(), ty.psi.dy.data(), zk).value;
@@ -915,7 +924,7 @@ void CellInverse::Impl::build_current_table(const DeviceModel& model) {
   }
   current_table.front() = 0.0;
   current_table.back() = max_current;
-  current_lerp.assign(2 * (kCurrentSegments + 1), 0.0);
+  current_lerp.assign(2 * (static_cast<std::size_t>(kCurrentSegments) + 1), 0.0);
   for (int k = 0; k <= kCurrentSegments; ++k) {
     const auto ku = static_cast<std::size_t>(k);
     current_lerp[2 * ku] = current_table[ku];
@@ -1020,8 +1029,7 @@ Status CellInverse::Impl::solve(std::span<const CellImpedanceTarget> targets,
     const CellCache& cc = cache[i];
     // Inputs bitwise as last time (validated then): only the clock can change the role.
     const bool expired = now_s > g.valid_until_s;
-    if (cc.valid && std::memcmp(&g, &cc.raw_target, sizeof g) == 0 &&
-        std::memcmp(&s, &cc.raw_state, sizeof s) == 0 && expired == cc.expired) {
+    if (cc.valid && same_bits(g, cc.raw_target) && same_bits(s, cc.raw_state) && expired == cc.expired) {
       continue;
     }
     seen.push_back(static_cast<std::uint32_t>(i));

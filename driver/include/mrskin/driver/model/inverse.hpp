@@ -126,8 +126,8 @@ class CellInverse {
   ~CellInverse();
   CellInverse(const CellInverse&) = delete;
   CellInverse& operator=(const CellInverse&) = delete;
-  CellInverse(CellInverse&&) noexcept;
-  CellInverse& operator=(CellInverse&&) noexcept;
+  CellInverse(CellInverse&& other) noexcept;
+  CellInverse& operator=(CellInverse&& other) noexcept;
 
   [[nodiscard]] std::size_t fluid_cell_count() const noexcept;
   [[nodiscard]] std::size_t valve_count() const noexcept;
