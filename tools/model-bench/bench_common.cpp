@@ -96,10 +96,10 @@ bool LogLogPlot::write(const std::string& path) const {
     std::cerr << "cannot write " << path << "\n";
     return false;
   }
-  const double w = 860;
+  const double mr = legend ? legend_width : 30;
+  const double w = 730 + mr;
   const double h = 520;
   const double ml = 90;
-  const double mr = legend ? 230 : 30;
   const double mt = 60;
   const double mb = 60;
   auto sx = [&](double v) {

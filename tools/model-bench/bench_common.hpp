@@ -81,6 +81,7 @@ struct LogLogPlot {
   std::vector<PlotSeries> series;
   std::vector<RefLine> refs;
   bool legend = true;
+  double legend_width = 230;  // px right of the frame
   // false (and a message on stderr) when the file cannot be written.
   [[nodiscard]] bool write(const std::string& path) const;
 };
