@@ -86,6 +86,8 @@ TEST_F(InverseModel, ForwardPressureMatchesDeviceModel) {
 }
 
 TEST_F(InverseModel, TablesAreAccurate) {
+  std::printf("tables: branch flow max relative error %.3g, current inverse max error %.3g Pa\n",
+              inv.branch_table_max_relative_error(), inv.current_table_max_error_Pa());
   EXPECT_LT(inv.branch_table_max_relative_error(), 1e-4);
   // The current inverse round-trips through the model's own yield table.
   EXPECT_LT(inv.current_table_max_error_Pa(), 1e-6);

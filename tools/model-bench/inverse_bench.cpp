@@ -253,7 +253,9 @@ Tracking run_tracking(const DeviceModel& m) {
 }  // namespace
 
 int run_inverse_bench(const std::string& out_dir, const DeviceModel& model, bool progress) {
+  const auto built = Clock::now();
   CellInverse inv(model);
+  const double build_s = std::chrono::duration<double>(Clock::now() - built).count();
   const std::vector<Case> cases = make_cases(model);
   std::ofstream csv(out_dir + "/inverse_cases.csv");
   std::ofstream methods(out_dir + "/inverse_methods.csv");
@@ -289,7 +291,10 @@ int run_inverse_bench(const std::string& out_dir, const DeviceModel& model, bool
   // Per method and kind: time and error distributions.
   methods << "method,kind,cases,time_per_solve_s_median,max_err_N_median,max_err_N_p95,max_err_N_max\n";
   std::cout << "inverse: " << cases.size() << " cases (" << kCasesPerKind
-            << " each kind), fast timed as the median of " << kFastRepetitions << " cold solves\n";
+            << " each kind), fast timed as the median of " << kFastRepetitions
+            << " cold solves; construction " << fixed(build_s * 1e3, 1)
+            << " ms (tables: branch flow max relative error " << sci(inv.branch_table_max_relative_error(), 2)
+            << ", current inverse max error " << sci(inv.current_table_max_error_Pa(), 2) << " Pa)\n";
   std::cout << pad("method", 8, true) << pad("kind", 18, true) << pad("time/solve", 12)
             << pad("err median", 12) << pad("err p95", 12) << pad("err max", 12) << "\n";
   LogLogPlot plot;
