@@ -14,36 +14,35 @@ Bridge::Bridge(DeviceSession& session, SlaveSource& source, BridgeOptions option
   if (!(options_.rate_hz >= 1.0 && options_.rate_hz <= 20000.0)) {
     throw InvalidArgument("bridge rate " + std::to_string(options_.rate_hz) + " Hz is outside 1..20000 Hz");
   }
+  const model::DeviceProfile* profile = session.profile();
+  if (profile == nullptr) {
+    throw InvalidArgument(
+        "the bridge needs the device's profile: open the device with SessionOptions::read_configuration = "
+        "true");
+  }
   const std::size_t cells = layout_.fluid_cell_count();
-  if (session.info().sensors != cells) {
-    throw InvalidArgument("device has " + std::to_string(session.info().sensors) + " sensors for " +
-                          std::to_string(cells) +
-                          " fluid cells; this bridge needs one displacement sensor per fluid cell "
-                          "(the network observer for other sensor layouts is not built yet)");
+  if (session.info().sensors != profile->sensors.size() || session.info().valves != layout_.valve_count() ||
+      profile->rows != layout_.rows() || profile->cols != layout_.cols()) {
+    throw InvalidArgument("device '" + profile->name + "' reports " + std::to_string(session.info().sensors) +
+                          " sensors and " + std::to_string(session.info().valves) +
+                          " valves, which its stored profile does not match: rewrite the device's profile");
   }
-  if (session.info().valves != layout_.valve_count()) {
-    throw InvalidArgument("device reports " + std::to_string(session.info().valves) + " valves but a " +
-                          std::to_string(layout_.rows()) + " x " + std::to_string(layout_.cols()) +
-                          " checkerboard has " + std::to_string(layout_.valve_count()));
-  }
-  indentation_m_.assign(cells, 0.0);
-  previous_indentation_m_.assign(cells, 0.0);
-  rate_m_per_s_.assign(cells, 0.0);
+  model_ = std::make_unique<model::DeviceModel>(*profile);
+  observer_ = std::make_unique<model::CellObserver>(*model_, options_.observer);
+  inverse_ = std::make_unique<model::CellInverse>(*model_, options_.inverse);
+  targets_.assign(cells, model::CellImpedanceTarget{});
+  states_.assign(cells, model::CellState{});
   target_N_.assign(cells, 0.0);
-  demand_N_.assign(cells, 0.0);
+  feedback_N_.assign(cells, 0.0);
   truth_N_.assign(cells, 0.0);
-  contact_.assign(cells, 0);
-  loading_.assign(cells, 0);
   current_A_.assign(layout_.valve_count(), 0.0);
-  valve_yield_N_.assign(layout_.valve_count(), 0.0);
-  residual_N_.assign(cells, 0.0);
 }
 
 Bridge::~Bridge() { stop(); }
 
 ResultCode Bridge::enable() noexcept { return session_.request_enable(); }
 
-void Bridge::compute_targets(TimePoint now) noexcept {
+void Bridge::update_tissue_model(TimePoint now) noexcept {
   const double dt = 1.0 / options_.rate_hz;
   // Online tissue model: secant stiffness of the slave's force-indentation stream.
   SlaveSample sample;
@@ -64,127 +63,75 @@ void Bridge::compute_targets(TimePoint now) noexcept {
     ++stats_.stale_ticks;
     model_gain_ = std::clamp(1.0 - (age_s - options_.stale_hold_s) / options_.stale_fade_s, 0.0, 1.0);
   }
-  const auto sensors = session_.sensors();
-  const double k_m = options_.model.membrane_stiffness_N_per_m;
-  const double k_c = options_.model.contact_stiffness_N_per_m;
-  for (std::size_t i = 0; i < indentation_m_.size(); ++i) {
-    const double x = sensors[i];
-    // Filtered rate: raw differences of a noisy sensor at 1 kHz are mm/s of noise.
-    const double v_raw = (x - previous_indentation_m_[i]) / dt;
-    const double beta = dt / (options_.rate_filter_s + dt);
-    rate_m_per_s_[i] += beta * (v_raw - rate_m_per_s_[i]);
-    const double v = rate_m_per_s_[i];
-    previous_indentation_m_[i] = x;
-    indentation_m_[i] = x;
-    contact_[i] = x > options_.contact_threshold_m ? 1 : 0;
-    // Loading/holding vs unloading, with hysteresis.
-    if (v < -options_.unload_rate_m_per_s) {
-      loading_[i] = 0;
-    } else if (v > options_.unload_rate_m_per_s || contact_[i] == 0) {
-      loading_[i] = 1;
-    }
-    if (contact_[i] == 0) {
-      target_N_[i] = 0.0;
-      demand_N_[i] = 0.0;
-      continue;
-    }
-    // Renderable envelope: valves open (membrane only) up to valves locked (contact
-    // stiffness), and never above the device's range.
-    const double f_min = k_m * x;
-    const double f_max = std::min(options_.max_force_N, k_c * x);
-    const double wanted = model_gain_ * (stiffness_N_per_m_ * x + damping_N_s_per_m_ * v);
-    const double clamped = std::clamp(wanted, f_min, std::max(f_min, f_max));
-    ++stats_.target_cell_ticks;
-    if (clamped != wanted) {
-      ++stats_.clamped_cell_ticks;
-    }
-    target_N_[i] = clamped;
-    if (loading_[i] == 0) {
-      // Unloading: a semi-active cell can only let go; release so the membrane returns.
-      demand_N_[i] = 0.0;
-      continue;
-    }
-    // Yield force the valves must hold: target minus the membrane's share.
-    const double fluid_m = std::max(0.0, x - clamped / k_c);
-    demand_N_[i] = std::max(0.0, clamped - k_m * fluid_m);
-  }
   live_stiffness_.store(stiffness_N_per_m_, std::memory_order_relaxed);
 }
 
-void Bridge::allocate_currents() noexcept {
-  // A cell's yield force is the mean of its valves' (shared with neighbours), so the 12
-  // valves are one allocation: least squares over contacted cells with 0 <= f <= f_max,
-  // solved by projected coordinate descent.
-  const double max_A = session_.info().max_current_A;
-  const double max_yield_N = placeholder_yield_force(options_.model, max_A, max_A);
-  constexpr double kRidge = 1e-6;
-  // Start from each valve carrying the mean demand of the cells it touches.
-  for (std::size_t v = 0; v < valve_yield_N_.size(); ++v) {
-    double sum = 0.0;
-    int n = 0;
-    for (const std::size_t c : layout_.cells_of_valve(v)) {
-      if (contact_[c] != 0) {
-        sum += demand_N_[c];
-        ++n;
+void Bridge::compute_targets() noexcept {
+  const double dt = 1.0 / options_.rate_hz;
+  const std::span<const double> depth_m = observer_->indentation_m();
+  const std::span<const double> rate_m_per_s = observer_->velocity_m_per_s();
+  const std::span<const double> force_N = observer_->force_N();
+  const std::span<const model::CellSolution> last = inverse_->cells();
+  // A target stays valid until the stale policy would have faded it out.
+  const double valid_until_s =
+      slave_.valid ? to_seconds(slave_.stamp - start_) + options_.stale_hold_s + options_.stale_fade_s : 0.0;
+  const double stiffness = model_gain_ * stiffness_N_per_m_;
+  for (std::size_t i = 0; i < targets_.size(); ++i) {
+    // A membrane sucked in after a release reads as depth with no force on it: no finger.
+    const bool contact = depth_m[i] > options_.contact_threshold_m && force_N[i] > options_.contact_force_N;
+    double rate = rate_m_per_s[i];
+    if (std::abs(rate) < options_.unload_rate_m_per_s) {
+      rate = 0.0;  // holding: the observer's rate noise must not release a held press
+    }
+    states_[i].indentation_m = contact ? depth_m[i] : 0.0;
+    states_[i].rate_m_per_s = contact ? rate : 0.0;
+    const model::CellRole role = last[i].role;
+    const bool loaded = contact && (role == model::CellRole::loading || role == model::CellRole::holding);
+    // The tissue law's force at the state, clamped into the envelope the inverse last reported:
+    // what the finger should feel (the feedback's shift is not part of it).
+    const double tissue_N = stiffness * states_[i].indentation_m + model_gain_ * damping_N_s_per_m_ * rate;
+    target_N_[i] = loaded ? std::clamp(std::min(tissue_N, options_.max_force_N), last[i].force_min_N,
+                                       std::max(last[i].force_min_N, last[i].force_max_N))
+                          : 0.0;
+    if (!loaded) {
+      feedback_N_[i] = 0.0;
+    } else {
+      const double error_N = target_N_[i] - force_N[i];
+      const bool wound_up = (error_N > 0.0 && last[i].clamped_high) || (error_N < 0.0 && last[i].clamped_low);
+      if (!wound_up) {
+        feedback_N_[i] = std::clamp(feedback_N_[i] + options_.feedback_gain_per_s * dt * error_N,
+                                    -options_.feedback_limit_N, options_.feedback_limit_N);
       }
     }
-    valve_yield_N_[v] = n == 0 ? 0.0 : std::min(sum / n, max_yield_N);
-  }
-  for (std::size_t c = 0; c < residual_N_.size(); ++c) {
-    residual_N_[c] = 0.0;
-    if (contact_[c] == 0) {
-      continue;
-    }
-    const auto& valves = layout_.valves_of_cell(c);
-    double mean = 0.0;
-    for (const std::size_t v : valves) {
-      mean += valve_yield_N_[v];
-    }
-    residual_N_[c] = mean / static_cast<double>(valves.size()) - demand_N_[c];
-  }
-  for (int sweep = 0; sweep < options_.allocation_sweeps; ++sweep) {
-    for (std::size_t v = 0; v < valve_yield_N_.size(); ++v) {
-      double gradient = kRidge * valve_yield_N_[v];
-      double curvature = kRidge;
-      for (const std::size_t c : layout_.cells_of_valve(v)) {
-        if (contact_[c] != 0) {
-          const double w = 1.0 / static_cast<double>(layout_.valves_of_cell(c).size());
-          gradient += w * residual_N_[c];
-          curvature += w * w;
-        }
-      }
-      const double updated = std::clamp(valve_yield_N_[v] - gradient / curvature, 0.0, max_yield_N);
-      const double delta = updated - valve_yield_N_[v];
-      if (delta == 0.0) {
-        continue;
-      }
-      valve_yield_N_[v] = updated;
-      for (const std::size_t c : layout_.cells_of_valve(v)) {
-        if (contact_[c] != 0) {
-          residual_N_[c] += delta / static_cast<double>(layout_.valves_of_cell(c).size());
-        }
-      }
-    }
-  }
-  for (std::size_t v = 0; v < current_A_.size(); ++v) {
-    bool touched = false;
-    for (const std::size_t c : layout_.cells_of_valve(v)) {
-      touched = touched || contact_[c] != 0;
-    }
-    if (!touched) {
-      valve_yield_N_[v] = 0.0;  // nothing to resist: release
-    }
-    current_A_[v] = placeholder_current_for_yield(options_.model, valve_yield_N_[v], max_A);
+    model::CellImpedanceTarget& t = targets_[i];
+    t.stiffness_N_per_m = stiffness;
+    t.damping_N_s_per_m = model_gain_ * damping_N_s_per_m_;
+    // The correction enters as a shift of the tissue's surface: k (x - offset) = k x + feedback.
+    t.surface_offset_m = stiffness > 1.0 ? -feedback_N_[i] / stiffness : 0.0;
+    t.force_ceiling_N = options_.max_force_N;
+    t.valid_until_s = valid_until_s;
   }
 }
 
 void Bridge::score() noexcept {
+  const std::span<const model::CellSolution> cells = inverse_->cells();
+  for (std::size_t i = 0; i < target_N_.size(); ++i) {
+    const bool loaded =
+        cells[i].role == model::CellRole::loading || cells[i].role == model::CellRole::holding;
+    if (loaded) {
+      ++stats_.target_cell_ticks;
+      if (cells[i].clamped_low || cells[i].clamped_high) {
+        ++stats_.clamped_cell_ticks;
+      }
+    }
+  }
   if (truth_ == nullptr) {
     return;
   }
   truth_->true_forces(truth_N_);
   for (std::size_t i = 0; i < truth_N_.size(); ++i) {
-    if (contact_[i] == 0 || loading_[i] == 0) {
+    const model::CellRole role = cells[i].role;
+    if (role != model::CellRole::loading && role != model::CellRole::holding) {
       continue;
     }
     const double e = truth_N_[i] - target_N_[i];
@@ -202,8 +149,29 @@ ResultCode Bridge::step(TimePoint now) noexcept {
   if (rc == ResultCode::disconnected) {
     return rc;
   }
-  compute_targets(now);
-  allocate_currents();
+  if (!started_) {
+    start_ = now;
+    started_ = true;
+  }
+  const double dt = 1.0 / options_.rate_hz;
+  if (observer_->update(session_.sensors(), current_A_, dt) != model::Status::ok) {
+    ++stats_.observer_errors;  // the estimate of the last good tick stands
+  }
+  update_tissue_model(now);
+  compute_targets();
+  if (inverse_->solve(targets_, states_, to_seconds(now - start_)) == model::Status::ok) {
+    const std::span<const double> currents = inverse_->currents_A();
+    std::copy(currents.begin(), currents.end(), current_A_.begin());
+    stats_.inverse_residual_sum_N += inverse_->report().residual_norm_N;
+    if (inverse_->report().from_cache) {
+      ++stats_.inverse_cached;
+    }
+  } else {
+    ++stats_.inverse_errors;  // the last good currents stand
+  }
+  for (const double a : current_A_) {
+    stats_.max_current_A = std::max(stats_.max_current_A, a);
+  }
   const ResultCode sent = session_.send_valve_currents(current_A_);
   if (sent != ResultCode::ok) {
     ++stats_.send_failures;
@@ -217,8 +185,6 @@ ResultCode Bridge::step(TimePoint now) noexcept {
   if (static_cast<double>(took_ns) > 1e9 / options_.rate_hz) {
     ++stats_.overruns;
   }
-  last_tick_ = now;
-  have_last_tick_ = true;
   return rc;
 }
 

@@ -202,7 +202,7 @@ OpenedDevice open_device(std::string_view uri, Clock& clock, const OpenOptions& 
     const LoadedProfile profile = load_profile_with_text(parsed.profile);
     opened.lock = std::make_unique<DeviceLock>(uri);
     parsed.options.time_scale = std::max(parsed.options.time_scale, session_options.time_scale);
-    opened.mock = MockDevice::make_placeholder(parsed.options, profile);
+    opened.mock = MockDevice::make(parsed.options, profile);
     if (!options.synchronous_mock) {
       opened.mock->start(clock);
     }

@@ -11,6 +11,7 @@
 #include <string>
 
 #include "mrskin/driver/errors.hpp"
+#include "mrskin/driver/network_plant.hpp"
 #include "mrskin/protocol/packet.hpp"
 #include "mrskin/protocol/units.hpp"
 
@@ -278,20 +279,20 @@ MockDevice::MockDevice(const model::DeviceProfile& profile, std::string_view pro
   profile_blob_.assign(profile_text.begin(), profile_text.end());
 }
 
-std::shared_ptr<MockDevice> MockDevice::make_placeholder(const MockOptions& options,
-                                                         const LoadedProfile& loaded) {
-  // TEMPORARY (until the network plant): the placeholder's sensors replace the profile's.
-  const std::string text = placeholder_profile_text(loaded.text, loaded.profile);
-  const model::DeviceProfile profile =
-      text == loaded.text ? loaded.profile : model::parse_profile(text, loaded.path + " (mock placeholder)");
-  auto plant =
-      std::make_unique<PlaceholderPlant>(profile, PlaceholderParams{}, options.perturbation, options.seed);
-  return std::make_shared<MockDevice>(profile, text, options, std::move(plant));
+std::shared_ptr<MockDevice> MockDevice::make(const MockOptions& options, const LoadedProfile& loaded) {
+  NetworkPlantOptions plant_options;
+  plant_options.perturbation = options.perturbation;
+  plant_options.seed = options.seed;
+  // The firmware adds the sensors' noise and quantisation itself (MockOptions).
+  plant_options.sensor_noise_scale = 0.0;
+  plant_options.quantise_sensors = false;
+  auto plant = std::make_unique<NetworkPlant>(loaded.profile, plant_options);
+  return std::make_shared<MockDevice>(loaded.profile, loaded.text, options, std::move(plant));
 }
 
-std::shared_ptr<MockDevice> MockDevice::make_placeholder(const MockOptions& options,
-                                                         std::string_view profile_name_or_path) {
-  return make_placeholder(options, load_profile_with_text(profile_name_or_path));
+std::shared_ptr<MockDevice> MockDevice::make(const MockOptions& options,
+                                             std::string_view profile_name_or_path) {
+  return make(options, load_profile_with_text(profile_name_or_path));
 }
 
 MockDevice::~MockDevice() { stop(); }

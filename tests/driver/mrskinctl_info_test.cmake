@@ -19,7 +19,7 @@ endfunction()
 # Identity, protocol, profile, layout, limits, calibration, state and statistics.
 run_info(0 --device "mock://?seed=1" --sample 0.05)
 foreach(t "protocol     v1.0 (library speaks v1.0)" "profile      mr-skin-5x5" "grid         5 x 5: 13 fluid cells, 12 valves"
-          "sensors      13 displacement sensors in m" "limits       current 0..0.1000 A in steps of 25.0 uA"
+          "sensors      12 displacement sensors in m" "limits       current 0..0.1000 A in steps of 25.0 uA"
           "heartbeat timeout 0.100 s" "state        DISABLED" "calibration" "version = 1" "statistics over 0.05 s"
           "round trip")
   expect("${t}" "${out}")
@@ -33,7 +33,7 @@ endforeach()
 # A fault during the sample: --log prints the decoded fault report.
 run_info(0 --device "mock://?seed=2&faults=busoff:0.02" --sample 0.15 --log)
 foreach(t "state        FAULT (fault: bus off)" "fault: bus off at" "packets before it, oldest first" "telemetry"
-          "sensors 0..12 [m]:" "status        FAULT (fault: bus off)")
+          "sensors 0..11 [m]:" "status        FAULT (fault: bus off)")
   expect("${t}" "${out}")
 endforeach()
 run_info(0 --device "mock://?seed=2&faults=busoff:0.02" --sample 0.15 --log --json)

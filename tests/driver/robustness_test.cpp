@@ -70,13 +70,13 @@ class TestLink final : public Transport {
   const Clock& clock_;
 };
 
-// A session on a TestLink to a synchronous placeholder mock, at a time scale.
+// A session on a TestLink to a synchronous mock, at a time scale.
 struct LinkRig {
   explicit LinkRig(double time_scale, std::uint32_t serial = 0x4D520001) {
     MockOptions mock_options;
     mock_options.time_scale = time_scale;
     mock_options.serial = serial;
-    mock = MockDevice::make_placeholder(mock_options);
+    mock = MockDevice::make(mock_options);
     auto owned = std::make_unique<TestLink>(mock->connect(true, &clock), clock);
     link = owned.get();
     link->identify_times.reserve(1000);
@@ -178,7 +178,7 @@ TEST(Reconnect, AnotherUnitOnThePortIsRefused) {
   rig.run(5);
   MockOptions other_options;
   other_options.serial = 0x4D520002;
-  rig.other = MockDevice::make_placeholder(other_options, "fingertip-16x16");
+  rig.other = MockDevice::make(other_options, "fingertip-16x16");
   rig.link->replace_device(rig.other->connect(true, &rig.clock));
   rig.link->down = false;
   rig.run(500);
@@ -258,8 +258,10 @@ INSTANTIATE_TEST_SUITE_P(
         // Sensor faults are no link faults: the unit cannot tell (docs/api.md).
         LinkFault{"stuck:3", nullptr, 0, nullptr, 0,
                   [](const DeviceSession& s) {
-                    EXPECT_NEAR(s.sensors()[3], 0.0, 1e-5);  // frozen though the finger is at 1 mm
-                    EXPECT_NEAR(s.sensors()[4], 1e-3, 1e-4);
+                    // Valve (1,2) joins both pressed cells: it would read 0.5 mm, but is frozen.
+                    EXPECT_NEAR(s.sensors()[3], 0.0, 1e-5);
+                    // Valve (1,4) joins three fluid cells, one of them pressed 1 mm.
+                    EXPECT_NEAR(s.sensors()[4], 1e-3 / 3, 1e-5);
                   }},
         LinkFault{"noisy:4", nullptr, 0, &SessionCounters::telemetry, 600, [](const DeviceSession& s) {
                     EXPECT_EQ(s.counters().decode_errors + s.counters().sequence_gaps, 0U);

@@ -8,6 +8,7 @@
 #include <deque>
 #include <fstream>
 #include <functional>
+#include <sstream>
 #include <string>
 #include <vector>
 
@@ -44,9 +45,9 @@ TEST(Session, HandshakeReadsIdentityProfileAndCalibration) {
   EXPECT_EQ(profile->name, "mr-skin-5x5");
   EXPECT_EQ(profile->rows, 5);
   EXPECT_DOUBLE_EQ(profile->coil.max_current_A, 0.1);
-  // The placeholder plant measures at the fluid cells: the stored profile says so.
-  EXPECT_EQ(profile->sensors.size(), 13U);
-  EXPECT_EQ(info.sensors, 13U);
+  // One displacement sensor under each valve cell, as the profile declares.
+  EXPECT_EQ(profile->sensors.size(), 12U);
+  EXPECT_EQ(info.sensors, 12U);
   rig.run(10);
   EXPECT_EQ(rig.dev.session->state(), DeviceState::disabled);
   EXPECT_GT(rig.dev.session->counters().telemetry, 5U);
@@ -193,13 +194,14 @@ TEST(Session, ReconnectsAfterUnplugAndKeepsItsConfiguration) {
 }
 
 TEST(Session, StuckSensorFreezesWhileTheFingerMoves) {
+  // Sensors 3 and 6 sit under valves (1,2) and (2,3), both beside the centre cell (fluid cell 6)
+  // and three more fluid cells: each reads a quarter of the centre's depth.
   Rig rig("mock://?seed=9&faults=stuck:6");
   rig.finger[6] = 2e-3;
-  rig.finger[5] = 2e-3;
   rig.run(50);
   const auto sensors = rig.dev.session->sensors();
   EXPECT_NEAR(sensors[6], 0.0, 1e-5);  // frozen at its first reading
-  EXPECT_NEAR(sensors[5], 2e-3, 1e-5);
+  EXPECT_NEAR(sensors[3], 0.5e-3, 1e-5);
 }
 
 TEST(Session, NoisySensorIsNoisy) {
@@ -328,15 +330,15 @@ TEST(RingLog, FaultReportIsDecodedIntoSiUnits) {
       saw_telemetry = true;
       EXPECT_TRUE(e.has_device_time);
       EXPECT_EQ(e.unit, "m");
-      ASSERT_EQ(e.values.size(), 13U);
-      EXPECT_NEAR(e.values[6], 2e-3, 1e-4);
+      ASSERT_EQ(e.values.size(), 12U);  // under the valves; valve 6 is beside the pressed centre
+      EXPECT_NEAR(e.values[6], 2e-3 / 4, 1e-4);
     }
   }
   EXPECT_TRUE(saw_currents);
   EXPECT_TRUE(saw_telemetry);
   const std::string report = session.fault_report();
   for (const char* needle : {"fault: emergency stop at ", "last 64 packets", "tx #", "rx #", "currents",
-                             "valves 0..11 [A]: 0.050000", "telemetry", "device ", "sensors 0..12 [m]:",
+                             "valves 0..11 [A]: 0.050000", "telemetry", "device ", "sensors 0..11 [m]:",
                              "state request e-stop", "status", "FAULT (fault: emergency stop)"}) {
     EXPECT_NE(report.find(needle), std::string::npos) << needle << "\n" << report;
   }
@@ -400,9 +402,11 @@ TEST(MockProfiles, GridCurrentRangeAndSensorsComeFromTheProfile) {
     EXPECT_EQ(rig.dev.session->profile()->sensors.size(), info.sensors);
     EXPECT_EQ(rig.dev.mock->profile().name, rig.dev.session->profile()->name);
     // Every sensor reports: telemetry covers the whole grid.
+    // The last sensor sits under the last valve, which reads the mean depth of its fluid cells.
     rig.finger.back() = 1e-4;
     rig.run(20);
-    EXPECT_NEAR(rig.dev.session->sensors().back(), 1e-4, 10 * c.sensor_lsb_m);
+    const double joined = static_cast<double>(layout.cells_of_valve(layout.valve_count() - 1).size());
+    EXPECT_NEAR(rig.dev.session->sensors().back(), 1e-4 / joined, 10 * c.sensor_lsb_m);
   }
 }
 
@@ -452,7 +456,23 @@ struct TempProfile {
 
 std::string default_profile_text() { return load_profile_with_text("").text; }
 
-TEST(MockProfiles, AProfileFileIsStoredVerbatimWhenThePlaceholderCanServeItsSensors) {
+// profile_text with its [sensors] table (up to the next table header) replaced by sensors_toml.
+std::string replace_sensors_section(const std::string& profile_text, const std::string& sensors_toml) {
+  std::string out;
+  std::istringstream in(profile_text);
+  bool skipping = false;
+  for (std::string line; std::getline(in, line);) {
+    if (line.starts_with("[")) {
+      skipping = line.starts_with("[sensors");
+    }
+    if (!skipping) {
+      out += line + "\n";
+    }
+  }
+  return out + sensors_toml;
+}
+
+TEST(MockProfiles, AProfileFileWithForceSensorsAtTheFluidCellsIsStoredVerbatim) {
   const std::string text =
       replace_sensors_section(default_profile_text(),
                               "[sensors]\ngenerate = \"per_fluid_cell\"\nquantity = \"force\"\nunit = \"N\"\n"
@@ -492,8 +512,8 @@ TEST(Session, ReadsALargeProfileOverAThreadedMockInTime) {
   OpenedDevice dev = open_device("mock://palm-64x64?seed=3", clock);  // the mock runs its own thread
   ASSERT_NE(dev.session->profile(), nullptr);
   const LoadedProfile file = load_profile_with_text("palm-64x64");
-  EXPECT_EQ(dev.session->info().profile, placeholder_profile_text(file.text, file.profile));
-  EXPECT_EQ(dev.session->profile()->sensors.size(), dev.session->info().fluid_cells);
+  EXPECT_EQ(dev.session->info().profile, file.text);
+  EXPECT_EQ(dev.session->profile()->sensors.size(), dev.session->info().sensors);
 }
 
 // Packets the session sent after a point of its ring log, decoded.
@@ -528,8 +548,10 @@ TEST(Enable, ReseedsTargetsFromTheMeasuredStateAfterAFault) {
   ASSERT_EQ(session.state(), DeviceState::fault);
   rig.finger[6] = 3e-3;  // the finger moves while the unit is in FAULT
   rig.run(30);           // the session polls; it sends no currents in FAULT
-  const double measured_m = session.sensors()[6];
-  EXPECT_NEAR(measured_m, 3e-3, 2e-5);
+  // The seeding rule's estimate for the centre: the mean of its four valve sensors, each a
+  // quarter of its depth.
+  const double measured_m = TargetSeeder(*session.profile()).displacement_m(6, session.sensors());
+  EXPECT_NEAR(measured_m, 3e-3 / 4, 2e-5);
 
   const TimePoint enabled_at = rig.clock.now();
   ASSERT_EQ(session.request_enable(), ResultCode::ok);

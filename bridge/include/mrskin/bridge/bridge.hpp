@@ -1,10 +1,13 @@
-// The bridge loop: slave stream -> tissue model -> per-cell targets inside the renderable
-// envelope -> valve currents -> frames. step(now) is the tick; it never allocates, locks,
-// blocks, logs or throws.
+// The bridge loop: slave stream -> tissue model -> per-cell impedance targets -> the inverse's
+// one allocation over the shared valves (targets clamped into the renderable envelope) ->
+// valve currents -> frames. The cells' indentation and rate come from the observer, which reads
+// the device's sensors through the nominal network model of the profile read from the device.
+// step(now) is the tick; it never allocates, locks, blocks, logs or throws.
 #pragma once
 
 #include <atomic>
 #include <cstdint>
+#include <memory>
 #include <span>
 #include <thread>
 #include <vector>
@@ -13,7 +16,9 @@
 #include "mrskin/bridge/stats.hpp"
 #include "mrskin/driver/clock.hpp"
 #include "mrskin/driver/errors.hpp"
-#include "mrskin/driver/plant.hpp"
+#include "mrskin/driver/model/device_model.hpp"
+#include "mrskin/driver/model/inverse.hpp"
+#include "mrskin/driver/model/observer.hpp"
 #include "mrskin/driver/session.hpp"
 
 namespace mrskin::bridge {
@@ -25,10 +30,14 @@ struct BridgeOptions {
   double stale_hold_s = 0.1;           // hold the last tissue model this long...
   double stale_fade_s = 0.2;           // ...then fade to released over this long
   double stiffness_filter_s = 0.02;    // time constant of the online stiffness estimate
-  double rate_filter_s = 0.02;         // time constant of the indentation-rate filter
-  double unload_rate_m_per_s = 2e-3;   // faster withdrawal than this counts as unloading
-  int allocation_sweeps = 8;           // coordinate-descent sweeps per tick
-  PlaceholderParams model{};           // nominal device model the controller inverts
+  double unload_rate_m_per_s = 2e-3;   // rates within +-this are holding (observer noise)
+  double contact_force_N = 0.03;       // estimated force below this: the finger is not on the cell
+  // Integral feedback on the observer's force, 1/s: corrects what the quasi-static inverse does
+  // not know (the cell's fluid history, coil lag); frozen while the target is clamped.
+  double feedback_gain_per_s = 20.0;
+  double feedback_limit_N = 0.5;
+  model::ObserverOptions observer{};
+  model::InverseOptions inverse{};
 };
 
 // Ground truth for scoring (the mock's true contact forces); optional.
@@ -45,7 +54,8 @@ class ForceTruth {
 
 class Bridge {
  public:
-  // Setup: allocates everything the tick needs. Throws InvalidArgument on bad options.
+  // Setup: allocates everything the tick needs. Throws InvalidArgument on bad options or when
+  // the session has no profile (opened without reading the device's configuration).
   Bridge(DeviceSession& session, SlaveSource& source, BridgeOptions options = {});
   Bridge(const Bridge&) = delete;
   Bridge& operator=(const Bridge&) = delete;
@@ -77,38 +87,39 @@ class Bridge {
     return live_stiffness_.load(std::memory_order_relaxed);
   }
   [[nodiscard]] std::span<const double> targets_N() const noexcept { return target_N_; }
+  [[nodiscard]] std::span<const double> currents_A() const noexcept { return current_A_; }
+  [[nodiscard]] const model::CellObserver& observer() const noexcept { return *observer_; }
+  [[nodiscard]] const model::CellInverse& inverse() const noexcept { return *inverse_; }
   [[nodiscard]] double tick_period_s() const noexcept { return 1.0 / options_.rate_hz; }
   void set_perf_clock(const Clock* clock) noexcept { perf_clock_ = clock; }
 
  private:
-  void compute_targets(TimePoint now) noexcept;
-  void allocate_currents() noexcept;
+  void update_tissue_model(TimePoint now) noexcept;
+  void compute_targets() noexcept;
   void score() noexcept;
 
   DeviceSession& session_;
   SlaveSource& source_;
   BridgeOptions options_;
   GridLayout layout_;
+  std::unique_ptr<model::DeviceModel> model_;
+  std::unique_ptr<model::CellObserver> observer_;
+  std::unique_ptr<model::CellInverse> inverse_;
   const ForceTruth* truth_ = nullptr;
   const Clock* perf_clock_ = nullptr;
   MonotonicClock default_perf_clock_;
-  std::vector<double> indentation_m_;
+  std::vector<model::CellImpedanceTarget> targets_;
+  std::vector<model::CellState> states_;
   std::vector<double> target_N_;
-  std::vector<double> demand_N_;
+  std::vector<double> feedback_N_;  // integral correction per cell
   std::vector<double> current_A_;
-  std::vector<double> valve_yield_N_;
-  std::vector<double> residual_N_;
   std::vector<double> truth_N_;
-  std::vector<std::uint8_t> contact_;
-  std::vector<std::uint8_t> loading_;
-  std::vector<double> previous_indentation_m_;
-  std::vector<double> rate_m_per_s_;
   SlaveSample slave_{};
   double stiffness_N_per_m_ = 0.0;
   double damping_N_s_per_m_ = 0.0;
   double model_gain_ = 0.0;  // 1 fresh, fading to 0 when stale
-  TimePoint last_tick_{};
-  bool have_last_tick_ = false;
+  TimePoint start_{};
+  bool started_ = false;
   BridgeStats stats_;
   std::atomic<std::uint64_t> live_ticks_{0};
   std::atomic<double> live_rms_N_{0.0};

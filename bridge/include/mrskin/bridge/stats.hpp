@@ -26,6 +26,11 @@ struct BridgeStats {
   double force_max_abs_error_N = 0.0;
   std::uint64_t target_cell_ticks = 0;
   std::uint64_t clamped_cell_ticks = 0;
+  std::uint64_t observer_errors = 0;    // ticks whose observer update failed (estimate held)
+  std::uint64_t inverse_errors = 0;     // ticks whose allocation failed (currents held)
+  std::uint64_t inverse_cached = 0;     // ticks on which nothing was dirty: no allocation work
+  double max_current_A = 0.0;           // largest valve current commanded
+  double inverse_residual_sum_N = 0.0;  // per tick: the allocation's residual norm (fast model)
 
   [[nodiscard]] double force_rms_error_N() const noexcept;
   [[nodiscard]] double clamped_fraction() const noexcept;

@@ -91,12 +91,12 @@ class MockDevice {
   // range above 4095 counts, sensors of several quantities or resolutions) or the plant.
   MockDevice(const model::DeviceProfile& profile, std::string_view profile_text, const MockOptions& options,
              std::unique_ptr<Plant> plant);
-  // TEMPORARY: the placeholder plant on a profile (default: the default profile), until the
-  // network plant replaces it. The stored profile is placeholder_profile_text() of the file's.
-  static std::shared_ptr<MockDevice> make_placeholder(const MockOptions& options,
-                                                      std::string_view profile_name_or_path = "");
-  static std::shared_ptr<MockDevice> make_placeholder(const MockOptions& options,
-                                                      const LoadedProfile& loaded);
+  // A unit on the perturbed network plant (NetworkPlant: the profile's reference physics with
+  // parameters spread by options.perturbation, seeded by options.seed), built to a profile
+  // (default: the default profile). Throws InvalidArgument naming the profile on failure.
+  static std::shared_ptr<MockDevice> make(const MockOptions& options,
+                                          std::string_view profile_name_or_path = "");
+  static std::shared_ptr<MockDevice> make(const MockOptions& options, const LoadedProfile& loaded);
   MockDevice(const MockDevice&) = delete;
   MockDevice& operator=(const MockDevice&) = delete;
   MockDevice(MockDevice&&) = delete;
