@@ -681,9 +681,12 @@ TEST(ModelNetwork, BadInputsGiveExplicitErrorsAndLeaveTheStateAlone) {
 TEST(ModelNetwork, ResetAndMoveKeepItUsable) {
   const DeviceModel& m = skin();
   NetworkSimulation sim(m, NetworkOptions{});
+  const std::span<const double> force = sim.cell_force_N();  // stays live across steps
   press_cell(sim, design_cell(m), 3e-3);
   ASSERT_TRUE(sim.step(1e-3).ok());
   EXPECT_GT(sim.energy().work_J, 0.0);
+  EXPECT_EQ(force.data(), sim.cell_force_N().data());
+  EXPECT_GT(force[design_cell(m)], 0.0);
   NetworkSimulation moved(std::move(sim));
   EXPECT_GT(moved.cell_force_N()[design_cell(m)], 0.0);
   moved.reset();

@@ -922,11 +922,12 @@ void NetworkSimulation::Impl::commit(double dt) noexcept {
   dissipated += new_dissipated;
   std::copy(e.begin(), e.end(), prev_e.begin());
   prev_dt = dt;
-  e.swap(new_e);
-  d.swap(new_d);
-  q.swap(new_q);
-  node_p.swap(new_p);
-  force.swap(new_force);
+  // Copies, not swaps: spans handed out by the accessors keep pointing at the live state.
+  std::copy(new_e.begin(), new_e.end(), e.begin());
+  std::copy(new_d.begin(), new_d.end(), d.begin());
+  std::copy(new_q.begin(), new_q.end(), q.begin());
+  std::copy(new_p.begin(), new_p.end(), node_p.begin());
+  std::copy(new_force.begin(), new_force.end(), force.begin());
   contact_force = new_contact_force;
   for (std::size_t v = 0; v < valves; ++v) {
     chamber_p[v] = chamber_node[v] == kNone ? 0.0 : node_p[static_cast<std::size_t>(chamber_node[v])];

@@ -2,17 +2,23 @@
 // reservoir, joined by the profile's Bingham passages (HydraulicLink), stepped in time.
 //
 // Nodes and their stored energy (all pressures gauge, Pa; volumes m^3):
-//   fluid cell i   bulge volume s_i = A_eff d_i + e_i (d_i: pad depth under the finger, e_i: the
-//                  cell's net fluid gain through its passages); p_i = p_b(s_i) (cell.hpp), stored
-//                  energy U_pad(d_i) + U_bulge(s_i); force on the finger F_i = F_m(d_i) + A_eff p_i.
-//   chamber v      rigid housing, fluid compressibility only: p = e_v / C_ch (C_ch small).
+//   fluid cell i   bulge volume s_i = s_rest + A_eff d_i + e_i (d_i: pad depth, e_i: the cell's
+//                  net fluid gain through its passages, s_rest = bulge_volume_m3(p0));
+//                  p_i = p_b(s_i) (cell.hpp), stored energy U_pad(d_i) + U_bulge(s_i); force on
+//                  the finger F_i = F_m(d_i) + A_eff p_i.
+//   chamber v      rigid housing, fluid compressibility only: p = p0 + e_v / C_ch (C_ch small).
 //   reservoir      p = p0 + e_r / C_r (profile [reservoir]).
+// At rest every node is at p0. The finger only pushes: the pad sits at the contact depth while
+// F_i >= 0; when the fluid pulls the membrane down faster than the finger retreats the pad
+// follows F_i = 0 below the finger (contact force 0). A cell no finger touches keeps d_i = 0.
 // Link l from a to b carries q_l = Q_l(p_a - p_b): the exact Bingham law of valve.hpp at the
 // yield stress of its coil (zero flow inside the yield band: the passage locks), or a
 // regularised law for the fast steppers. Node balance: de_n/dt = sum of inflows.
 //
-// Invariants (tests): sum_n e_n is constant (volume), and for the energy-consistent stepper
-// work_J == stored_J - stored_J(initial) + dissipated_J to round-off.
+// Invariants (tests): sum_n e_n is constant (volume, every stepper), and for the
+// discrete-gradient steppers work_J == stored_J - stored_J(initial) + dissipated_J to round-off
+// (dissipated: each passage's flow times the pressure difference its law was evaluated at).
+// docs/model-network.md has the schemes, their accuracy and cost.
 //
 // Setup (constructor) may throw mrskin::InvalidArgument. After construction nothing allocates:
 // set_*, step() and the accessors are noexcept and allocation-free.
@@ -32,19 +38,21 @@ enum class Stepper : unsigned char {
   // Discrete-gradient implicit step with the exact Bingham law (stick and slip), solved by damped
   // Newton on the step's convex potential; exact energy balance; stable when valves lock.
   implicit_exact,
-  // Same scheme, regularised yield (smooth law, one conductance floor inside the yield band).
+  // Same scheme, regularised yield: Q_exact(x) + (G_N / regularisation_viscosity_factor) x, a
+  // Newtonian creep inside the yield band, smooth and strictly monotone everywhere.
   implicit_regularised,
   // One linearised (Rosenbrock-Euler) solve per step with the regularised law: the fast stepper.
   linearly_implicit_regularised,
-  // Forward Euler with the regularised law: a benchmark baseline only (unstable at large dt).
+  // Forward Euler with the regularised law: a benchmark baseline only (the chambers make it
+  // unstable above dt ~ 2 C_ch / sum G, ~5e-6 s on the 5x5).
   explicit_euler,
 };
 const char* to_string(Stepper s) noexcept;
 
 struct NetworkOptions {
   Stepper stepper = Stepper::implicit_exact;
-  // Regularised law: inside the yield band the passage conducts as a Newtonian slot whose
-  // viscosity is this factor times the fluid's (large: nearly locked).
+  // Regularised law: a Newtonian conductance whose viscosity is this factor times the fluid's
+  // is added to the exact law (inside the yield band: the creep of a nearly locked passage).
   double regularisation_viscosity_factor = 1.0e4;
   // Compliance of a valve chamber (fluid bulk modulus ~1.5 GPa on the chamber's volume).
   double chamber_compliance_m3_per_Pa = 1.0e-14;
@@ -74,7 +82,9 @@ struct NetworkOptions {
 // skin's frame (origin at the centre of cell (0,0), x along columns, y along rows, pitch
 // apart). Each fluid cell's pad depth is indentation_m - r^2 / (2 radius_m), r the distance from
 // the contact point to the cell centre, floored at 0; several contacts take the deepest.
-// In force mode the indentation is solved so that the contact's total force equals force_N.
+// In force mode the indentation is solved each step (bracketed Illinois search, every evaluation
+// a trial step) so that the contact's total force equals force_N; indentation_m is its first
+// guess. A negative indentation (finger above the skin) is valid.
 struct Contact {
   enum class Mode : unsigned char { indentation, force };
   double x_m = 0.0;
@@ -87,7 +97,7 @@ struct Contact {
 
 struct StepReport {
   int iterations = 0;                // Newton iterations (1 for the one-solve steppers)
-  double volume_residual_m3 = 0.0;   // largest node balance residual after the step
+  double volume_residual_m3 = 0.0;   // implicit steppers: Newton's final residual (others 0)
   std::size_t locked_links = 0;      // passages inside their yield band
   double linearisation_error = 0.0;  // linearly_implicit_regularised only (see NetworkOptions)
 };
@@ -120,19 +130,23 @@ class NetworkSimulation {
   [[nodiscard]] std::size_t node_count() const noexcept;
   [[nodiscard]] std::size_t factor_nonzeros() const noexcept;
 
-  // Inputs, taking effect at the next step. out_of_range on a size mismatch, not_finite or
-  // negative on bad values (the previous inputs stay).
+  // Inputs, taking effect at the next step. out_of_range on a size mismatch (or more than 16
+  // contacts, a zero radius, a depth at or below the cell's floor), not_finite or negative on
+  // bad values (the previous inputs stay).
   Status set_valve_yield_stress_Pa(std::span<const double> yield_Pa) noexcept;  // one per valve
   Status set_contacts(std::span<const Contact> contacts) noexcept;              // at most 16
   Status set_cell_indentation_m(std::span<const double> depth_m) noexcept;      // one per fluid cell
-  // Back to rest, counters and energy zeroed.
+  // Back to rest, counters and energy zeroed, contacts lifted; the valves' yield stresses stay.
   void reset() noexcept;
 
-  // Advances dt_s (> 0). Errors: out_of_range (dt), no_convergence, not_finite (state kept).
+  // Advances dt_s (> 0). Errors (state kept): not_finite (dt, or the stepper produced NaN),
+  // out_of_range (dt <= 0; a force-mode contact that cannot reach its force), no_convergence,
+  // out_of_regime (linearly_implicit_regularised: dt too long for its linearisation).
   Result<StepReport> step(double dt_s) noexcept;
 
-  // State after the last step.
-  [[nodiscard]] std::span<const double> cell_indentation_m() const noexcept;
+  // State after the last step. The spans stay valid, showing the latest state, for the object's
+  // life (a moved-from object has none).
+  [[nodiscard]] std::span<const double> cell_indentation_m() const noexcept;  // pad depth
   [[nodiscard]] std::span<const double> cell_velocity_m_per_s() const noexcept;
   [[nodiscard]] std::span<const double> cell_pressure_Pa() const noexcept;
   [[nodiscard]] std::span<const double> cell_force_N() const noexcept;         // on the finger (truth)
@@ -148,6 +162,7 @@ class NetworkSimulation {
   //   displacement at a fluid cell: its pad depth; at a valve: the mean pad depth of the fluid
   //   cells it joins (the valve cell's plate rests on their rims);
   //   force: the same with contact forces; pressure: the node's pressure (valve: its chamber).
+  // Writes min(out.size(), sensor_count()) values.
   void read_sensors(std::span<double> out) const noexcept;
 
  private:
