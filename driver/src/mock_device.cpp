@@ -277,6 +277,18 @@ MockDevice::MockDevice(const model::DeviceProfile& profile, std::string_view pro
                                       name, profile_text.size()));
   }
   profile_blob_.assign(profile_text.begin(), profile_text.end());
+  // A unit without displacement sensors (force sensors only) holds targets but cannot render
+  // them: its observer has nothing to estimate the cells' depths from.
+  const bool has_displacement = std::any_of(
+      profile_.sensors.begin(), profile_.sensors.end(),
+      [](const model::SensorSpec& s) { return s.quantity == model::SensorQuantity::displacement; });
+  if (has_displacement) {
+    render_model_ = std::make_unique<model::DeviceModel>(profile_);
+    render_observer_ = std::make_unique<model::CellObserver>(*render_model_, model::ObserverOptions{});
+    render_inverse_ = std::make_unique<model::CellInverse>(*render_model_);
+  }
+  render_targets_.assign(layout_.fluid_cell_count(), model::CellImpedanceTarget{});
+  render_states_.assign(layout_.fluid_cell_count(), model::CellState{});
 }
 
 std::shared_ptr<MockDevice> MockDevice::make(const MockOptions& options, const LoadedProfile& loaded) {
@@ -453,6 +465,7 @@ void MockDevice::send_status() noexcept {
 }
 
 void MockDevice::release_valves() noexcept {
+  rendering_targets_ = false;
   std::fill(commanded_A_.begin(), commanded_A_.end(), 0.0);
   std::fill(coil_A_.begin(), coil_A_.end(), 0.0);  // the driver's fast-off path ignores slew
   plant_->set_valve_currents(coil_A_);
@@ -466,9 +479,43 @@ void MockDevice::reseed(TimePoint now) noexcept {
   // each cell's target is re-seeded from the last reading sent (TargetSeeder), its validity
   // starting now.
   std::fill(commanded_A_.begin(), commanded_A_.end(), 0.0);
+  rendering_targets_ = false;  // until the host commands again
   for (std::size_t c = 0; c < targets_held_.size(); ++c) {
     targets_held_[c].target = seeder_.seed(c, reported_, targets_held_[c].target.validity);
     targets_held_[c].validity_start = now;
+  }
+}
+
+void MockDevice::render_targets(TimePoint now) noexcept {
+  // The firmware's local impedance loop: what it reported to the host is all it measures.
+  constexpr double kContactDepth_m = 50e-6;
+  constexpr double kContactForce_N = 0.03;
+  constexpr double kHoldRate_m_per_s = 2e-3;  // observer rate noise must not release a hold
+  if (render_observer_->update(reported_, commanded_A_, options_.telemetry_period_s) != model::Status::ok) {
+    return;  // the last currents stand
+  }
+  const std::span<const double> depth_m = render_observer_->indentation_m();
+  const std::span<const double> rate_m_per_s = render_observer_->velocity_m_per_s();
+  const std::span<const double> force_N = render_observer_->force_N();
+  for (std::size_t c = 0; c < render_targets_.size(); ++c) {
+    const proto::CellTarget& held = targets_held_[c].target;
+    model::CellImpedanceTarget& t = render_targets_[c];
+    t.stiffness_N_per_m = held.stiffness * proto::kStiffnessLsb_N_per_m;
+    t.surface_offset_m = held.offset * proto::kOffsetLsb_m;
+    t.force_ceiling_N = held.ceiling * proto::kCeilingLsb_N;
+    t.valid_until_s =
+        to_seconds(targets_held_[c].validity_start - start_) + held.validity * proto::kValidityLsb_s;
+    const bool contact = depth_m[c] > kContactDepth_m && force_N[c] > kContactForce_N;
+    const double rate = std::abs(rate_m_per_s[c]) < kHoldRate_m_per_s ? 0.0 : rate_m_per_s[c];
+    render_states_[c].indentation_m = contact ? depth_m[c] : 0.0;
+    render_states_[c].rate_m_per_s = contact ? rate : 0.0;
+  }
+  if (render_inverse_->solve(render_targets_, render_states_, to_seconds(now - start_)) ==
+      model::Status::ok) {
+    const std::span<const double> currents = render_inverse_->currents_A();
+    for (std::size_t v = 0; v < commanded_A_.size(); ++v) {
+      commanded_A_[v] = std::min(currents[v], max_current_A_);
+    }
   }
 }
 
@@ -627,6 +674,7 @@ void MockDevice::handle(const std::uint8_t* bytes, std::size_t length, TimePoint
     if (state != proto::DeviceState::enabled) {
       return;  // only an enabled unit drives its coils
     }
+    rendering_targets_ = false;  // the host drives the coils itself again
     for (std::size_t i = 0; i < v->count; ++i) {
       const std::size_t valve = v->first + i;
       if (valve < commanded_A_.size()) {
@@ -642,6 +690,11 @@ void MockDevice::handle(const std::uint8_t* bytes, std::size_t length, TimePoint
       if (cell < targets_held_.size()) {
         targets_held_[cell] = HeldTarget{c->targets[i], now};
       }
+    }
+    if (!rendering_targets_ && render_observer_ != nullptr) {
+      render_observer_->reset();  // its depth and force history start with this command
+      render_inverse_->invalidate();
+      rendering_targets_ = true;
     }
   } else if (const auto* h = std::get_if<proto::Heartbeat>(&p.message)) {
     send_message(proto::Heartbeat{h->counter});  // echo: the host measures round trips
@@ -785,6 +838,10 @@ void MockDevice::step(TimePoint now) noexcept {
     last_step_ += dt;
     if (last_step_ >= next_telemetry_) {
       emit_telemetry(last_step_);
+      if (rendering_targets_ &&
+          state_.load(std::memory_order_relaxed) == static_cast<std::uint8_t>(proto::DeviceState::enabled)) {
+        render_targets(last_step_);
+      }
       next_telemetry_ += from_seconds(options_.telemetry_period_s);
       handle_host_input(last_step_);  // a long catch-up still answers within a period
     }

@@ -670,3 +670,62 @@ TEST(MockUri, BadParametersAreNamed) {
 
 }  // namespace
 }  // namespace mrskin
+
+namespace mrskin::test {
+namespace {
+
+// Presses the centre cell 0 -> 3 mm over 600 ms with the host sending either per-cell targets
+// (300 N/m, 2 N ceiling, 0.2 s validity, every 10 ms) or nothing; returns the true force at
+// the end of the press.
+double press_centre(Rig& rig, bool send_targets) {
+  DeviceSession& session = *rig.dev.session;
+  const proto::CellTarget target{150, 0, 2000, 20};
+  const std::vector<proto::CellTarget> targets(rig.finger.size(), target);
+  EXPECT_EQ(session.request_enable(), ResultCode::ok);
+  for (int k = 0; k < 620; ++k) {
+    rig.finger[6] = 3e-3 * std::min(1.0, k / 600.0);
+    rig.dev.mock->set_finger_indentation(rig.finger);
+    rig.dev.mock->step(rig.clock.now());
+    if (session.poll(rig.clock.now()) == ResultCode::ok && send_targets && k % 10 == 0) {
+      EXPECT_EQ(session.send_cell_targets(0, targets), ResultCode::ok);
+    }
+    rig.clock.advance(std::chrono::milliseconds(1));
+  }
+  std::vector<double> truth(rig.finger.size());
+  rig.dev.mock->true_contact_forces(truth);
+  return truth[6];
+}
+
+TEST(Firmware, RendersPerCellTargetsThenReleasesWhenTheyExpire) {
+  double without_N = 0.0;
+  {
+    Rig open_valves("mock://?seed=4");  // one owner of mock://?seed=4 at a time
+    without_N = press_centre(open_valves, false);
+  }
+  Rig rendered("mock://?seed=4");
+  const double with_targets_N = press_centre(rendered, true);
+  EXPECT_TRUE(rendered.dev.mock->rendering_targets());
+  // The centre's four valves (3, 5, 6, 8) resist: the finger feels more than the bare membrane.
+  for (const std::size_t v : {3U, 5U, 6U, 8U}) {
+    EXPECT_GT(rendered.dev.mock->commanded_currents()[v], 0.0) << v;
+  }
+  EXPECT_GT(with_targets_N, without_N + 0.2) << with_targets_N << " vs " << without_N;
+  // The host goes quiet about targets (heartbeats continue): after the 0.2 s validity every
+  // valve is released.
+  for (int k = 0; k < 300; ++k) {
+    rendered.dev.mock->step(rendered.clock.now());
+    (void)rendered.dev.session->poll(rendered.clock.now());
+    rendered.clock.advance(std::chrono::milliseconds(1));
+  }
+  for (const double a : rendered.dev.mock->commanded_currents()) {
+    EXPECT_EQ(a, 0.0);
+  }
+  // Currents from the host take the coils back.
+  rendered.currents.assign(rendered.currents.size(), 0.01);
+  rendered.run(5);
+  EXPECT_FALSE(rendered.dev.mock->rendering_targets());
+  EXPECT_NEAR(rendered.dev.mock->commanded_currents()[0], 0.01, 1e-9);
+}
+
+}  // namespace
+}  // namespace mrskin::test

@@ -16,6 +16,9 @@
 
 #include "mrskin/driver/clock.hpp"
 #include "mrskin/driver/layout.hpp"
+#include "mrskin/driver/model/device_model.hpp"
+#include "mrskin/driver/model/inverse.hpp"
+#include "mrskin/driver/model/observer.hpp"
 #include "mrskin/driver/model/profile.hpp"
 #include "mrskin/driver/plant.hpp"
 #include "mrskin/driver/session.hpp"
@@ -152,13 +155,16 @@ class MockDevice {
   [[nodiscard]] FaultCounters fault_counters() const noexcept;
 
   // --- firmware state, for tests: call from the thread that steps the device ---------------
-  // The per-cell impedance target the firmware holds and when its validity started. The
-  // firmware stores targets; rendering them is the network plant's and Bridge I's work.
+  // The per-cell impedance target the firmware holds and when its validity started. Once the
+  // host sends targets (and until it sends currents again, or the unit leaves ENABLED) the
+  // firmware renders them every telemetry period: its own observer on the readings it reports
+  // and CellInverse on the nominal profile set the coil commands (rendering_targets()).
   struct HeldTarget {
     protocol::CellTarget target{};
     TimePoint validity_start{};
   };
   [[nodiscard]] HeldTarget held_target(std::size_t cell) const noexcept;
+  [[nodiscard]] bool rendering_targets() const noexcept { return rendering_targets_; }
   // Currents the host commanded (before slew limit and derating), A.
   [[nodiscard]] std::span<const double> commanded_currents() const noexcept { return commanded_A_; }
 
@@ -179,6 +185,7 @@ class MockDevice {
   bool chance(double probability) noexcept;
   void handle_config(const protocol::Message& message) noexcept;
   void reseed(TimePoint now) noexcept;
+  void render_targets(TimePoint now) noexcept;
 
   model::DeviceProfile profile_;
   GridLayout layout_;
@@ -190,6 +197,13 @@ class MockDevice {
   double coil_resistance_ohm_ = 0.0;
   TargetSeeder seeder_;
   std::vector<HeldTarget> targets_held_;
+  // Target rendering: the nominal model (the firmware knows no more than the host).
+  std::unique_ptr<model::DeviceModel> render_model_;
+  std::unique_ptr<model::CellObserver> render_observer_;
+  std::unique_ptr<model::CellInverse> render_inverse_;
+  std::vector<model::CellImpedanceTarget> render_targets_;
+  std::vector<model::CellState> render_states_;
+  bool rendering_targets_ = false;
   std::vector<double> reported_;  // last telemetry sent, SI (what the host saw)
   std::unique_ptr<Plant> plant_;
   SpscQueue<Datagram> to_device_{256};
