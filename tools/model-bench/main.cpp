@@ -1,11 +1,13 @@
 // mrskin-model-bench: run time against error of the device model, published as CSV and SVG.
 //
-//   mrskin-model-bench [--suite valve|network|all] [--out DIR] [--reps N] [--profile FILE] [--check]
+//   mrskin-model-bench [--suite valve|network|inverse|all] [--out DIR] [--reps N] [--profile FILE] [--check]
 //
 // Suites (one function each in suites.hpp; add a new one there and to kSuites below):
 //   valve    every valve law timed per call and its error over the stated range (valve_bench.cpp)
 //   network  every network stepper and step size against a fine reference, and the step's
 //            cost from 5x5 to 64x64 with 1-100 % of cells in contact (network_bench.cpp)
+//   inverse  the fast CellInverse against the slow exact solve: force error and time per solve
+//            (inverse_bench.cpp)
 //   all      every suite, in that order (default)
 // --reps and --profile apply to the valve suite; --check exits 1 unless the fast valve law is
 // within 0.5 % and at least 10x faster than the exact one. A progress bar is drawn on stderr
@@ -27,13 +29,14 @@ struct Suite {
   const char* name;
   int (*run)(const BenchOptions&);
 };
-constexpr std::array<Suite, 2> kSuites = {{
+constexpr std::array<Suite, 3> kSuites = {{
     {"valve", &mrskin::bench::run_valve_suite},
     {"network", &mrskin::bench::run_network_suite},
+    {"inverse", &mrskin::bench::run_inverse_suite},
 }};
 
 int usage() {
-  std::cerr << "usage: mrskin-model-bench [--suite valve|network|all] [--out DIR] [--reps N] "
+  std::cerr << "usage: mrskin-model-bench [--suite valve|network|inverse|all] [--out DIR] [--reps N] "
                "[--profile FILE] [--check]\n";
   return 2;
 }

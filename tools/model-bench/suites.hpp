@@ -8,5 +8,6 @@ namespace mrskin::bench {
 
 int run_valve_suite(const BenchOptions& o);    // valve laws: exact, Wereley-Pang, fast
 int run_network_suite(const BenchOptions& o);  // network steppers and scaling
+int run_inverse_suite(const BenchOptions& o);  // the inverse against the slow exact solve
 
 }  // namespace mrskin::bench
