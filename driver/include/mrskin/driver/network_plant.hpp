@@ -42,6 +42,10 @@ class NetworkPlant final : public Plant {
   // Throws InvalidArgument for a profile the network cannot simulate.
   NetworkPlant(const model::DeviceProfile& nominal, const NetworkPlantOptions& options);
   ~NetworkPlant() override;
+  NetworkPlant(const NetworkPlant&) = delete;
+  NetworkPlant& operator=(const NetworkPlant&) = delete;
+  NetworkPlant(NetworkPlant&&) = delete;
+  NetworkPlant& operator=(NetworkPlant&&) = delete;
 
   [[nodiscard]] std::size_t sensor_count() const noexcept override;
   void set_valve_currents(std::span<const double> current_A) noexcept override;

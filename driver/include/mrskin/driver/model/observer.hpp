@@ -43,6 +43,8 @@ class CellObserver {
   ~CellObserver();
   CellObserver(const CellObserver&) = delete;
   CellObserver& operator=(const CellObserver&) = delete;
+  CellObserver(CellObserver&&) = delete;
+  CellObserver& operator=(CellObserver&&) = delete;
 
   // One tick: readings in the profile's sensor order (SI units), the currents commanded to
   // each valve (A), and the tick (s). Errors (state kept): out_of_range (sizes, dt),
