@@ -113,6 +113,34 @@ void Bridge::compute_targets() noexcept {
   }
 }
 
+void Bridge::lock_short_cells() noexcept {
+  // Semi-active: a loaded cell that wants more than the quasi-static envelope allows gains
+  // nothing from open valves and loses fluid through them. Its valves hold at least the
+  // threshold of the force it asked for (p = (F - F_membrane) / A_eff across the two passages
+  // of a chamber), so no volume leaves before the finger has pushed the pressure there.
+  const std::span<const model::CellSolution> cells = inverse_->cells();
+  const model::ContactPatch& patch = model_->contact();
+  const double per_passage_Pa_per_Pa = model_->valve_law().yield_pressure_Pa(1.0);
+  for (std::size_t i = 0; i < cells.size(); ++i) {
+    const model::CellSolution& c = cells[i];
+    const bool loaded = c.role == model::CellRole::loading || c.role == model::CellRole::holding;
+    if (!loaded || !c.clamped_high) {
+      continue;
+    }
+    const model::Result<double> membrane_N = model::pad_membrane_force_N(patch, states_[i].indentation_m);
+    if (!membrane_N.ok() || patch.effective_area_m2 <= 0.0) {
+      continue;
+    }
+    const double pressure_Pa = (c.requested_force_N - membrane_N.value) / patch.effective_area_m2;
+    const double yield_Pa = std::max(0.0, pressure_Pa) / (2.0 * per_passage_Pa_per_Pa);
+    const model::Result<double> lock_A = inverse_->current_for_yield_stress_A(yield_Pa);
+    const double current_A = lock_A.ok() ? lock_A.value : session_.info().max_current_A;
+    for (const std::size_t v : layout_.valves_of_cell(i)) {
+      current_A_[v] = std::max(current_A_[v], std::min(current_A, session_.info().max_current_A));
+    }
+  }
+}
+
 void Bridge::score() noexcept {
   const std::span<const model::CellSolution> cells = inverse_->cells();
   for (std::size_t i = 0; i < target_N_.size(); ++i) {
@@ -162,6 +190,7 @@ ResultCode Bridge::step(TimePoint now) noexcept {
   if (inverse_->solve(targets_, states_, to_seconds(now - start_)) == model::Status::ok) {
     const std::span<const double> currents = inverse_->currents_A();
     std::copy(currents.begin(), currents.end(), current_A_.begin());
+    lock_short_cells();
     stats_.inverse_residual_sum_N += inverse_->report().residual_norm_N;
     if (inverse_->report().from_cache) {
       ++stats_.inverse_cached;

@@ -96,6 +96,7 @@ class Bridge {
  private:
   void update_tissue_model(TimePoint now) noexcept;
   void compute_targets() noexcept;
+  void lock_short_cells() noexcept;
   void score() noexcept;
 
   DeviceSession& session_;
