@@ -133,34 +133,49 @@ const char* fault_name(std::uint8_t fault_code) noexcept {
 TargetSeeder::TargetSeeder(const model::DeviceProfile& profile) {
   const GridLayout layout(profile.rows, profile.cols);
   const std::size_t cells = layout.fluid_cell_count();
-  displacement_begin_.assign(1, 0);
-  force_begin_.assign(1, 0);
-  auto add = [&profile](std::vector<Term>& out, model::SensorQuantity q, model::PlaceKind place,
-                        std::span<const std::size_t> indices) {
-    const std::size_t before = out.size();
-    for (std::size_t s = 0; s < profile.sensors.size(); ++s) {
-      const model::SensorSpec& spec = profile.sensors[s];
-      if (spec.quantity == q && spec.place == place &&
-          std::find(indices.begin(), indices.end(), spec.index) != indices.end()) {
-        out.push_back({s, 1.0});
+  std::vector<std::vector<Term>> rows_of_cell(cells);
+  for (std::size_t s = 0; s < profile.sensors.size(); ++s) {
+    const model::SensorSpec& spec = profile.sensors[s];
+    if (spec.quantity != model::SensorQuantity::displacement || spec.place == model::PlaceKind::reservoir) {
+      continue;
+    }
+    const std::size_t row = row_sensor_.size();
+    row_sensor_.push_back(s);
+    if (spec.place == model::PlaceKind::fluid_cell && spec.index < cells) {
+      rows_of_cell[spec.index].push_back({row, 1.0});
+    } else if (spec.place == model::PlaceKind::valve && spec.index < layout.valve_count()) {
+      const std::vector<std::size_t>& joined = layout.cells_of_valve(spec.index);
+      const double w = 1.0 / static_cast<double>(joined.size());
+      for (const std::size_t c : joined) {
+        rows_of_cell[c].push_back({row, w});
       }
     }
-    const std::size_t n = out.size() - before;
-    for (std::size_t i = before; i < out.size(); ++i) {
-      out[i].weight = 1.0 / static_cast<double>(n);
-    }
-    return n;
-  };
+  }
+  cell_begin_.assign(1, 0);
+  force_begin_.assign(1, 0);
   for (std::size_t c = 0; c < cells; ++c) {
-    const std::size_t self[] = {c};
-    if (add(displacement_, model::SensorQuantity::displacement, model::PlaceKind::fluid_cell, self) == 0) {
-      (void)add(displacement_, model::SensorQuantity::displacement, model::PlaceKind::valve,
-                layout.valves_of_cell(c));
+    double norm2 = 0.0;
+    for (const Term& t : rows_of_cell[c]) {
+      cell_rows_.push_back(t);
+      norm2 += t.weight * t.weight;
     }
-    (void)add(force_, model::SensorQuantity::force, model::PlaceKind::fluid_cell, self);
-    displacement_begin_.push_back(displacement_.size());
+    cell_begin_.push_back(cell_rows_.size());
+    cell_norm2_.push_back(norm2);
+    const std::size_t before = force_.size();
+    for (std::size_t s = 0; s < profile.sensors.size(); ++s) {
+      const model::SensorSpec& spec = profile.sensors[s];
+      if (spec.quantity == model::SensorQuantity::force && spec.place == model::PlaceKind::fluid_cell &&
+          spec.index == c) {
+        force_.push_back({s, 1.0});
+      }
+    }
+    for (std::size_t i = before; i < force_.size(); ++i) {
+      force_[i].weight = 1.0 / static_cast<double>(force_.size() - before);
+    }
     force_begin_.push_back(force_.size());
   }
+  fit_m_.assign(cells, 0.0);
+  residual_m_.assign(row_sensor_.size(), 0.0);
 }
 
 double TargetSeeder::sum(std::span<const Term> terms, std::span<const double> sensors) noexcept {
@@ -173,14 +188,41 @@ double TargetSeeder::sum(std::span<const Term> terms, std::span<const double> se
   return total;
 }
 
+void TargetSeeder::fit(std::span<const double> sensors) const noexcept {
+  // Projected coordinate descent on 1/2 |H d - y|^2, d >= 0, from d = 0.
+  constexpr int kSweeps = 200;
+  std::fill(fit_m_.begin(), fit_m_.end(), 0.0);
+  for (std::size_t r = 0; r < residual_m_.size(); ++r) {
+    const double y = row_sensor_[r] < sensors.size() ? sensors[row_sensor_[r]] : 0.0;
+    residual_m_[r] = std::isfinite(y) ? -y : 0.0;
+  }
+  for (int sweep = 0; sweep < kSweeps; ++sweep) {
+    for (std::size_t c = 0; c < fit_m_.size(); ++c) {
+      if (cell_norm2_[c] <= 0.0) {
+        continue;
+      }
+      double gradient = 0.0;
+      for (std::size_t e = cell_begin_[c]; e < cell_begin_[c + 1]; ++e) {
+        gradient += cell_rows_[e].weight * residual_m_[cell_rows_[e].sensor];
+      }
+      const double next = std::max(0.0, fit_m_[c] - gradient / cell_norm2_[c]);
+      const double delta = next - fit_m_[c];
+      if (delta != 0.0) {
+        for (std::size_t e = cell_begin_[c]; e < cell_begin_[c + 1]; ++e) {
+          residual_m_[cell_rows_[e].sensor] += cell_rows_[e].weight * delta;
+        }
+        fit_m_[c] = next;
+      }
+    }
+  }
+}
+
 double TargetSeeder::displacement_m(std::size_t cell, std::span<const double> sensors) const noexcept {
-  if (cell + 1 >= displacement_begin_.size()) {
+  if (cell >= fit_m_.size()) {
     return 0.0;
   }
-  return sum(
-      std::span<const Term>(displacement_)
-          .subspan(displacement_begin_[cell], displacement_begin_[cell + 1] - displacement_begin_[cell]),
-      sensors);
+  fit(sensors);
+  return fit_m_[cell];
 }
 
 double TargetSeeder::force_N(std::size_t cell, std::span<const double> sensors) const noexcept {

@@ -548,10 +548,10 @@ TEST(Enable, ReseedsTargetsFromTheMeasuredStateAfterAFault) {
   ASSERT_EQ(session.state(), DeviceState::fault);
   rig.finger[6] = 3e-3;  // the finger moves while the unit is in FAULT
   rig.run(30);           // the session polls; it sends no currents in FAULT
-  // The seeding rule's estimate for the centre: the mean of its four valve sensors, each a
-  // quarter of its depth.
+  // The seeding rule's estimate for the centre: the non-negative fit of the 12 valve sensors
+  // recovers its depth (each of its four valves reads a quarter of it).
   const double measured_m = TargetSeeder(*session.profile()).displacement_m(6, session.sensors());
-  EXPECT_NEAR(measured_m, 3e-3 / 4, 2e-5);
+  EXPECT_NEAR(measured_m, 3e-3, 2e-5);
 
   const TimePoint enabled_at = rig.clock.now();
   ASSERT_EQ(session.request_enable(), ResultCode::ok);
@@ -616,7 +616,8 @@ TEST(Enable, LeavingPauseDoesNotResumeStaleCurrents) {
 
 TEST(Enable, SeederUsesTheProfilesSensors) {
   // The default profile's 12 displacement sensors under the valves, plus a force sensor on
-  // the centre cell: the cell's displacement is the mean over its valves, its force measured.
+  // the centre cell: the cells' displacements are the non-negative fit of the valve readings,
+  // the centre's force is measured.
   const std::string text = default_profile_text() +
                            "\n[[sensors.sensor]]\nquantity = \"force\"\nunit = \"N\"\n"
                            "place = \"cell 2,2\"\nresolution = 1.0e-3\nnoise_std = 0.0\n";
@@ -624,23 +625,27 @@ TEST(Enable, SeederUsesTheProfilesSensors) {
   ASSERT_EQ(profile.sensors.size(), 13U);
   const TargetSeeder seeder(profile);
   const GridLayout layout(5, 5);
-  std::vector<double> sensors(13, 0.0);
-  for (std::size_t v = 0; v < 12; ++v) {
-    sensors[v] = 1e-4 * static_cast<double>(v + 1);
-  }
-  sensors[12] = 0.75;  // N on the centre cell
   const std::size_t centre = 6;
   ASSERT_EQ(layout.fluid_cells()[centre].row, 2);
-  double mean = 0.0;
-  for (const std::size_t v : layout.valves_of_cell(centre)) {
-    mean += sensors[v] / static_cast<double>(layout.valves_of_cell(centre).size());
+  // A press of 2 mm on the centre and 1 mm on corner cell 0, as the valves read it.
+  std::vector<double> depth(13, 0.0);
+  depth[centre] = 2e-3;
+  depth[0] = 1e-3;
+  std::vector<double> sensors(13, 0.0);
+  for (std::size_t v = 0; v < 12; ++v) {
+    for (const std::size_t c : layout.cells_of_valve(v)) {
+      sensors[v] += depth[c] / static_cast<double>(layout.cells_of_valve(v).size());
+    }
   }
-  EXPECT_NEAR(seeder.displacement_m(centre, sensors), mean, 1e-15);
+  sensors[12] = 0.75;  // N on the centre cell
+  for (std::size_t c = 0; c < 13; ++c) {
+    EXPECT_NEAR(seeder.displacement_m(c, sensors), depth[c], 1e-6) << c;
+  }
   EXPECT_NEAR(seeder.force_N(centre, sensors), 0.75, 1e-15);
   EXPECT_EQ(seeder.force_N(0, sensors), 0.0);
   const proto::CellTarget t = seeder.seed(centre, sensors, 7);
   EXPECT_EQ(t.stiffness, 0);
-  EXPECT_EQ(t.offset, static_cast<std::uint16_t>(std::lround(mean / proto::kOffsetLsb_m)));
+  EXPECT_NEAR(t.offset, 2e-3 / proto::kOffsetLsb_m, 1.0);
   EXPECT_EQ(t.ceiling, 750);
   EXPECT_EQ(t.validity, 7);
   // Out-of-range and non-finite readings clamp into the target's fields.

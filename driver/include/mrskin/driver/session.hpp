@@ -117,19 +117,19 @@ struct LogEntry {
 };
 
 // The re-seeding rule of an explicit enable (docs/api.md, "Enabling re-seeds the targets"),
-// shared by the session and the mock device's firmware. A fluid cell's measured displacement is
-// the mean of the displacement sensors on that cell, or else of those on its valves (an
-// estimate until the network observer lands), or else 0; its measured force is the mean of the
-// force sensors on that cell, or else 0. The seeded target is offset = measured displacement,
-// stiffness 0, ceiling = measured force, and the validity given. Built at setup (allocates);
-// the rest is noexcept and allocation-free.
+// shared by the session and the mock device's firmware. The fluid cells' measured displacements
+// are the non-negative least-squares fit of every displacement sensor (one on a cell reads that
+// cell; one under a valve reads the mean of the cells it joins): a finger only pushes, which is
+// what makes 12 valve readings determine 13 cells for a press on one or a few cells (the cell
+// observer's rule, without its prior). A cell's measured force is the mean of the force sensors
+// on that cell, or else 0. The seeded target is offset = measured displacement, stiffness 0,
+// ceiling = measured force, and the validity given. Built at setup (allocates); the rest is
+// noexcept and allocation-free (one instance per thread: the fit uses the seeder's scratch).
 class TargetSeeder {
  public:
   TargetSeeder() = default;
   explicit TargetSeeder(const model::DeviceProfile& profile);
-  [[nodiscard]] std::size_t fluid_cells() const noexcept {
-    return displacement_begin_.empty() ? 0 : displacement_begin_.size() - 1;
-  }
+  [[nodiscard]] std::size_t fluid_cells() const noexcept { return fit_m_.size(); }
   [[nodiscard]] double displacement_m(std::size_t cell, std::span<const double> sensors) const noexcept;
   [[nodiscard]] double force_N(std::size_t cell, std::span<const double> sensors) const noexcept;
   [[nodiscard]] protocol::CellTarget seed(std::size_t cell, std::span<const double> sensors,
@@ -137,12 +137,17 @@ class TargetSeeder {
 
  private:
   struct Term {
-    std::size_t sensor = 0;
+    std::size_t sensor = 0;  // or row, or cell (see the vector it is in)
     double weight = 0.0;
   };
   static double sum(std::span<const Term> terms, std::span<const double> sensors) noexcept;
-  std::vector<std::size_t> displacement_begin_;  // cells + 1 offsets into displacement_
-  std::vector<Term> displacement_;
+  void fit(std::span<const double> sensors) const noexcept;
+  std::vector<std::size_t> row_sensor_;  // displacement sensor of each fit row
+  std::vector<std::size_t> cell_begin_;  // cells + 1 offsets into cell_rows_
+  std::vector<Term> cell_rows_;          // the rows reading a cell, with their weights
+  std::vector<double> cell_norm2_;
+  mutable std::vector<double> fit_m_;       // scratch: the last fit, per cell
+  mutable std::vector<double> residual_m_;  // scratch: per row
   std::vector<std::size_t> force_begin_;
   std::vector<Term> force_;
 };
