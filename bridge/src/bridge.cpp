@@ -33,6 +33,7 @@ Bridge::Bridge(DeviceSession& session, SlaveSource& source, BridgeOptions option
   targets_.assign(cells, model::CellImpedanceTarget{});
   states_.assign(cells, model::CellState{});
   target_N_.assign(cells, 0.0);
+  tissue_N_.assign(cells, 0.0);
   feedback_N_.assign(cells, 0.0);
   truth_N_.assign(cells, 0.0);
   current_A_.assign(layout_.valve_count(), 0.0);
@@ -87,12 +88,10 @@ void Bridge::compute_targets() noexcept {
     states_[i].rate_m_per_s = contact ? rate : 0.0;
     const model::CellRole role = last[i].role;
     const bool loaded = contact && (role == model::CellRole::loading || role == model::CellRole::holding);
-    // The tissue law's force at the state, clamped into the envelope the inverse last reported:
-    // what the finger should feel (the feedback's shift is not part of it).
-    const double tissue_N = stiffness * states_[i].indentation_m + model_gain_ * damping_N_s_per_m_ * rate;
-    target_N_[i] = loaded ? std::clamp(std::min(tissue_N, options_.max_force_N), last[i].force_min_N,
-                                       std::max(last[i].force_min_N, last[i].force_max_N))
-                          : 0.0;
+    // What the finger should feel: the tissue law at the state (the feedback's shift is not part
+    // of it); clamped into the envelope after the solve.
+    tissue_N_[i] = std::min(stiffness * states_[i].indentation_m + model_gain_ * damping_N_s_per_m_ * rate,
+                            options_.max_force_N);
     if (!loaded) {
       feedback_N_[i] = 0.0;
     } else {
@@ -138,6 +137,18 @@ void Bridge::lock_short_cells() noexcept {
     for (const std::size_t v : layout_.valves_of_cell(i)) {
       current_A_[v] = std::max(current_A_[v], std::min(current_A, session_.info().max_current_A));
     }
+  }
+}
+
+void Bridge::clamp_targets_into_envelope() noexcept {
+  // Scored against the role and envelope of this tick's solve: a cell that just turned to
+  // holding is scored on its hold target, never on last tick's release.
+  const std::span<const model::CellSolution> cells = inverse_->cells();
+  for (std::size_t i = 0; i < target_N_.size(); ++i) {
+    const model::CellSolution& c = cells[i];
+    const bool loaded = c.role == model::CellRole::loading || c.role == model::CellRole::holding;
+    target_N_[i] =
+        loaded ? std::clamp(tissue_N_[i], c.force_min_N, std::max(c.force_min_N, c.force_max_N)) : 0.0;
   }
 }
 
@@ -191,6 +202,7 @@ ResultCode Bridge::step(TimePoint now) noexcept {
     const std::span<const double> currents = inverse_->currents_A();
     std::copy(currents.begin(), currents.end(), current_A_.begin());
     lock_short_cells();
+    clamp_targets_into_envelope();
     stats_.inverse_residual_sum_N += inverse_->report().residual_norm_N;
     if (inverse_->report().from_cache) {
       ++stats_.inverse_cached;

@@ -61,11 +61,10 @@ TEST(WalkingSkeleton, DemoConvergesOnSimulatedClock) {
   EXPECT_GT(r.stats.force_samples, 5000U);
   EXPECT_EQ(r.state, DeviceState::enabled);
   // Regression bounds, not the product's figures: on the +-15 % perturbed network plant,
-  // without calibration, the demo renders at ~0.46 N RMS over 10 s (0.22 N over the first
-  // press). Later presses start with a fluid deficit: the membrane refills a released cell
-  // through the valves slowly (p0 = 0 in the default profile), and semi-active valves cannot
-  // make it up. Bridge I (issue 9) owns the 0.04 N target.
-  EXPECT_LT(r.stats.force_rms_error_N(), 0.5) << to_json(r.stats, 1e-3);
+  // without calibration, the demo renders at ~0.067 N RMS over 10 s (the reservoir's 500 Pa
+  // precharge refills a released cell between presses). Bridge I (issue 9) owns the 0.04 N
+  // target; what is left is mostly the observer's force model against the perturbed plant.
+  EXPECT_LT(r.stats.force_rms_error_N(), 0.1) << to_json(r.stats, 1e-3);
   EXPECT_LT(r.stats.clamped_fraction(), 0.3);
 }
 

@@ -17,12 +17,16 @@ namespace mrskin::model::nettest {
 
 inline const std::string kProfileDir = MRSKIN_TEST_PROFILE_DIR;
 
-// One DeviceModel per profile name for the whole test binary (built on first use).
+// One DeviceModel per profile name for the whole test binary (built on first use), with the
+// reservoir at ambient (p0 = 0): the closed-form bounds of these tests (locked volume, bulge
+// pressure) are for that case. The shipped precharge has its own test (PrechargeRefills...).
 inline const DeviceModel& model_of(const std::string& name) {
   static std::map<std::string, std::unique_ptr<DeviceModel>> models;
   auto& m = models[name];
   if (!m) {
-    m = std::make_unique<DeviceModel>(load_profile(kProfileDir + "/" + name + ".toml"));
+    DeviceProfile p = load_profile(kProfileDir + "/" + name + ".toml");
+    p.reservoir.initial_pressure_Pa = 0.0;
+    m = std::make_unique<DeviceModel>(p);
   }
   return *m;
 }

@@ -26,7 +26,7 @@ struct CellObserver::Impl {
     const GridLayout& grid = m.layout();
     const std::size_t cells = grid.fluid_cell_count();
     if (!(o.prior_spread_m > 0.0) || !(o.sparsity_scale_m > 0.0) || o.sweeps < 1 ||
-        !(o.rate_filter_time_constant_s >= 0.0)) {
+        !(o.rate_filter_time_constant_s >= 0.0) || !(o.contact_threshold_m >= 0.0)) {
       throw InvalidArgument(
           "observer options: prior_spread_m and sparsity_scale_m must be > 0, sweeps >= 1, "
           "rate_filter_time_constant_s >= 0");
@@ -80,6 +80,7 @@ struct CellObserver::Impl {
     l1_weight = 1.0 / o.sparsity_scale_m;
     residual.assign(rows.size(), 0.0);
     depth_m.assign(cells, 0.0);
+    contact_depth_m.assign(cells, 0.0);
     previous_m.assign(cells, 0.0);
     predicted_m.assign(cells, 0.0);
     velocity.assign(cells, 0.0);
@@ -115,6 +116,7 @@ struct CellObserver::Impl {
   std::vector<double> column_norm2;
   std::vector<double> residual;  // scaled: (H d - y) / sigma
   std::vector<double> depth_m;
+  std::vector<double> contact_depth_m;  // depth_m with sub-threshold depths as no contact
   std::vector<double> previous_m;
   std::vector<double> predicted_m;
   std::vector<double> velocity;
@@ -208,7 +210,10 @@ Status CellObserver::update(std::span<const double> sensor_readings, std::span<c
   }
   Status s = m.network.set_valve_yield_stress_Pa(m.yield_Pa);
   if (s == Status::ok) {
-    s = m.network.set_cell_indentation_m(m.depth_m);
+    for (std::size_t c = 0; c < cells; ++c) {
+      m.contact_depth_m[c] = m.depth_m[c] > m.options.contact_threshold_m ? m.depth_m[c] : 0.0;
+    }
+    s = m.network.set_cell_indentation_m(m.contact_depth_m);
   }
   if (s != Status::ok) {
     return s;

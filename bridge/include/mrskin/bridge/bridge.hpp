@@ -97,6 +97,7 @@ class Bridge {
   void update_tissue_model(TimePoint now) noexcept;
   void compute_targets() noexcept;
   void lock_short_cells() noexcept;
+  void clamp_targets_into_envelope() noexcept;
   void score() noexcept;
 
   DeviceSession& session_;
@@ -111,7 +112,8 @@ class Bridge {
   MonotonicClock default_perf_clock_;
   std::vector<model::CellImpedanceTarget> targets_;
   std::vector<model::CellState> states_;
-  std::vector<double> target_N_;
+  std::vector<double> target_N_;    // tissue law clamped into this tick's envelope (loaded cells)
+  std::vector<double> tissue_N_;    // tissue law at the cell's state
   std::vector<double> feedback_N_;  // integral correction per cell
   std::vector<double> current_A_;
   std::vector<double> truth_N_;

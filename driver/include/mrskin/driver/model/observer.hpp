@@ -33,6 +33,10 @@ struct ObserverOptions {
   int sweeps = 12;
   double rate_filter_time_constant_s = 4e-3;
   Stepper force_stepper = Stepper::linearly_implicit_regularised;
+  // Depths below this are no contact for the force model: with a precharged reservoir (p0 > 0)
+  // the contact force jumps from 0 to p0 A_eff at first touch, so sensor noise on an untouched
+  // cell must not read as a touch. Above the noise (2-3 um RMS, ~20 um max on the mock).
+  double contact_threshold_m = 25e-6;
 };
 
 class CellObserver {
