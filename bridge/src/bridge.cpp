@@ -4,6 +4,8 @@
 #include <cmath>
 #include <string>
 
+#include "mrskin/driver/model/calibration.hpp"
+
 namespace mrskin::bridge {
 
 Bridge::Bridge(DeviceSession& session, SlaveSource& source, BridgeOptions options)
@@ -27,15 +29,42 @@ Bridge::Bridge(DeviceSession& session, SlaveSource& source, BridgeOptions option
                           " sensors and " + std::to_string(session.info().valves) +
                           " valves, which its stored profile does not match: rewrite the device's profile");
   }
-  model_ = std::make_unique<model::DeviceModel>(*profile);
+  // The unit's own parameters: its stored calibration applied to the profile it was built to.
+  model::Calibration calibration;
+  if (!session.info().calibration.empty()) {
+    calibration = model::parse_calibration(session.info().calibration, "the calibration stored on the device",
+                                           layout_.valve_count());
+  }
+  model_ = std::make_unique<model::DeviceModel>(model::apply_calibration(*profile, calibration));
   observer_ = std::make_unique<model::CellObserver>(*model_, options_.observer);
   inverse_ = std::make_unique<model::CellInverse>(*model_, options_.inverse);
+  valve_gain_.assign(layout_.valve_count(), 1.0);
+  for (std::size_t v = 0; v < valve_gain_.size(); ++v) {
+    valve_gain_[v] = calibration.valve_gain(v);
+  }
+  if (observer_->set_valve_yield_gain(valve_gain_) != model::Status::ok ||
+      inverse_->set_valve_yield_gain(valve_gain_) != model::Status::ok) {
+    throw InvalidArgument(
+        "the calibration stored on the device has unusable valve gains: recalibrate the unit");
+  }
   targets_.assign(cells, model::CellImpedanceTarget{});
   states_.assign(cells, model::CellState{});
   target_N_.assign(cells, 0.0);
   tissue_N_.assign(cells, 0.0);
   feedback_N_.assign(cells, 0.0);
+  unloading_.assign(cells, 0);
+  open_ticks_.assign(cells, 0);
+  below_floor_.assign(cells, 0);
+  // Valves count as settled after three time constants of the coil (driver and eddy lag).
+  const double coil_tau_s =
+      profile->coil.eddy_time_constant_s + 1.0 / (2.0 * model::kPi * profile->coil.driver_bandwidth_Hz);
+  settle_ticks_ = static_cast<std::uint32_t>(std::ceil(3.0 * coil_tau_s * options_.rate_hz));
+  smooth_depth_m_.assign(cells, 0.0);
+  unload_filter_alpha_ = 1.0 - std::exp(-1.0 / (options_.rate_hz * std::max(options_.unload_filter_s, 1e-9)));
+  extreme_m_.assign(cells, 0.0);
   truth_N_.assign(cells, 0.0);
+  finger_m_.assign(cells, 0.0);
+  finger_prev_m_.assign(cells, 0.0);
   current_A_.assign(layout_.valve_count(), 0.0);
 }
 
@@ -49,6 +78,10 @@ void Bridge::update_tissue_model(TimePoint now) noexcept {
   SlaveSample sample;
   if (source_.latest(now, sample) && sample.valid) {
     ++stats_.slave_samples;
+    if (!slave_.valid || sample.stamp != slave_.stamp) {
+      fresh_sample_ = true;  // its effect leaves with this tick's frame (latency figures)
+      fresh_arrival_ = sample.received.count() != 0 ? sample.received : sample.stamp;
+    }
     slave_ = sample;
     if (sample.indentation_m > 0.5e-3) {
       const double k_instant = sample.force_N / sample.indentation_m;
@@ -67,6 +100,41 @@ void Bridge::update_tissue_model(TimePoint now) noexcept {
   live_stiffness_.store(stiffness_N_per_m_, std::memory_order_relaxed);
 }
 
+double Bridge::direction_rate(std::size_t i, bool contact, double depth_m, double rate_m_per_s) noexcept {
+  // Hysteresis in position, not in rate: the observer's rate noise (~0.5 mm/s RMS) must neither
+  // release a held press nor re-hold a release that is under way. A cell unloads once its depth
+  // has fallen retreat_m below its peak, and loads again once it has risen retreat_m above its
+  // trough. Between the two, rates within the deadband count as holding.
+  const double retreat_m = options_.unload_retreat_m;
+  if (!contact) {
+    unloading_[i] = 0;
+    extreme_m_[i] = 0.0;
+    smooth_depth_m_[i] = 0.0;
+    return 0.0;
+  }
+  // On a smoothed depth: the fit's noise (2-3 um RMS, ~20 um peaks) shrinks well below retreat_m.
+  smooth_depth_m_[i] += unload_filter_alpha_ * (depth_m - smooth_depth_m_[i]);
+  depth_m = smooth_depth_m_[i];
+  if (unloading_[i] == 0) {
+    extreme_m_[i] = std::max(extreme_m_[i], depth_m);
+    if (depth_m < extreme_m_[i] - retreat_m) {
+      unloading_[i] = 1;
+      extreme_m_[i] = depth_m;
+    }
+  } else {
+    extreme_m_[i] = std::min(extreme_m_[i], depth_m);
+    if (depth_m > extreme_m_[i] + retreat_m) {
+      unloading_[i] = 0;
+      extreme_m_[i] = depth_m;
+    }
+  }
+  if (unloading_[i] != 0) {
+    // Released: the inverse sees a retreating finger whatever the noise says.
+    return std::min(rate_m_per_s, -options_.unload_rate_m_per_s);
+  }
+  return rate_m_per_s > options_.unload_rate_m_per_s ? rate_m_per_s : 0.0;
+}
+
 void Bridge::compute_targets() noexcept {
   const double dt = 1.0 / options_.rate_hz;
   const std::span<const double> depth_m = observer_->indentation_m();
@@ -80,10 +148,7 @@ void Bridge::compute_targets() noexcept {
   for (std::size_t i = 0; i < targets_.size(); ++i) {
     // A membrane sucked in after a release reads as depth with no force on it: no finger.
     const bool contact = depth_m[i] > options_.contact_threshold_m && force_N[i] > options_.contact_force_N;
-    double rate = rate_m_per_s[i];
-    if (std::abs(rate) < options_.unload_rate_m_per_s) {
-      rate = 0.0;  // holding: the observer's rate noise must not release a held press
-    }
+    const double rate = direction_rate(i, contact, depth_m[i], rate_m_per_s[i]);
     states_[i].indentation_m = contact ? depth_m[i] : 0.0;
     states_[i].rate_m_per_s = contact ? rate : 0.0;
     const model::CellRole role = last[i].role;
@@ -96,7 +161,12 @@ void Bridge::compute_targets() noexcept {
       feedback_N_[i] = 0.0;
     } else {
       const double error_N = target_N_[i] - force_N[i];
-      const bool wound_up = (error_N > 0.0 && last[i].clamped_high) || (error_N < 0.0 && last[i].clamped_low);
+      // Optionally frozen while holding: the force is then mostly the trapped volume's. Off by
+      // default: the valves hold near their threshold and the integral still trims the slow leak
+      // (demo: 0.016 N hold error with it, 0.032 N without, at 0.061 against 0.037 A peak).
+      const bool wound_up = (error_N > 0.0 && last[i].clamped_high) ||
+                            (error_N < 0.0 && last[i].clamped_low) ||
+                            (options_.freeze_feedback_while_holding && role == model::CellRole::holding);
       if (!wound_up) {
         feedback_N_[i] = std::clamp(feedback_N_[i] + options_.feedback_gain_per_s * dt * error_N,
                                     -options_.feedback_limit_N, options_.feedback_limit_N);
@@ -132,9 +202,9 @@ void Bridge::lock_short_cells() noexcept {
     }
     const double pressure_Pa = (c.requested_force_N - membrane_N.value) / patch.effective_area_m2;
     const double yield_Pa = std::max(0.0, pressure_Pa) / (2.0 * per_passage_Pa_per_Pa);
-    const model::Result<double> lock_A = inverse_->current_for_yield_stress_A(yield_Pa);
-    const double current_A = lock_A.ok() ? lock_A.value : session_.info().max_current_A;
     for (const std::size_t v : layout_.valves_of_cell(i)) {
+      const model::Result<double> lock_A = inverse_->current_for_yield_stress_A(yield_Pa / valve_gain_[v]);
+      const double current_A = lock_A.ok() ? lock_A.value : session_.info().max_current_A;
       current_A_[v] = std::max(current_A_[v], std::min(current_A, session_.info().max_current_A));
     }
   }
@@ -144,39 +214,87 @@ void Bridge::clamp_targets_into_envelope() noexcept {
   // Scored against the role and envelope of this tick's solve: a cell that just turned to
   // holding is scored on its hold target, never on last tick's release.
   const std::span<const model::CellSolution> cells = inverse_->cells();
+  const std::span<const double> force_N = observer_->force_N();
   for (std::size_t i = 0; i < target_N_.size(); ++i) {
     const model::CellSolution& c = cells[i];
     const bool loaded = c.role == model::CellRole::loading || c.role == model::CellRole::holding;
-    target_N_[i] =
-        loaded ? std::clamp(tissue_N_[i], c.force_min_N, std::max(c.force_min_N, c.force_max_N)) : 0.0;
+    bool valves_open = true;
+    for (const std::size_t v : layout_.valves_of_cell(i)) {
+      valves_open = valves_open && current_A_[v] <= 0.0;
+    }
+    open_ticks_[i] = valves_open ? open_ticks_[i] + 1 : 0;
+    double floor_N = c.force_min_N;
+    if (loaded && open_ticks_[i] >= settle_ticks_) {
+      // The quasi-static floor does not know the fluid's history (pressure left in the network
+      // by earlier flow); with the valves open and settled, the observer's network force is the
+      // floor at this state.
+      floor_N = std::max(floor_N, force_N[i]);
+      below_floor_[i] = tissue_N_[i] < floor_N ? 1 : 0;
+    } else {
+      below_floor_[i] = 0;
+    }
+    target_N_[i] = loaded ? std::clamp(tissue_N_[i], floor_N, std::max(floor_N, c.force_max_N)) : 0.0;
   }
 }
 
 void Bridge::score() noexcept {
+  const double dt = 1.0 / options_.rate_hz;
   const std::span<const model::CellSolution> cells = inverse_->cells();
+  const std::span<const double> rate_m_per_s = observer_->velocity_m_per_s();
+  double power_W = 0.0;
   for (std::size_t i = 0; i < target_N_.size(); ++i) {
     const bool loaded =
         cells[i].role == model::CellRole::loading || cells[i].role == model::CellRole::holding;
     if (loaded) {
       ++stats_.target_cell_ticks;
-      if (cells[i].clamped_low || cells[i].clamped_high) {
+      if (cells[i].clamped_low || cells[i].clamped_high || below_floor_[i] != 0) {
         ++stats_.clamped_cell_ticks;
       }
+      // Passivity at the rendered port: the force the cell is asked to give times the rate the
+      // finger goes in. Negative energy would mean the rendering pushed the finger out.
+      power_W += target_N_[i] * rate_m_per_s[i];
     }
+  }
+  stats_.passivity_energy_J += power_W * dt;
+  stats_.passivity_min_energy_J = std::min(stats_.passivity_min_energy_J, stats_.passivity_energy_J);
+  if (stats_.passivity_energy_J < -1e-6) {
+    ++stats_.active_ticks;
   }
   if (truth_ == nullptr) {
     return;
   }
   truth_->true_forces(truth_N_);
+  const bool finger_known = truth_->finger_indentation(finger_m_);
+  // The finger holds when it moves out slower than this (scenes hold exactly still).
+  constexpr double kHoldRate_m_per_s = 1e-6;
   for (std::size_t i = 0; i < truth_N_.size(); ++i) {
-    const model::CellRole role = cells[i].role;
-    if (role != model::CellRole::loading && role != model::CellRole::holding) {
-      continue;
+    const bool role_loaded =
+        cells[i].role == model::CellRole::loading || cells[i].role == model::CellRole::holding;
+    bool pressing = role_loaded;
+    bool retreating = false;
+    if (finger_known) {
+      const bool touching = finger_m_[i] > options_.contact_threshold_m;
+      const double finger_rate = (finger_m_[i] - finger_prev_m_[i]) / dt;
+      pressing = touching && finger_rate >= -kHoldRate_m_per_s;
+      retreating = touching && !pressing;
     }
-    const double e = truth_N_[i] - target_N_[i];
-    stats_.force_sq_error_sum_N2 += e * e;
-    stats_.force_max_abs_error_N = std::max(stats_.force_max_abs_error_N, std::abs(e));
-    ++stats_.force_samples;
+    // A pressed cell the controller does not load is scored against the bare tissue law.
+    const double target_N = role_loaded ? target_N_[i] : std::clamp(tissue_N_[i], 0.0, options_.max_force_N);
+    const double e = truth_N_[i] - target_N;
+    if (pressing) {
+      stats_.force_sq_error_sum_N2 += e * e;
+      stats_.force_max_abs_error_N = std::max(stats_.force_max_abs_error_N, std::abs(e));
+      ++stats_.force_samples;
+      if (target_N >= 0.3) {
+        stats_.relative_error.add(e / target_N);
+      }
+    } else if (retreating) {
+      stats_.release_sq_error_sum_N2 += e * e;
+      ++stats_.release_samples;
+    }
+  }
+  if (finger_known) {
+    std::copy(finger_m_.begin(), finger_m_.end(), finger_prev_m_.begin());
   }
   live_rms_N_.store(stats_.force_rms_error_N(), std::memory_order_relaxed);
 }
@@ -217,7 +335,12 @@ ResultCode Bridge::step(TimePoint now) noexcept {
   if (sent != ResultCode::ok) {
     ++stats_.send_failures;
     rc = rc == ResultCode::ok ? sent : rc;
+  } else if (fresh_sample_) {
+    const Duration processing = perf.now() - t0;
+    stats_.processing_latency.add(processing.count());
+    stats_.end_to_end_latency.add((now - fresh_arrival_ + processing).count());
   }
+  fresh_sample_ = false;
   score();
   ++stats_.ticks;
   live_ticks_.store(stats_.ticks, std::memory_order_relaxed);

@@ -2,12 +2,43 @@
 
 #include <fmt/format.h>
 
+#include <algorithm>
 #include <cmath>
 
 namespace mrskin::bridge {
 
+void RelativeErrorHistogram::add(double relative) noexcept {
+  if (!std::isfinite(relative)) {
+    relative = 1e9;  // counted in the overflow bin
+  }
+  const double pos = std::abs(relative) / kBinWidth;
+  const auto bin = static_cast<std::size_t>(std::min(pos, static_cast<double>(kBins - 1)));
+  ++bins_[bin];
+  ++count_;
+}
+
+double RelativeErrorHistogram::percentile(double q) const noexcept {
+  if (count_ == 0) {
+    return 0.0;
+  }
+  const auto rank = static_cast<std::uint64_t>(std::ceil(q * static_cast<double>(count_)));
+  std::uint64_t seen = 0;
+  for (std::size_t i = 0; i < kBins; ++i) {
+    seen += bins_[i];
+    if (seen >= rank && bins_[i] > 0) {
+      return static_cast<double>(i + 1) * kBinWidth;
+    }
+  }
+  return static_cast<double>(kBins) * kBinWidth;
+}
+
 double BridgeStats::force_rms_error_N() const noexcept {
   return force_samples == 0 ? 0.0 : std::sqrt(force_sq_error_sum_N2 / static_cast<double>(force_samples));
+}
+
+double BridgeStats::release_rms_error_N() const noexcept {
+  return release_samples == 0 ? 0.0
+                              : std::sqrt(release_sq_error_sum_N2 / static_cast<double>(release_samples));
 }
 
 double BridgeStats::clamped_fraction() const noexcept {
@@ -15,6 +46,17 @@ double BridgeStats::clamped_fraction() const noexcept {
              ? 0.0
              : static_cast<double>(clamped_cell_ticks) / static_cast<double>(target_cell_ticks);
 }
+
+namespace {
+
+std::string percentiles_us(const DurationHistogram& h) {
+  return fmt::format(
+      R"({{"samples": {}, "p50": {:.4g}, "p90": {:.4g}, "p99": {:.4g}, "p999": {:.4g}, "max": {:.4g}}})",
+      h.count(), h.percentile_ns(0.5) / 1e3, h.percentile_ns(0.9) / 1e3, h.percentile_ns(0.99) / 1e3,
+      h.percentile_ns(0.999) / 1e3, static_cast<double>(h.max_ns()) / 1e3);
+}
+
+}  // namespace
 
 std::string to_json(const BridgeStats& s, double tick_period_s) {
   return fmt::format(
@@ -26,19 +68,27 @@ std::string to_json(const BridgeStats& s, double tick_period_s) {
       "  \"send_failures\": {},\n"
       "  \"slave_samples\": {},\n"
       "  \"stale_ticks\": {},\n"
-      "  \"tick_time_us\": {{\"p50\": {:.4g}, \"p90\": {:.4g}, \"p99\": {:.4g}, \"p999\": {:.4g}, \"max\": "
-      "{:.4g}}},\n"
-      "  \"force_error\": {{\"samples\": {}, \"rms_N\": {:.6g}, \"max_abs_N\": {:.6g}}},\n"
-      "  \"clamped_fraction\": {:.6g},\n"
+      "  \"tick_us\": {},\n"
+      "  \"processing_latency_us\": {},\n"
+      "  \"end_to_end_latency_us\": {},\n"
+      "  \"force_samples\": {},\n"
+      "  \"force_rms_error_n\": {:.6g},\n"
+      "  \"force_max_abs_error_n\": {:.6g},\n"
+      "  \"relative_error_p95\": {:.6g},\n"
+      "  \"relative_error_samples\": {},\n"
+      "  \"release_rms_error_n\": {:.6g},\n"
+      "  \"outside_envelope_fraction\": {:.6g},\n"
       "  \"max_current_a\": {:.6g},\n"
+      "  \"bus_load\": {:.6g},\n"
+      "  \"passivity\": {{\"energy_j\": {:.6g}, \"min_energy_j\": {:.6g}, \"active_ticks\": {}}},\n"
       "  \"observer_errors\": {},\n"
-      "  \"inverse\": {{\"errors\": {}, \"cached_ticks\": {}, \"mean_residual_N\": {:.6g}}}\n"
+      "  \"inverse\": {{\"errors\": {}, \"cached_ticks\": {}, \"mean_residual_n\": {:.6g}}}\n"
       "}}\n",
       tick_period_s, s.ticks, s.overruns, s.skipped_periods, s.send_failures, s.slave_samples, s.stale_ticks,
-      s.tick_time.percentile_ns(0.5) / 1e3, s.tick_time.percentile_ns(0.9) / 1e3,
-      s.tick_time.percentile_ns(0.99) / 1e3, s.tick_time.percentile_ns(0.999) / 1e3,
-      static_cast<double>(s.tick_time.max_ns()) / 1e3, s.force_samples, s.force_rms_error_N(),
-      s.force_max_abs_error_N, s.clamped_fraction(), s.max_current_A, s.observer_errors, s.inverse_errors,
+      percentiles_us(s.tick_time), percentiles_us(s.processing_latency), percentiles_us(s.end_to_end_latency),
+      s.force_samples, s.force_rms_error_N(), s.force_max_abs_error_N, s.relative_error.percentile(0.95),
+      s.relative_error.count(), s.release_rms_error_N(), s.clamped_fraction(), s.max_current_A, s.bus_load,
+      s.passivity_energy_J, s.passivity_min_energy_J, s.active_ticks, s.observer_errors, s.inverse_errors,
       s.inverse_cached, s.ticks == 0 ? 0.0 : s.inverse_residual_sum_N / static_cast<double>(s.ticks));
 }
 

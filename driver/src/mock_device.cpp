@@ -11,6 +11,7 @@
 #include <string>
 
 #include "mrskin/driver/errors.hpp"
+#include "mrskin/driver/model/calibration.hpp"
 #include "mrskin/driver/network_plant.hpp"
 #include "mrskin/protocol/packet.hpp"
 #include "mrskin/protocol/units.hpp"
@@ -299,7 +300,18 @@ std::shared_ptr<MockDevice> MockDevice::make(const MockOptions& options, const L
   plant_options.sensor_noise_scale = 0.0;
   plant_options.quantise_sensors = false;
   auto plant = std::make_unique<NetworkPlant>(loaded.profile, plant_options);
-  return std::make_shared<MockDevice>(loaded.profile, loaded.text, options, std::move(plant));
+  model::Calibration calibration;
+  if (options.calibration_error >= 0.0) {
+    calibration = model::measure_calibration(loaded.profile, plant->true_profile(), plant->valve_yield_gain(),
+                                             options.calibration_error, options.seed ^ 0xCA11B8A7EULL);
+  }
+  calibration.version = options.calibration_version;
+  calibration.serial = options.serial;
+  calibration.profile = loaded.profile.name;
+  auto device = std::make_shared<MockDevice>(loaded.profile, loaded.text, options, std::move(plant));
+  device->calibration_blob_ = to_bytes(model::format_calibration(calibration));
+  device->calibration_blob_.reserve(kConfigCapacity);
+  return device;
 }
 
 std::shared_ptr<MockDevice> MockDevice::make(const MockOptions& options,
@@ -347,6 +359,13 @@ void MockDevice::set_link_up(bool up) noexcept {
 
 MockDevice::FaultCounters MockDevice::fault_counters() const noexcept {
   return {dropped_.load(), duplicated_.load(), corrupted_.load(), reordered_.load(), congested_.load()};
+}
+
+void MockDevice::finger_indentation(std::span<double> out_m) const noexcept {
+  const std::size_t n = std::min(out_m.size(), finger_m_.size());
+  for (std::size_t i = 0; i < n; ++i) {
+    out_m[i] = finger_m_[i].load(std::memory_order_relaxed);
+  }
 }
 
 void MockDevice::set_finger_indentation(std::span<const double> indentation_m) noexcept {

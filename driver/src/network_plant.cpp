@@ -204,5 +204,7 @@ const model::NetworkSimulation& NetworkPlant::network() const noexcept { return 
 std::span<const double> NetworkPlant::valve_yield_stress_Pa() const noexcept { return impl_->yield_Pa; }
 std::span<const double> NetworkPlant::coil_current_A() const noexcept { return impl_->coil_A; }
 std::uint64_t NetworkPlant::failed_steps() const noexcept { return impl_->failed; }
+const model::DeviceProfile& NetworkPlant::true_profile() const noexcept { return impl_->truth.profile(); }
+std::span<const double> NetworkPlant::valve_yield_gain() const noexcept { return impl_->valve_gain; }
 
 }  // namespace mrskin

@@ -6,19 +6,6 @@
 #include "mrskin/bridge/bridge.hpp"
 #include "mrskin/driver/device.hpp"
 
-namespace {
-
-class MockTruth final : public mrskin::bridge::ForceTruth {
- public:
-  explicit MockTruth(const mrskin::MockDevice& mock) : mock_(mock) {}
-  void true_forces(std::span<double> out_N) const noexcept override { mock_.true_contact_forces(out_N); }
-
- private:
-  const mrskin::MockDevice& mock_;
-};
-
-}  // namespace
-
 int main() {
   using namespace mrskin;
   try {
@@ -29,7 +16,7 @@ int main() {
     OpenedDevice dev = open_device("mock://?seed=1", clock, open);
     auto scene = bridge::make_scene("demo");
     bridge::Bridge loop(*dev.session, *scene);
-    MockTruth truth(*dev.mock);
+    bridge::MockDeviceTruth truth(*dev.mock);
     loop.set_force_truth(&truth);
     loop.set_perf_clock(&clock);
     scene->set_start(clock.now());

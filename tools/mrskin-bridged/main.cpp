@@ -21,15 +21,6 @@ namespace {
 std::atomic<int> g_signal{0};  // NOLINT(cppcoreguidelines-avoid-non-const-global-variables)
 extern "C" void on_signal(int sig) { g_signal.store(sig); }
 
-class MockTruth final : public mrskin::bridge::ForceTruth {
- public:
-  explicit MockTruth(const mrskin::MockDevice& mock) : mock_(mock) {}
-  void true_forces(std::span<double> out_N) const noexcept override { mock_.true_contact_forces(out_N); }
-
- private:
-  const mrskin::MockDevice& mock_;
-};
-
 using namespace mrskin::tools;  // exit codes
 
 struct Settings {
@@ -66,7 +57,7 @@ int run(const Settings& cfg) {
   bridge::BridgeOptions options;
   options.rate_hz = cfg.rate_hz;
   bridge::Bridge loop(*dev.session, *scene, options);
-  std::optional<MockTruth> truth;
+  std::optional<mrskin::bridge::MockDeviceTruth> truth;
   if (dev.mock) {
     truth.emplace(*dev.mock);
     loop.set_force_truth(&*truth);

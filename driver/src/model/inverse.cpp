@@ -345,6 +345,7 @@ struct CellInverse::Impl {
   std::vector<double> t;  // valve levels, Pa
   std::vector<double> current;
   std::vector<double> tau;
+  std::vector<double> inv_valve_gain;  // 1 / the calibrated per-valve yield gain
   std::vector<CellSolution> out;
   InverseReport rep;
 
@@ -668,6 +669,7 @@ CellInverse::Impl::Impl(const DeviceModel& model, const InverseOptions& options)
   t.assign(valves, t_min);
   current.assign(valves, 0.0);
   tau.assign(valves, tau_min);
+  inv_valve_gain.assign(valves, 1.0);
   out.assign(cells, CellSolution{});
   derived.assign(2 * cells, Derived{});
   next_role.assign(cells, CellRole::no_contact);
@@ -1469,7 +1471,7 @@ void CellInverse::Impl::write_valves() noexcept {
     tp[v] = level;
     const double ta = level * inv_yield_k;
     tau[v] = ta;
-    current[v] = current_for_tau(ta);
+    current[v] = current_for_tau(ta * inv_valve_gain[v]);
   }
   rep.valve_updates += nv;
 }
@@ -1893,6 +1895,21 @@ Result<double> CellInverse::valve_pressure_Pa(std::size_t cell, double flow_m3_p
   }
   const double k = m.yield_k;
   return {m.forward(cell, flow_m3_per_s, [&](std::size_t v) { return k * valve_yield_Pa[v]; })};
+}
+
+Status CellInverse::set_valve_yield_gain(std::span<const double> gain) noexcept {
+  if (gain.size() != impl_->inv_valve_gain.size()) {
+    return Status::out_of_range;
+  }
+  for (const double g : gain) {
+    if (!finite(g) || !(g > 0.0)) {
+      return Status::out_of_range;
+    }
+  }
+  for (std::size_t v = 0; v < gain.size(); ++v) {
+    impl_->inv_valve_gain[v] = 1.0 / gain[v];
+  }
+  return Status::ok;
 }
 
 Result<double> CellInverse::current_for_yield_stress_A(double yield_stress_Pa) const noexcept {

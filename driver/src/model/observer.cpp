@@ -86,6 +86,7 @@ struct CellObserver::Impl {
     velocity.assign(cells, 0.0);
     coil.resize(grid.valve_count());
     yield_Pa.assign(grid.valve_count(), 0.0);
+    valve_gain.assign(grid.valve_count(), 1.0);
   }
 
   static NetworkOptions network_options(const ObserverOptions& o) {
@@ -122,6 +123,7 @@ struct CellObserver::Impl {
   std::vector<double> velocity;
   std::vector<CoilState> coil;
   std::vector<double> yield_Pa;
+  std::vector<double> valve_gain;  // calibrated true / nominal yield stress per valve
   double prior_weight = 0.0;
   double l1_weight = 0.0;
   double misfit_m = 0.0;
@@ -133,6 +135,19 @@ CellObserver::CellObserver(const DeviceModel& nominal, const ObserverOptions& op
 CellObserver::~CellObserver() = default;
 
 void CellObserver::reset() noexcept { impl_->reset(); }
+
+Status CellObserver::set_valve_yield_gain(std::span<const double> gain) noexcept {
+  if (gain.size() != impl_->valve_gain.size()) {
+    return Status::out_of_range;
+  }
+  for (const double g : gain) {
+    if (!std::isfinite(g) || !(g > 0.0)) {
+      return Status::out_of_range;
+    }
+  }
+  std::copy(gain.begin(), gain.end(), impl_->valve_gain.begin());
+  return Status::ok;
+}
 
 Status CellObserver::update(std::span<const double> sensor_readings, std::span<const double> valve_current_A,
                             double dt_s) noexcept {
@@ -206,7 +221,7 @@ Status CellObserver::update(std::span<const double> sensor_readings, std::span<c
     }
     const double field_A = std::clamp(m.coil[v].field_current_A, 0.0, coil_params.max_current_A);
     const Result<double> tau_y = m.model.yield_stress_at_current_Pa(field_A);
-    m.yield_Pa[v] = tau_y.ok() ? tau_y.value : m.yield_Pa[v];
+    m.yield_Pa[v] = tau_y.ok() ? tau_y.value * m.valve_gain[v] : m.yield_Pa[v];
   }
   Status s = m.network.set_valve_yield_stress_Pa(m.yield_Pa);
   if (s == Status::ok) {

@@ -16,6 +16,7 @@
 #include "mrskin/bridge/stats.hpp"
 #include "mrskin/driver/clock.hpp"
 #include "mrskin/driver/errors.hpp"
+#include "mrskin/driver/mock_device.hpp"
 #include "mrskin/driver/model/device_model.hpp"
 #include "mrskin/driver/model/inverse.hpp"
 #include "mrskin/driver/model/observer.hpp"
@@ -31,10 +32,13 @@ struct BridgeOptions {
   double stale_fade_s = 0.2;           // ...then fade to released over this long
   double stiffness_filter_s = 0.02;    // time constant of the online stiffness estimate
   double unload_rate_m_per_s = 2e-3;   // rates within +-this are holding (observer noise)
+  double unload_retreat_m = 30e-6;     // a cell unloads after retreating this far from its peak...
+  double unload_filter_s = 5e-3;       // ...on its depth smoothed with this time constant
   double contact_force_N = 0.03;       // estimated force below this: the finger is not on the cell
   // Integral feedback on the observer's force, 1/s: corrects what the quasi-static inverse does
   // not know (the cell's fluid history, coil lag); frozen while the target is clamped.
-  double feedback_gain_per_s = 20.0;
+  double feedback_gain_per_s = 40.0;
+  bool freeze_feedback_while_holding = false;
   double feedback_limit_N = 0.5;
   model::ObserverOptions observer{};
   model::InverseOptions inverse{};
@@ -50,6 +54,23 @@ class ForceTruth {
   ForceTruth& operator=(ForceTruth&&) = delete;
   virtual ~ForceTruth() = default;
   virtual void true_forces(std::span<double> out_N) const noexcept = 0;
+  // The finger's true indentation per fluid cell, m, so that scoring follows the finger's true
+  // motion rather than the controller's own reading of it; false when unknown.
+  virtual bool finger_indentation(std::span<double> /*out_m*/) const noexcept { return false; }
+};
+
+// The mock device's ground truth: its plant's contact forces and the finger it was given.
+class MockDeviceTruth final : public ForceTruth {
+ public:
+  explicit MockDeviceTruth(const MockDevice& mock) noexcept : mock_(mock) {}
+  void true_forces(std::span<double> out_N) const noexcept override { mock_.true_contact_forces(out_N); }
+  bool finger_indentation(std::span<double> out_m) const noexcept override {
+    mock_.finger_indentation(out_m);
+    return true;
+  }
+
+ private:
+  const MockDevice& mock_;
 };
 
 class Bridge {
@@ -96,6 +117,7 @@ class Bridge {
  private:
   void update_tissue_model(TimePoint now) noexcept;
   void compute_targets() noexcept;
+  double direction_rate(std::size_t i, bool contact, double depth_m, double rate_m_per_s) noexcept;
   void lock_short_cells() noexcept;
   void clamp_targets_into_envelope() noexcept;
   void score() noexcept;
@@ -112,12 +134,24 @@ class Bridge {
   MonotonicClock default_perf_clock_;
   std::vector<model::CellImpedanceTarget> targets_;
   std::vector<model::CellState> states_;
-  std::vector<double> target_N_;    // tissue law clamped into this tick's envelope (loaded cells)
-  std::vector<double> tissue_N_;    // tissue law at the cell's state
-  std::vector<double> feedback_N_;  // integral correction per cell
+  std::vector<double> target_N_;            // tissue law clamped into this tick's envelope (loaded cells)
+  std::vector<double> tissue_N_;            // tissue law at the cell's state
+  std::vector<double> feedback_N_;          // integral correction per cell
+  std::vector<unsigned char> unloading_;    // per cell: latched release (direction_rate)
+  std::vector<double> extreme_m_;           // per cell: peak depth while loaded, trough while unloading
+  std::vector<double> smooth_depth_m_;      // per cell: depth smoothed for the unloading latch
+  std::vector<std::uint32_t> open_ticks_;   // per cell: ticks its valves have been at 0 A
+  std::vector<unsigned char> below_floor_;  // per cell: target below the observed open-valve floor
+  std::uint32_t settle_ticks_ = 1;
+  double unload_filter_alpha_ = 1.0;
   std::vector<double> current_A_;
+  std::vector<double> valve_gain_;  // calibrated per-valve yield gain
   std::vector<double> truth_N_;
+  std::vector<double> finger_m_;       // the truth's finger this tick...
+  std::vector<double> finger_prev_m_;  // ...and last tick
   SlaveSample slave_{};
+  bool fresh_sample_ = false;  // this tick consumed a new slave sample
+  TimePoint fresh_arrival_{};
   double stiffness_N_per_m_ = 0.0;
   double damping_N_s_per_m_ = 0.0;
   double model_gain_ = 0.0;  // 1 fresh, fading to 0 when stale

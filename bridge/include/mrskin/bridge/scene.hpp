@@ -14,6 +14,7 @@ namespace mrskin::bridge {
 // One slave-side sample: what the instrument feels.
 struct SlaveSample {
   TimePoint stamp{};           // when the robot sampled it
+  TimePoint received{};        // when it reached this host, on the loop's clock (0: at stamp)
   double force_N = 0.0;        // normal contact force on the tissue
   double indentation_m = 0.0;  // instrument indentation into the tissue
   double contact_row = 0.0;    // where on the skin to render it, in cell units

@@ -11,28 +11,63 @@ namespace mrskin::bridge {
 
 using mrskin::DurationHistogram;
 
+// Relative errors from 0 to 100 % in 0.1 % bins (the last bin holds everything above): a fixed
+// array, so the tick can fill it.
+class RelativeErrorHistogram {
+ public:
+  void add(double relative) noexcept;
+  // Upper edge of the bin holding quantile q; 0 when empty.
+  [[nodiscard]] double percentile(double q) const noexcept;
+  [[nodiscard]] std::uint64_t count() const noexcept { return count_; }
+
+ private:
+  static constexpr std::size_t kBins = 1001;
+  static constexpr double kBinWidth = 1e-3;
+  std::array<std::uint64_t, kBins> bins_{};
+  std::uint64_t count_ = 0;
+};
+
 struct BridgeStats {
   std::uint64_t ticks = 0;
   std::uint64_t overruns = 0;         // ticks whose work exceeded the period
   std::uint64_t skipped_periods = 0;  // periods skipped to catch up (never burst)
   std::uint64_t send_failures = 0;
-  std::uint64_t slave_samples = 0;
-  std::uint64_t stale_ticks = 0;  // ticks rendering without fresh slave data
+  std::uint64_t slave_samples = 0;  // ticks that had a valid slave sample
+  std::uint64_t stale_ticks = 0;    // ticks rendering without fresh slave data
   DurationHistogram tick_time;
-  // Rendered-force error: plant's true force minus the target clamped into the envelope,
-  // scored on contacted cells while loading and holding.
+  // Processing latency: from the tick that consumes a new robot sample to the frame carrying
+  // its effect handed to the transport. End to end: from the sample's arrival (its stamp on
+  // the loop's clock) to that frame.
+  DurationHistogram processing_latency;
+  DurationHistogram end_to_end_latency;
+  // Rendered-force error: the plant's true force minus the tissue law clamped into the
+  // envelope, scored on cells the finger presses or holds (by the finger's true motion when
+  // the truth knows it, else by the controller's role), deeper than the contact threshold.
   std::uint64_t force_samples = 0;
   double force_sq_error_sum_N2 = 0.0;
   double force_max_abs_error_N = 0.0;
-  std::uint64_t target_cell_ticks = 0;
-  std::uint64_t clamped_cell_ticks = 0;
-  std::uint64_t observer_errors = 0;    // ticks whose observer update failed (estimate held)
-  std::uint64_t inverse_errors = 0;     // ticks whose allocation failed (currents held)
-  std::uint64_t inverse_cached = 0;     // ticks on which nothing was dirty: no allocation work
-  double max_current_A = 0.0;           // largest valve current commanded
-  double inverse_residual_sum_N = 0.0;  // per tick: the allocation's residual norm (fast model)
+  RelativeErrorHistogram relative_error;  // where the clamped target is >= 0.3 N
+  // While the finger retreats: the true force minus the tissue law (semi-active valves can only
+  // release, so this is reported apart from the loading/holding error).
+  std::uint64_t release_samples = 0;
+  double release_sq_error_sum_N2 = 0.0;
+  std::uint64_t target_cell_ticks = 0;   // loaded cell-ticks
+  std::uint64_t clamped_cell_ticks = 0;  // ...whose target lay outside the envelope
+  std::uint64_t observer_errors = 0;     // ticks whose observer update failed (estimate held)
+  std::uint64_t inverse_errors = 0;      // ticks whose allocation failed (currents held)
+  std::uint64_t inverse_cached = 0;      // ticks on which nothing was dirty: no allocation work
+  double max_current_A = 0.0;            // largest valve current commanded
+  double inverse_residual_sum_N = 0.0;   // per tick: the allocation's residual norm (fast model)
+  // Passivity observer at the rendered ports (sum over cells of the integral of F v dt, with F
+  // the target force and v the indentation rate): negative means the rendering gave energy.
+  double passivity_energy_J = 0.0;
+  double passivity_min_energy_J = 0.0;
+  std::uint64_t active_ticks = 0;  // ticks on which the energy was below -1 uJ
+  // Bus load of the session's traffic (fraction of the bus), set by the caller after the run.
+  double bus_load = 0.0;
 
   [[nodiscard]] double force_rms_error_N() const noexcept;
+  [[nodiscard]] double release_rms_error_N() const noexcept;
   [[nodiscard]] double clamped_fraction() const noexcept;
 };
 

@@ -70,6 +70,10 @@ struct MockOptions {
   double time_scale = 1.0;       // multiplies every timeout (slow environments, VMs)
   MockFaults faults{};
   std::uint16_t calibration_version = 1;
+  // The factory calibration stored on the unit: its plant's parameters measured to this
+  // relative spread (model::measure_calibration). Negative: store the nominal calibration
+  // (every ratio 1), as an uncalibrated unit would.
+  double calibration_error = 0.01;
 };
 
 // A device profile found by name or path, with the text it was read from.
@@ -121,6 +125,8 @@ class MockDevice {
 
   // Finger input, m per fluid cell; callable from any thread.
   void set_finger_indentation(std::span<const double> indentation_m) noexcept;
+  // The finger input last set, m per fluid cell; callable from any thread.
+  void finger_indentation(std::span<double> out_m) const noexcept;
   // Ground truth: the plant's contact force per fluid cell, N; callable from any thread.
   void true_contact_forces(std::span<double> out_N) const noexcept;
   // Coil currents the plant sees now, A.

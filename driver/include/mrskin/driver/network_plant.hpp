@@ -58,6 +58,9 @@ class NetworkPlant final : public Plant {
   [[nodiscard]] const model::NetworkSimulation& network() const noexcept;
   [[nodiscard]] std::span<const double> valve_yield_stress_Pa() const noexcept;
   [[nodiscard]] std::span<const double> coil_current_A() const noexcept;
+  // The perturbed parameters and per-valve yield gains (what a factory calibration measures).
+  [[nodiscard]] const model::DeviceProfile& true_profile() const noexcept;
+  [[nodiscard]] std::span<const double> valve_yield_gain() const noexcept;
   // Steps whose network solve failed (state kept, counted; never expected).
   [[nodiscard]] std::uint64_t failed_steps() const noexcept;
 

@@ -1,14 +1,17 @@
 // One transport interface for every bus: datagrams of at most 64 bytes (one HID report,
-// one packet). Calls are non-blocking and allocation-free, so the session may call them
-// from the tick thread; transports whose OS calls block run their I/O on their own thread.
+// one packet). send() and receive() are non-blocking and allocation-free, so the session
+// may call them from the tick thread; transports whose OS calls block run their I/O on
+// their own thread (QueuedTransport). receive_for() waits, for setup code only.
 #pragma once
 
 #include <array>
+#include <atomic>
 #include <cstddef>
 #include <cstdint>
 #include <span>
 #include <string_view>
 
+#include "mrskin/driver/clock.hpp"
 #include "mrskin/driver/errors.hpp"
 
 namespace mrskin {
@@ -20,7 +23,36 @@ struct Datagram {
   std::uint8_t length = 0;
 };
 
-enum class TransportState : unsigned char { open, disconnected };
+// open: datagrams flow. disconnected: the device is gone (unplugged, interface down); the
+// transport reopens it by itself and returns to open. bus_off: a CAN controller left the
+// bus after too many errors; it counts as disconnected until the controller recovers.
+enum class TransportState : unsigned char { open, disconnected, bus_off };
+constexpr const char* to_string(TransportState s) noexcept {
+  switch (s) {
+    case TransportState::open:
+      return "open";
+    case TransportState::disconnected:
+      return "disconnected";
+    case TransportState::bus_off:
+      return "bus-off";
+  }
+  return "unknown";
+}
+
+// What a transport counted since it was opened. Read from any thread.
+struct TransportCounters {
+  std::uint64_t sent = 0;              // datagrams handed to the OS
+  std::uint64_t received = 0;          // datagrams delivered to receive()
+  std::uint64_t send_would_block = 0;  // send() refused: outgoing queue full (back-pressure)
+  std::uint64_t receive_overruns = 0;  // datagrams dropped: the host did not read in time
+  std::uint64_t timeouts = 0;          // OS writes that did not complete in time
+  std::uint64_t io_errors = 0;         // OS calls that failed without losing the device
+  std::uint64_t disconnects = 0;       // the device went away
+  std::uint64_t reopens = 0;           // ... and came back
+  std::uint64_t malformed = 0;         // bus data that is not ours or not decodable: dropped
+  std::uint64_t error_frames = 0;      // CAN error frames
+  std::uint64_t bus_off = 0;           // CAN bus-off events
+};
 
 class Transport {
  public:
@@ -31,12 +63,17 @@ class Transport {
   Transport& operator=(Transport&&) = delete;
   virtual ~Transport() = default;
 
-  // Queues one datagram; would_block when the outgoing queue is full.
+  // Queues one datagram; would_block when the outgoing queue is full, disconnected when the
+  // device is gone, invalid_value when bytes is empty or longer than kMaxDatagramBytes.
   virtual ResultCode send(std::span<const std::uint8_t> bytes) noexcept = 0;
   // Takes one received datagram; would_block when none is waiting.
   virtual ResultCode receive(Datagram& out) noexcept = 0;
+  // Waits up to timeout for a datagram: ok, would_block on timeout, disconnected. Setup only.
+  // The default polls receive() every 100 us on the system clock.
+  virtual ResultCode receive_for(Datagram& out, Duration timeout) noexcept;
   [[nodiscard]] virtual TransportState state() const noexcept = 0;
   [[nodiscard]] virtual std::string_view uri() const noexcept = 0;
+  [[nodiscard]] virtual TransportCounters counters() const noexcept { return {}; }
 };
 
 }  // namespace mrskin

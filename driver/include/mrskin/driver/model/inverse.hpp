@@ -157,6 +157,10 @@ class CellInverse {
   // The current that gives a yield stress (inverse of DeviceModel's table), and the largest
   // error of that inverse measured at construction (yield stress, Pa).
   [[nodiscard]] Result<double> current_for_yield_stress_A(double yield_stress_Pa) const noexcept;
+  // A unit's calibrated per-valve yield gains (true / nominal yield stress at a current, one per
+  // valve): the currents then give each valve the yield stress the model asked for.
+  // out_of_range for a wrong size or a gain that is not finite and positive. Setup only.
+  Status set_valve_yield_gain(std::span<const double> gain) noexcept;
   [[nodiscard]] double current_table_max_error_Pa() const noexcept;
   // Largest relative error of the branch-flow table against the exact law, measured at
   // construction between the table's nodes.

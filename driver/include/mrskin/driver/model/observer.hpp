@@ -56,6 +56,9 @@ class CellObserver {
   Status update(std::span<const double> sensor_readings, std::span<const double> valve_current_A,
                 double dt_s) noexcept;
   void reset() noexcept;
+  // A unit's calibrated per-valve yield gains (true / nominal yield stress at a current), one per
+  // valve; out_of_range for a wrong size or a gain that is not finite and positive. Setup only.
+  Status set_valve_yield_gain(std::span<const double> gain) noexcept;
 
   [[nodiscard]] std::span<const double> indentation_m() const noexcept;
   [[nodiscard]] std::span<const double> velocity_m_per_s() const noexcept;

@@ -1,0 +1,46 @@
+// The unit's one USB descriptor set, shared by hid:// (hidraw) and usb:// (libusb): a
+// full-speed device with one vendor-defined HID interface, 64-byte input and output reports
+// without report IDs, on interrupt endpoints polled every 1 ms. The iSerialNumber string is
+// the unit's serial number as 8 upper-case hex digits (format_usb_serial).
+#pragma once
+
+#include <array>
+#include <cstdint>
+#include <optional>
+#include <string>
+#include <string_view>
+
+namespace mrskin::protocol {
+
+inline constexpr std::uint16_t kUsbVendorId = 0x1209;   // pid.codes
+inline constexpr std::uint16_t kUsbProductId = 0x4d52;  // "MR", development ID
+inline constexpr std::uint8_t kUsbInterface = 0;        // the HID interface
+inline constexpr std::uint8_t kUsbEndpointIn = 0x81;    // interrupt IN, device -> host
+inline constexpr std::uint8_t kUsbEndpointOut = 0x01;   // interrupt OUT, host -> device
+inline constexpr std::uint16_t kUsbMaxPacketBytes = 64;
+inline constexpr std::uint8_t kUsbIntervalFrames = 1;  // bInterval: 1 ms at full speed
+// Both reports are kHidReportBytes (packet.hpp) long, without a report ID.
+
+// HID report descriptor: vendor page 0xFF00, one 64-byte input and one 64-byte output report.
+inline constexpr std::array<std::uint8_t, 27> kHidReportDescriptor = {
+    0x06, 0x00, 0xFF,  // Usage Page (Vendor Defined 0xFF00)
+    0x09, 0x01,        // Usage (0x01)
+    0xA1, 0x01,        // Collection (Application)
+    0x15, 0x00,        //   Logical Minimum (0)
+    0x26, 0xFF, 0x00,  //   Logical Maximum (255)
+    0x75, 0x08,        //   Report Size (8)
+    0x95, 0x40,        //   Report Count (64)
+    0x09, 0x02,        //   Usage (0x02)
+    0x81, 0x02,        //   Input (Data, Variable, Absolute)
+    0x95, 0x40,        //   Report Count (64)
+    0x09, 0x03,        //   Usage (0x03)
+    0x91, 0x02,        //   Output (Data, Variable, Absolute)
+    0xC0,              // End Collection
+};
+
+// "0000BEEF" for serial 0xBEEF.
+std::string format_usb_serial(std::uint32_t serial);
+// Inverse of format_usb_serial; nullopt unless exactly 8 hex digits (either case).
+std::optional<std::uint32_t> parse_usb_serial(std::string_view text) noexcept;
+
+}  // namespace mrskin::protocol
