@@ -15,6 +15,9 @@
 #include <string>
 
 #include "mrskin/driver/errors.hpp"
+#include "mrskin/driver/transports/can.hpp"
+#include "mrskin/driver/transports/hid.hpp"
+#include "mrskin/driver/transports/usb.hpp"
 
 namespace mrskin {
 namespace {
@@ -138,8 +141,37 @@ MockUri parse_mock_uri(std::string_view uri) {
   return parsed;
 }
 
+namespace {
+
+// One lock per unit, whichever bus names it: hid:// and usb:// reach the same USB unit (and
+// usb:// detaches the kernel driver under hidraw), so both lock its VID:PID:serial.
+std::string lock_name(std::string_view uri) {
+  std::uint16_t vendor_id = 0;
+  std::uint16_t product_id = 0;
+  std::string serial;
+  if (uri.starts_with("hid://")) {
+    HidUri u = parse_hid_uri(uri);
+    vendor_id = u.vendor_id;
+    product_id = u.product_id;
+    serial = std::move(u.serial);
+  } else if (uri.starts_with("usb://")) {
+    UsbUri u = parse_usb_uri(uri);
+    vendor_id = u.vendor_id;
+    product_id = u.product_id;
+    serial = std::move(u.serial);
+  } else if (uri.starts_with("can://")) {
+    const CanUri u = parse_can_uri(uri);
+    return fmt::format("can-{}-{}", u.interface, u.node);  // one session per node, either framing
+  } else {
+    return std::string(uri.substr(0, uri.find('?')));
+  }
+  return fmt::format("usb-{:04x}-{:04x}-{}", vendor_id, product_id, serial.empty() ? "any" : serial);
+}
+
+}  // namespace
+
 DeviceLock::DeviceLock(std::string_view uri) {
-  std::string name(uri.substr(0, uri.find('?')));
+  std::string name = lock_name(uri);
   if (uri.starts_with("mock://")) {
     name = fmt::format("{}@{}", name, ::getpid());
     per_process_ = true;
@@ -191,6 +223,24 @@ DeviceLock::~DeviceLock() {
   }
 }
 
+namespace {
+
+// A real bus: the unit's lock, then its transport (scaled like the session), then the session.
+template <class TransportOptions>
+OpenedDevice open_on_bus(std::string_view uri, Clock& clock, const SessionOptions& session_options,
+                         std::unique_ptr<Transport> (*open_transport)(std::string_view,
+                                                                      const TransportOptions&)) {
+  OpenedDevice opened;
+  opened.lock = std::make_unique<DeviceLock>(uri);
+  TransportOptions transport_options;
+  transport_options.time_scale = session_options.time_scale;
+  opened.session =
+      std::make_unique<DeviceSession>(open_transport(uri, transport_options), clock, session_options);
+  return opened;
+}
+
+}  // namespace
+
 OpenedDevice open_device(std::string_view uri, Clock& clock, const OpenOptions& options) {
   OpenedDevice opened;
   SessionOptions session_options = options.session;
@@ -210,13 +260,19 @@ OpenedDevice open_device(std::string_view uri, Clock& clock, const OpenOptions& 
                                                      clock, session_options);
     return opened;
   }
-  for (const std::string_view scheme : {"hid://", "usb://", "can://"}) {
-    if (uri.starts_with(scheme)) {
-      throw InvalidArgument("'" + std::string(uri) + "': the " + std::string(scheme.substr(0, 3)) +
-                            " transport is not in this build yet; use mock://");
-    }
+  if (uri.starts_with("hid://")) {
+    return open_on_bus<HidTransportOptions>(uri, clock, session_options, &open_hid_transport);
   }
-  throw InvalidArgument("'" + std::string(uri) + "' is not a device URI: use mock://[PROFILE][?seed=N]");
+  if (uri.starts_with("usb://")) {
+    return open_on_bus<UsbTransportOptions>(uri, clock, session_options, &open_usb_transport);
+  }
+  if (uri.starts_with("can://")) {
+    return open_on_bus<CanTransportOptions>(uri, clock, session_options, &open_can_transport);
+  }
+  throw InvalidArgument(
+      "'" + std::string(uri) +
+      "' is not a device URI: use mock://[PROFILE][?seed=N], hid://VID:PID[?serial=S], "
+      "usb://VID:PID[?serial=S] or can://IFACE?node=N[&fd=1] (mrskinctl list shows the units found)");
 }
 
 }  // namespace mrskin

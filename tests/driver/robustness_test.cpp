@@ -352,7 +352,10 @@ TEST(Calibration, WritesAreVersionedAndRefusedWhileEnabled) {
 }
 
 TEST(Ownership, ASecondProcessIsRefusedNamingTheOwner) {
-  const std::string uri = "hid://mrskin-ownership-test-" + std::to_string(::getpid());
+  // A unit of our own (serial = this test's PID): the lock is per unit, whether or not it is attached.
+  char serial[9];
+  std::snprintf(serial, sizeof serial, "%08X", static_cast<unsigned>(::getpid()));
+  const std::string uri = std::string("hid://1209:4d52?serial=") + serial;
   int to_parent[2];
   int to_child[2];
   ASSERT_EQ(::pipe(to_parent), 0);

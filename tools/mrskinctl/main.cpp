@@ -10,6 +10,8 @@
 #include <vector>
 
 #include "exit_codes.hpp"
+#include "json_text.hpp"
+#include "list_command.hpp"
 #include "model_command.hpp"
 #include "mrskin/driver/device.hpp"
 #include "mrskin/driver/version.hpp"
@@ -18,38 +20,8 @@
 namespace {
 
 // Exit codes: tools/common/exit_codes.hpp.
-
-std::string json_escape(std::string_view text) {
-  std::string out;
-  for (const char c : text) {
-    switch (c) {
-      case '"':
-        out += "\\\"";
-        break;
-      case '\\':
-        out += "\\\\";
-        break;
-      case '\n':
-        out += "\\n";
-        break;
-      case '\r':
-        out += "\\r";
-        break;
-      case '\t':
-        out += "\\t";
-        break;
-      default:
-        if (static_cast<unsigned char>(c) < 0x20) {
-          out += fmt::format("\\u{:04x}", static_cast<unsigned>(static_cast<unsigned char>(c)));
-        } else {
-          out += c;
-        }
-    }
-  }
-  return out;
-}
-
-std::string json_number(double v) { return std::isfinite(v) ? fmt::format("{:.9g}", v) : "null"; }
+using mrskin::ctl::json_escape;
+using mrskin::ctl::json_number;
 
 std::string json_numbers(const std::vector<double>& values) {
   std::string out = "[";
@@ -269,13 +241,22 @@ int guarded_main(int argc, char** argv) {
       "also print the decoded ring log: the fault report if a fault arrived during the sample, else "
       "the last packets");
 
+  auto* list = app.add_subcommand(
+      "list",
+      "list the MR skins reachable over hidraw, USB and the CAN interfaces that exist: URI, path, serial, "
+      "firmware and protocol version, and for each unit the OS refuses, the problem and its fix. Exit "
+      "status 0 when a unit was found, 3 when none was");
+  mrskin::ctl::ListOptions list_options;
+  list->add_flag(
+      "--no-probe", [&list_options](std::int64_t) { list_options.probe = false; },
+      "do not open the units for their firmware and protocol version");
+
   struct Planned {
     const char* name;
     const char* help;
     const char* issue;
   };
   static constexpr Planned kPlanned[] = {
-      {"list", "list attached devices on every bus", "Driver II (#7)"},
       {"monitor", "show the grid live: force, displacement, current, temperature",
        "mrskinctl complete (#11)"},
       {"set", "send per-valve currents or per-cell targets", "mrskinctl complete (#11)"},
@@ -305,6 +286,10 @@ int guarded_main(int argc, char** argv) {
     fmt::print(stderr, "mrskinctl {}: not available in this build (planned in {})\n", chosen->name,
                chosen->issue);
     return mrskin::tools::kUnavailable;
+  }
+  if (list->parsed()) {
+    list_options.json = json;
+    return mrskin::ctl::cmd_list(list_options);
   }
   if (info->parsed()) {
     info_options.uri = device;

@@ -17,6 +17,7 @@
 #include <thread>
 #include <utility>
 
+#include "event_fd.hpp"
 #include "mrskin/driver/errors.hpp"
 #include "mrskin/driver/queued_transport.hpp"
 #include "mrskin/driver/transports/hid.hpp"
@@ -90,31 +91,6 @@ class HidInit {
 
  private:
   HidApi& api_;
-};
-
-// An eventfd, closed with its owner.
-class EventFd {
- public:
-  explicit EventFd(std::string_view uri) : fd_(::eventfd(0, EFD_NONBLOCK | EFD_CLOEXEC)) {
-    if (fd_ < 0) {
-      throw Error(fmt::format("cannot create an eventfd for {}: {} (raise the open-file limit, ulimit -n)",
-                              uri, errno_text(errno)));
-    }
-  }
-  EventFd(const EventFd&) = delete;
-  EventFd& operator=(const EventFd&) = delete;
-  EventFd(EventFd&&) = delete;
-  EventFd& operator=(EventFd&&) = delete;
-  ~EventFd() { ::close(fd_); }
-  [[nodiscard]] int fd() const noexcept { return fd_; }
-  void signal() const noexcept {
-    const std::uint64_t one = 1;
-    // Fails only when the counter would overflow: the waiters are woken already.
-    [[maybe_unused]] const ssize_t n = ::write(fd_, &one, sizeof one);
-  }
-
- private:
-  int fd_;
 };
 
 // The matching nodes, each path once (hidapi lists a node once per top-level usage).
@@ -409,7 +385,7 @@ class HidTransport final : public QueuedTransport {
   HidTransportOptions options_;
   std::shared_ptr<HidApi> api_;
   HidInit init_;
-  EventFd wake_;
+  transports::EventFd wake_;
   int read_timeout_ms_;
   Duration backoff_min_;
   Duration backoff_max_;

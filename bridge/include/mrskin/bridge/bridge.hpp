@@ -12,8 +12,10 @@
 #include <thread>
 #include <vector>
 
+#include "mrskin/bridge/mapping.hpp"
 #include "mrskin/bridge/scene.hpp"
 #include "mrskin/bridge/stats.hpp"
+#include "mrskin/bridge/tissue.hpp"
 #include "mrskin/driver/clock.hpp"
 #include "mrskin/driver/errors.hpp"
 #include "mrskin/driver/mock_device.hpp"
@@ -24,17 +26,29 @@
 
 namespace mrskin::bridge {
 
+// The estimator's defaults for the bridge: Hunt-Crossley fitted online, a soft prior (rendered
+// until the fit is confident), hold 0.1 s then fade over 0.2 s when the stream stops.
+TissueEstimatorOptions default_estimator_options() noexcept;
+
 struct BridgeOptions {
   double rate_hz = 1000.0;
   double contact_threshold_m = 50e-6;  // a cell deeper than this is in contact
   double max_force_N = 2.0;            // device range
-  double stale_hold_s = 0.1;           // hold the last tissue model this long...
-  double stale_fade_s = 0.2;           // ...then fade to released over this long
-  double stiffness_filter_s = 0.02;    // time constant of the online stiffness estimate
-  double unload_rate_m_per_s = 2e-3;   // rates within +-this are holding (observer noise)
-  double unload_retreat_m = 30e-6;     // a cell unloads after retreating this far from its peak...
-  double unload_filter_s = 5e-3;       // ...on its depth smoothed with this time constant
-  double contact_force_N = 0.03;       // estimated force below this: the finger is not on the cell
+  // The online tissue estimate: the law fitted, its prior, and the stale policy (hold, then fade
+  // to released: hold_s, fade_s).
+  TissueEstimatorOptions estimator = default_estimator_options();
+  // Where on the skin a slave contact renders (TOML [mapping]), and how far around the mapped
+  // contact point the cells take the current estimate (cell pitches; at least the tip radius).
+  WorkspaceMapping mapping{};
+  double footprint_cells = 1.5;
+  // The passivity observer integrates F dx on the observed depth, whose noise (~3 um RMS, ~20 um
+  // peaks) at up to 2 N swings the energy by tens of uJ without any energy being made: deficits
+  // within this count as passive.
+  double passivity_tolerance_J = 50e-6;
+  double unload_rate_m_per_s = 2e-3;  // rates within +-this are holding (observer noise)
+  double unload_retreat_m = 30e-6;    // a cell unloads after retreating this far from its peak...
+  double unload_filter_s = 5e-3;      // ...on its depth smoothed with this time constant
+  double contact_force_N = 0.03;      // estimated force below this: the finger is not on the cell
   // Integral feedback on the observer's force, 1/s: corrects what the quasi-static inverse does
   // not know (the cell's fluid history, coil lag); frozen while the target is clamped.
   double feedback_gain_per_s = 40.0;
@@ -152,9 +166,14 @@ class Bridge {
   SlaveSample slave_{};
   bool fresh_sample_ = false;  // this tick consumed a new slave sample
   TimePoint fresh_arrival_{};
-  double stiffness_N_per_m_ = 0.0;
-  double damping_N_s_per_m_ = 0.0;
-  double model_gain_ = 0.0;  // 1 fresh, fading to 0 when stale
+  static constexpr double kReferenceDepth_m = 4e-3;  // live stiffness is reported at this depth
+  std::unique_ptr<TissueEstimator> estimator_;
+  TissueEstimate estimate_{};
+  std::vector<TissueModel> cell_model_;            // per cell: the tissue mapped onto it
+  std::vector<unsigned char> cell_mapped_;         // ...once the instrument has been over it
+  std::vector<PassiveTissueUpdate> cell_law_;      // per cell: the law rendered, changed passively
+  std::vector<PassivityObserver> cell_passivity_;  // per cell: energy at the rendered port
+  std::vector<unsigned char> port_open_;           // ...while the finger is in the cell
   TimePoint start_{};
   bool started_ = false;
   BridgeStats stats_;

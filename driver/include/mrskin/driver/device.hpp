@@ -7,7 +7,9 @@
 //     comma list of drop:P, dup:P, corrupt:P, reorder:P, delay:S, disconnect:AT+FOR,
 //     stuck:SENSOR, noisy:SENSOR, overheat:VALVE[+FOR], busoff:AT (probabilities per
 //     datagram, times in seconds of device time).
-// hid://, usb:// and can:// are recognised and refused until their transports land.
+//   hid://VID:PID[?serial=S]   the unit through hidapi (hidraw); usb://VID:PID[?serial=S] through
+//     libusb, talking to its HID interface directly; can://IFACE?node=N[&fd=1] over SocketCAN.
+//     One ownership lock per unit: hid:// and usb:// to the same VID:PID:serial exclude each other.
 #pragma once
 
 #include <cstdint>

@@ -26,5 +26,9 @@ struct DeviceListing {
 std::vector<DeviceListing> list_hid_devices();
 // USB devices with the unit's VID:PID (libusb).
 std::vector<DeviceListing> list_usb_devices();
+// Every CAN interface that exists, probed for nodes 1..15 with an identify request; waits
+// at most timeout per interface. An interface that is down or a kernel without CAN gives
+// one entry with the problem and the command that fixes it.
+std::vector<DeviceListing> list_can_devices(Duration timeout = std::chrono::milliseconds(100));
 
 }  // namespace mrskin

@@ -1,0 +1,225 @@
+// can://IFACE?node=N[&fd=1]: raw SocketCAN, classic CAN (8-byte frames) or CAN FD.
+//   can://can0?node=3        classic CAN, node id 3 (1..15)
+//   can://vcan0?node=5&fd=1  one CAN FD frame per packet (the interface needs MTU 72)
+// The session speaks protocol-v1 packets; CanPacketCodec turns them into frames and back
+// (docs/protocol.md, "Classic CAN" and "CAN FD"). Every socket call goes through the
+// CanSocketApi seam, so the transport's logic is tested with a fake bus.
+//
+// Back-pressure instead of ENOBUFS: the socket's send buffer is the kernel's minimum, so a
+// loaded bus makes write() wait (EAGAIN, then POLLOUT) with few frames in flight; an ENOBUFS
+// anyway (the interface's queue full) keeps the frame and retries it after a short backoff.
+// Meanwhile the datagrams queue up to send_queue, then send() answers would_block.
+// Error frames are counted; bus-off makes the state bus_off until the controller restarts.
+// An interface that goes down makes it disconnected; it reopens by itself when it is back.
+#pragma once
+
+#include <poll.h>
+
+#include <array>
+#include <cstddef>
+#include <cstdint>
+#include <memory>
+#include <optional>
+#include <span>
+#include <string>
+#include <string_view>
+#include <vector>
+
+#include "mrskin/driver/clock.hpp"
+#include "mrskin/driver/enumerate.hpp"
+#include "mrskin/driver/transport.hpp"
+#include "mrskin/protocol/can.hpp"
+#include "mrskin/protocol/packet.hpp"
+
+namespace mrskin {
+
+struct CanUri {
+  std::string interface;  // 1..15 characters, as `ip link` names it
+  std::uint8_t node = 0;  // 1..15
+  bool fd = false;
+};
+// Throws InvalidArgument naming the bad part.
+CanUri parse_can_uri(std::string_view uri);
+// "can://can0?node=3" or "can://can0?node=3&fd=1".
+std::string format_can_uri(const CanUri& uri);
+
+// --- packets <-> frames ----------------------------------------------------------------------
+// host: sends host->device packets, receives device->host frames (the transport).
+// device: the other way round (a simulated node on a bus, the VM tests).
+enum class CanRole : std::uint8_t { host, device };
+
+// Converts the packets one side of a link sends into frames, and the frames of the other
+// side back into packets, for one node. Allocation-free; one instance per direction pair
+// and thread.
+//  - Classic CAN: ValveCurrents and Telemetry go as 4-value blocks. A message that does not
+//    start on a block boundary (the session sends 27 currents a packet) fills the rest of its
+//    first block from the values last sent, which the codec keeps (64 per node). Telemetry
+//    goes as a TimeSync frame followed by its sensor blocks, all with one rolling counter;
+//    the receiving codec stamps each block with that time and hands it on as one Telemetry
+//    packet (first = 4 x block), and drops blocks whose TimeSync it did not see. CellTargets
+//    go one frame per cell, Status, Heartbeat and StateRequest as single frames, identity
+//    and configuration as segmented transfers. There is no Heartbeat echo on classic CAN:
+//    the device role sends none.
+//  - CAN FD: one frame per packet, the packet's bytes and sequence unchanged.
+//  - Packets from CAN FD frames keep the peer's sequence. On classic CAN every packet handed
+//    on (single frames and segmented transfers alike) is numbered by the codec: one more
+//    than the last, plus the loss it knows of (the samples or statuses a rolling-counter gap
+//    skipped, or one for a frame that failed its CRC or a block without its TimeSync), so
+//    the session's gap counter sees it.
+class CanPacketCodec {
+ public:
+  // Frames one packet may need: a 64-byte segmented packet (10), 27 currents off a block
+  // boundary (8 blocks), a TimeSync and 7 sensor blocks.
+  static constexpr std::size_t kMaxFrames = protocol::kCanMaxFramesPerMessage;
+  // Values a node addresses in blocks: 16 blocks of 4.
+  static constexpr std::size_t kBlockValues = protocol::kCanMaxBlocks * protocol::kCanValuesPerBlock;
+
+  CanPacketCodec(CanRole role, std::uint8_t node, bool fd) noexcept;
+
+  struct Encoded {
+    protocol::Error error = protocol::Error::ok;
+    std::size_t frames = 0;  // 0 with ok: nothing to send on this framing (a classic echo)
+  };
+  // A packet this role sends -> frames. unknown_type for a message of the other direction,
+  // out_of_range for a valve, sensor or cell this framing cannot address.
+  Encoded encode(std::span<const std::uint8_t> packet,
+                 std::span<protocol::CanFrame, kMaxFrames> out) noexcept;
+  // Whether encode() would take the packet (decodes it; keeps no state). Safe on any thread.
+  [[nodiscard]] static protocol::Error check(CanRole role, bool fd,
+                                             std::span<const std::uint8_t> packet) noexcept;
+
+  struct Decoded {
+    protocol::Error error = protocol::Error::ok;  // wrong_node, bad_crc, unknown_type (other direction)...
+    bool complete = false;                        // packet holds one packet to hand on
+    Datagram packet{};
+  };
+  // A frame from the other side. Frames that are not for this node and role give an error
+  // and change nothing but the loss accounting of this node's own frames.
+  Decoded decode(const protocol::CanFrame& frame) noexcept;
+
+  // Forgets transfers, counters and the TimeSync (the link was lost); keeps the values last
+  // sent.
+  void reset() noexcept;
+
+  [[nodiscard]] CanRole role() const noexcept { return role_; }
+  [[nodiscard]] std::uint8_t node() const noexcept { return node_; }
+  [[nodiscard]] bool fd() const noexcept { return fd_; }
+
+ private:
+  Encoded encode_blocks(const protocol::Message& message,
+                        std::span<protocol::CanFrame, kMaxFrames> out) noexcept;
+  [[nodiscard]] protocol::ValveCurrents valve_block(std::size_t start, std::uint8_t values) const noexcept;
+  [[nodiscard]] protocol::Telemetry sensor_block(std::size_t start, std::uint8_t values) const noexcept;
+  static void finish(Decoded& d, const protocol::Message& message, std::uint8_t sequence) noexcept;
+
+  CanRole role_;
+  std::uint8_t node_;
+  bool fd_;
+  protocol::CanDecoder decoder_;
+  // Rolling counters of what this side sends, per frame kind.
+  std::uint8_t tx_blocks_ = 0;  // valve blocks (host) or TimeSync + sensor blocks (device)
+  std::uint8_t tx_cells_ = 0;
+  std::uint8_t tx_heartbeat_ = 0;
+  std::uint8_t tx_state_ = 0;                         // state requests (host) or status (device)
+  std::array<std::uint16_t, kBlockValues> shadow_{};  // values last sent, for partial blocks
+  // Receiving side.
+  std::uint8_t rx_sequence_ = 0;                 // next number for a packet rebuilt from a single frame
+  std::uint32_t lost_ = 0;                       // losses seen since the last packet handed on
+  protocol::CounterTracker sample_counter_{16};  // TimeSync (host) or valve blocks (device)
+  protocol::CounterTracker status_counter_{16};  // Status (host) or StateRequest (device)
+  bool have_time_ = false;
+  std::uint8_t time_counter_ = 0;
+  std::uint32_t time_us_ = 0;
+};
+
+// Identifier filters (CAN_RAW_FILTER) for the frames a role receives for a node: exact
+// standard data frames, blocks with any block number.
+struct CanIdFilter {
+  std::uint32_t id = 0;
+  std::uint32_t mask = 0;
+};
+struct CanIdFilters {
+  std::array<CanIdFilter, 8> filters{};
+  std::size_t count = 0;
+};
+CanIdFilters can_receive_filters(CanRole role, std::uint8_t node) noexcept;
+
+// --- the OS seam -----------------------------------------------------------------------------
+// The socket calls of the transport, one virtual per call. Each returns >= 0 on success or
+// -errno (errno itself is not used), so fakes need no thread-local state. Frames are the
+// kernel's struct can_frame (CAN_MTU bytes) or struct canfd_frame (CANFD_MTU bytes).
+class CanSocketApi {
+ public:
+  CanSocketApi() = default;
+  CanSocketApi(const CanSocketApi&) = delete;
+  CanSocketApi& operator=(const CanSocketApi&) = delete;
+  CanSocketApi(CanSocketApi&&) = delete;
+  CanSocketApi& operator=(CanSocketApi&&) = delete;
+  virtual ~CanSocketApi() = default;
+
+  // socket(PF_CAN, SOCK_RAW | SOCK_NONBLOCK | SOCK_CLOEXEC, CAN_RAW): a pollable descriptor.
+  virtual int open_socket() noexcept = 0;
+  virtual void close_socket(int fd) noexcept = 0;
+  // ioctl(SIOCGIFINDEX), ioctl(SIOCGIFMTU), ioctl(SIOCGIFFLAGS) for the interface name.
+  virtual int interface_index(int fd, std::string_view name) noexcept = 0;
+  virtual int interface_mtu(int fd, std::string_view name) noexcept = 0;
+  virtual int interface_flags(int fd, std::string_view name) noexcept = 0;
+  // setsockopt(fd, level, option, value, size).
+  virtual int set_option(int fd, int level, int option, std::span<const std::byte> value) noexcept = 0;
+  // bind() to a sockaddr_can of the interface index.
+  virtual int bind_interface(int fd, int ifindex) noexcept = 0;
+  // read() / write() of one frame: the bytes moved, or -errno (-EAGAIN: nothing now / full).
+  virtual long read_frame(int fd, std::span<std::byte> frame) noexcept = 0;
+  virtual long write_frame(int fd, std::span<const std::byte> frame) noexcept = 0;
+  // ppoll(): timeout < 0 waits without limit. Returns the ready count, 0 on timeout.
+  virtual int poll(std::span<pollfd> fds, Duration timeout) noexcept = 0;
+  // The interfaces of type ARPHRD_CAN (/sys/class/net/*/type == 280), sorted. Setup only.
+  virtual std::vector<std::string> can_interfaces() = 0;
+};
+
+// The kernel's SocketCAN.
+std::shared_ptr<CanSocketApi> make_system_can_api();
+
+// --- the transport -----------------------------------------------------------------------------
+struct CanTransportOptions {
+  CanRole role = CanRole::host;  // device: a simulated node's end (VM tests)
+  // Multiplies the durations below (slow environments, VMs).
+  double time_scale = 1.0;
+  // Between reopen attempts while the interface is down or gone, doubling from min to max.
+  Duration reopen_backoff_min = std::chrono::milliseconds(10);
+  Duration reopen_backoff_max = std::chrono::milliseconds(500);
+  // After ENOBUFS, the frame is written again after this, doubling up to max while it lasts.
+  Duration enobufs_backoff_min = std::chrono::microseconds(100);
+  Duration enobufs_backoff_max = std::chrono::milliseconds(5);
+  std::size_t send_queue = 64;       // datagrams
+  std::size_t receive_queue = 1024;  // datagrams
+};
+
+// Opens the socket (filters, error frames, FD frames, minimal send buffer), binds it to the
+// interface and starts its I/O thread. Throws InvalidArgument (bad URI; fd=1 on an interface
+// whose MTU is not 72: says how to raise it), DeviceNotFound (no such interface: lists those
+// that exist and how to create one; interface down: the command that brings it up; a kernel
+// without CAN: says so, and that modprobe can_raw loads it), PermissionDenied, Error.
+std::unique_ptr<Transport> open_can_transport(std::string_view uri, const CanTransportOptions& options = {});
+std::unique_ptr<Transport> open_can_transport(std::string_view uri, const CanTransportOptions& options,
+                                              std::shared_ptr<CanSocketApi> api);
+
+// What the CAN transport counted beyond TransportCounters. Any thread.
+struct CanTransportStats {
+  std::uint64_t frames_written = 0;
+  std::uint64_t frames_read = 0;       // every frame read, errors and foreign ones included
+  std::uint64_t enobufs = 0;           // writes refused with ENOBUFS, then retried
+  std::uint64_t send_buffer_full = 0;  // writes refused with EAGAIN, retried on POLLOUT
+  std::uint64_t foreign_frames = 0;    // frames of other nodes or of our own direction
+  // Datagrams not written: no frame form on this framing (a classic heartbeat echo), or a
+  // write error. Once all are out, counters().sent + dropped_packets = datagrams send() took,
+  // unless a link loss or bus-off discarded some.
+  std::uint64_t dropped_packets = 0;
+};
+// nullopt when transport does not come from open_can_transport().
+std::optional<CanTransportStats> can_transport_stats(const Transport& transport) noexcept;
+
+// list_can_devices() on a given seam: the interfaces api lists, each probed for nodes 1..15.
+std::vector<DeviceListing> list_can_devices(CanSocketApi& api, Duration timeout);
+
+}  // namespace mrskin
