@@ -244,15 +244,18 @@ void Bridge::lock_short_cells() noexcept {
   const double per_passage_Pa_per_Pa = model_->valve_law().yield_pressure_Pa(1.0);
   for (std::size_t i = 0; i < cells.size(); ++i) {
     const model::CellSolution& c = cells[i];
-    const bool loaded = c.role == model::CellRole::loading || c.role == model::CellRole::holding;
-    if (!loaded || !c.clamped_high) {
+    const bool holding = c.role == model::CellRole::holding;
+    const bool loaded = holding || c.role == model::CellRole::loading;
+    const double margin = holding ? options_.hold_margin : 0.0;
+    if (!loaded || !(c.clamped_high || margin > 0.0)) {
       continue;
     }
     const model::Result<double> membrane_N = model::pad_membrane_force_N(patch, states_[i].indentation_m);
     if (!membrane_N.ok() || patch.effective_area_m2 <= 0.0) {
       continue;
     }
-    const double pressure_Pa = (c.requested_force_N - membrane_N.value) / patch.effective_area_m2;
+    const double pressure_Pa =
+        ((1.0 + margin) * c.requested_force_N - membrane_N.value) / patch.effective_area_m2;
     const double yield_Pa = std::max(0.0, pressure_Pa) / (2.0 * per_passage_Pa_per_Pa);
     for (const std::size_t v : layout_.valves_of_cell(i)) {
       const model::Result<double> lock_A = inverse_->current_for_yield_stress_A(yield_Pa / valve_gain_[v]);
@@ -272,7 +275,7 @@ void Bridge::clamp_targets_into_envelope() noexcept {
     const bool loaded = c.role == model::CellRole::loading || c.role == model::CellRole::holding;
     bool valves_open = true;
     for (const std::size_t v : layout_.valves_of_cell(i)) {
-      valves_open = valves_open && current_A_[v] <= 0.0;
+      valves_open = valves_open && current_A_[v] <= kOpenValveFraction * session_.info().max_current_A;
     }
     open_ticks_[i] = valves_open ? open_ticks_[i] + 1 : 0;
     double floor_N = c.force_min_N;
@@ -398,32 +401,29 @@ ResultCode Bridge::step(TimePoint now) noexcept {
   return rc;
 }
 
-void Bridge::start(Clock& clock) {
-  if (running_.exchange(true)) {
-    return;
+std::string Bridge::start(Clock& clock) {
+  if (running()) {
+    return {};
   }
-  thread_ = std::thread([this, &clock] {
-    const Duration period = from_seconds(1.0 / options_.rate_hz);
-    TimePoint next = clock.now();
-    while (running_.load(std::memory_order_acquire)) {
-      (void)step(clock.now());
-      next += period;
-      const TimePoint now = clock.now();
-      if (now > next + period) {
-        // Behind: skip the missed periods instead of bursting to catch up.
-        const auto missed = (now - next) / period;
-        stats_.skipped_periods += static_cast<std::uint64_t>(missed);
-        next += missed * period;
-      }
-      clock.sleep_until(next);
-    }
-  });
+  if (loop_ == nullptr || loop_clock_ != &clock) {  // one loop per clock: its warning comes once
+    LoopOptions lo;
+    lo.rate_hz = options_.rate_hz;
+    lo.realtime = options_.realtime;
+    lo.priority = options_.rt_priority;
+    loop_ = std::make_unique<RealtimeLoop>(
+        clock, [](void* self, TimePoint now) noexcept { return static_cast<Bridge*>(self)->step(now); }, this,
+        lo);
+    loop_clock_ = &clock;
+  }
+  return loop_->start();
 }
 
 void Bridge::stop() noexcept {
-  if (running_.exchange(false) && thread_.joinable()) {
-    thread_.join();
+  if (loop_ == nullptr || !loop_->running()) {
+    return;
   }
+  loop_->stop();
+  stats_.skipped_periods += loop_->stats().skipped_periods;
 }
 
 }  // namespace mrskin::bridge

@@ -46,7 +46,9 @@ void print_summary(const mrskin::bridge::BridgeStats& s, double rate_hz) {
 int run(const Settings& cfg) {
   using namespace mrskin;
   MonotonicClock clock;
-  auto scene = bridge::make_scene(cfg.scene);
+  bridge::BridgeOptions options;
+  options.rate_hz = cfg.rate_hz;
+  auto scene = bridge::make_scene(cfg.scene, options.mapping);
   OpenedDevice dev = open_device(cfg.device, clock);
   const DeviceInfo& info = dev.session->info();
   fmt::print(
@@ -54,8 +56,6 @@ int run(const Settings& cfg) {
       "sensors\n",
       library_version(), cfg.device, info.serial, info.firmware, info.protocol_major, info.protocol_minor,
       info.rows, info.cols, info.valves, info.sensors);
-  bridge::BridgeOptions options;
-  options.rate_hz = cfg.rate_hz;
   bridge::Bridge loop(*dev.session, *scene, options);
   std::optional<mrskin::bridge::MockDeviceTruth> truth;
   if (dev.mock) {
@@ -65,7 +65,9 @@ int run(const Settings& cfg) {
   const TimePoint t0 = clock.now();
   scene->set_start(t0);
   (void)loop.enable();
-  loop.start(clock);
+  if (const std::string warning = loop.start(clock); !warning.empty()) {
+    fmt::print(stderr, "warning: {}\n", warning);
+  }
 
   std::vector<double> finger(dev.mock ? dev.mock->layout().fluid_cell_count() : 0, 0.0);
   const TimePoint end = t0 + from_seconds(cfg.duration_s);
@@ -101,6 +103,13 @@ int run(const Settings& cfg) {
     fmt::print("stopped by signal {}\n", g_signal.load());
   }
   print_summary(loop.stats(), cfg.rate_hz);
+  if (const bridge::LoopStats* ls = loop.loop_stats(); ls != nullptr) {
+    fmt::print(
+        "scheduler  {} priority {}, memory {}; wake latency p50 {:.1f} us, p99 {:.1f} us, p99.9 {:.1f} us\n",
+        ls->scheduler.policy_name(), ls->scheduler.priority,
+        ls->scheduler.memory_locked ? "locked" : "not locked", ls->wake_latency.percentile_ns(0.5) / 1e3,
+        ls->wake_latency.percentile_ns(0.99) / 1e3, ls->wake_latency.percentile_ns(0.999) / 1e3);
+  }
   if (!cfg.stats_path.empty()) {
     std::ofstream out(cfg.stats_path);
     if (!out) {
@@ -119,7 +128,12 @@ int guarded_main(int argc, char** argv) {
   app.set_version_flag("--version", std::string(mrskin::library_version()));
   Settings cfg;
   app.add_option("--device", cfg.device, "device URI (mock://[?seed=N])")->capture_default_str();
-  app.add_option("--scene", cfg.scene, "built-in scene driving the slave stream and the simulated finger")
+  std::string scenes;
+  for (const std::string_view name : mrskin::bridge::scene_names()) {
+    scenes += (scenes.empty() ? "" : ", ") + std::string(name);
+  }
+  app.add_option("--scene", cfg.scene,
+                 "built-in scene driving the slave stream and the simulated finger: " + scenes)
       ->capture_default_str();
   app.add_option("--duration", cfg.duration_s, "seconds to run; 0 runs until SIGINT/SIGTERM")
       ->check(CLI::NonNegativeNumber);

@@ -9,9 +9,10 @@
 #include <cstdint>
 #include <memory>
 #include <span>
-#include <thread>
+#include <string>
 #include <vector>
 
+#include "mrskin/bridge/loop.hpp"
 #include "mrskin/bridge/mapping.hpp"
 #include "mrskin/bridge/scene.hpp"
 #include "mrskin/bridge/stats.hpp"
@@ -53,6 +54,12 @@ struct BridgeOptions {
   // not know (the cell's fluid history, coil lag); frozen while the target is clamped.
   double feedback_gain_per_s = 40.0;
   bool freeze_feedback_while_holding = false;
+  // A holding cell's valves stay at least this fraction above the threshold of its target, so
+  // model error does not leak the trapped volume away. Off: slow loading that reads as a hold
+  // then overshoots (demo 0.031 -> 0.046 N RMS at 0.1, sweep 0.055 -> 0.088 N).
+  double hold_margin = 0.0;
+  bool realtime = true;  // SCHED_FIFO + mlockall on the library's loop thread (start())
+  int rt_priority = 80;
   double feedback_limit_N = 0.5;
   model::ObserverOptions observer{};
   model::InverseOptions inverse{};
@@ -105,10 +112,20 @@ class Bridge {
   // One tick at time now. Real-time safe.
   ResultCode step(TimePoint now) noexcept;
 
-  // Or let the library run the loop on its own thread at rate_hz against clock.
-  void start(Clock& clock);
+  // Or let the library run step() on a RealtimeLoop (bridge/loop.hpp) at rate_hz against clock.
+  // Returns the one warning when SCHED_FIFO/mlockall were refused ("" otherwise): log it.
+  // Setup: allocates.
+  std::string start(Clock& clock);
   void stop() noexcept;
-  [[nodiscard]] bool running() const noexcept { return running_.load(std::memory_order_acquire); }
+  [[nodiscard]] bool running() const noexcept { return loop_ != nullptr && loop_->running(); }
+  // Any thread, between start() and stop(): a slave sample arrived, tick now.
+  void notify() noexcept {
+    if (loop_ != nullptr) {
+      loop_->notify();
+    }
+  }
+  // Scheduler state, wake latency, early wakes, overruns of the library's loop; after stop().
+  [[nodiscard]] const LoopStats* loop_stats() const noexcept { return loop_ ? &loop_->stats() : nullptr; }
 
   // Statistics; read after stop() or from the tick thread. live_*() are safe from any thread.
   [[nodiscard]] const BridgeStats& stats() const noexcept { return stats_; }
@@ -167,6 +184,8 @@ class Bridge {
   bool fresh_sample_ = false;  // this tick consumed a new slave sample
   TimePoint fresh_arrival_{};
   static constexpr double kReferenceDepth_m = 4e-3;  // live stiffness is reported at this depth
+  // A valve below this fraction of full current yields next to nothing: it counts as open.
+  static constexpr double kOpenValveFraction = 0.02;
   std::unique_ptr<TissueEstimator> estimator_;
   TissueEstimate estimate_{};
   std::vector<TissueModel> cell_model_;            // per cell: the tissue mapped onto it
@@ -180,8 +199,8 @@ class Bridge {
   std::atomic<std::uint64_t> live_ticks_{0};
   std::atomic<double> live_rms_N_{0.0};
   std::atomic<double> live_stiffness_{0.0};
-  std::atomic<bool> running_{false};
-  std::thread thread_;
+  Clock* loop_clock_ = nullptr;
+  std::unique_ptr<RealtimeLoop> loop_;  // last: destroyed (stopped) first
 };
 
 }  // namespace mrskin::bridge
