@@ -5,43 +5,15 @@
 
 #include "mrskin/bridge/bridge.hpp"
 #include "mrskin/driver/device.hpp"
+#include "scene_rig.hpp"
 
 namespace mrskin::bridge {
 namespace {
 
-struct SimResult {
-  BridgeStats stats;
-  std::vector<double> currents_A;
-  DeviceState state = DeviceState::disabled;
-};
+using SimResult = test::SceneRun;
 
 SimResult simulate(double seconds, std::uint64_t seed) {
-  SimulatedClock clock;
-  OpenOptions open;
-  open.synchronous_mock = true;
-  OpenedDevice dev = open_device("mock://?seed=" + std::to_string(seed), clock, open);
-  auto scene = make_scene("demo");
-  Bridge loop(*dev.session, *scene);
-  MockDeviceTruth truth(*dev.mock);
-  loop.set_force_truth(&truth);
-  loop.set_perf_clock(&clock);  // deterministic: no wall time anywhere
-  scene->set_start(clock.now());
-  EXPECT_EQ(loop.enable(), ResultCode::ok);
-  std::vector<double> finger(dev.mock->layout().fluid_cell_count());
-  const auto ticks = static_cast<int>(seconds * 1000.0);
-  for (int k = 0; k < ticks; ++k) {
-    scene->finger(to_seconds(clock.now() - scene->start()), dev.mock->layout(), finger);
-    dev.mock->set_finger_indentation(finger);
-    dev.mock->step(clock.now());
-    (void)loop.step(clock.now());
-    clock.advance(std::chrono::milliseconds(1));
-  }
-  SimResult r;
-  r.stats = loop.stats();
-  r.currents_A.resize(dev.mock->layout().valve_count());
-  dev.mock->applied_currents(r.currents_A);
-  r.state = dev.session->state();
-  return r;
+  return test::run_scene("demo", seconds, "mock://?seed=" + std::to_string(seed));
 }
 
 TEST(WalkingSkeleton, DemoConvergesOnSimulatedClock) {

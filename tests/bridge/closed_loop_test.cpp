@@ -1,0 +1,113 @@
+// Bridge I on every built-in scene, on the simulated clock, against the perturbed plant of the
+// mock device (seed 7), scored by the finger's true motion against the tissue law clamped into
+// the envelope. The demo holds the product's figures (BRIEF section 5); the other scenes hold
+// regression bounds at their measured values (docs/bridge.md has the table and what limits them).
+// Then the same under a network of 50 ms +- 20 ms delay and 5 % loss.
+#include <gtest/gtest.h>
+
+#include <cstdio>
+#include <cstdlib>
+#include <string>
+#include <vector>
+
+#include "mrskin/bridge/bridge.hpp"
+#include "mrskin/bridge/impairment.hpp"
+#include "mrskin/driver/device.hpp"
+#include "scene_rig.hpp"
+
+namespace mrskin::bridge {
+namespace {
+
+using LoopRun = test::SceneRun;
+
+LoopRun simulate(const std::string& scene_name, double seconds, const ImpairmentOptions* network) {
+  // MRSKIN_CLOSED_LOOP_SEED picks another perturbed unit (docs/bridge.md: the spread over seeds);
+  // the bounds below are for seed 7.
+  const char* seed = std::getenv("MRSKIN_CLOSED_LOOP_SEED");
+  return test::run_scene(scene_name, seconds, std::string("mock://?seed=") + (seed != nullptr ? seed : "7"),
+                         network);
+}
+
+void print(const std::string& name, const LoopRun& r) {
+  std::printf(
+      "closed loop %-8s rms %.4f N  p95 %5.1f %%  release rms %.3f N  outside %4.1f %%  max %.4f A  energy "
+      "%.2f mJ\n",
+      name.c_str(), r.stats.force_rms_error_N(), 100.0 * r.stats.relative_error.percentile(0.95),
+      r.stats.release_rms_error_N(), 100.0 * r.stats.clamped_fraction(), r.stats.max_current_A,
+      1e3 * r.stats.passivity_energy_J);
+}
+
+struct Bound {
+  const char* scene;
+  double seconds;
+  double rms_N;
+  double p95;
+};
+
+// Measured (seed 7, g++ 12 release): demo 0.031 N / 5.6 %; the others between 0.035 and 0.055 N,
+// 8-18 %. Bounds: demo the product's 0.04 N / 7 %; the others their measured value + ~15 %.
+constexpr Bound kBounds[] = {
+    {"demo", 10.0, 0.040, 0.07},   {"hand", 8.6, 0.064, 0.21},  {"neck", 8.6, 0.055, 0.19},
+    {"abdomen", 8.6, 0.060, 0.22}, {"thigh", 8.6, 0.050, 0.17}, {"back", 8.6, 0.052, 0.14},
+    {"stomach", 8.6, 0.044, 0.15}, {"sweep", 7.5, 0.065, 0.20}, {"tumour", 7.5, 0.042, 0.09},
+};
+
+class ClosedLoop : public ::testing::TestWithParam<Bound> {};
+
+TEST_P(ClosedLoop, RendersTheSceneWithinItsBound) {
+  const Bound b = GetParam();
+  const LoopRun r = simulate(b.scene, b.seconds, nullptr);
+  print(b.scene, r);
+  EXPECT_GT(r.stats.force_samples, 1000U);
+  EXPECT_LE(r.stats.force_rms_error_N(), b.rms_N);
+  EXPECT_LE(r.stats.relative_error.percentile(0.95), b.p95);
+  EXPECT_EQ(r.stats.active_ticks, 0U) << "the rendering gave energy";
+  EXPECT_EQ(r.stats.observer_errors, 0U);
+  EXPECT_EQ(r.stats.inverse_errors, 0U);
+  EXPECT_EQ(r.stats.send_failures, 0U);
+  EXPECT_LE(r.stats.max_current_A, 0.1 + 1e-12);
+  EXPECT_EQ(r.faults, 0U);
+}
+
+std::string scene_of(const ::testing::TestParamInfo<Bound>& param) { return param.param.scene; }
+
+INSTANTIATE_TEST_SUITE_P(EveryScene, ClosedLoop, ::testing::ValuesIn(kBounds), scene_of);
+
+TEST(ClosedLoopNetwork, DelayJitterAndLossStayConsistentAndPassive) {
+  ImpairmentOptions net;  // 50 ms +- 20 ms, 5 % loss
+  net.seed = 3;
+  const LoopRun clean = simulate("demo", 10.0, nullptr);
+  const LoopRun r = simulate("demo", 10.0, &net);
+  print("demo/net", r);
+  // The network did what it says: about 5 % lost, the rest delivered, some out of order.
+  EXPECT_NEAR(static_cast<double>(r.network.lost) / static_cast<double>(r.network.sent), 0.05, 0.01);
+  EXPECT_GT(r.network.reordered, 0U);
+  EXPECT_EQ(r.network.overflowed, 0U);
+  // Consistent: the model is the delayed tissue's, so the rendering stays close to the clean run,
+  // and nothing gives energy back.
+  EXPECT_EQ(r.stats.active_ticks, 0U);
+  EXPECT_GE(r.stats.passivity_min_energy_J, -50e-6);
+  EXPECT_LE(r.stats.force_rms_error_N(), clean.stats.force_rms_error_N() + 0.02);
+  EXPECT_EQ(r.stats.observer_errors, 0U);
+  EXPECT_EQ(r.stats.inverse_errors, 0U);
+  // End to end runs from a sample's arrival (not from the robot's stamp): at most the tick
+  // period on the simulated clock, whatever the network's delay.
+  EXPECT_GT(r.stats.end_to_end_latency.count(), 5000U);
+  EXPECT_LE(r.stats.end_to_end_latency.percentile_ns(0.99), 1e6);
+}
+
+TEST(ClosedLoopNetwork, AStoppedStreamFadesToReleased) {
+  // The stream stops for good (loss 1 is not allowed: a delay longer than the run instead).
+  ImpairmentOptions net;
+  net.delay_s = 100.0;
+  net.jitter_s = 0.0;
+  net.loss = 0.0;
+  net.capacity = 20000;
+  const LoopRun r = simulate("demo", 3.0, &net);
+  EXPECT_EQ(r.network.delivered, 0U);
+  EXPECT_EQ(r.stats.max_current_A, 0.0);  // no data: the safe state, valves released
+  EXPECT_EQ(r.stats.slave_samples, 0U);
+}
+
+}  // namespace
+}  // namespace mrskin::bridge

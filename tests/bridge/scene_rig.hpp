@@ -1,0 +1,66 @@
+// Runs a built-in scene through the whole slice on the simulated clock: scene -> mock device
+// bytes -> session -> bridge, the finger driven by the scene, scored against the mock's truth.
+#pragma once
+
+#include <gtest/gtest.h>
+
+#include <memory>
+#include <string>
+#include <vector>
+
+#include "mrskin/bridge/bridge.hpp"
+#include "mrskin/bridge/impairment.hpp"
+#include "mrskin/driver/device.hpp"
+
+namespace mrskin::bridge::test {
+
+struct SceneRun {
+  BridgeStats stats;
+  ImpairmentStats network;  // with a network only
+  std::vector<double> currents_A;
+  DeviceState state = DeviceState::disabled;
+  std::uint64_t faults = 0;
+};
+
+// network: nullptr for a direct stream, else the slave stream goes through ImpairedSource.
+inline SceneRun run_scene(const std::string& scene_name, double seconds, const std::string& device_uri,
+                          const ImpairmentOptions* network = nullptr) {
+  SimulatedClock clock;
+  OpenOptions open;
+  open.synchronous_mock = true;
+  OpenedDevice dev = open_device(device_uri, clock, open);
+  auto scene = make_scene(scene_name);
+  std::unique_ptr<ImpairedSource> impaired;
+  SlaveSource* source = scene.get();
+  if (network != nullptr) {
+    impaired = std::make_unique<ImpairedSource>(*scene, *network);
+    source = impaired.get();
+  }
+  Bridge loop(*dev.session, *source);
+  MockDeviceTruth truth(*dev.mock);
+  loop.set_force_truth(&truth);
+  loop.set_perf_clock(&clock);  // deterministic: no wall time anywhere
+  scene->set_start(clock.now());
+  EXPECT_EQ(loop.enable(), ResultCode::ok);
+  std::vector<double> finger(dev.mock->layout().fluid_cell_count());
+  const auto ticks = static_cast<int>(seconds * 1000.0);
+  for (int k = 0; k < ticks; ++k) {
+    scene->finger(to_seconds(clock.now() - scene->start()), dev.mock->layout(), finger);
+    dev.mock->set_finger_indentation(finger);
+    dev.mock->step(clock.now());
+    (void)loop.step(clock.now());
+    clock.advance(std::chrono::milliseconds(1));
+  }
+  SceneRun r;
+  r.stats = loop.stats();
+  if (impaired) {
+    r.network = impaired->stats();
+  }
+  r.currents_A.resize(dev.mock->layout().valve_count());
+  dev.mock->applied_currents(r.currents_A);
+  r.state = dev.session->state();
+  r.faults = dev.session->counters().faults;
+  return r;
+}
+
+}  // namespace mrskin::bridge::test
