@@ -1,13 +1,16 @@
 #include "mrskin/protocol/usb.hpp"
 
-#include <cstdio>
+#include <cstddef>
 
 namespace mrskin::protocol {
 
 std::string format_usb_serial(std::uint32_t serial) {
-  std::array<char, 9> text{};
-  (void)std::snprintf(text.data(), text.size(), "%08X", static_cast<unsigned>(serial));
-  return {text.data(), 8};
+  static constexpr char kHex[] = "0123456789ABCDEF";
+  std::string text(8, '0');
+  for (std::size_t i = 0; i < 8; ++i) {
+    text[7 - i] = kHex[(serial >> (4U * i)) & 0xFU];
+  }
+  return text;
 }
 
 std::optional<std::uint32_t> parse_usb_serial(std::string_view text) noexcept {

@@ -22,15 +22,25 @@ int make_eventfd(std::string_view uri) {
   return fd;
 }
 
+// The receive eventfd, closing the send one if it cannot be made (the constructor's cleanup).
+int make_second_eventfd(std::string_view uri, int first_fd) {
+  try {
+    return make_eventfd(uri);
+  } catch (...) {
+    ::close(first_fd);
+    throw;
+  }
+}
+
 void signal_event(int fd) noexcept {
   const std::uint64_t one = 1;
   // EAGAIN only when the counter would overflow: the waiter is already woken.
-  (void)!::write(fd, &one, sizeof one);
+  [[maybe_unused]] const ssize_t n = ::write(fd, &one, sizeof one);
 }
 
 void clear_event(int fd) noexcept {
   std::uint64_t value = 0;
-  (void)!::read(fd, &value, sizeof value);
+  [[maybe_unused]] const ssize_t n = ::read(fd, &value, sizeof value);
 }
 
 }  // namespace
@@ -53,15 +63,11 @@ ResultCode Transport::receive_for(Datagram& out, Duration timeout) noexcept {
 }
 
 QueuedTransport::QueuedTransport(std::string uri, std::size_t send_capacity, std::size_t receive_capacity)
-    : uri_(std::move(uri)), outgoing_(send_capacity), incoming_(receive_capacity) {
-  send_event_fd_ = make_eventfd(uri_);
-  try {
-    receive_event_fd_ = make_eventfd(uri_);
-  } catch (...) {
-    ::close(send_event_fd_);
-    throw;
-  }
-}
+    : uri_(std::move(uri)),
+      outgoing_(send_capacity),
+      incoming_(receive_capacity),
+      send_event_fd_(make_eventfd(uri_)),
+      receive_event_fd_(make_second_eventfd(uri_, send_event_fd_)) {}
 
 QueuedTransport::~QueuedTransport() {
   ::close(send_event_fd_);
