@@ -52,10 +52,11 @@ double envelope(double t_s) {  // 0 -> 1 over 1 s, hold 0.5 s, back to 0 over 1 
   return std::max(0.0, 1.0 - (t_s - 1.5));
 }
 
-Errors run(const Press& press, const NetworkPlantOptions& plant_options, double current_A) {
+Errors run(const Press& press, const NetworkPlantOptions& plant_options, double current_A,
+           const ObserverOptions& observer_options = {}) {
   const DeviceModel nominal(mrskin::model::default_profile());
   NetworkPlant plant(nominal.profile(), plant_options);
-  CellObserver observer(nominal, ObserverOptions{});
+  CellObserver observer(nominal, observer_options);
   const std::size_t cells = nominal.layout().fluid_cell_count();
   std::vector<double> depth(cells, 0.0);
   std::vector<double> previous(cells, 0.0);
@@ -156,6 +157,31 @@ TEST(ObserverPerturbed, ErrorOnThePerturbedNoisyPlant) {
     // Bounds well above what is measured: they catch a broken observer, not a tuning change.
     EXPECT_LT(e.depth_rms_m, 10e-6) << c.name;
     EXPECT_LT(e.force_rms_N, 0.1) << c.name;
+  }
+}
+
+// The local force model (the quasi-static cell law of the contacted cells, what large grids use
+// by default) on the same presses: cheaper, no fluid history, so a larger force error.
+TEST(ObserverPerturbed, LocalForceModelOnThePerturbedNoisyPlant) {
+  struct Case {
+    const char* name;
+    const Press* press;
+    double current_A;
+  };
+  const Case cases[] = {{"local: centre 4 mm, 0.03 A", &kCentre, 0.03},
+                        {"local: centre 4 mm, 0.08 A", &kCentre, 0.08},
+                        {"local: corner 4 mm, 0.05 A", &kCorner, 0.05},
+                        {"local: edge 3 mm, 0.05 A", &kEdge, 0.05},
+                        {"local: two cells, 0.05 A", &kTwoCells, 0.05}};
+  ObserverOptions local;
+  local.force_model = mrskin::model::ObserverForceModel::local;
+  for (const Case& c : cases) {
+    NetworkPlantOptions o;
+    o.seed = 3;
+    const Errors e = run(*c.press, o, c.current_A, local);
+    print(c.name, e);
+    EXPECT_LT(e.depth_rms_m, 10e-6) << c.name;
+    EXPECT_LT(e.force_rms_N, 0.2) << c.name;
   }
 }
 

@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <cstdint>
 #include <string>
 #include <vector>
 
@@ -20,16 +21,23 @@ struct Entry {
 }  // namespace
 
 struct CellObserver::Impl {
-  Impl(const DeviceModel& m, const ObserverOptions& o)
-      : model(m), options(o), network(m, network_options(o)) {
+  Impl(const DeviceModel& m, const ObserverOptions& o) : model(m), options(o) {
     const DeviceProfile& p = m.profile();
     const GridLayout& grid = m.layout();
     const std::size_t cells = grid.fluid_cell_count();
     if (!(o.prior_spread_m > 0.0) || !(o.sparsity_scale_m > 0.0) || o.sweeps < 1 ||
-        !(o.rate_filter_time_constant_s >= 0.0) || !(o.contact_threshold_m >= 0.0)) {
+        !(o.rate_filter_time_constant_s >= 0.0) || !(o.contact_threshold_m >= 0.0) ||
+        !(o.sweep_tolerance_m >= 0.0) || !(o.hold_rate_m_per_s >= 0.0)) {
       throw InvalidArgument(
           "observer options: prior_spread_m and sparsity_scale_m must be > 0, sweeps >= 1, "
-          "rate_filter_time_constant_s >= 0");
+          "rate_filter_time_constant_s, contact_threshold_m, sweep_tolerance_m and hold_rate_m_per_s >= 0");
+    }
+    force_model = o.force_model;
+    if (force_model == ObserverForceModel::automatic) {
+      force_model = cells <= o.network_max_cells ? ObserverForceModel::network : ObserverForceModel::local;
+    }
+    if (force_model == ObserverForceModel::network) {
+      network = std::make_unique<NetworkSimulation>(m, network_options(o));
     }
     std::vector<std::vector<Entry>> rows;
     for (std::size_t k = 0; k < p.sensors.size(); ++k) {
@@ -79,6 +87,8 @@ struct CellObserver::Impl {
     // One sensor sigma of misfit (cost 1) per sparsity_scale_m of summed depth.
     l1_weight = 1.0 / o.sparsity_scale_m;
     residual.assign(rows.size(), 0.0);
+    used_reading.assign(rows.size(), 0.0);
+    row_changed.assign(rows.size(), 0);
     depth_m.assign(cells, 0.0);
     contact_depth_m.assign(cells, 0.0);
     previous_m.assign(cells, 0.0);
@@ -87,6 +97,19 @@ struct CellObserver::Impl {
     coil.resize(grid.valve_count());
     yield_Pa.assign(grid.valve_count(), 0.0);
     valve_gain.assign(grid.valve_count(), 1.0);
+    command_A.assign(grid.valve_count(), 0.0);
+    force.assign(cells, 0.0);
+    last_force.assign(cells, 0.0);
+    visit.reserve(cells);
+    next_visit.reserve(cells);
+    mark.assign(cells, 0);
+    valves_of_cell_begin.push_back(0);
+    for (std::size_t c = 0; c < cells; ++c) {
+      for (const std::size_t v : grid.valves_of_cell(c)) {
+        valves_of_cell.push_back(v);
+      }
+      valves_of_cell_begin.push_back(valves_of_cell.size());
+    }
   }
 
   static NetworkOptions network_options(const ObserverOptions& o) {
@@ -98,24 +121,39 @@ struct CellObserver::Impl {
   void reset() noexcept {
     std::fill(depth_m.begin(), depth_m.end(), 0.0);
     std::fill(previous_m.begin(), previous_m.end(), 0.0);
+    std::fill(used_reading.begin(), used_reading.end(), 0.0);
     std::fill(velocity.begin(), velocity.end(), 0.0);
     std::fill(coil.begin(), coil.end(), CoilState{});
     std::fill(yield_Pa.begin(), yield_Pa.end(), 0.0);
-    network.reset();
+    std::fill(command_A.begin(), command_A.end(), 0.0);
+    std::fill(force.begin(), force.end(), 0.0);
+    std::fill(last_force.begin(), last_force.end(), 0.0);
+    if (network) {
+      network->reset();
+    }
+    network_primed = false;
     misfit_m = 0.0;
   }
 
+  void fit(std::span<const double> readings) noexcept;
+  bool update_coils(std::span<const double> valve_current_A, double dt_s) noexcept;
+  Status network_force(double dt_s, bool yields_changed) noexcept;
+  void local_force() noexcept;
+
   const DeviceModel& model;
   ObserverOptions options;
-  NetworkSimulation network;
-  std::vector<std::size_t> sensor_of_row;  // row -> index in the reading span
-  std::vector<double> sensor_scale;        // 1 / sigma per row
+  ObserverForceModel force_model = ObserverForceModel::network;
+  std::unique_ptr<NetworkSimulation> network;  // network force model only
+  std::vector<std::size_t> sensor_of_row;      // row -> index in the reading span
+  std::vector<double> sensor_scale;            // 1 / sigma per row
   std::vector<std::size_t> row_begin;
   std::vector<Entry> row_entries;
   std::vector<std::size_t> col_begin;
   std::vector<Entry> col_entries;
   std::vector<double> column_norm2;
-  std::vector<double> residual;  // scaled: (H d - y) / sigma
+  std::vector<double> residual;      // scaled: (H d - y) / sigma
+  std::vector<double> used_reading;  // y / sigma last used per row (large grids: deadband)
+  std::vector<unsigned char> row_changed;
   std::vector<double> depth_m;
   std::vector<double> contact_depth_m;  // depth_m with sub-threshold depths as no contact
   std::vector<double> previous_m;
@@ -123,11 +161,218 @@ struct CellObserver::Impl {
   std::vector<double> velocity;
   std::vector<CoilState> coil;
   std::vector<double> yield_Pa;
-  std::vector<double> valve_gain;  // calibrated true / nominal yield stress per valve
+  std::vector<double> valve_gain;       // calibrated true / nominal yield stress per valve
+  std::vector<double> command_A;        // last command per valve (a settled coil is not stepped)
+  std::vector<double> force;            // local force model's output, N
+  std::vector<double> last_force;       // network model: forces before the last step
+  std::vector<std::size_t> visit;       // the fit's cells to visit this sweep...
+  std::vector<std::size_t> next_visit;  // ...and next sweep
+  std::vector<std::uint32_t> mark;      // generation stamp per cell (dedupes next_visit)
+  std::uint32_t generation = 0;
+  std::vector<std::size_t> valves_of_cell_begin;
+  std::vector<std::size_t> valves_of_cell;
+  bool network_primed = false;  // the network has been stepped at least once since reset
+  bool network_settled = false;
+  double alpha_dt_s = -1.0;  // the rate filter's coefficient, cached per tick length
+  double alpha = 1.0;
   double prior_weight = 0.0;
   double l1_weight = 0.0;
   double misfit_m = 0.0;
 };
+
+namespace {
+constexpr std::uint32_t kNoMark = 0;
+}  // namespace
+
+// Projected coordinate descent on 1/2 |r|^2 + 1/2 w_p |d - d_pred|^2 + w_1 sum d, d >= 0. A
+// cell is revisited only when a sensor it shares changed (a cell whose gradient has not changed
+// would not move).
+void CellObserver::Impl::fit(std::span<const double> readings) noexcept {
+  const std::size_t cells = depth_m.size();
+  // Small grids sweep every cell (cheaper than tracking which to visit); large grids revisit
+  // only the neighbours of what moved, and a reading within reading_deadband_sigma of the one
+  // last used counts as unchanged (noise on an untouched region moves nothing).
+  const bool sparse = cells > options.network_max_cells;
+  const double deadband = sparse ? options.reading_deadband_sigma : 0.0;
+  for (std::size_t r = 0; r < residual.size(); ++r) {
+    const double y = readings[sensor_of_row[r]] * sensor_scale[r];  // in sigmas
+    row_changed[r] = !sparse || std::abs(y - used_reading[r]) > deadband ? 1 : 0;
+    if (row_changed[r] != 0) {
+      used_reading[r] = y;
+    }
+    double h_d = 0.0;
+    for (std::size_t e = row_begin[r]; e < row_begin[r + 1]; ++e) {
+      h_d += row_entries[e].weight * depth_m[row_entries[e].index];
+    }
+    residual[r] = h_d - used_reading[r];
+  }
+  const double tolerance = options.sweep_tolerance_m;
+  double largest = 0.0;
+  auto relax = [&](std::size_t c) {
+    double gradient = prior_weight * (depth_m[c] - predicted_m[c]) + l1_weight;
+    for (std::size_t e = col_begin[c]; e < col_begin[c + 1]; ++e) {
+      gradient += col_entries[e].weight * residual[col_entries[e].index];
+    }
+    const double next = std::max(0.0, depth_m[c] - gradient / (column_norm2[c] + prior_weight));
+    const double delta = next - depth_m[c];
+    if (delta == 0.0) {
+      return;
+    }
+    for (std::size_t e = col_begin[c]; e < col_begin[c + 1]; ++e) {
+      residual[col_entries[e].index] += col_entries[e].weight * delta;
+    }
+    depth_m[c] = next;
+    largest = std::max(largest, std::abs(delta));
+    if (!sparse || std::abs(delta) <= tolerance) {
+      return;
+    }
+    // Its sensors' cells see a new residual: visit them next sweep.
+    for (std::size_t e = col_begin[c]; e < col_begin[c + 1]; ++e) {
+      const std::size_t r = col_entries[e].index;
+      for (std::size_t k = row_begin[r]; k < row_begin[r + 1]; ++k) {
+        const std::size_t n = row_entries[k].index;
+        if (mark[n] != generation) {
+          mark[n] = generation;
+          next_visit.push_back(n);
+        }
+      }
+    }
+  };
+  auto next_generation = [&] {
+    if (++generation == kNoMark) {  // wrapped: clear the stamps
+      std::fill(mark.begin(), mark.end(), kNoMark);
+      generation = 1;
+    }
+  };
+  next_generation();
+  next_visit.clear();
+  if (!sparse) {
+    for (int sweep = 0; sweep < options.sweeps && (sweep == 0 || largest > tolerance); ++sweep) {
+      largest = 0.0;
+      for (std::size_t c = 0; c < cells; ++c) {
+        relax(c);
+      }
+    }
+    return;
+  }
+  // First sweep: the cells with depth (their prior moves) and those whose sensors changed.
+  for (std::size_t c = 0; c < cells; ++c) {
+    if (depth_m[c] > 0.0 || previous_m[c] > 0.0) {
+      mark[c] = generation;
+      next_visit.push_back(c);
+    }
+  }
+  for (std::size_t r = 0; r < residual.size(); ++r) {
+    if (row_changed[r] == 0) {
+      continue;
+    }
+    for (std::size_t k = row_begin[r]; k < row_begin[r + 1]; ++k) {
+      const std::size_t n = row_entries[k].index;
+      if (mark[n] != generation) {
+        mark[n] = generation;
+        next_visit.push_back(n);
+      }
+    }
+  }
+  for (int sweep = 0; sweep < options.sweeps && !next_visit.empty(); ++sweep) {
+    visit.swap(next_visit);
+    next_visit.clear();
+    next_generation();
+    for (const std::size_t c : visit) {
+      relax(c);
+    }
+  }
+}
+
+// Nominal coil lag and yield curve per valve; a valve whose command has not changed and whose
+// coil has settled on it is not stepped. Returns whether any yield stress changed.
+bool CellObserver::Impl::update_coils(std::span<const double> valve_current_A, double dt_s) noexcept {
+  const CoilParams& coil_params = model.profile().coil;
+  const double settled_A = 1e-12 * coil_params.max_current_A;
+  bool changed = false;
+  for (std::size_t v = 0; v < coil.size(); ++v) {
+    const double command = std::clamp(valve_current_A[v], 0.0, coil_params.max_current_A);
+    CoilState& state = coil[v];
+    if (command == command_A[v] && std::abs(state.current_A - command) <= settled_A &&
+        std::abs(state.field_current_A - command) <= settled_A) {
+      continue;
+    }
+    command_A[v] = command;
+    const Result<CoilState> next = coil_step(coil_params, state, command, dt_s);
+    if (next.ok()) {
+      state = next.value;
+    }
+    const double field_A = std::clamp(state.field_current_A, 0.0, coil_params.max_current_A);
+    const Result<double> tau_y = model.yield_stress_at_current_Pa(field_A);
+    const double y = tau_y.ok() ? tau_y.value * valve_gain[v] : yield_Pa[v];
+    changed = changed || y != yield_Pa[v];
+    yield_Pa[v] = y;
+  }
+  return changed;
+}
+
+// The whole network, stepped unless its inputs are unchanged and it has settled.
+Status CellObserver::Impl::network_force(double dt_s, bool yields_changed) noexcept {
+  const std::size_t cells = depth_m.size();
+  bool depths_changed = false;
+  for (std::size_t c = 0; c < cells; ++c) {
+    const double d = depth_m[c] > options.contact_threshold_m ? depth_m[c] : 0.0;
+    depths_changed = depths_changed || d != contact_depth_m[c];
+    contact_depth_m[c] = d;
+  }
+  if (options.skip_settled_network && network_primed && network_settled && !yields_changed &&
+      !depths_changed) {
+    return Status::ok;  // at rest on the same inputs: the same forces
+  }
+  Status s = network->set_valve_yield_stress_Pa(yield_Pa);
+  if (s == Status::ok) {
+    s = network->set_cell_indentation_m(contact_depth_m);
+  }
+  if (s != Status::ok) {
+    return s;
+  }
+  const std::span<const double> f = network->cell_force_N();
+  std::copy(f.begin(), f.end(), last_force.begin());
+  const Result<StepReport> stepped = network->step(dt_s);
+  if (stepped.status != Status::ok) {
+    return stepped.status;
+  }
+  // Settled: no force moved more than a micronewton in the step. (The network double-buffers
+  // its state: read the forces again after the step.)
+  const std::span<const double> after = network->cell_force_N();
+  double moved = 0.0;
+  for (std::size_t c = 0; c < cells; ++c) {
+    moved = std::max(moved, std::abs(after[c] - last_force[c]));
+  }
+  network_settled = moved <= 1e-6;
+  network_primed = true;
+  return Status::ok;
+}
+
+// The quasi-static cell law of each contacted cell; no contact, no force, no cost.
+void CellObserver::Impl::local_force() noexcept {
+  const std::size_t cells = depth_m.size();
+  const double hold = options.hold_rate_m_per_s;
+  for (std::size_t c = 0; c < cells; ++c) {
+    if (!(depth_m[c] > options.contact_threshold_m)) {
+      force[c] = 0.0;
+      continue;
+    }
+    double tau = 0.0;
+    const std::size_t first = valves_of_cell_begin[c];
+    const std::size_t last = valves_of_cell_begin[c + 1];
+    for (std::size_t k = first; k < last; ++k) {
+      tau += yield_Pa[valves_of_cell[k]];
+    }
+    tau = last > first ? tau / static_cast<double>(last - first) : 0.0;
+    const double v = velocity[c];
+    const double rate = v > hold ? v - hold : (v < -hold ? v + hold : 0.0);
+    const Result<CellLoad> load = model.cell_force_at_yield(c, depth_m[c], rate, tau);
+    if (load.ok()) {
+      force[c] = load.value.force_N;
+    }
+  }
+}
 
 CellObserver::CellObserver(const DeviceModel& nominal, const ObserverOptions& options)
     : impl_(std::make_unique<Impl>(nominal, options)) {}
@@ -174,30 +419,7 @@ Status CellObserver::update(std::span<const double> sensor_readings, std::span<c
     m.predicted_m[c] = std::max(0.0, m.depth_m[c] + m.velocity[c] * dt_s);
     m.depth_m[c] = m.predicted_m[c];
   }
-  for (std::size_t r = 0; r < m.residual.size(); ++r) {
-    double h_d = 0.0;
-    for (std::size_t e = m.row_begin[r]; e < m.row_begin[r + 1]; ++e) {
-      h_d += m.row_entries[e].weight * m.depth_m[m.row_entries[e].index];
-    }
-    m.residual[r] = h_d - sensor_readings[m.sensor_of_row[r]] * m.sensor_scale[r];
-  }
-  // Projected coordinate descent on 1/2 |r|^2 + 1/2 w_p |d - d_pred|^2 + w_1 sum d, d >= 0.
-  for (int sweep = 0; sweep < m.options.sweeps; ++sweep) {
-    for (std::size_t c = 0; c < cells; ++c) {
-      double gradient = m.prior_weight * (m.depth_m[c] - m.predicted_m[c]) + m.l1_weight;
-      for (std::size_t e = m.col_begin[c]; e < m.col_begin[c + 1]; ++e) {
-        gradient += m.col_entries[e].weight * m.residual[m.col_entries[e].index];
-      }
-      const double next = std::max(0.0, m.depth_m[c] - gradient / (m.column_norm2[c] + m.prior_weight));
-      const double delta = next - m.depth_m[c];
-      if (delta != 0.0) {
-        for (std::size_t e = m.col_begin[c]; e < m.col_begin[c + 1]; ++e) {
-          m.residual[m.col_entries[e].index] += m.col_entries[e].weight * delta;
-        }
-        m.depth_m[c] = next;
-      }
-    }
-  }
+  m.fit(sensor_readings);
   double misfit2 = 0.0;
   for (std::size_t r = 0; r < m.residual.size(); ++r) {
     const double unscaled = m.residual[r] / m.sensor_scale[r];
@@ -205,41 +427,30 @@ Status CellObserver::update(std::span<const double> sensor_readings, std::span<c
   }
   m.misfit_m = std::sqrt(misfit2 / static_cast<double>(m.residual.size()));
   // Rate: first-order filter on the difference (exact discretisation of the lag).
-  const double tau = m.options.rate_filter_time_constant_s;
-  const double alpha = tau > 0.0 ? 1.0 - std::exp(-dt_s / tau) : 1.0;
+  if (dt_s != m.alpha_dt_s) {
+    const double tau = m.options.rate_filter_time_constant_s;
+    m.alpha = tau > 0.0 ? 1.0 - std::exp(-dt_s / tau) : 1.0;
+    m.alpha_dt_s = dt_s;
+  }
   for (std::size_t c = 0; c < cells; ++c) {
     const double raw = (m.depth_m[c] - m.previous_m[c]) / dt_s;
-    m.velocity[c] += alpha * (raw - m.velocity[c]);
+    m.velocity[c] += m.alpha * (raw - m.velocity[c]);
   }
-  // Force through the nominal network: nominal coil lag and yield curve.
-  const CoilParams& coil_params = p.coil;
-  for (std::size_t v = 0; v < m.coil.size(); ++v) {
-    const double command = std::clamp(valve_current_A[v], 0.0, coil_params.max_current_A);
-    const Result<CoilState> next = coil_step(coil_params, m.coil[v], command, dt_s);
-    if (next.ok()) {
-      m.coil[v] = next.value;
-    }
-    const double field_A = std::clamp(m.coil[v].field_current_A, 0.0, coil_params.max_current_A);
-    const Result<double> tau_y = m.model.yield_stress_at_current_Pa(field_A);
-    m.yield_Pa[v] = tau_y.ok() ? tau_y.value * m.valve_gain[v] : m.yield_Pa[v];
+  // Force: nominal coil lag and yield curve, then the force model.
+  const bool yields_changed = m.update_coils(valve_current_A, dt_s);
+  if (m.force_model == ObserverForceModel::local) {
+    m.local_force();
+    return Status::ok;
   }
-  Status s = m.network.set_valve_yield_stress_Pa(m.yield_Pa);
-  if (s == Status::ok) {
-    for (std::size_t c = 0; c < cells; ++c) {
-      m.contact_depth_m[c] = m.depth_m[c] > m.options.contact_threshold_m ? m.depth_m[c] : 0.0;
-    }
-    s = m.network.set_cell_indentation_m(m.contact_depth_m);
-  }
-  if (s != Status::ok) {
-    return s;
-  }
-  const Result<StepReport> stepped = m.network.step(dt_s);
-  return stepped.status;
+  return m.network_force(dt_s, yields_changed);
 }
 
 std::span<const double> CellObserver::indentation_m() const noexcept { return impl_->depth_m; }
 std::span<const double> CellObserver::velocity_m_per_s() const noexcept { return impl_->velocity; }
-std::span<const double> CellObserver::force_N() const noexcept { return impl_->network.cell_force_N(); }
+std::span<const double> CellObserver::force_N() const noexcept {
+  return impl_->network ? impl_->network->cell_force_N() : std::span<const double>(impl_->force);
+}
+ObserverForceModel CellObserver::force_model() const noexcept { return impl_->force_model; }
 double CellObserver::sensor_misfit_m() const noexcept { return impl_->misfit_m; }
 std::size_t CellObserver::fluid_cell_count() const noexcept { return impl_->depth_m.size(); }
 
