@@ -87,6 +87,7 @@ Bridge::Bridge(DeviceSession& session, SlaveSource& source, BridgeOptions option
   finger_m_.assign(cells, 0.0);
   finger_prev_m_.assign(cells, 0.0);
   current_A_.assign(layout_.valve_count(), 0.0);
+  sent_A_.assign(layout_.valve_count(), 0.0);
 }
 
 Bridge::~Bridge() { stop(); }
@@ -380,7 +381,21 @@ ResultCode Bridge::step(TimePoint now) noexcept {
   for (const double a : current_A_) {
     stats_.max_current_A = std::max(stats_.max_current_A, a);
   }
-  const ResultCode sent = session_.send_valve_currents(current_A_);
+  // Unchanged currents are not sent again until the refresh period: a hold, or a skin nobody
+  // touches, costs no bus traffic (the device's watchdog runs on the session's heartbeat).
+  const bool changed = !std::equal(current_A_.begin(), current_A_.end(), sent_A_.begin());
+  const bool due = now - last_send_ >= from_seconds(options_.resend_period_s);
+  ResultCode sent = ResultCode::ok;
+  if (changed || due || !ever_sent_) {
+    sent = session_.send_valve_currents(current_A_);
+    if (sent == ResultCode::ok) {
+      std::copy(current_A_.begin(), current_A_.end(), sent_A_.begin());
+      last_send_ = now;
+      ever_sent_ = true;
+    }
+  } else {
+    ++stats_.unchanged_sends_skipped;
+  }
   if (sent != ResultCode::ok) {
     ++stats_.send_failures;
     rc = rc == ResultCode::ok ? sent : rc;

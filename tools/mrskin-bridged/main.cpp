@@ -2,6 +2,7 @@
 #include <fmt/format.h>
 
 #include <CLI/CLI.hpp>
+#include <algorithm>
 #include <atomic>
 #include <csignal>
 #include <cstdio>
@@ -102,7 +103,18 @@ int run(const Settings& cfg) {
   if (g_signal.load() != 0) {
     fmt::print("stopped by signal {}\n", g_signal.load());
   }
-  print_summary(loop.stats(), cfg.rate_hz);
+  // Bus load, busier direction: one packet per 64-byte report, one report per 1 ms frame on
+  // full-speed USB-HID (the mock speaks the HID framing; docs/protocol.md, "Bus load").
+  bridge::BridgeStats stats = loop.stats();
+  const double run_s = std::max(1e-9, to_seconds(clock.now() - t0));
+  const SessionCounters& link = dev.session->counters();
+  stats.bus_load = static_cast<double>(std::max(link.sent, link.received)) / run_s / 1000.0;
+  print_summary(stats, cfg.rate_hz);
+  fmt::print(
+      "bus load   {:.1f} % of full-speed USB-HID reports (host to device {:.1f} %, device to host {:.1f} "
+      "%)\n",
+      100.0 * stats.bus_load, 100.0 * static_cast<double>(link.sent) / run_s / 1000.0,
+      100.0 * static_cast<double>(link.received) / run_s / 1000.0);
   if (const bridge::LoopStats* ls = loop.loop_stats(); ls != nullptr) {
     fmt::print(
         "scheduler  {} priority {}, memory {}; wake latency p50 {:.1f} us, p99 {:.1f} us, p99.9 {:.1f} us\n",
@@ -117,7 +129,7 @@ int run(const Settings& cfg) {
                  cfg.stats_path);
       return kFailure;
     }
-    out << bridge::to_json(loop.stats(), loop.tick_period_s());
+    out << bridge::to_json(stats, loop.tick_period_s());
     fmt::print("statistics written to {}\n", cfg.stats_path);
   }
   return kOk;

@@ -58,7 +58,8 @@ struct BridgeOptions {
   // model error does not leak the trapped volume away. Off: slow loading that reads as a hold
   // then overshoots (demo 0.031 -> 0.046 N RMS at 0.1, sweep 0.055 -> 0.088 N).
   double hold_margin = 0.0;
-  bool realtime = true;  // SCHED_FIFO + mlockall on the library's loop thread (start())
+  bool realtime = true;           // SCHED_FIFO + mlockall on the library's loop thread (start())
+  double resend_period_s = 0.05;  // unchanged currents are sent again only this often
   int rt_priority = 80;
   double feedback_limit_N = 0.5;
   model::ObserverOptions observer{};
@@ -177,6 +178,9 @@ class Bridge {
   double unload_filter_alpha_ = 1.0;
   std::vector<double> current_A_;
   std::vector<double> valve_gain_;  // calibrated per-valve yield gain
+  std::vector<double> sent_A_;      // currents last sent
+  TimePoint last_send_{};
+  bool ever_sent_ = false;
   std::vector<double> truth_N_;
   std::vector<double> finger_m_;       // the truth's finger this tick...
   std::vector<double> finger_prev_m_;  // ...and last tick

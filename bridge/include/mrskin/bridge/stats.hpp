@@ -32,8 +32,9 @@ struct BridgeStats {
   std::uint64_t overruns = 0;         // ticks whose work exceeded the period
   std::uint64_t skipped_periods = 0;  // periods skipped to catch up (never burst)
   std::uint64_t send_failures = 0;
-  std::uint64_t slave_samples = 0;  // ticks that had a valid slave sample
-  std::uint64_t stale_ticks = 0;    // ticks rendering without fresh slave data
+  std::uint64_t unchanged_sends_skipped = 0;  // ticks whose currents equalled the last sent
+  std::uint64_t slave_samples = 0;            // ticks that had a valid slave sample
+  std::uint64_t stale_ticks = 0;              // ticks rendering without fresh slave data
   DurationHistogram tick_time;
   // Processing latency: from the tick that consumes a new robot sample to the frame carrying
   // its effect handed to the transport. End to end: from the sample's arrival (its stamp on
