@@ -94,6 +94,30 @@ Bridge::~Bridge() { stop(); }
 
 ResultCode Bridge::enable() noexcept { return session_.request_enable(); }
 
+void Bridge::request(Request r) noexcept {
+  auto wanted = static_cast<unsigned char>(r);
+  unsigned char pending = pending_request_.load(std::memory_order_relaxed);
+  while (wanted > pending &&
+         !pending_request_.compare_exchange_weak(pending, wanted, std::memory_order_acq_rel)) {
+  }
+}
+
+bool Bridge::apply_request() noexcept {
+  const auto r = static_cast<Request>(pending_request_.exchange(0, std::memory_order_acq_rel));
+  if (r == Request::estop || r == Request::disable) {
+    std::fill(current_A_.begin(), current_A_.end(), 0.0);
+    (void)session_.send_valve_currents(current_A_);  // released in this tick, whatever the state
+    std::copy(current_A_.begin(), current_A_.end(), sent_A_.begin());
+    (void)(r == Request::estop ? session_.request_estop() : session_.request_disable());
+    std::fill(feedback_N_.begin(), feedback_N_.end(), 0.0);
+    halted_.store(true, std::memory_order_release);
+  } else if (r == Request::enable) {
+    (void)session_.request_enable();
+    halted_.store(false, std::memory_order_release);
+  }
+  return halted_.load(std::memory_order_relaxed);
+}
+
 void Bridge::update_tissue_model(TimePoint now) noexcept {
   // Model-mediated rendering: the slave stream updates the online tissue estimate, and the cells
   // under the mapped contact point take it; the stale policy (hold, then fade to released) is the
@@ -359,6 +383,11 @@ ResultCode Bridge::step(TimePoint now) noexcept {
   if (!started_) {
     start_ = now;
     started_ = true;
+  }
+  if (apply_request()) {
+    ++stats_.ticks;  // halted: polled, nothing rendered
+    live_ticks_.store(stats_.ticks, std::memory_order_relaxed);
+    return rc;
   }
   const double dt = 1.0 / options_.rate_hz;
   if (observer_->update(session_.sensors(), current_A_, dt) != model::Status::ok) {

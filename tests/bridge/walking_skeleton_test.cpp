@@ -1,6 +1,7 @@
 // The whole slice on the simulated clock: scene -> mock device bytes -> session -> bridge.
 #include <gtest/gtest.h>
 
+#include <algorithm>
 #include <vector>
 
 #include "mrskin/bridge/bridge.hpp"
@@ -82,6 +83,51 @@ TEST(WalkingSkeleton, HeartbeatLossReleasesValves) {
   EXPECT_EQ(dev.session->state(), DeviceState::fault);
   EXPECT_STREQ(fault_name(dev.session->fault_code()), "heartbeat lost");
   EXPECT_TRUE(dev.session->valves_released());
+}
+
+TEST(WalkingSkeleton, EmergencyStopReleasesEveryValveWithinOneTickThenEnableResumes) {
+  SimulatedClock clock;
+  OpenOptions open;
+  open.synchronous_mock = true;
+  OpenedDevice dev = open_device("mock://?seed=3", clock, open);
+  auto scene = make_scene("demo");
+  Bridge loop(*dev.session, *scene);
+  scene->set_start(clock.now());
+  ASSERT_EQ(loop.enable(), ResultCode::ok);
+  std::vector<double> finger(dev.mock->layout().fluid_cell_count());
+  std::vector<double> currents(dev.mock->layout().valve_count());
+  auto tick = [&] {
+    scene->finger(to_seconds(clock.now() - scene->start()), dev.mock->layout(), finger);
+    dev.mock->set_finger_indentation(finger);
+    dev.mock->step(clock.now());
+    (void)loop.step(clock.now());
+    clock.advance(std::chrono::milliseconds(1));
+  };
+  for (int k = 0; k < 1500; ++k) {  // mid-hold: valves carry current
+    tick();
+  }
+  ASSERT_GT(*std::max_element(loop.currents_A().begin(), loop.currents_A().end()), 0.01);
+  loop.request(Bridge::Request::enable);  // weaker than the estop that follows: the estop wins
+  loop.request(Bridge::Request::estop);
+  tick();  // the tick that takes the request sends zero currents
+  for (const double a : loop.currents_A()) {
+    EXPECT_EQ(a, 0.0);
+  }
+  EXPECT_TRUE(loop.halted());
+  for (int k = 0; k < 20; ++k) {  // the zero command crosses the mock's 1.5 ms command delay
+    tick();
+  }
+  dev.mock->applied_currents(currents);
+  for (const double a : currents) {
+    EXPECT_EQ(a, 0.0);
+  }
+  EXPECT_NE(dev.session->state(), DeviceState::enabled);
+  loop.request(Bridge::Request::enable);
+  for (int k = 0; k < 100; ++k) {
+    tick();
+  }
+  EXPECT_FALSE(loop.halted());
+  EXPECT_EQ(dev.session->state(), DeviceState::enabled);
 }
 
 }  // namespace

@@ -110,6 +110,15 @@ class Bridge {
   // Enables the device (call before the first step).
   ResultCode enable() noexcept;
 
+  // From any thread (a control socket, a signal handler's flag): acted on at the start of the
+  // next tick. estop: zero currents sent and the device's emergency stop requested in that tick,
+  // then nothing is rendered until enable. disable: the same without the emergency stop. enable:
+  // leaves either. The strongest pending request wins (estop over disable over enable).
+  enum class Request : unsigned char { none = 0, enable = 1, disable = 2, estop = 3 };
+  void request(Request r) noexcept;
+  // True after an estop or disable until the next enable.
+  [[nodiscard]] bool halted() const noexcept { return halted_.load(std::memory_order_acquire); }
+
   // One tick at time now. Real-time safe.
   ResultCode step(TimePoint now) noexcept;
 
@@ -152,6 +161,7 @@ class Bridge {
   double direction_rate(std::size_t i, bool contact, double depth_m, double rate_m_per_s) noexcept;
   void lock_short_cells() noexcept;
   void clamp_targets_into_envelope() noexcept;
+  bool apply_request() noexcept;  // true while halted
   void score() noexcept;
 
   DeviceSession& session_;
@@ -181,6 +191,8 @@ class Bridge {
   std::vector<double> sent_A_;      // currents last sent
   TimePoint last_send_{};
   bool ever_sent_ = false;
+  std::atomic<unsigned char> pending_request_{0};
+  std::atomic<bool> halted_{false};
   std::vector<double> truth_N_;
   std::vector<double> finger_m_;       // the truth's finger this tick...
   std::vector<double> finger_prev_m_;  // ...and last tick
