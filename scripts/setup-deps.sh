@@ -9,7 +9,7 @@ PACKAGES=(
   g++ clang clang-14 libclang-rt-14-dev cmake ninja-build pkg-config
   # libraries (BRIEF section 7)
   libhidapi-dev libusb-1.0-0-dev libeigen3-dev libspdlog-dev libcli11-dev
-  libtomlplusplus-dev nlohmann-json3-dev libcap-dev
+  libtomlplusplus-dev nlohmann-json3-dev libcap-dev libopenigtlink-dev
   # tests, benchmarks and test peers
   libgtest-dev libgmock-dev librapidcheck-dev libbenchmark-dev valgrind can-utils
   # lint

@@ -1,0 +1,149 @@
+// Robot stream sources named by URI (issue 10, docs/sources.md): scene://NAME, udp://HOST:PORT,
+// replay://FILE, igtl://HOST:PORT (client) and igtl-listen://HOST:PORT (server). Network sources
+// read on their own I/O thread, validate every sample (untrusted input: dropped and counted, never
+// a crash or a stall) and hand it to the tick through a wait-free SPSC queue; latest() drains it
+// without blocking, allocating, locking or logging.
+#pragma once
+
+#include <array>
+#include <atomic>
+#include <cstddef>
+#include <cstdint>
+#include <cstdio>
+#include <memory>
+#include <span>
+#include <string>
+#include <string_view>
+#include <thread>
+
+#include "mrskin/bridge/scene.hpp"
+#include "mrskin/driver/clock.hpp"
+#include "mrskin/driver/spsc_queue.hpp"
+
+namespace mrskin::bridge {
+
+struct SourceOptions {
+  // Plausible ranges; a sample outside them is dropped as out_of_range.
+  double max_force_N = 20.0;  // force must be in [0, max_force_N]
+  double max_abs_indentation_m = 0.05;
+  double max_abs_contact_m = 1.0;  // |contact_x_m|, |contact_y_m|
+  double max_tip_radius_m = 0.05;  // tip radius in [0, max]
+  // Tip radius reported by sources whose format does not carry one (OpenIGTLink).
+  double tip_radius_m = 3e-3;
+  std::size_t queue_capacity = 256;  // samples between the I/O thread and the tick
+  // Robot clock -> host clock: the offset is the minimum of (arrival - robot stamp) seen so far,
+  // allowed to rise by this much per second of host time so that it follows clock drift.
+  double offset_drift_s_per_s = 1e-4;
+  // A stream whose stamps go backwards this many times in a row restarted (a robot reboot):
+  // ordering and the clock offset start over.
+  std::uint32_t restart_after_out_of_order = 100;
+  // OpenIGTLink.
+  std::string igtl_force_device = "ContactForce";  // SENSOR, one value, unit N
+  std::string igtl_pose_device = "InstrumentTip";  // TRANSFORM or POSITION, mm, tissue frame
+  std::string igtl_map_device = "TactileArray";    // NDARRAY rows x cols, Pa
+  double tactile_pitch_m = 2e-3;                   // NDARRAY cell pitch (square cells)
+  std::size_t max_message_bytes = 65536;           // larger bodies: oversized, connection closed
+  double reconnect_min_s = 0.05;                   // igtl:// backoff, doubling up to max
+  double reconnect_max_s = 2.0;
+  // Replay.
+  bool replay_loop = false;       // start over at the end instead of holding the last sample
+  bool replay_max_speed = false;  // one sample per latest() call, stamped `now`
+  std::size_t max_replay_samples = 2'000'000;
+};
+
+// A snapshot of a source's counters.
+struct SourceStats {
+  std::uint64_t accepted = 0;
+  std::uint64_t malformed = 0;     // short, bad magic, version, CRC, or body not matching its type
+  std::uint64_t oversized = 0;     // longer than the format allows
+  std::uint64_t non_finite = 0;    // NaN or Inf in a field
+  std::uint64_t out_of_range = 0;  // outside SourceOptions' ranges
+  std::uint64_t out_of_order = 0;  // robot stamp older than the last accepted one
+  std::uint64_t duplicate = 0;     // robot stamp equal to the last accepted one
+  std::uint64_t queue_full = 0;    // superseded by a newer sample before the tick took it
+  std::uint64_t unsupported = 0;   // well-formed, but a message type, device or unit not used
+  std::uint64_t restarts = 0;      // stream restarts (see restart_after_out_of_order)
+  std::uint64_t connections = 0;   // OpenIGTLink connections made or accepted
+  std::uint64_t disconnects = 0;
+  [[nodiscard]] std::uint64_t dropped() const noexcept {
+    return malformed + oversized + non_finite + out_of_range + out_of_order + duplicate + queue_full +
+           unsupported;
+  }
+};
+
+// Called from a source's I/O thread after it queued a sample (e.g. to wake the loop early).
+using ArrivalHook = void (*)(void* context) noexcept;
+
+// A source with counters. stats() may be read from any thread.
+class StreamSource : public SlaveSource {
+ public:
+  [[nodiscard]] virtual SourceStats stats() const noexcept = 0;
+  // Set before samples flow (not synchronised with an I/O thread already pushing).
+  virtual void set_arrival_hook(ArrivalHook /*hook*/, void* /*context*/) noexcept {}
+  // The port a listening source is bound to (useful with port 0), else 0.
+  [[nodiscard]] virtual std::uint16_t local_port() const noexcept { return 0; }
+};
+
+// Opens a source. Throws InvalidArgument for a bad URI (naming the bad part and listing the
+// schemes), and mrskin::Error when a socket cannot be bound or a replay file read. clock: the
+// loop's clock (arrival times, replay timing); nullptr: CLOCK_MONOTONIC.
+// Query options (after '?'): udp/igtl*: queue=N; replay: speed=max|1, loop=0|1.
+std::unique_ptr<SlaveSource> make_source(std::string_view uri, const SourceOptions& options = {},
+                                         Clock* clock = nullptr);
+// The same for udp://, replay://, igtl:// and igtl-listen:// only, with the counters in reach.
+std::unique_ptr<StreamSource> open_stream(std::string_view uri, const SourceOptions& options = {},
+                                          Clock* clock = nullptr);
+// Every scheme make_source accepts, for messages and --help.
+std::span<const std::string_view> source_schemes() noexcept;
+
+// ---- UDP datagram, format version 1 (docs/sources.md) ----------------------------------------
+struct UdpSample {
+  std::uint32_t sequence = 0;
+  std::int64_t stamp_ns = 0;  // robot clock
+  double force_N = 0.0;
+  double indentation_m = 0.0;
+  double contact_x_m = 0.0;
+  double contact_y_m = 0.0;
+  double tip_radius_m = 0.0;
+};
+inline constexpr std::size_t kUdpDatagramBytes = 68;
+inline constexpr std::uint16_t kUdpVersion = 1;
+// Little-endian, CRC-32C over bytes 0..63 at offset 64.
+std::array<std::uint8_t, kUdpDatagramBytes> encode_udp_sample(const UdpSample& sample) noexcept;
+// CRC-32C (Castagnoli, reflected, init and final xor 0xFFFFFFFF); "123456789" -> 0xE3069283.
+std::uint32_t crc32c(std::span<const std::uint8_t> data) noexcept;
+
+// ---- recording --------------------------------------------------------------------------------
+// Records the samples the daemon uses to a replay file (format v1, docs/sources.md). record() is
+// for the tick thread: wait-free, no allocation; a writer thread writes the file.
+class SampleRecorder {
+ public:
+  // Throws mrskin::Error when the file cannot be created.
+  explicit SampleRecorder(const std::string& path, std::size_t capacity = 4096);
+  SampleRecorder(const SampleRecorder&) = delete;
+  SampleRecorder& operator=(const SampleRecorder&) = delete;
+  SampleRecorder(SampleRecorder&&) = delete;
+  SampleRecorder& operator=(SampleRecorder&&) = delete;
+  ~SampleRecorder();  // close()
+  // Queues a valid sample whose stamp differs from the previous one; false when the queue was full
+  // (counted) or the sample was skipped.
+  bool record(const SlaveSample& sample) noexcept;
+  // Writes what is queued, closes the file and joins the writer. Idempotent; call it once the
+  // tick no longer records.
+  void close() noexcept;
+  [[nodiscard]] std::uint64_t written() const noexcept { return written_.load(std::memory_order_relaxed); }
+  [[nodiscard]] std::uint64_t dropped() const noexcept { return dropped_.load(std::memory_order_relaxed); }
+
+ private:
+  void run() noexcept;
+  SpscQueue<SlaveSample> queue_;
+  std::FILE* file_ = nullptr;
+  std::atomic<bool> stop_{false};
+  std::atomic<std::uint64_t> written_{0};
+  std::atomic<std::uint64_t> dropped_{0};
+  TimePoint last_stamp_{};
+  bool have_last_ = false;
+  std::thread writer_;
+};
+
+}  // namespace mrskin::bridge

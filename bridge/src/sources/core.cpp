@@ -1,0 +1,261 @@
+#include "core.hpp"
+
+#include <arpa/inet.h>
+#include <netdb.h>
+#include <netinet/in.h>
+#include <sys/eventfd.h>
+#include <sys/socket.h>
+#include <unistd.h>
+
+#include <array>
+#include <cerrno>
+#include <charconv>
+#include <cmath>
+#include <cstring>
+#include <limits>
+#include <string>
+
+#include "mrskin/driver/errors.hpp"
+
+namespace mrskin::bridge::sources {
+
+SourceStats AtomicStats::snapshot() const noexcept {
+  constexpr auto r = std::memory_order_relaxed;
+  SourceStats s;
+  s.accepted = accepted.load(r);
+  s.malformed = count_of(Drop::malformed);
+  s.oversized = count_of(Drop::oversized);
+  s.non_finite = count_of(Drop::non_finite);
+  s.out_of_range = count_of(Drop::out_of_range);
+  s.out_of_order = count_of(Drop::out_of_order);
+  s.duplicate = count_of(Drop::duplicate);
+  s.queue_full = count_of(Drop::queue_full);
+  s.unsupported = count_of(Drop::unsupported);
+  s.restarts = restarts.load(r);
+  s.connections = connections.load(r);
+  s.disconnects = disconnects.load(r);
+  return s;
+}
+
+bool values_ok(const SlaveSample& s, const SourceOptions& o, AtomicStats& stats) noexcept {
+  if (!std::isfinite(s.force_N) || !std::isfinite(s.indentation_m) || !std::isfinite(s.contact_x_m) ||
+      !std::isfinite(s.contact_y_m) || !std::isfinite(s.tip_radius_m)) {
+    stats.count(Drop::non_finite);
+    return false;
+  }
+  if (s.force_N < 0.0 || s.force_N > o.max_force_N || std::abs(s.indentation_m) > o.max_abs_indentation_m ||
+      std::abs(s.contact_x_m) > o.max_abs_contact_m || std::abs(s.contact_y_m) > o.max_abs_contact_m ||
+      s.tip_radius_m < 0.0 || s.tip_radius_m > o.max_tip_radius_m) {
+    stats.count(Drop::out_of_range);
+    return false;
+  }
+  return true;
+}
+
+OrderGate::Verdict OrderGate::check(std::int64_t stamp_ns) noexcept {
+  if (have_ && stamp_ns == last_ns_) {
+    return Verdict::duplicate;
+  }
+  if (have_ && stamp_ns < last_ns_) {
+    if (++backwards_ < restart_after_) {
+      return Verdict::out_of_order;
+    }
+    backwards_ = 0;
+    last_ns_ = stamp_ns;
+    return Verdict::restart;
+  }
+  backwards_ = 0;
+  have_ = true;
+  last_ns_ = stamp_ns;
+  return Verdict::accept;
+}
+
+TimePoint ClockMapper::map(std::int64_t robot_ns, TimePoint arrival) noexcept {
+  const std::int64_t d = arrival.count() - robot_ns;
+  if (!have_) {
+    have_ = true;
+    offset_ns_ = d;
+  } else {
+    const auto since = static_cast<double>((arrival - last_arrival_).count());
+    offset_ns_ += static_cast<std::int64_t>(drift_ * std::max(0.0, since));
+    offset_ns_ = std::min(offset_ns_, d);
+  }
+  last_arrival_ = arrival;
+  return TimePoint{robot_ns + offset_ns_};
+}
+
+QueuedSource::QueuedSource(const SourceOptions& options, Clock* clock)
+    : options_(options),
+      own_clock_(clock == nullptr ? std::make_unique<MonotonicClock>() : nullptr),
+      clock_(clock == nullptr ? own_clock_.get() : clock),
+      queue_(options.queue_capacity) {
+  if (options.queue_capacity == 0 || options.queue_capacity > (1U << 20U)) {
+    throw InvalidArgument("source: queue capacity must be 1..1048576 samples (got " +
+                          std::to_string(options.queue_capacity) + ")");
+  }
+}
+
+void QueuedSource::set_arrival_hook(ArrivalHook hook, void* context) noexcept {
+  hook_context_.store(context, std::memory_order_relaxed);
+  hook_.store(hook, std::memory_order_release);
+}
+
+void QueuedSource::notify() noexcept {
+  if (ArrivalHook hook = hook_.load(std::memory_order_acquire)) {
+    hook(hook_context_.load(std::memory_order_relaxed));
+  }
+}
+
+void QueuedSource::publish(const SlaveSample& s) noexcept {
+  stats_.accepted.fetch_add(1, std::memory_order_relaxed);
+  if (pending_valid_ && !queue_.try_push(pending_)) {
+    stats_.count(Drop::queue_full);  // the held one is superseded
+    pending_ = s;
+    return;
+  }
+  pending_valid_ = false;
+  if (!queue_.try_push(s)) {
+    pending_ = s;
+    pending_valid_ = true;
+    return;
+  }
+  notify();
+}
+
+bool QueuedSource::flush_pending() noexcept {
+  if (pending_valid_ && queue_.try_push(pending_)) {
+    pending_valid_ = false;
+    notify();
+  }
+  return !pending_valid_;
+}
+
+bool QueuedSource::latest(TimePoint /*now*/, SlaveSample& out) noexcept {
+  SlaveSample s;
+  while (queue_.try_pop(s)) {
+    last_ = s;
+  }
+  if (!last_.valid) {
+    return false;
+  }
+  out = last_;
+  return true;
+}
+
+// ---- sockets --------------------------------------------------------------------------------
+
+Endpoint parse_endpoint(std::string_view text, std::string_view uri, bool need_host, bool allow_port_0) {
+  Endpoint e;
+  std::string_view port_text;
+  if (text.starts_with('[')) {
+    const auto close = text.find(']');
+    if (close == std::string_view::npos || close + 1 >= text.size() || text[close + 1] != ':') {
+      throw InvalidArgument("source '" + std::string(uri) + "': bad address '" + std::string(text) +
+                            "' (an IPv6 address is written [ADDR]:PORT)");
+    }
+    e.host = std::string(text.substr(1, close - 1));
+    port_text = text.substr(close + 2);
+  } else {
+    const auto colon = text.rfind(':');
+    if (colon == std::string_view::npos) {
+      throw InvalidArgument("source '" + std::string(uri) + "': missing port in '" + std::string(text) +
+                            "' (HOST:PORT)");
+    }
+    e.host = std::string(text.substr(0, colon));
+    port_text = text.substr(colon + 1);
+  }
+  if (need_host && e.host.empty()) {
+    throw InvalidArgument("source '" + std::string(uri) + "': missing host (HOST:PORT)");
+  }
+  unsigned port = 0;
+  const auto [end, ec] = std::from_chars(port_text.data(), port_text.data() + port_text.size(), port);
+  if (ec != std::errc{} || end != port_text.data() + port_text.size() || port > 65535 ||
+      (port == 0 && !allow_port_0)) {
+    throw InvalidArgument("source '" + std::string(uri) + "': bad port '" + std::string(port_text) + "' (" +
+                          (allow_port_0 ? "0" : "1") + "..65535)");
+  }
+  e.port = static_cast<std::uint16_t>(port);
+  return e;
+}
+
+Fd& Fd::operator=(Fd&& o) noexcept {
+  if (this != &o) {
+    reset();
+    fd_ = o.release();
+  }
+  return *this;
+}
+
+void Fd::reset() noexcept {
+  if (fd_ >= 0) {
+    ::close(fd_);
+    fd_ = -1;
+  }
+}
+
+Fd bind_socket(const Endpoint& where, int type, std::string_view what) {
+  const std::string host = where.host.empty() ? "127.0.0.1" : where.host;
+  addrinfo hints{};
+  hints.ai_family = AF_UNSPEC;
+  hints.ai_socktype = type;
+  hints.ai_flags = AI_PASSIVE | AI_NUMERICSERV;
+  addrinfo* found = nullptr;
+  const std::string port = std::to_string(where.port);
+  if (const int rc = ::getaddrinfo(host.c_str(), port.c_str(), &hints, &found); rc != 0) {
+    throw InvalidArgument(std::string(what) + ": cannot resolve '" + host + "': " + ::gai_strerror(rc));
+  }
+  std::unique_ptr<addrinfo, decltype(&::freeaddrinfo)> list(found, &::freeaddrinfo);
+  int err = 0;
+  for (const addrinfo* a = found; a != nullptr; a = a->ai_next) {
+    Fd fd(::socket(a->ai_family, a->ai_socktype | SOCK_NONBLOCK | SOCK_CLOEXEC, a->ai_protocol));
+    if (!fd.valid()) {
+      err = errno;
+      continue;
+    }
+    const int one = 1;
+    if (type == SOCK_STREAM) {
+      (void)::setsockopt(fd.get(), SOL_SOCKET, SO_REUSEADDR, &one, sizeof one);
+    }
+    if (::bind(fd.get(), a->ai_addr, a->ai_addrlen) != 0 ||
+        (type == SOCK_STREAM && ::listen(fd.get(), 4) != 0)) {
+      err = errno;
+      continue;
+    }
+    return fd;
+  }
+  throw Error(std::string(what) + ": cannot bind " + host + ":" + port + ": " + std::strerror(err) +
+              " (is the port in use? give another, or 0 for any free port)");
+}
+
+std::uint16_t bound_port(int fd) noexcept {
+  sockaddr_storage addr{};
+  socklen_t len = sizeof addr;
+  // NOLINTNEXTLINE(cppcoreguidelines-pro-type-reinterpret-cast): the sockets API's own cast
+  if (::getsockname(fd, reinterpret_cast<sockaddr*>(&addr), &len) != 0) {
+    return 0;
+  }
+  if (addr.ss_family == AF_INET) {
+    sockaddr_in v4{};
+    std::memcpy(&v4, &addr, sizeof v4);
+    return ntohs(v4.sin_port);
+  }
+  if (addr.ss_family == AF_INET6) {
+    sockaddr_in6 v6{};
+    std::memcpy(&v6, &addr, sizeof v6);
+    return ntohs(v6.sin6_port);
+  }
+  return 0;
+}
+
+StopSignal::StopSignal() : fd_(::eventfd(0, EFD_CLOEXEC | EFD_NONBLOCK)) {
+  if (!fd_.valid()) {
+    throw Error(std::string("source: eventfd failed: ") + std::strerror(errno));
+  }
+}
+
+void StopSignal::raise() noexcept {
+  const std::uint64_t one = 1;
+  [[maybe_unused]] const ssize_t n = ::write(fd_.get(), &one, sizeof one);  // full only if raised before
+}
+
+}  // namespace mrskin::bridge::sources

@@ -1,0 +1,33 @@
+// udp://HOST:PORT (docs/sources.md). Private to the bridge library.
+#pragma once
+
+#include <span>
+#include <thread>
+
+#include "core.hpp"
+
+namespace mrskin::bridge::sources {
+
+class UdpSource final : public QueuedSource {
+ public:
+  UdpSource(const Endpoint& where, const SourceOptions& options, Clock* clock);
+  UdpSource(const UdpSource&) = delete;
+  UdpSource& operator=(const UdpSource&) = delete;
+  UdpSource(UdpSource&&) = delete;
+  UdpSource& operator=(UdpSource&&) = delete;
+  ~UdpSource() override;
+  [[nodiscard]] std::uint16_t local_port() const noexcept override { return port_; }
+
+ private:
+  void run() noexcept;
+  // length: the datagram's real length (it may exceed the bytes in d).
+  void handle(std::span<const std::uint8_t> d, std::size_t length, TimePoint arrival) noexcept;
+  Fd socket_;
+  std::uint16_t port_;
+  StopSignal stop_;
+  OrderGate gate_;
+  ClockMapper mapper_;
+  std::thread thread_;
+};
+
+}  // namespace mrskin::bridge::sources
