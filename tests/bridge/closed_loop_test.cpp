@@ -54,13 +54,23 @@ constexpr Bound kBounds[] = {
 
 class ClosedLoop : public ::testing::TestWithParam<Bound> {};
 
+// Sanitizer builds run each scene for 2 s: they look for memory and threading errors, and the
+// figures are the release build's.
+#ifdef MRSKIN_SANITIZED
+constexpr bool kScored = false;
+#else
+constexpr bool kScored = true;
+#endif
+
 TEST_P(ClosedLoop, RendersTheSceneWithinItsBound) {
   const Bound b = GetParam();
-  const LoopRun r = simulate(b.scene, b.seconds, nullptr);
+  const LoopRun r = simulate(b.scene, kScored ? b.seconds : 2.0, nullptr);
   print(b.scene, r);
-  EXPECT_GT(r.stats.force_samples, 1000U);
-  EXPECT_LE(r.stats.force_rms_error_N(), b.rms_N);
-  EXPECT_LE(r.stats.relative_error.percentile(0.95), b.p95);
+  if (kScored) {
+    EXPECT_GT(r.stats.force_samples, 1000U);
+    EXPECT_LE(r.stats.force_rms_error_N(), b.rms_N);
+    EXPECT_LE(r.stats.relative_error.percentile(0.95), b.p95);
+  }
   EXPECT_EQ(r.stats.active_ticks, 0U) << "the rendering gave energy";
   EXPECT_EQ(r.stats.observer_errors, 0U);
   EXPECT_EQ(r.stats.inverse_errors, 0U);
@@ -76,8 +86,9 @@ INSTANTIATE_TEST_SUITE_P(EveryScene, ClosedLoop, ::testing::ValuesIn(kBounds), s
 TEST(ClosedLoopNetwork, DelayJitterAndLossStayConsistentAndPassive) {
   ImpairmentOptions net;  // 50 ms +- 20 ms, 5 % loss
   net.seed = 3;
-  const LoopRun clean = simulate("demo", 10.0, nullptr);
-  const LoopRun r = simulate("demo", 10.0, &net);
+  const double seconds = kScored ? 10.0 : 3.0;
+  const LoopRun clean = simulate("demo", seconds, nullptr);
+  const LoopRun r = simulate("demo", seconds, &net);
   print("demo/net", r);
   // The network did what it says: about 5 % lost, the rest delivered, some out of order.
   EXPECT_NEAR(static_cast<double>(r.network.lost) / static_cast<double>(r.network.sent), 0.05, 0.01);
@@ -92,7 +103,7 @@ TEST(ClosedLoopNetwork, DelayJitterAndLossStayConsistentAndPassive) {
   EXPECT_EQ(r.stats.inverse_errors, 0U);
   // End to end runs from a sample's arrival (not from the robot's stamp): at most the tick
   // period on the simulated clock, whatever the network's delay.
-  EXPECT_GT(r.stats.end_to_end_latency.count(), 5000U);
+  EXPECT_GT(r.stats.end_to_end_latency.count(), kScored ? 5000U : 1000U);
   EXPECT_LE(r.stats.end_to_end_latency.percentile_ns(0.99), 1e6);
 }
 
