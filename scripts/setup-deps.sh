@@ -12,6 +12,8 @@ PACKAGES=(
   libtomlplusplus-dev nlohmann-json3-dev libcap-dev libopenigtlink-dev
   # tests, benchmarks and test peers
   libgtest-dev libgmock-dev librapidcheck-dev libbenchmark-dev valgrind can-utils
+  # kernel integration tests in a QEMU VM (tests/system, docs/vm-tests.md)
+  qemu-system-x86 busybox-static cpio
   # lint
   clang-format clang-tidy
 )

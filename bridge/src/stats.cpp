@@ -68,6 +68,8 @@ std::string to_json(const BridgeStats& s, double tick_period_s) {
       "  \"send_failures\": {},\n"
       "  \"unchanged_sends_skipped\": {},\n"
       "  \"slave_samples\": {},\n"
+      "  \"samples_accepted\": {},\n"
+      "  \"samples_dropped\": {},\n"
       "  \"stale_ticks\": {},\n"
       "  \"tick_us\": {},\n"
       "  \"processing_latency_us\": {},\n"
@@ -86,12 +88,12 @@ std::string to_json(const BridgeStats& s, double tick_period_s) {
       "  \"inverse\": {{\"errors\": {}, \"cached_ticks\": {}, \"mean_residual_n\": {:.6g}}}\n"
       "}}\n",
       tick_period_s, s.ticks, s.overruns, s.skipped_periods, s.send_failures, s.unchanged_sends_skipped,
-      s.slave_samples, s.stale_ticks, percentiles_us(s.tick_time), percentiles_us(s.processing_latency),
-      percentiles_us(s.end_to_end_latency), s.force_samples, s.force_rms_error_N(), s.force_max_abs_error_N,
-      s.relative_error.percentile(0.95), s.relative_error.count(), s.release_rms_error_N(),
-      s.clamped_fraction(), s.max_current_A, s.bus_load, s.passivity_energy_J, s.passivity_min_energy_J,
-      s.active_ticks, s.observer_errors, s.inverse_errors, s.inverse_cached,
-      s.ticks == 0 ? 0.0 : s.inverse_residual_sum_N / static_cast<double>(s.ticks));
+      s.slave_samples, s.samples_accepted, s.samples_dropped, s.stale_ticks, percentiles_us(s.tick_time),
+      percentiles_us(s.processing_latency), percentiles_us(s.end_to_end_latency), s.force_samples,
+      s.force_rms_error_N(), s.force_max_abs_error_N, s.relative_error.percentile(0.95),
+      s.relative_error.count(), s.release_rms_error_N(), s.clamped_fraction(), s.max_current_A, s.bus_load,
+      s.passivity_energy_J, s.passivity_min_energy_J, s.active_ticks, s.observer_errors, s.inverse_errors,
+      s.inverse_cached, s.ticks == 0 ? 0.0 : s.inverse_residual_sum_N / static_cast<double>(s.ticks));
 }
 
 }  // namespace mrskin::bridge

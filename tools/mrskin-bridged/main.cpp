@@ -1,37 +1,42 @@
-// mrskin-bridged: runs the bridge in real time on a device, with a scripted scene.
+// mrskin-bridged: runs the bridge in real time on a device, fed by a robot stream or a scene,
+// with a control socket, SIGHUP reload and exit codes that say why it stopped (docs/daemon.md).
 #include <fmt/format.h>
+#include <poll.h>
+#include <pthread.h>
+#include <spdlog/sinks/stdout_color_sinks.h>
+#include <spdlog/spdlog.h>
+#include <sys/signalfd.h>
+#include <unistd.h>
 
 #include <CLI/CLI.hpp>
 #include <algorithm>
-#include <atomic>
 #include <csignal>
 #include <cstdio>
 #include <fstream>
-#include <optional>
-#include <vector>
+#include <memory>
 
+#include "config.hpp"
+#include "control_server.hpp"
+#include "daemon.hpp"
 #include "exit_codes.hpp"
-#include "mrskin/bridge/bridge.hpp"
 #include "mrskin/bridge/scene.hpp"
-#include "mrskin/driver/device.hpp"
 #include "mrskin/driver/version.hpp"
 
 namespace {
 
-// Set by the signal handler, read by the main loop: a handler can only reach a global.
-std::atomic<int> g_signal{0};  // NOLINT(cppcoreguidelines-avoid-non-const-global-variables)
-extern "C" void on_signal(int sig) { g_signal.store(sig); }
-
 using namespace mrskin::tools;  // exit codes
+using mrskin::bridged::Settings;
 
-struct Settings {
-  std::string device = "mock://";
-  std::string scene = "demo";
-  double duration_s = 0.0;
-  double rate_hz = 1000.0;
-  std::string stats_path;
-  bool quiet = false;
-};
+constexpr const char* kExitCodes =
+    "Exit codes:\n"
+    "  0  the duration was reached, or SIGINT/SIGTERM stopped it (statistics written)\n"
+    "  1  the device was lost for good (disconnected longer than device_lost_s, or another unit\n"
+    "     answered), a device fault other than an operator's e-stop was latched at exit, or the\n"
+    "     statistics file could not be written\n"
+    "  2  bad flag, configuration file, key or value (the message names FILE:LINE and the key)\n"
+    "  3  device not found, or permission denied\n"
+    "  4  the device speaks another protocol version\n"
+    "  5  the device is owned by another process, or another daemon answers on the control socket\n";
 
 void print_summary(const mrskin::bridge::BridgeStats& s, double rate_hz) {
   fmt::print(
@@ -44,123 +49,231 @@ void print_summary(const mrskin::bridge::BridgeStats& s, double rate_hz) {
       s.force_samples, 100.0 * s.clamped_fraction());
 }
 
-int run(const Settings& cfg) {
+// The status line and the log share the terminal: a log line first clears the in-place status.
+class Console {
+ public:
+  explicit Console(bool tty) : tty_(tty) {}
+  void status(const std::string& line) {
+    if (tty_) {
+      fmt::print("\r{}\x1b[K", line);
+      shown_ = true;
+    } else {
+      fmt::print("{}\n", line);
+    }
+    std::fflush(stdout);
+  }
+  void clear() {
+    if (shown_) {
+      fmt::print("\r\x1b[K");
+      std::fflush(stdout);
+      shown_ = false;
+    }
+  }
+  void end_status() {
+    if (shown_) {
+      fmt::print("\n");
+      shown_ = false;
+    }
+  }
+  [[nodiscard]] bool tty() const noexcept { return tty_; }
+
+ private:
+  bool tty_;
+  bool shown_ = false;
+};
+
+Settings load(const std::string& config_path, const mrskin::bridged::Overrides& overrides) {
+  Settings s = config_path.empty() ? Settings{} : mrskin::bridged::load_settings(config_path);
+  mrskin::bridged::apply(overrides, s);
+  mrskin::bridged::validate(s, config_path.empty() ? "command line" : config_path + " with the flags");
+  if (s.socket.empty()) {
+    s.socket = mrskin::bridged::default_socket_path();
+  }
+  return s;
+}
+
+int run(Settings cfg, const std::string& config_path, const mrskin::bridged::Overrides& overrides, int sfd) {
   using namespace mrskin;
+  Console console(::isatty(STDOUT_FILENO) == 1);
+  // The socket first: a second daemon stops here (kBusy) without touching the device.
+  bridged::ControlServer server(cfg.socket, cfg.max_clients);
   MonotonicClock clock;
-  bridge::BridgeOptions options;
-  options.rate_hz = cfg.rate_hz;
-  auto scene = bridge::make_scene(cfg.scene, options.mapping);
-  OpenedDevice dev = open_device(cfg.device, clock);
-  const DeviceInfo& info = dev.session->info();
+  bridged::Daemon daemon(cfg, clock);
+  const DeviceInfo& info = daemon.info();
   fmt::print(
       "mrskin-bridged {}: {} serial {:08X} firmware {} protocol v{}.{}, {} x {} grid, {} valves, {} "
-      "sensors\n",
+      "sensors; source {}\n",
       library_version(), cfg.device, info.serial, info.firmware, info.protocol_major, info.protocol_minor,
-      info.rows, info.cols, info.valves, info.sensors);
-  bridge::Bridge loop(*dev.session, *scene, options);
-  std::optional<mrskin::bridge::MockDeviceTruth> truth;
-  if (dev.mock) {
-    truth.emplace(*dev.mock);
-    loop.set_force_truth(&*truth);
+      info.rows, info.cols, info.valves, info.sensors, cfg.source);
+  std::fflush(stdout);
+  if (const std::string warning = daemon.start(); !warning.empty()) {
+    spdlog::warn("{}", warning);
   }
-  const TimePoint t0 = clock.now();
-  scene->set_start(t0);
-  (void)loop.enable();
-  if (const std::string warning = loop.start(clock); !warning.empty()) {
-    fmt::print(stderr, "warning: {}\n", warning);
-  }
+  server.start(daemon);
+  // The control thread calls into the daemon: it must stop first, on every way out of here.
+  const std::unique_ptr<bridged::ControlServer, void (*)(bridged::ControlServer*)> stop_server(
+      &server, [](bridged::ControlServer* s) { s->stop(); });
+  spdlog::info("control socket {}", server.path());
 
-  std::vector<double> finger(dev.mock ? dev.mock->layout().fluid_cell_count() : 0, 0.0);
-  const TimePoint end = t0 + from_seconds(cfg.duration_s);
-  TimePoint next_print = t0 + std::chrono::milliseconds(500);
-  TimePoint next = t0;
-  while (clock.now() < end && g_signal.load() == 0) {
+  const TimePoint t0 = clock.now();
+  TimePoint next_status = t0 + std::chrono::milliseconds(500);
+  int stop_signal = 0;
+  bool lost = false;
+  while (stop_signal == 0) {
+    const Settings& now_cfg = daemon.settings();
     const TimePoint now = clock.now();
-    if (dev.mock) {  // the simulated finger follows the scene script
-      scene->finger(to_seconds(now - t0), dev.mock->layout(), finger);
-      dev.mock->set_finger_indentation(finger);
+    if (now_cfg.duration_s > 0.0 && now >= t0 + from_seconds(now_cfg.duration_s)) {
+      break;
     }
-    if (!cfg.quiet && now >= next_print) {
-      next_print += std::chrono::milliseconds(500);
-      double peak_N = 0.0;
-      for (const double f : loop.targets_N()) {
-        peak_N = std::max(peak_N, f);
+    pollfd p{sfd, POLLIN, 0};
+    (void)::poll(&p, 1, 1);  // 1 ms: the simulated finger follows the script at 1 kHz
+    signalfd_siginfo si{};
+    while ((p.revents & POLLIN) != 0 && ::read(sfd, &si, sizeof(si)) == static_cast<ssize_t>(sizeof(si))) {
+      if (si.ssi_signo != SIGHUP) {
+        stop_signal = static_cast<int>(si.ssi_signo);
+        continue;
       }
-      fmt::print(
-          "t={:5.2f} s  ticks={:<7} state={:<8} stiffness={:6.1f} N/m  peak target={:5.3f} N  rms "
-          "error={:6.4f} N\n",
-          to_seconds(now - t0), loop.live_ticks(), to_string(dev.session->state()),
-          loop.live_stiffness_N_per_m(), peak_N, loop.live_rms_error_N());
-      std::fflush(stdout);
+      console.clear();
+      if (config_path.empty()) {
+        spdlog::info("SIGHUP: no --config file to reload");
+        continue;
+      }
+      try {
+        Settings next = load(config_path, overrides);
+        for (const std::string& line : daemon.reload(std::move(next))) {
+          spdlog::info("{}", line);
+        }
+      } catch (const std::exception& e) {
+        spdlog::error("SIGHUP: configuration not reloaded, running on as before: {}", e.what());
+      }
+      p.revents = 0;  // one signal read per wake is enough; the next poll returns at once if more
     }
-    next += std::chrono::milliseconds(1);
-    clock.sleep_until(next);
+    daemon.drive_finger();
+    if (clock.now() >= next_status) {
+      next_status += std::chrono::milliseconds(console.tty() ? 500 : 1000);
+      if (std::vector<std::string> events = server.take_events(); !events.empty()) {
+        console.clear();
+        for (const std::string& e : events) {
+          spdlog::info("{}", e);
+        }
+      }
+      if (daemon.device_lost(daemon.settings().device_lost_s)) {
+        console.clear();
+        spdlog::error("device {} lost for good (down for more than {} s, or another unit answered)",
+                      daemon.settings().device, daemon.settings().device_lost_s);
+        lost = true;
+        break;
+      }
+      if (!daemon.settings().quiet) {
+        console.status(daemon.status_line());
+      }
+    }
   }
-  loop.stop();
-  if (dev.mock) {
-    dev.mock->stop();
+  server.stop();
+  daemon.stop();
+  console.end_status();
+  if (stop_signal != 0) {
+    fmt::print("stopped by signal {} ({})\n", stop_signal, stop_signal == SIGINT ? "SIGINT" : "SIGTERM");
   }
-  if (g_signal.load() != 0) {
-    fmt::print("stopped by signal {}\n", g_signal.load());
-  }
-  // Bus load, busier direction: one packet per 64-byte report, one report per 1 ms frame on
-  // full-speed USB-HID (the mock speaks the HID framing; docs/protocol.md, "Bus load").
-  bridge::BridgeStats stats = loop.stats();
-  const double run_s = std::max(1e-9, to_seconds(clock.now() - t0));
-  const SessionCounters& link = dev.session->counters();
-  stats.bus_load = static_cast<double>(std::max(link.sent, link.received)) / run_s / 1000.0;
-  print_summary(stats, cfg.rate_hz);
+  const Settings& final_cfg = daemon.settings();
+  const bridge::BridgeStats stats = daemon.final_stats();
+  print_summary(stats, final_cfg.rate_hz);
+  const double run_s = std::max(1e-9, daemon.uptime_s());
+  const SessionCounters& link = daemon.link_counters();
   fmt::print(
       "bus load   {:.1f} % of full-speed USB-HID reports (host to device {:.1f} %, device to host {:.1f} "
       "%)\n",
       100.0 * stats.bus_load, 100.0 * static_cast<double>(link.sent) / run_s / 1000.0,
       100.0 * static_cast<double>(link.received) / run_s / 1000.0);
-  if (const bridge::LoopStats* ls = loop.loop_stats(); ls != nullptr) {
+  if (const bridge::LoopStats* ls = daemon.loop_stats(); ls != nullptr) {
     fmt::print(
         "scheduler  {} priority {}, memory {}; wake latency p50 {:.1f} us, p99 {:.1f} us, p99.9 {:.1f} us\n",
         ls->scheduler.policy_name(), ls->scheduler.priority,
         ls->scheduler.memory_locked ? "locked" : "not locked", ls->wake_latency.percentile_ns(0.5) / 1e3,
         ls->wake_latency.percentile_ns(0.99) / 1e3, ls->wake_latency.percentile_ns(0.999) / 1e3);
   }
-  if (!cfg.stats_path.empty()) {
-    std::ofstream out(cfg.stats_path);
-    if (!out) {
-      fmt::print(stderr, "error: cannot write statistics to {}: check the directory exists and is writable\n",
-                 cfg.stats_path);
-      return kFailure;
-    }
-    out << bridge::to_json(stats, loop.tick_period_s());
-    fmt::print("statistics written to {}\n", cfg.stats_path);
+  if (daemon.reloads() > 0) {
+    fmt::print("reloads    {} (the statistics cover the run since the last bridge rebuild)\n",
+               daemon.reloads());
   }
-  return kOk;
+  int code = kOk;
+  if (!final_cfg.stats_json.empty()) {
+    std::ofstream out(final_cfg.stats_json);
+    out << bridge::to_json(stats, daemon.tick_period_s());
+    if (!out) {
+      spdlog::error("cannot write statistics to {}: check the directory exists and is writable",
+                    final_cfg.stats_json);
+      code = kFailure;
+    } else {
+      fmt::print("statistics written to {}\n", final_cfg.stats_json);
+    }
+  }
+  if (lost) {
+    return kFailure;
+  }
+  if (daemon.unrequested_fault()) {
+    spdlog::error("the device is in FAULT at exit: see `fault` on the control socket or the log");
+    return kFailure;
+  }
+  return code;
 }
 
 int guarded_main(int argc, char** argv) {
+  // Before any thread exists (the mock device's, the loop's, the control socket's), so that all
+  // inherit the mask and the signals arrive only through the signalfd.
+  sigset_t mask;
+  sigemptyset(&mask);
+  sigaddset(&mask, SIGINT);
+  sigaddset(&mask, SIGTERM);
+  sigaddset(&mask, SIGHUP);
+  (void)pthread_sigmask(SIG_BLOCK, &mask, nullptr);
+  const int sfd = ::signalfd(-1, &mask, SFD_CLOEXEC | SFD_NONBLOCK);
+  if (sfd < 0) {
+    std::perror("signalfd");
+    return kFailure;
+  }
+  spdlog::set_default_logger(spdlog::stderr_color_st("mrskin-bridged"));
+  spdlog::set_pattern("mrskin-bridged: %^%l%$: %v");
+
   CLI::App app{"mrskin-bridged: renders a slave robot's palpation forces on the MR skin in real time"};
   app.set_version_flag("--version", std::string(mrskin::library_version()));
-  Settings cfg;
-  app.add_option("--device", cfg.device, "device URI (mock://[?seed=N])")->capture_default_str();
+  app.footer(kExitCodes);
+  std::string config_path;
+  mrskin::bridged::Overrides o;
   std::string scenes;
   for (const std::string_view name : mrskin::bridge::scene_names()) {
     scenes += (scenes.empty() ? "" : ", ") + std::string(name);
   }
-  app.add_option("--scene", cfg.scene,
-                 "built-in scene driving the slave stream and the simulated finger: " + scenes)
-      ->capture_default_str();
-  app.add_option("--duration", cfg.duration_s, "seconds to run; 0 runs until SIGINT/SIGTERM")
-      ->check(CLI::NonNegativeNumber);
-  app.add_option("--rate", cfg.rate_hz, "loop rate, Hz")
-      ->check(CLI::Range(1.0, 20000.0))
-      ->capture_default_str();
-  app.add_option("--stats-json", cfg.stats_path, "write loop statistics as JSON to this file at exit");
-  app.add_flag("--quiet", cfg.quiet, "no live status lines");
-  CLI11_PARSE(app, argc, argv);
-  if (cfg.duration_s == 0.0) {
-    cfg.duration_s = 1e9;
+  bool check = false;
+  app.add_option("--config", config_path, "TOML configuration file; flags override it (docs/daemon.md)")
+      ->check(CLI::ExistingFile);
+  app.add_option("--device", o.device, "device URI (default mock://)");
+  auto* source = app.add_option("--source", o.source, "slave stream URI (default scene://demo)");
+  app.add_option("--scene", o.source, "shorthand for --source scene://NAME: " + scenes)
+      ->excludes(source)
+      ->transform([](const std::string& name) { return "scene://" + name; });
+  app.add_option("--duration", o.duration_s, "seconds to run; 0 runs until SIGINT/SIGTERM");
+  app.add_option("--rate", o.rate_hz, "loop rate, Hz (1 to 20000; default 1000)");
+  app.add_option("--stats-json", o.stats_json, "write loop statistics as JSON to this file at exit");
+  app.add_flag("--quiet", o.quiet, "no live status lines");
+  app.add_option("--socket", o.socket,
+                 "control socket path (default $RUNTIME_DIRECTORY/bridged.sock, "
+                 "$XDG_RUNTIME_DIR/mrskin/bridged.sock or /tmp/mrskin-UID/bridged.sock)");
+  app.add_flag("--check-config", check, "check the configuration, print the socket path and exit");
+  try {
+    app.parse(argc, argv);
+  } catch (const CLI::ParseError& e) {
+    return app.exit(e) == 0 ? kOk : kUsage;
   }
-  (void)std::signal(SIGINT, on_signal);
-  (void)std::signal(SIGTERM, on_signal);
-  return run(cfg);
+  const Settings cfg = load(config_path, o);
+  if (check) {
+    fmt::print("configuration ok: device {}, source {}, rate {} Hz, socket {}\n", cfg.device, cfg.source,
+               cfg.rate_hz, cfg.socket);
+    return kOk;
+  }
+  const int code = run(cfg, config_path, o, sfd);
+  ::close(sfd);
+  return code;
 }
 
 }  // namespace

@@ -19,6 +19,13 @@
 #include "mrskin/protocol/packet.hpp"
 
 namespace mrskin {
+
+int LibusbApi::get_interrupt_endpoints(libusb_device* /*device*/, std::uint8_t /*interface*/,
+                                       std::uint8_t& in, std::uint8_t& out) {
+  in = protocol::kUsbEndpointIn;
+  out = protocol::kUsbEndpointOut;
+  return 0;
+}
 namespace {
 
 namespace proto = protocol;
@@ -143,6 +150,38 @@ class RealLibusb final : public LibusbApi {
     const int rc = libusb_get_device_descriptor(device, &d);
     out = UsbDeviceIds{d.idVendor, d.idProduct, d.iSerialNumber};
     return rc;
+  }
+  int get_interrupt_endpoints(libusb_device* device, std::uint8_t interface, std::uint8_t& in,
+                              std::uint8_t& out) override {
+    libusb_config_descriptor* config = nullptr;
+    const int rc = libusb_get_active_config_descriptor(device, &config);
+    if (rc != LIBUSB_SUCCESS) {
+      return rc;
+    }
+    int found = LIBUSB_ERROR_NOT_FOUND;
+    for (int i = 0; i < config->bNumInterfaces; ++i) {
+      const libusb_interface& it = config->interface[i];
+      for (int a = 0; a < it.num_altsetting; ++a) {
+        const libusb_interface_descriptor& d = it.altsetting[a];
+        if (d.bInterfaceNumber != interface) {
+          continue;
+        }
+        for (int e = 0; e < d.bNumEndpoints; ++e) {
+          const libusb_endpoint_descriptor& ep = d.endpoint[e];
+          if ((ep.bmAttributes & LIBUSB_TRANSFER_TYPE_MASK) != LIBUSB_TRANSFER_TYPE_INTERRUPT) {
+            continue;
+          }
+          if ((ep.bEndpointAddress & LIBUSB_ENDPOINT_IN) != 0) {
+            in = ep.bEndpointAddress;
+          } else {
+            out = ep.bEndpointAddress;
+          }
+          found = LIBUSB_SUCCESS;
+        }
+      }
+    }
+    libusb_free_config_descriptor(config);
+    return found;
   }
   std::uint8_t get_bus_number(libusb_device* device) override { return libusb_get_bus_number(device); }
   std::uint8_t get_device_address(libusb_device* device) override {
@@ -304,6 +343,8 @@ class UsbTransport final : public QueuedTransport {
   bool stuck_ = false;  // transfers that never completed: leaked rather than freed in flight
   // The open device (event thread only once the thread runs).
   libusb_device_handle* handle_ = nullptr;
+  std::uint8_t endpoint_in_ = protocol::kUsbEndpointIn;  // from the descriptor at each open
+  std::uint8_t endpoint_out_ = protocol::kUsbEndpointOut;
   libusb_device* device_ = nullptr;
   bool detached_ = false;
   std::string serial_;  // of the unit opened first: a reopen takes the same unit
@@ -452,6 +493,10 @@ OpenOutcome UsbTransport::try_open() {
       api_->close(handle);
       continue;
     }
+    endpoint_in_ = proto::kUsbEndpointIn;
+    endpoint_out_ = proto::kUsbEndpointOut;
+    // The descriptor's own endpoints; on failure the protocol's defaults stand.
+    (void)api_->get_interrupt_endpoints(device, proto::kUsbInterface, endpoint_in_, endpoint_out_);
     outcome = claim(handle, node);
     if (outcome.status == OpenStatus::ok) {
       serial_ = std::move(serial);
@@ -526,7 +571,7 @@ bool UsbTransport::submit_in() noexcept {
     if (s.busy) {
       continue;
     }
-    libusb_fill_interrupt_transfer(s.transfer, handle_, proto::kUsbEndpointIn, s.buffer.data(),
+    libusb_fill_interrupt_transfer(s.transfer, handle_, endpoint_in_, s.buffer.data(),
                                    static_cast<int>(s.buffer.size()), &UsbTransport::on_transfer, &s, 0);
     if (const int rc = api_->submit_transfer(s.transfer); rc != LIBUSB_SUCCESS) {
       if (rc != LIBUSB_ERROR_NO_DEVICE) {
@@ -686,7 +731,7 @@ void UsbTransport::clear_halts() noexcept {
       continue;
     }
     halt = false;  // a failed clear stalls again and counts toward max_consecutive_errors
-    const int rc = api_->clear_halt(handle_, in ? proto::kUsbEndpointIn : proto::kUsbEndpointOut);
+    const int rc = api_->clear_halt(handle_, in ? endpoint_in_ : endpoint_out_);
     if (rc == LIBUSB_ERROR_NO_DEVICE) {
       lost_.store(true, std::memory_order_relaxed);
     } else if (rc != LIBUSB_SUCCESS) {
@@ -704,7 +749,7 @@ void UsbTransport::pump_outgoing() noexcept {
     std::memcpy(s.buffer.data(), d.bytes.data(), d.length);
     std::fill(s.buffer.begin() + d.length, s.buffer.end(), 0);
     libusb_fill_interrupt_transfer(
-        s.transfer, handle_, proto::kUsbEndpointOut, s.buffer.data(), static_cast<int>(s.buffer.size()),
+        s.transfer, handle_, endpoint_out_, s.buffer.data(), static_cast<int>(s.buffer.size()),
         &UsbTransport::on_transfer, &s,
         static_cast<unsigned>(std::chrono::ceil<std::chrono::milliseconds>(options_.out_timeout).count()));
     const int rc = api_->submit_transfer(s.transfer);

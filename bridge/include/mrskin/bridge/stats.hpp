@@ -34,7 +34,11 @@ struct BridgeStats {
   std::uint64_t send_failures = 0;
   std::uint64_t unchanged_sends_skipped = 0;  // ticks whose currents equalled the last sent
   std::uint64_t slave_samples = 0;            // ticks that had a valid slave sample
-  std::uint64_t stale_ticks = 0;              // ticks rendering without fresh slave data
+  // Set by the owner of the source after the run (mrskin-bridged): samples the source took and
+  // dropped (malformed, out of range, out of order, duplicate, ...; docs/sources.md).
+  std::uint64_t samples_accepted = 0;
+  std::uint64_t samples_dropped = 0;
+  std::uint64_t stale_ticks = 0;  // ticks rendering without fresh slave data
   DurationHistogram tick_time;
   // Processing latency: from the tick that consumes a new robot sample to the frame carrying
   // its effect handed to the transport. End to end: from the sample's arrival (its stamp on

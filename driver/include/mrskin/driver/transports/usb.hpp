@@ -82,6 +82,11 @@ class LibusbApi {
   virtual std::ptrdiff_t get_device_list(libusb_device*** list) = 0;
   virtual void free_device_list(libusb_device** list) = 0;
   virtual int get_device_ids(libusb_device* device, UsbDeviceIds& out) = 0;
+  // The interface's interrupt IN and OUT endpoint addresses, from the active configuration
+  // descriptor (a gadget or a revised unit may number them differently from the protocol's
+  // defaults). The default returns those defaults (0x81, 0x01).
+  virtual int get_interrupt_endpoints(libusb_device* device, std::uint8_t interface, std::uint8_t& in,
+                                      std::uint8_t& out);
   virtual std::uint8_t get_bus_number(libusb_device* device) = 0;
   virtual std::uint8_t get_device_address(libusb_device* device) = 0;
   virtual int get_port_numbers(libusb_device* device, std::span<std::uint8_t> out) = 0;  // count

@@ -1,0 +1,188 @@
+// mrskin-bridged's configuration: the TOML file, its errors (FILE:LINE and the key), flag
+// overrides, and the control-socket request parser.
+#include <gtest/gtest.h>
+#include <unistd.h>
+
+#include <cstdlib>
+#include <filesystem>
+#include <fstream>
+#include <numbers>
+#include <string>
+
+#include "config.hpp"
+#include "control_server.hpp"
+
+namespace {
+
+using mrskin::bridged::ConfigError;
+using mrskin::bridged::load_settings;
+using mrskin::bridged::Settings;
+
+class ConfigFile : public ::testing::Test {
+ protected:
+  std::string write(const std::string& text) {
+    std::ofstream(path_) << text;
+    return path_;
+  }
+  void TearDown() override { std::filesystem::remove(path_); }
+  std::string path_ = (std::filesystem::temp_directory_path() /
+                       ("mrskin-bridged-config-" + std::to_string(::getpid()) + ".toml"))
+                          .string();
+};
+
+std::string error_of(const std::string& path) {
+  try {
+    (void)load_settings(path);
+  } catch (const ConfigError& e) {
+    return e.what();
+  }
+  return "";
+}
+
+TEST_F(ConfigFile, ReadsEveryKey) {
+  const Settings s = load_settings(write(R"(device = "mock://?seed=3"
+source = "scene://tumour"
+rate_hz = 500
+duration_s = 2.5
+stats_json = "/tmp/x.json"
+quiet = true
+device_lost_s = 3
+[mapping]
+origin_x_m = 0.01
+origin_y_m = -0.02
+cells_per_m = 50
+rotation_deg = 90
+mirror_x = true
+mirror_y = false
+[bridge]
+feedback_gain_per_s = 20.0
+footprint_cells = 2
+resend_period_s = 0.1
+realtime = false
+rt_priority = 50
+stale_hold_s = 0.2
+stale_fade_s = 0.4
+[control]
+socket = "/tmp/x/bridged.sock"
+max_clients = 4
+)"));
+  EXPECT_EQ(s.device, "mock://?seed=3");
+  EXPECT_EQ(s.source, "scene://tumour");
+  EXPECT_DOUBLE_EQ(s.rate_hz, 500.0);
+  EXPECT_DOUBLE_EQ(s.duration_s, 2.5);
+  EXPECT_EQ(s.stats_json, "/tmp/x.json");
+  EXPECT_TRUE(s.quiet);
+  EXPECT_DOUBLE_EQ(s.device_lost_s, 3.0);
+  EXPECT_DOUBLE_EQ(s.mapping.origin_x_m, 0.01);
+  EXPECT_DOUBLE_EQ(s.mapping.origin_y_m, -0.02);
+  EXPECT_DOUBLE_EQ(s.mapping.cells_per_m, 50.0);
+  EXPECT_NEAR(s.mapping.rotation_rad, std::numbers::pi / 2, 1e-12);
+  EXPECT_TRUE(s.mapping.mirror_x);
+  EXPECT_FALSE(s.mapping.mirror_y);
+  EXPECT_DOUBLE_EQ(s.feedback_gain_per_s, 20.0);
+  EXPECT_DOUBLE_EQ(s.footprint_cells, 2.0);
+  EXPECT_DOUBLE_EQ(s.resend_period_s, 0.1);
+  EXPECT_FALSE(s.realtime);
+  EXPECT_EQ(s.rt_priority, 50);
+  EXPECT_EQ(s.socket, "/tmp/x/bridged.sock");
+  EXPECT_EQ(s.max_clients, 4);
+  const mrskin::bridge::BridgeOptions o = mrskin::bridged::bridge_options(s);
+  EXPECT_DOUBLE_EQ(o.rate_hz, 500.0);
+  EXPECT_DOUBLE_EQ(o.feedback_gain_per_s, 20.0);
+  EXPECT_DOUBLE_EQ(o.estimator.hold_s, 0.2);
+  EXPECT_DOUBLE_EQ(o.estimator.fade_s, 0.4);
+  EXPECT_DOUBLE_EQ(o.mapping.cells_per_m, 50.0);
+}
+
+TEST_F(ConfigFile, AnEmptyFileKeepsTheDefaults) {
+  const Settings s = load_settings(write(""));
+  EXPECT_EQ(s.device, "mock://");
+  EXPECT_EQ(s.source, "scene://demo");
+  EXPECT_DOUBLE_EQ(s.rate_hz, 1000.0);
+}
+
+TEST(ExampleConfig, LoadsWithTheDefaults) {
+  const Settings s = load_settings(MRSKIN_BRIDGED_EXAMPLE);
+  const Settings d;
+  EXPECT_EQ(s.device, d.device);
+  EXPECT_EQ(s.source, d.source);
+  EXPECT_DOUBLE_EQ(s.rate_hz, d.rate_hz);
+  EXPECT_DOUBLE_EQ(s.feedback_gain_per_s, d.feedback_gain_per_s);
+  EXPECT_DOUBLE_EQ(s.mapping.cells_per_m, d.mapping.cells_per_m);
+  EXPECT_EQ(s.max_clients, d.max_clients);
+}
+
+TEST_F(ConfigFile, AnUnknownKeyNamesFileLineAndKey) {
+  const std::string e = error_of(write("rate_hz = 1000\n[bridge]\nfeedback_gain = 3\n"));
+  EXPECT_NE(e.find(path_ + ":3:"), std::string::npos) << e;
+  EXPECT_NE(e.find("bridge.feedback_gain"), std::string::npos) << e;
+  EXPECT_NE(e.find("unknown key"), std::string::npos) << e;
+  const std::string top = error_of(write("\nsecene = \"demo\"\n"));
+  EXPECT_NE(top.find(path_ + ":2: secene"), std::string::npos) << top;
+}
+
+TEST_F(ConfigFile, ABadValueNamesFileLineAndKey) {
+  std::string e = error_of(write("device = \"mock://\"\nrate_hz = \"fast\"\n"));
+  EXPECT_NE(e.find(path_ + ":2: rate_hz"), std::string::npos) << e;
+  e = error_of(write("rate_hz = 50000\n"));
+  EXPECT_NE(e.find(path_ + ":1: rate_hz"), std::string::npos) << e;
+  EXPECT_NE(e.find("out of range"), std::string::npos) << e;
+  e = error_of(write("[mapping]\ncells_per_m = -1\n"));
+  EXPECT_NE(e.find(path_ + ":2: mapping.cells_per_m"), std::string::npos) << e;
+  e = error_of(write("[bridge]\nrealtime = 1\n"));
+  EXPECT_NE(e.find(path_ + ":2: bridge.realtime"), std::string::npos) << e;
+  e = error_of(write("mapping = 3\n"));
+  EXPECT_NE(e.find(path_ + ":1: mapping"), std::string::npos) << e;
+  e = error_of(write("rate_hz = = 3\n"));
+  EXPECT_NE(e.find(path_ + ":1:"), std::string::npos) << e;
+}
+
+TEST_F(ConfigFile, AMissingFileIsAUsageError) {
+  const std::string e = error_of("/nonexistent/mrskin.toml");
+  EXPECT_NE(e.find("/nonexistent/mrskin.toml"), std::string::npos) << e;
+}
+
+TEST_F(ConfigFile, FlagsOverrideTheFile) {
+  Settings s = load_settings(write("rate_hz = 500\ndevice = \"mock://?seed=1\"\nquiet = true\n"));
+  mrskin::bridged::Overrides o;
+  o.rate_hz = 250.0;
+  o.source = "scene://sweep";
+  o.quiet = false;
+  mrskin::bridged::apply(o, s);
+  EXPECT_DOUBLE_EQ(s.rate_hz, 250.0);
+  EXPECT_EQ(s.source, "scene://sweep");
+  EXPECT_EQ(s.device, "mock://?seed=1");  // not overridden
+  EXPECT_FALSE(s.quiet);
+  s.rate_hz = 0.5;
+  EXPECT_THROW(mrskin::bridged::validate(s, "flags"), ConfigError);
+}
+
+TEST(DefaultSocket, FollowsTheRuntimeDirectory) {
+  ::setenv("RUNTIME_DIRECTORY", "/run/mrskin:/run/other", 1);
+  EXPECT_EQ(mrskin::bridged::default_socket_path(), "/run/mrskin/bridged.sock");
+  ::unsetenv("RUNTIME_DIRECTORY");
+  ::setenv("XDG_RUNTIME_DIR", "/run/user/1000", 1);
+  EXPECT_EQ(mrskin::bridged::default_socket_path(), "/run/user/1000/mrskin/bridged.sock");
+  ::unsetenv("XDG_RUNTIME_DIR");
+  EXPECT_EQ(mrskin::bridged::default_socket_path(),
+            "/tmp/mrskin-" + std::to_string(::getuid()) + "/bridged.sock");
+}
+
+TEST(ControlRequest, ParsesJsonAndBareWords) {
+  mrskin::bridged::ControlRequest r;
+  std::string error;
+  ASSERT_TRUE(mrskin::bridged::parse_request(R"({"cmd":"telemetry","period_ms":50})", r, error)) << error;
+  EXPECT_EQ(r.cmd, "telemetry");
+  EXPECT_DOUBLE_EQ(r.period_ms, 50.0);
+  ASSERT_TRUE(mrskin::bridged::parse_request(R"( { "cmd" : "status" } )", r, error)) << error;
+  EXPECT_EQ(r.cmd, "status");
+  ASSERT_TRUE(mrskin::bridged::parse_request("estop", r, error)) << error;
+  EXPECT_EQ(r.cmd, "estop");
+  for (const char* bad : {"{", R"({"cmd":)", R"({"cmd":"status")", R"({"cmd":"a"} x)", R"({"x":1})", "{}",
+                          R"({"cmd":"a","period_ms":nan})", R"({"cmd":[1]})", "st@tus", R"("cmd")"}) {
+    EXPECT_FALSE(mrskin::bridged::parse_request(bad, r, error)) << bad;
+    EXPECT_FALSE(error.empty()) << bad;
+  }
+}
+
+}  // namespace

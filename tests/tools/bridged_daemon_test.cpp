@@ -1,0 +1,317 @@
+// The mrskin-bridged binary on mock://, driven over its control socket: permissions, status,
+// e-stop -> fault -> enable, malformed requests, telemetry, SIGHUP reload on the open device,
+// SIGTERM with the statistics flushed, and a second daemon refused. Waits are bounded polls.
+#include <fcntl.h>
+#include <gtest/gtest.h>
+#include <sys/socket.h>
+#include <sys/stat.h>
+#include <sys/un.h>
+#include <sys/wait.h>
+#include <unistd.h>
+
+#include <chrono>
+#include <csignal>
+#include <cstdlib>
+#include <filesystem>
+#include <fstream>
+#include <functional>
+#include <sstream>
+#include <string>
+#include <thread>
+#include <vector>
+
+#include "exit_codes.hpp"
+#include "line_client.hpp"
+
+namespace {
+
+namespace fs = std::filesystem;
+using mrskin::ctl::json_field;
+using mrskin::ctl::LineClient;
+using namespace std::chrono_literals;
+
+std::string slurp(const fs::path& p) {
+  std::ifstream in(p);
+  std::stringstream s;
+  s << in.rdbuf();
+  return s.str();
+}
+
+class Daemon {
+ public:
+  Daemon(const fs::path& dir, const std::string& name, std::vector<std::string> args)
+      : out_(dir / (name + ".out")), pid_(::fork()) {
+    if (pid_ == 0) {
+      args.insert(args.begin(), MRSKIN_BRIDGED_EXE);
+      // A loaded machine (ctest -j, sanitizers) may starve the loop for 100 ms, the mock's
+      // heartbeat watchdog: scale every session timeout (docs/api.md) unless the caller did.
+      ::setenv("MRSKIN_TIME_SCALE", "10", 0);
+      const int fd = ::open(out_.c_str(), O_WRONLY | O_CREAT | O_TRUNC, 0600);  // NOLINT(*-vararg)
+      ::dup2(fd, 1);
+      ::dup2(fd, 2);
+      std::vector<char*> argv;
+      argv.reserve(args.size() + 1);
+      for (std::string& a : args) {
+        argv.push_back(a.data());
+      }
+      argv.push_back(nullptr);
+      ::execv(argv[0], argv.data());
+      ::_exit(127);
+    }
+  }
+  Daemon(const Daemon&) = delete;
+  Daemon& operator=(const Daemon&) = delete;
+  Daemon(Daemon&&) = delete;
+  Daemon& operator=(Daemon&&) = delete;
+  ~Daemon() {
+    if (pid_ > 0 && !exited_) {
+      ::kill(pid_, SIGKILL);
+      (void)wait(60s);
+    }
+  }
+  void signal(int sig) const { ::kill(pid_, sig); }
+  // The exit code, or -1 when it did not exit within timeout.
+  int wait(std::chrono::seconds timeout) {
+    const auto end = std::chrono::steady_clock::now() + timeout;
+    while (std::chrono::steady_clock::now() < end) {
+      int status = 0;
+      if (::waitpid(pid_, &status, WNOHANG) == pid_) {
+        exited_ = true;
+        return WIFEXITED(status) ? WEXITSTATUS(status) : 128 + WTERMSIG(status);
+      }
+      std::this_thread::sleep_for(10ms);
+    }
+    return -1;
+  }
+  [[nodiscard]] std::string output() const { return slurp(out_); }
+
+ private:
+  fs::path out_;
+  pid_t pid_ = -1;
+  bool exited_ = false;
+};
+
+// Polls until pred holds or the bound passes (generous: the suite shares a loaded machine).
+bool eventually(const std::function<bool()>& pred, std::chrono::seconds bound = 20s) {
+  const auto end = std::chrono::steady_clock::now() + bound;
+  while (std::chrono::steady_clock::now() < end) {
+    if (pred()) {
+      return true;
+    }
+    std::this_thread::sleep_for(20ms);
+  }
+  return pred();
+}
+
+class BridgedDaemon : public ::testing::Test {
+ protected:
+  void SetUp() override {
+    std::string tmpl = (fs::temp_directory_path() / "mrskin-bridged-test-XXXXXX").string();
+    ASSERT_NE(::mkdtemp(tmpl.data()), nullptr);
+    dir_ = tmpl;
+    socket_ = (dir_ / "run" / "bridged.sock").string();
+    stats_ = (dir_ / "stats.json").string();
+  }
+  void TearDown() override { fs::remove_all(dir_); }
+  std::string config_text(const std::string& body) const {
+    return "device = \"mock://\"\nsource = \"scene://demo\"\nstats_json = \"" + stats_ + "\"\n" + body +
+           "\n[control]\nsocket = \"" + socket_ + "\"\n";
+  }
+  fs::path config(const std::string& body) const {
+    fs::path p = dir_ / "bridged.toml";
+    std::ofstream(p) << config_text(body);
+    return p;
+  }
+  LineClient connect() const {
+    LineClient c;
+    EXPECT_TRUE(eventually([&] { return c.connect(socket_); })) << "no daemon on " << socket_;
+    return c;
+  }
+  static std::string status(LineClient& c) { return c.request(R"({"cmd":"status"})").value_or(""); }
+
+  fs::path dir_;
+  std::string socket_;
+  std::string stats_;
+};
+
+TEST_F(BridgedDaemon, ControlSocketEstopFaultEnableThenSigtermFlushesStatistics) {
+  Daemon d(dir_, "d", {"--config", config("[bridge]\nrealtime = false").string()});
+  LineClient c = connect();
+  ASSERT_TRUE(c.connected()) << d.output();
+
+  struct stat st {};
+  ASSERT_EQ(::stat(socket_.c_str(), &st), 0);
+  EXPECT_TRUE(S_ISSOCK(st.st_mode));
+  EXPECT_EQ(st.st_mode & 0777U, 0600U);
+  ASSERT_EQ(::stat((dir_ / "run").c_str(), &st), 0);
+  EXPECT_EQ(st.st_mode & 0777U, 0700U);
+
+  std::string s;
+  ASSERT_TRUE(eventually([&] {
+    s = status(c);
+    return json_field(s, "state") == "ENABLED" && std::stoull(json_field(s, "ticks").value_or("0")) > 0;
+  })) << s;
+  EXPECT_EQ(json_field(s, "ok"), "true");
+  EXPECT_EQ(json_field(s, "halted"), "false");
+  EXPECT_EQ(json_field(s, "device"), "mock://");
+  EXPECT_EQ(json_field(s, "rate_hz"), "1000");
+  EXPECT_TRUE(json_field(s, "stream").has_value());
+  EXPECT_TRUE(json_field(s, "uptime_s").has_value());
+
+  // Malformed and unknown requests get an error line; the connection stays usable.
+  std::string r = c.request(R"({"cmd": )").value_or("");
+  EXPECT_EQ(json_field(r, "ok"), "false") << r;
+  EXPECT_TRUE(json_field(r, "error").has_value()) << r;
+  r = c.request(R"({"cmd":"selfdestruct"})").value_or("");
+  EXPECT_EQ(json_field(r, "ok"), "false") << r;
+  r = c.request("help").value_or("");
+  EXPECT_EQ(json_field(r, "ok"), "true") << r;
+
+  // Before any fault: the current state and an empty log.
+  r = c.request(R"({"cmd":"fault"})").value_or("");
+  EXPECT_EQ(json_field(r, "faults"), "0") << r;
+  EXPECT_NE(r.find(R"("log":[])"), std::string::npos) << r;
+
+  r = c.request(R"({"cmd":"estop"})").value_or("");
+  EXPECT_EQ(json_field(r, "ok"), "true") << r;
+  ASSERT_TRUE(eventually([&] {
+    s = status(c);
+    return json_field(s, "halted") == "true" && json_field(s, "state") == "FAULT";
+  })) << s;
+  EXPECT_EQ(json_field(s, "fault"), "emergency stop") << s;
+  EXPECT_EQ(json_field(s, "operator"), "estop") << s;
+
+  r = c.request(R"({"cmd":"fault"})").value_or("");
+  EXPECT_EQ(json_field(r, "ok"), "true") << r;
+  EXPECT_EQ(json_field(r, "last_fault"), "emergency stop") << r;
+  EXPECT_NE(r.find(R"("log":[{)"), std::string::npos) << r;
+  EXPECT_NE(r.find("state request"), std::string::npos) << r;  // the e-stop request is in the log
+
+  r = c.request(R"({"cmd":"enable"})").value_or("");
+  EXPECT_EQ(json_field(r, "ok"), "true") << r;
+  ASSERT_TRUE(eventually([&] {
+    s = status(c);
+    return json_field(s, "halted") == "false" && json_field(s, "state") == "ENABLED";
+  })) << s;
+
+  // Telemetry: lines until stop.
+  ASSERT_TRUE(c.send_line(R"({"cmd":"telemetry","period_ms":20})"));
+  r = c.read_line(5s).value_or("");
+  EXPECT_EQ(json_field(r, "cmd"), "telemetry") << r;
+  int events = 0;
+  for (int i = 0; i < 3; ++i) {
+    r = c.read_line(5s).value_or("");
+    events += json_field(r, "event") == "telemetry" ? 1 : 0;
+  }
+  EXPECT_EQ(events, 3);
+  ASSERT_TRUE(c.send_line("stop"));
+  bool stopped = false;
+  for (int i = 0; i < 100 && !stopped; ++i) {
+    r = c.read_line(5s).value_or("");
+    stopped = json_field(r, "cmd") == "stop";
+  }
+  EXPECT_TRUE(stopped);
+
+  d.signal(SIGTERM);
+  EXPECT_EQ(d.wait(30s), mrskin::tools::kOk) << d.output();
+  const std::string stats = slurp(stats_);
+  ASSERT_FALSE(stats.empty()) << d.output();
+  const std::optional<std::string> ticks = json_field(stats, "ticks");
+  ASSERT_TRUE(ticks.has_value()) << stats;
+  EXPECT_GT(std::stoull(*ticks), 0U);
+  EXPECT_FALSE(fs::exists(socket_)) << "the socket is removed at exit";
+  EXPECT_NE(d.output().find("summary:"), std::string::npos) << d.output();
+}
+
+TEST_F(BridgedDaemon, SighupReloadsOnTheOpenDevice) {
+  const fs::path cfg = config("rate_hz = 1000\n[bridge]\nrealtime = false\nfeedback_gain_per_s = 40");
+  Daemon d(dir_, "d", {"--config", cfg.string()});
+  LineClient c = connect();
+  ASSERT_TRUE(c.connected()) << d.output();
+  std::string s;
+  ASSERT_TRUE(eventually([&] {
+    s = status(c);
+    return std::stoull(json_field(s, "link_sent").value_or("0")) > 200;
+  })) << s;
+  const std::uint64_t sent_before = std::stoull(json_field(s, "link_sent").value_or("0"));
+
+  // A new rate (a new bridge and loop) and a new device URI (refused: kept, logged).
+  std::ofstream(cfg) << "device = \"mock://?seed=9\"\n"
+                     << config_text("rate_hz = 500\n[bridge]\nrealtime = false\nfeedback_gain_per_s = 20")
+                            .substr(std::string("device = \"mock://\"\n").size());
+  d.signal(SIGHUP);
+  ASSERT_TRUE(eventually([&] {
+    s = status(c);
+    return json_field(s, "reloads") == "1";
+  })) << s
+      << d.output();
+  EXPECT_EQ(json_field(s, "rate_hz"), "500") << s;
+  EXPECT_EQ(json_field(s, "device"), "mock://") << s;
+  // The same session: its packet counter carried on (a reopened device would start over).
+  EXPECT_GE(std::stoull(json_field(s, "link_sent").value_or("0")), sent_before) << s;
+  ASSERT_TRUE(eventually([&] {
+    s = status(c);
+    return json_field(s, "state") == "ENABLED";
+  })) << s;
+  EXPECT_EQ(json_field(s, "faults"), "0") << "the swap outlasted the device's heartbeat watchdog: " << s;
+  EXPECT_TRUE(eventually([&] { return d.output().find("needs a restart") != std::string::npos; }))
+      << d.output();
+
+  // A broken file on SIGHUP: logged, the daemon runs on.
+  std::ofstream(cfg) << "rate_hz = \"fast\"\n";
+  d.signal(SIGHUP);
+  EXPECT_TRUE(eventually([&] { return d.output().find("not reloaded") != std::string::npos; })) << d.output();
+  EXPECT_EQ(json_field(status(c), "rate_hz"), "500");
+
+  d.signal(SIGINT);
+  EXPECT_EQ(d.wait(30s), mrskin::tools::kOk) << d.output();
+}
+
+TEST_F(BridgedDaemon, ASecondDaemonOnTheSameSocketIsBusy) {
+  const fs::path cfg = config("[bridge]\nrealtime = false");
+  Daemon first(dir_, "first", {"--config", cfg.string()});
+  LineClient c = connect();
+  ASSERT_TRUE(c.connected()) << first.output();
+  Daemon second(dir_, "second", {"--config", cfg.string(), "--stats-json", (dir_ / "second.json").string()});
+  EXPECT_EQ(second.wait(30s), mrskin::tools::kBusy) << second.output();
+  EXPECT_NE(second.output().find("another mrskin-bridged"), std::string::npos) << second.output();
+  EXPECT_EQ(json_field(status(c), "ok"), "true");  // the first runs on
+  first.signal(SIGTERM);
+  EXPECT_EQ(first.wait(30s), mrskin::tools::kOk) << first.output();
+}
+
+TEST_F(BridgedDaemon, AStaleSocketIsReplacedAndDurationEndsTheRun) {
+  fs::create_directories(dir_ / "run");
+  const fs::path cfg = config("duration_s = 1\n[bridge]\nrealtime = false");
+  std::ofstream(socket_).put('x');  // not a socket: refused, named
+  Daemon refused(dir_, "refused", {"--config", cfg.string()});
+  EXPECT_EQ(refused.wait(30s), mrskin::tools::kUsage) << refused.output();
+  EXPECT_NE(refused.output().find("not a socket"), std::string::npos) << refused.output();
+  fs::remove(socket_);
+  {  // a bound socket nobody listens on: what a killed daemon leaves behind
+    const int fd = ::socket(AF_UNIX, SOCK_STREAM, 0);
+    sockaddr_un addr{};
+    addr.sun_family = AF_UNIX;
+    std::copy(socket_.begin(), socket_.end(), static_cast<char*>(addr.sun_path));
+    // NOLINTNEXTLINE(cppcoreguidelines-pro-type-reinterpret-cast): the socket API's own cast
+    ASSERT_EQ(::bind(fd, reinterpret_cast<const sockaddr*>(&addr), sizeof(addr)), 0);
+    ::close(fd);
+  }
+  Daemon d(dir_, "d", {"--config", cfg.string(), "--quiet"});
+  EXPECT_EQ(d.wait(30s), mrskin::tools::kOk) << d.output();
+  EXPECT_TRUE(fs::exists(stats_));
+}
+
+TEST_F(BridgedDaemon, BadConfigurationIsAUsageError) {
+  const fs::path p = dir_ / "bad.toml";
+  std::ofstream(p) << "device = \"mock://\"\n[mapping]\nrotation = 90\n";
+  Daemon d(dir_, "d", {"--config", p.string()});
+  EXPECT_EQ(d.wait(30s), mrskin::tools::kUsage) << d.output();
+  EXPECT_NE(d.output().find(p.string() + ":3: mapping.rotation"), std::string::npos) << d.output();
+  Daemon flags(dir_, "flags", {"--rate", "0", "--socket", socket_});
+  EXPECT_EQ(flags.wait(30s), mrskin::tools::kUsage) << flags.output();
+  Daemon both(dir_, "both", {"--scene", "demo", "--source", "scene://demo", "--socket", socket_});
+  EXPECT_EQ(both.wait(30s), mrskin::tools::kUsage) << both.output();
+}
+
+}  // namespace

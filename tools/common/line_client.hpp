@@ -1,0 +1,147 @@
+// A client for mrskin-bridged's control socket (docs/daemon.md): connect to the UNIX socket,
+// send one request line, read response lines with a timeout. Header-only, no JSON library:
+// callers pick fields with json_field() or print the lines as they come.
+#pragma once
+
+#include <poll.h>
+#include <sys/socket.h>
+#include <sys/un.h>
+#include <unistd.h>
+
+#include <algorithm>
+#include <array>
+#include <cerrno>
+#include <chrono>
+#include <optional>
+#include <string>
+#include <string_view>
+
+namespace mrskin::ctl {
+
+class LineClient {
+ public:
+  LineClient() = default;
+  LineClient(const LineClient&) = delete;
+  LineClient& operator=(const LineClient&) = delete;
+  LineClient(LineClient&& o) noexcept : fd_(o.fd_), buffer_(std::move(o.buffer_)) { o.fd_ = -1; }
+  LineClient& operator=(LineClient&& o) noexcept {
+    std::swap(fd_, o.fd_);
+    std::swap(buffer_, o.buffer_);
+    return *this;
+  }
+  ~LineClient() { close(); }
+
+  // False with errno set when nobody listens on path.
+  bool connect(const std::string& path) {
+    close();
+    sockaddr_un addr{};
+    addr.sun_family = AF_UNIX;
+    if (path.size() >= sizeof(addr.sun_path)) {
+      errno = ENAMETOOLONG;
+      return false;
+    }
+    std::copy(path.begin(), path.end(), static_cast<char*>(addr.sun_path));
+    fd_ = ::socket(AF_UNIX, SOCK_STREAM | SOCK_CLOEXEC, 0);
+    // NOLINTNEXTLINE(cppcoreguidelines-pro-type-reinterpret-cast): the socket API's own cast
+    if (fd_ < 0 || ::connect(fd_, reinterpret_cast<const sockaddr*>(&addr), sizeof(addr)) != 0) {
+      close();
+      return false;
+    }
+    return true;
+  }
+  [[nodiscard]] bool connected() const noexcept { return fd_ >= 0; }
+  void close() noexcept {
+    if (fd_ >= 0) {
+      ::close(fd_);
+      fd_ = -1;
+    }
+    buffer_.clear();
+  }
+
+  // Sends text plus a newline.
+  bool send_line(std::string_view text) const {
+    std::string line(text);
+    line += '\n';
+    std::size_t done = 0;
+    while (done < line.size()) {
+      const ssize_t n = ::send(fd_, line.data() + done, line.size() - done, MSG_NOSIGNAL);
+      if (n < 0) {
+        if (errno == EINTR) {
+          continue;
+        }
+        return false;
+      }
+      done += static_cast<std::size_t>(n);
+    }
+    return true;
+  }
+
+  // The next line without its newline; nullopt on timeout or when the daemon closed the socket.
+  std::optional<std::string> read_line(std::chrono::milliseconds timeout) {
+    const auto deadline = std::chrono::steady_clock::now() + timeout;
+    for (;;) {
+      if (const std::size_t nl = buffer_.find('\n'); nl != std::string::npos) {
+        std::string line = buffer_.substr(0, nl);
+        buffer_.erase(0, nl + 1);
+        return line;
+      }
+      const auto left =
+          std::chrono::duration_cast<std::chrono::milliseconds>(deadline - std::chrono::steady_clock::now());
+      if (fd_ < 0 || left.count() <= 0) {
+        return std::nullopt;
+      }
+      pollfd p{fd_, POLLIN, 0};
+      if (::poll(&p, 1, static_cast<int>(left.count())) <= 0) {
+        continue;
+      }
+      std::array<char, 4096> chunk{};
+      const ssize_t n = ::recv(fd_, chunk.data(), chunk.size(), 0);
+      if (n <= 0) {
+        return std::nullopt;
+      }
+      buffer_.append(chunk.data(), static_cast<std::size_t>(n));
+    }
+  }
+
+  // One request, one response line.
+  std::optional<std::string> request(std::string_view line,
+                                     std::chrono::milliseconds timeout = std::chrono::seconds(5)) {
+    if (!send_line(line)) {
+      return std::nullopt;
+    }
+    return read_line(timeout);
+  }
+
+ private:
+  int fd_ = -1;
+  std::string buffer_;
+};
+
+// The raw text of a top-level field of a flat JSON response: "ENABLED" for a string (unquoted,
+// escapes left as they are), "true", "12.5"; nullopt when absent. Enough for the daemon's replies.
+inline std::optional<std::string> json_field(std::string_view json, std::string_view key) {
+  std::string pattern;
+  pattern.reserve(key.size() + 3);
+  pattern += '"';
+  pattern += key;
+  pattern += "\":";
+  const std::size_t at = json.find(pattern);
+  if (at == std::string_view::npos) {
+    return std::nullopt;
+  }
+  std::size_t i = at + pattern.size();
+  if (i < json.size() && json[i] == '"') {
+    std::size_t end = i + 1;
+    while (end < json.size() && json[end] != '"') {
+      end += json[end] == '\\' ? 2 : 1;
+    }
+    return std::string(json.substr(i + 1, std::min(end, json.size()) - i - 1));
+  }
+  std::size_t end = i;
+  while (end < json.size() && json[end] != ',' && json[end] != '}' && json[end] != ']') {
+    ++end;
+  }
+  return std::string(json.substr(i, end - i));
+}
+
+}  // namespace mrskin::ctl

@@ -1,0 +1,224 @@
+#include "config.hpp"
+
+#include <fmt/format.h>
+#include <toml++/toml.h>
+#include <unistd.h>
+
+#include <cmath>
+#include <cstdlib>
+#include <initializer_list>
+#include <numbers>
+#include <string_view>
+
+namespace mrskin::bridged {
+namespace {
+
+class Reader {
+ public:
+  explicit Reader(std::string path) : path_(std::move(path)) {}
+
+  [[noreturn]] void fail(const toml::node& n, std::string_view key, std::string_view what) const {
+    throw ConfigError(fmt::format("{}:{}: {}: {}", path_, n.source().begin.line, key, what));
+  }
+
+  void check_keys(const toml::table& t, std::string_view section,
+                  std::initializer_list<std::string_view> known) const {
+    for (auto&& [k, v] : t) {
+      bool ok = false;
+      for (const std::string_view name : known) {
+        ok = ok || k.str() == name;
+      }
+      if (!ok) {
+        std::string names;
+        for (const std::string_view name : known) {
+          names += fmt::format("{}{}", names.empty() ? "" : ", ", name);
+        }
+        fail(v, full(section, k.str()), fmt::format("unknown key (known here: {})", names));
+      }
+    }
+  }
+
+  void get(const toml::table& t, std::string_view section, std::string_view key, double& out) const {
+    if (const toml::node* n = t.get(key)) {
+      const std::optional<double> v = n->is_number() ? n->value<double>() : std::nullopt;
+      if (!v || !std::isfinite(*v)) {
+        fail(*n, full(section, key), "expected a finite number");
+      }
+      out = *v;
+    }
+  }
+  void get(const toml::table& t, std::string_view section, std::string_view key, int& out) const {
+    if (const toml::node* n = t.get(key)) {
+      const auto* v = n->as_integer();
+      if (v == nullptr || v->get() < -1'000'000 || v->get() > 1'000'000) {
+        fail(*n, full(section, key), "expected an integer");
+      }
+      out = static_cast<int>(v->get());
+    }
+  }
+  void get(const toml::table& t, std::string_view section, std::string_view key, bool& out) const {
+    if (const toml::node* n = t.get(key)) {
+      const auto* v = n->as_boolean();
+      if (v == nullptr) {
+        fail(*n, full(section, key), "expected true or false");
+      }
+      out = v->get();
+    }
+  }
+  void get(const toml::table& t, std::string_view section, std::string_view key, std::string& out) const {
+    if (const toml::node* n = t.get(key)) {
+      const auto* v = n->as_string();
+      if (v == nullptr) {
+        fail(*n, full(section, key), "expected a string");
+      }
+      out = v->get();
+    }
+  }
+  // A number that must satisfy ok(), else the error names the range.
+  template <class T, class Ok>
+  void get_checked(const toml::table& t, std::string_view section, std::string_view key, T& out, Ok ok,
+                   std::string_view range) const {
+    get(t, section, key, out);
+    if (const toml::node* n = t.get(key); n != nullptr && !ok(out)) {
+      fail(*n, full(section, key), fmt::format("{} is out of range ({})", out, range));
+    }
+  }
+  const toml::table* section(const toml::table& root, std::string_view name) const {
+    const toml::node* n = root.get(name);
+    if (n == nullptr) {
+      return nullptr;
+    }
+    if (!n->is_table()) {
+      fail(*n, name, "expected a table ([" + std::string(name) + "])");
+    }
+    return n->as_table();
+  }
+
+ private:
+  static std::string full(std::string_view section, std::string_view key) {
+    return section.empty() ? std::string(key) : fmt::format("{}.{}", section, key);
+  }
+  std::string path_;
+};
+
+bool positive(double v) { return v > 0.0; }
+bool non_negative(double v) { return v >= 0.0; }
+
+}  // namespace
+
+Settings load_settings(const std::string& path) {
+  toml::table root;
+  try {
+    root = toml::parse_file(path);
+  } catch (const toml::parse_error& e) {
+    if (e.source().begin.line == 0) {  // no position: the file could not be read
+      throw ConfigError(fmt::format("{}: cannot read the configuration: {}", path, e.description()));
+    }
+    throw ConfigError(fmt::format("{}:{}: {}", path, e.source().begin.line, e.description()));
+  }
+  Settings s;
+  const Reader r(path);
+  r.check_keys(root, "",
+               {"device", "source", "rate_hz", "duration_s", "stats_json", "quiet", "device_lost_s",
+                "mapping", "bridge", "control"});
+  r.get(root, "", "device", s.device);
+  r.get(root, "", "source", s.source);
+  r.get_checked(
+      root, "", "rate_hz", s.rate_hz, [](double v) { return v >= 1.0 && v <= 20000.0; }, "1 to 20000 Hz");
+  r.get_checked(root, "", "duration_s", s.duration_s, non_negative, ">= 0; 0 runs until a signal");
+  r.get(root, "", "stats_json", s.stats_json);
+  r.get(root, "", "quiet", s.quiet);
+  r.get_checked(root, "", "device_lost_s", s.device_lost_s, positive, "> 0 s");
+  if (const toml::table* m = r.section(root, "mapping")) {
+    r.check_keys(*m, "mapping",
+                 {"origin_x_m", "origin_y_m", "cells_per_m", "rotation_deg", "mirror_x", "mirror_y"});
+    r.get(*m, "mapping", "origin_x_m", s.mapping.origin_x_m);
+    r.get(*m, "mapping", "origin_y_m", s.mapping.origin_y_m);
+    r.get_checked(*m, "mapping", "cells_per_m", s.mapping.cells_per_m, positive, "> 0");
+    double rotation_deg = s.mapping.rotation_rad * 180.0 / std::numbers::pi;
+    r.get(*m, "mapping", "rotation_deg", rotation_deg);
+    s.mapping.rotation_rad = rotation_deg * std::numbers::pi / 180.0;
+    r.get(*m, "mapping", "mirror_x", s.mapping.mirror_x);
+    r.get(*m, "mapping", "mirror_y", s.mapping.mirror_y);
+  }
+  if (const toml::table* b = r.section(root, "bridge")) {
+    r.check_keys(*b, "bridge",
+                 {"feedback_gain_per_s", "footprint_cells", "resend_period_s", "realtime", "rt_priority",
+                  "stale_hold_s", "stale_fade_s"});
+    r.get_checked(*b, "bridge", "feedback_gain_per_s", s.feedback_gain_per_s, non_negative, ">= 0");
+    r.get_checked(*b, "bridge", "footprint_cells", s.footprint_cells, positive, "> 0");
+    r.get_checked(*b, "bridge", "resend_period_s", s.resend_period_s, positive, "> 0 s");
+    r.get(*b, "bridge", "realtime", s.realtime);
+    r.get_checked(
+        *b, "bridge", "rt_priority", s.rt_priority, [](int v) { return v >= 1 && v <= 99; }, "1 to 99");
+    r.get_checked(*b, "bridge", "stale_hold_s", s.stale_hold_s, non_negative, ">= 0 s");
+    r.get_checked(*b, "bridge", "stale_fade_s", s.stale_fade_s, positive, "> 0 s");
+  }
+  if (const toml::table* c = r.section(root, "control")) {
+    r.check_keys(*c, "control", {"socket", "max_clients"});
+    r.get(*c, "control", "socket", s.socket);
+    r.get_checked(
+        *c, "control", "max_clients", s.max_clients, [](int v) { return v >= 1 && v <= 64; }, "1 to 64");
+  }
+  return s;
+}
+
+void validate(const Settings& s, const std::string& origin) {
+  const auto bad = [&](std::string_view key, std::string_view what) {
+    throw ConfigError(fmt::format("{}: {}: {}", origin, key, what));
+  };
+  if (!(s.rate_hz >= 1.0 && s.rate_hz <= 20000.0)) {
+    bad("rate", "out of range (1 to 20000 Hz)");
+  }
+  if (!(s.duration_s >= 0.0) || !std::isfinite(s.duration_s)) {
+    bad("duration", "must be >= 0 (0 runs until a signal)");
+  }
+  if (s.device.empty()) {
+    bad("device", "empty device URI");
+  }
+  if (s.source.empty()) {
+    bad("source", "empty source URI");
+  }
+  if (!s.mapping.valid()) {
+    bad("mapping", "origin, rotation and a positive cells_per_m must be finite");
+  }
+}
+
+void apply(const Overrides& o, Settings& s) {
+  s.device = o.device.value_or(s.device);
+  s.source = o.source.value_or(s.source);
+  s.rate_hz = o.rate_hz.value_or(s.rate_hz);
+  s.duration_s = o.duration_s.value_or(s.duration_s);
+  s.stats_json = o.stats_json.value_or(s.stats_json);
+  s.quiet = o.quiet.value_or(s.quiet);
+  s.socket = o.socket.value_or(s.socket);
+}
+
+std::string default_socket_path() {
+  // NOLINTNEXTLINE(concurrency-mt-unsafe): read at setup, before any thread
+  if (const char* rd = std::getenv("RUNTIME_DIRECTORY"); rd != nullptr && rd[0] != '\0') {
+    const std::string_view all(rd);  // systemd lists several directories with ':'
+    return fmt::format("{}/bridged.sock", all.substr(0, all.find(':')));
+  }
+  // NOLINTNEXTLINE(concurrency-mt-unsafe): read at setup, before any thread
+  if (const char* xdg = std::getenv("XDG_RUNTIME_DIR"); xdg != nullptr && xdg[0] != '\0') {
+    return fmt::format("{}/mrskin/bridged.sock", xdg);
+  }
+  return fmt::format("/tmp/mrskin-{}/bridged.sock", getuid());
+}
+
+bridge::BridgeOptions bridge_options(const Settings& s) {
+  bridge::BridgeOptions o;
+  o.rate_hz = s.rate_hz;
+  o.mapping = s.mapping;
+  o.feedback_gain_per_s = s.feedback_gain_per_s;
+  o.footprint_cells = s.footprint_cells;
+  o.resend_period_s = s.resend_period_s;
+  o.realtime = s.realtime;
+  o.rt_priority = s.rt_priority;
+  o.estimator.hold_s = s.stale_hold_s;
+  o.estimator.fade_s = s.stale_fade_s;
+  return o;
+}
+
+}  // namespace mrskin::bridged

@@ -1,0 +1,64 @@
+// mrskin-bridged's configuration: built-in defaults, then the TOML file (--config), then the
+// command-line flags. docs/daemon.md lists every key.
+#pragma once
+
+#include <optional>
+#include <string>
+
+#include "mrskin/bridge/bridge.hpp"
+#include "mrskin/driver/errors.hpp"
+
+namespace mrskin::bridged {
+
+// A bad file, key or value; the message names FILE:LINE and the key. Exit code kUsage.
+class ConfigError : public InvalidArgument {
+ public:
+  using InvalidArgument::InvalidArgument;
+};
+
+struct Settings {
+  std::string device = "mock://";
+  std::string source = "scene://demo";
+  double rate_hz = 1000.0;
+  double duration_s = 0.0;  // 0: until SIGINT/SIGTERM
+  std::string stats_json;   // "" : none
+  bool quiet = false;
+  bridge::WorkspaceMapping mapping{};  // [mapping]; rotation given in degrees in the file
+  // [bridge]
+  double feedback_gain_per_s = 40.0;
+  double footprint_cells = 1.5;
+  double resend_period_s = 0.05;
+  bool realtime = true;
+  int rt_priority = 80;
+  double stale_hold_s = 0.1;  // stream watchdog: hold the last estimate this long...
+  double stale_fade_s = 0.2;  // ...then fade to released over this
+  // [control]
+  std::string socket;  // "" : default_socket_path()
+  int max_clients = 8;
+  // [device]-independent: how long the link may stay down before the daemon gives up (exit 1).
+  double device_lost_s = 10.0;
+};
+
+// What the command line set; each overrides the file.
+struct Overrides {
+  std::optional<std::string> device;
+  std::optional<std::string> source;
+  std::optional<double> rate_hz;
+  std::optional<double> duration_s;
+  std::optional<std::string> stats_json;
+  std::optional<bool> quiet;
+  std::optional<std::string> socket;
+};
+
+// Reads FILE over the defaults. Throws ConfigError naming FILE:LINE and the key for a syntax
+// error, an unknown key, a value of the wrong type or out of range.
+Settings load_settings(const std::string& path);
+// Checks the ranges of values that may come from flags too; throws ConfigError naming origin.
+void validate(const Settings& s, const std::string& origin);
+void apply(const Overrides& o, Settings& s);
+// $RUNTIME_DIRECTORY/bridged.sock (systemd), else $XDG_RUNTIME_DIR/mrskin/bridged.sock, else
+// /tmp/mrskin-UID/bridged.sock.
+std::string default_socket_path();
+bridge::BridgeOptions bridge_options(const Settings& s);
+
+}  // namespace mrskin::bridged

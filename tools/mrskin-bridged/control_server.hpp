@@ -1,0 +1,102 @@
+// The control socket: a local UNIX stream socket carrying line-oriented JSON (docs/daemon.md).
+// One thread serves every client with poll(); sockets are non-blocking and every buffer is
+// bounded, so a slow or silent client is dropped rather than waited for.
+#pragma once
+
+#include <atomic>
+#include <chrono>
+#include <cstdint>
+#include <mutex>
+#include <string>
+#include <string_view>
+#include <thread>
+#include <vector>
+
+#include "mrskin/driver/errors.hpp"
+
+namespace mrskin::bridged {
+
+// What the daemon answers with. Called on the control thread; must not block for long.
+class ControlBackend {
+ public:
+  ControlBackend() = default;
+  ControlBackend(const ControlBackend&) = delete;
+  ControlBackend& operator=(const ControlBackend&) = delete;
+  ControlBackend(ControlBackend&&) = delete;
+  ControlBackend& operator=(ControlBackend&&) = delete;
+  virtual ~ControlBackend() = default;
+  // JSON object members (no braces): `"state":"ENABLED","halted":false,...`.
+  virtual std::string status_members() = 0;
+  virtual std::string fault_members() = 0;
+  virtual std::string telemetry_members() = 0;
+  // cmd is "enable", "disable" or "estop"; returns what was requested, for the response.
+  virtual void request(std::string_view cmd) = 0;
+};
+
+// Another daemon answers on the socket: exit kBusy.
+class SocketBusy : public DeviceBusy {
+ public:
+  using DeviceBusy::DeviceBusy;
+};
+
+struct ControlRequest {
+  std::string cmd;
+  double period_ms = 100.0;  // telemetry
+};
+// Parses one request line: a JSON object {"cmd": "...", "period_ms": N} or a bare command word.
+// Returns false with error set when it is malformed.
+bool parse_request(std::string_view line, ControlRequest& out, std::string& error);
+
+class ControlServer {
+ public:
+  static constexpr std::size_t kMaxLine = 4096;  // longer request lines: error, closed
+  static constexpr std::size_t kMaxPending =
+      std::size_t{256} * 1024;  // unsent bytes before a client is dropped
+
+  // Creates the directory (0700) if missing, refuses a live socket (SocketBusy), removes a stale
+  // one, binds with mode 0600 and listens. Throws mrskin::Error with the reason otherwise.
+  ControlServer(std::string path, int max_clients);
+  ControlServer(const ControlServer&) = delete;
+  ControlServer& operator=(const ControlServer&) = delete;
+  ControlServer(ControlServer&&) = delete;
+  ControlServer& operator=(ControlServer&&) = delete;
+  ~ControlServer();
+
+  // Serves clients from a thread of its own until stop().
+  void start(ControlBackend& backend);
+  void stop() noexcept;  // joins, closes every client, removes the socket
+  [[nodiscard]] const std::string& path() const noexcept { return path_; }
+  // Events worth a log line (clients dropped, operator requests), for the main thread to log.
+  std::vector<std::string> take_events();
+
+ private:
+  struct Client {
+    int fd = -1;
+    std::string in;
+    std::string out;
+    double telemetry_ms = 0.0;  // 0: not subscribed
+    std::chrono::steady_clock::time_point next_telemetry{};
+    bool closing = false;  // close once out is flushed
+    bool dead = false;
+  };
+  void run() noexcept;
+  void accept_clients() noexcept;
+  void read_client(Client& c) noexcept;
+  void handle_line(Client& c, std::string_view line);
+  void send(Client& c, std::string_view line) noexcept;
+  static void flush(Client& c) noexcept;
+  void event(std::string text);
+
+  std::string path_;
+  std::size_t max_clients_;
+  ControlBackend* backend_ = nullptr;
+  int listen_fd_ = -1;
+  int wake_fd_ = -1;  // eventfd: stop()
+  std::vector<Client> clients_;
+  std::atomic<bool> stop_{false};
+  std::thread thread_;
+  std::mutex events_mutex_;  // control thread <-> main thread only; never the tick
+  std::vector<std::string> events_;
+};
+
+}  // namespace mrskin::bridged

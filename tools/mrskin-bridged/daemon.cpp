@@ -1,0 +1,434 @@
+#include "daemon.hpp"
+
+#include <fmt/format.h>
+
+#include <algorithm>
+#include <thread>
+
+#include "json_text.hpp"
+
+namespace mrskin::bridged {
+
+using bridge::Bridge;
+using ctl::json_escape;
+using ctl::json_number;
+
+OpenedSource open_source(const Settings& s, Clock& clock) {
+  OpenedSource o;
+  if (s.source.rfind("scene://", 0) == 0) {
+    std::unique_ptr<bridge::Scene> scene = bridge::make_scene(s.source, s.mapping);
+    o.scene = scene.get();
+    o.source = std::move(scene);
+    return o;
+  }
+  // udp://, replay://, igtl://, igtl-listen:// (docs/sources.md); InvalidArgument names the rest.
+  std::unique_ptr<bridge::StreamSource> stream = bridge::open_stream(s.source, {}, &clock);
+  o.stream = stream.get();
+  o.source = std::move(stream);
+  return o;
+}
+
+bool WatchedSource::latest(TimePoint now, bridge::SlaveSample& out) noexcept {
+  const bool ok = inner_.latest(now, out);
+  if (ok && out.valid && (!any_ || out.stamp != last_stamp_)) {
+    any_ = true;
+    last_stamp_ = out.stamp;
+    last_fresh_ = now;
+  }
+  return ok;
+}
+
+Daemon::Daemon(Settings settings, MonotonicClock& clock)
+    : settings_(std::move(settings)), clock_(clock), shown_(settings_) {
+  source_ = open_source(settings_, clock_);  // a bad source URI fails before the device opens
+  dev_ = open_device(settings_.device, clock_);
+  if (dev_.mock) {
+    truth_.emplace(*dev_.mock);
+    finger_.assign(dev_.mock->layout().fluid_cell_count(), 0.0);
+  }
+  t0_ = clock_.now();
+  if (source_.scene != nullptr) {
+    source_.scene->set_start(t0_);
+  }
+  build_bridge(settings_);
+  (void)bridge_->enable();
+}
+
+Daemon::~Daemon() {
+  stop();
+  loop_.reset();
+  bridge_.reset();
+  if (dev_.mock) {
+    dev_.mock->stop();
+  }
+}
+
+void Daemon::build_bridge(const Settings& s) {
+  auto watched = std::make_unique<WatchedSource>(*source_.source);
+  auto b = std::make_unique<Bridge>(*dev_.session, *watched, bridge_options(s));
+  if (truth_) {
+    b->set_force_truth(&*truth_);
+  }
+  bridge_ = std::move(b);  // the old bridge goes before the source wrapper it read
+  watched_ = std::move(watched);
+}
+
+bridge::LoopOptions loop_options(const Settings& s) {
+  bridge::LoopOptions lo;
+  lo.rate_hz = s.rate_hz;
+  lo.realtime = s.realtime;
+  lo.priority = s.rt_priority;
+  return lo;
+}
+
+std::string Daemon::start() {
+  if (!loop_) {
+    loop_ = std::make_unique<bridge::RealtimeLoop>(clock_, *this, loop_options(settings_));
+  }
+  std::string warning = loop_->start();
+  if (warned_) {
+    return {};  // a reload's new loop would repeat it
+  }
+  warned_ = !warning.empty();
+  return warning;
+}
+
+void Daemon::stop() noexcept {
+  if (loop_) {
+    loop_->stop();
+  }
+}
+
+ResultCode Daemon::tick(TimePoint now) noexcept {
+  // SessionGate, tick side (Dekker with seq_cst): announce, then step only if no reader is in.
+  in_tick_.store(true, std::memory_order_seq_cst);
+  if (reader_.load(std::memory_order_seq_cst)) {
+    in_tick_.store(false, std::memory_order_seq_cst);
+    gated_ticks_.fetch_add(1, std::memory_order_relaxed);
+    return ResultCode::ok;
+  }
+  if (const unsigned char r = pending_.exchange(0, std::memory_order_acq_rel); r != 0) {
+    bridge_->request(static_cast<Bridge::Request>(r));
+    operator_halt_.store(r == static_cast<unsigned char>(Bridge::Request::enable) ? 0 : r,
+                         std::memory_order_relaxed);
+  }
+  const ResultCode rc = bridge_->step(now);
+  publish(now);
+  in_tick_.store(false, std::memory_order_seq_cst);
+  return rc;
+}
+
+void Daemon::publish(TimePoint now) noexcept {
+  const DeviceSession& s = *dev_.session;
+  const SessionCounters& c = s.counters();
+  state_.store(static_cast<std::uint8_t>(s.state()), std::memory_order_relaxed);
+  fault_code_.store(s.fault_code(), std::memory_order_relaxed);
+  last_fault_code_.store(s.last_fault_code(), std::memory_order_relaxed);
+  faults_.store(c.faults, std::memory_order_relaxed);
+  halted_.store(bridge_->halted(), std::memory_order_relaxed);
+  connected_.store(s.connected(), std::memory_order_relaxed);
+  valves_released_.store(s.valves_released(), std::memory_order_relaxed);
+  ticks_.store(bridge_->live_ticks(), std::memory_order_relaxed);
+  rms_N_.store(bridge_->live_rms_error_N(), std::memory_order_relaxed);
+  stiffness_.store(bridge_->live_stiffness_N_per_m(), std::memory_order_relaxed);
+  double peak_N = 0.0;
+  for (const double f : bridge_->targets_N()) {
+    peak_N = std::max(peak_N, f);
+  }
+  peak_target_N_.store(peak_N, std::memory_order_relaxed);
+  double peak_A = 0.0;
+  for (const double a : bridge_->currents_A()) {
+    peak_A = std::max(peak_A, a);
+  }
+  peak_current_A_.store(peak_A, std::memory_order_relaxed);
+  sent_.store(c.sent, std::memory_order_relaxed);
+  received_.store(c.received, std::memory_order_relaxed);
+  identity_changes_.store(c.identity_changes, std::memory_order_relaxed);
+  last_fresh_ns_.store(watched_->last_fresh().count(), std::memory_order_relaxed);
+  if (s.connected()) {
+    disconnected_since_ns_.store(0, std::memory_order_relaxed);
+  } else if (disconnected_since_ns_.load(std::memory_order_relaxed) == 0) {
+    disconnected_since_ns_.store(std::max<std::int64_t>(1, now.count()), std::memory_order_relaxed);
+  }
+}
+
+void Daemon::request(std::string_view cmd) {
+  const Bridge::Request r = cmd == "estop"     ? Bridge::Request::estop
+                            : cmd == "disable" ? Bridge::Request::disable
+                                               : Bridge::Request::enable;
+  // The strongest pending request wins (as in Bridge::request): an e-stop is never overwritten.
+  auto wanted = static_cast<unsigned char>(r);
+  unsigned char pending = pending_.load(std::memory_order_relaxed);
+  while (wanted > pending && !pending_.compare_exchange_weak(pending, wanted, std::memory_order_acq_rel)) {
+  }
+}
+
+std::string Daemon::stream_state(std::int64_t now_ns) const {
+  if (halted_.load(std::memory_order_relaxed)) {
+    return "not read while halted";  // the bridge skips the source until enable
+  }
+  const std::int64_t last = last_fresh_ns_.load(std::memory_order_relaxed);
+  if (last == 0) {
+    return "no sample yet";
+  }
+  double hold_s = 0.0;
+  double fade_s = 0.0;
+  {
+    const std::lock_guard<std::mutex> lock(shown_mutex_);
+    hold_s = shown_.stale_hold_s;
+    fade_s = shown_.stale_fade_s;
+  }
+  const double age_s = static_cast<double>(now_ns - last) * 1e-9;
+  if (age_s <= std::max(hold_s, 0.01)) {
+    return "live";
+  }
+  return age_s <= hold_s + fade_s ? "stale, fading" : "stale, released";
+}
+
+std::string Daemon::status_members() {
+  Settings shown;
+  {
+    const std::lock_guard<std::mutex> lock(shown_mutex_);
+    shown = shown_;
+  }
+  const std::int64_t now_ns = clock_.now().count();
+  const auto state = static_cast<DeviceState>(state_.load(std::memory_order_relaxed));
+  const unsigned char halt = operator_halt_.load(std::memory_order_relaxed);
+  return fmt::format(
+      R"("state":"{}","fault":"{}","last_fault":"{}","faults":{},"halted":{},"operator":"{})"
+      R"(",)"
+      R"("valves_released":{},"connected":{},"stream":"{}","ticks":{},"rms_error_n":{},)"
+      R"("stiffness_n_per_m":{},"peak_target_n":{},"peak_current_a":{},"rate_hz":{},"device":"{}",)"
+      R"("source":"{}","uptime_s":{},"link_sent":{},"link_received":{},"reloads":{},"pid":{})",
+      to_string(state), fault_name(fault_code_.load(std::memory_order_relaxed)),
+      fault_name(last_fault_code_.load(std::memory_order_relaxed)), faults_.load(std::memory_order_relaxed),
+      halted_.load(std::memory_order_relaxed),
+      halt == 3   ? "estop"
+      : halt == 2 ? "disable"
+                  : "enable",
+      valves_released_.load(std::memory_order_relaxed), connected_.load(std::memory_order_relaxed),
+      stream_state(now_ns), ticks_base_.load() + ticks_.load(std::memory_order_relaxed),
+      json_number(rms_N_.load(std::memory_order_relaxed)),
+      json_number(stiffness_.load(std::memory_order_relaxed)),
+      json_number(peak_target_N_.load(std::memory_order_relaxed)),
+      json_number(peak_current_A_.load(std::memory_order_relaxed)), json_number(shown.rate_hz),
+      json_escape(shown.device), json_escape(shown.source),
+      json_number(static_cast<double>(now_ns - t0_.count()) * 1e-9), sent_.load(std::memory_order_relaxed),
+      received_.load(std::memory_order_relaxed), reloads_.load(), ::getpid());
+}
+
+std::string Daemon::telemetry_members() {
+  const std::int64_t now_ns = clock_.now().count();
+  return fmt::format(R"("t_s":{},"state":"{}","halted":{},"stream":"{}","ticks":{},"rms_error_n":{},)"
+                     R"("stiffness_n_per_m":{},"peak_target_n":{},"peak_current_a":{})",
+                     json_number(static_cast<double>(now_ns - t0_.count()) * 1e-9),
+                     to_string(static_cast<DeviceState>(state_.load(std::memory_order_relaxed))),
+                     halted_.load(std::memory_order_relaxed), stream_state(now_ns),
+                     ticks_base_.load() + ticks_.load(std::memory_order_relaxed), json_number(rms_N_.load()),
+                     json_number(stiffness_.load()), json_number(peak_target_N_.load()),
+                     json_number(peak_current_A_.load()));
+}
+
+std::string Daemon::fault_members() {
+  // SessionGate, reader side: once in, the tick skips its step (at most a tick or two) until out.
+  reader_.store(true, std::memory_order_seq_cst);
+  const auto give_up = std::chrono::steady_clock::now() + std::chrono::milliseconds(200);
+  while (in_tick_.load(std::memory_order_seq_cst)) {
+    if (std::chrono::steady_clock::now() > give_up) {
+      reader_.store(false, std::memory_order_seq_cst);
+      return R"("error":"the tick did not yield; try again")";
+    }
+    std::this_thread::yield();
+  }
+  const DeviceSession& s = *dev_.session;
+  const DeviceState state = s.state();
+  const std::uint8_t code = s.fault_code();
+  const std::uint8_t last_code = s.last_fault_code();
+  const std::uint64_t faults = s.counters().faults;
+  const double fault_time_s = to_seconds(s.last_fault_time() - t0_);
+  std::vector<LogEntry> entries;
+  std::string text;
+  std::exception_ptr failed;
+  try {
+    const std::vector<TrafficRecord> records = faults > 0 ? s.fault_log() : std::vector<TrafficRecord>{};
+    entries = s.decode_log(records);
+    text = s.format_log(records);
+  } catch (...) {
+    failed = std::current_exception();
+  }
+  reader_.store(false, std::memory_order_seq_cst);
+  if (failed) {
+    return R"("error":"out of memory while copying the ring log")";
+  }
+  std::string out = fmt::format(R"("state":"{}","fault":"{}","faults":{},"last_fault":"{}")",
+                                to_string(state), fault_name(code), faults, fault_name(last_code));
+  if (faults == 0) {
+    return out + R"(,"log":[])";
+  }
+  out += fmt::format(R"(,"last_fault_time_s":{},"log":[)", json_number(fault_time_s));
+  std::size_t line_begin = 0;
+  for (std::size_t i = 0; i < entries.size(); ++i) {
+    const LogEntry& e = entries[i];
+    const std::size_t line_end = std::min(text.find('\n', line_begin), text.size());
+    const std::string_view line = std::string_view(text).substr(line_begin, line_end - line_begin);
+    line_begin = line_end + 1;
+    out += fmt::format(R"({}{{"t_s":{},"dir":"{}","kind":"{}","seq":{},"state":"{}","fault":"{}","text":)"
+                       R"("{}"}})",
+                       i == 0 ? "" : ",", json_number(to_seconds(e.host_time - t0_)), e.sent ? "tx" : "rx",
+                       e.kind, e.sequence, e.state, e.fault, json_escape(line));
+  }
+  return out + "]";
+}
+
+void Daemon::drive_finger() {
+  if (dev_.mock && source_.scene != nullptr) {
+    source_.scene->finger(to_seconds(clock_.now() - t0_), dev_.mock->layout(), finger_);
+    dev_.mock->set_finger_indentation(finger_);
+  }
+}
+
+std::string Daemon::status_line() const {
+  const std::int64_t now_ns = clock_.now().count();
+  const auto state = static_cast<DeviceState>(state_.load(std::memory_order_relaxed));
+  std::string line = fmt::format(
+      "t={:6.2f} s  ticks={:<7} state={:<8} stiffness={:6.1f} N/m  peak target={:5.3f} N  rms error={:6.4f} "
+      "N",
+      static_cast<double>(now_ns - t0_.count()) * 1e-9, ticks_base_.load() + ticks_.load(), to_string(state),
+      stiffness_.load(), peak_target_N_.load(), rms_N_.load());
+  if (state == DeviceState::fault) {
+    line += fmt::format("  fault: {}", fault_name(fault_code_.load()));
+  }
+  if (halted_.load()) {
+    line += "  halted";
+  }
+  if (const std::string stream = stream_state(now_ns); stream != "live") {
+    line += "  stream " + stream;
+  }
+  if (!connected_.load()) {
+    line += "  device disconnected";
+  }
+  return line;
+}
+
+bool Daemon::device_lost(double for_s) const noexcept {
+  if (identity_changes_.load(std::memory_order_relaxed) > 0) {
+    return true;  // another unit answered: this session cannot carry on
+  }
+  const std::int64_t since = disconnected_since_ns_.load(std::memory_order_relaxed);
+  return since != 0 && static_cast<double>(clock_.now().count() - since) * 1e-9 > for_s;
+}
+
+bool Daemon::unrequested_fault() const noexcept {
+  return static_cast<DeviceState>(state_.load()) == DeviceState::fault &&
+         operator_halt_.load() != static_cast<unsigned char>(Bridge::Request::estop);
+}
+
+bridge::BridgeStats Daemon::final_stats() const {
+  bridge::BridgeStats stats = bridge_->stats();
+  if (loop_) {
+    stats.skipped_periods += loop_->stats().skipped_periods;
+  }
+  const double run_s = std::max(1e-9, uptime_s());
+  const SessionCounters& link = dev_.session->counters();
+  // Busier direction: one packet per 64-byte report, one report per 1 ms full-speed USB-HID frame
+  // (docs/protocol.md, "Bus load").
+  stats.bus_load = static_cast<double>(std::max(link.sent, link.received)) / run_s / 1000.0;
+  if (source_.stream != nullptr) {
+    const bridge::SourceStats in = source_.stream->stats();
+    stats.samples_accepted = in.accepted;
+    stats.samples_dropped = in.dropped();
+  } else {
+    stats.samples_accepted = stats.slave_samples;  // a scene's samples are all well-formed
+  }
+  return stats;
+}
+
+std::vector<std::string> Daemon::reload(Settings next) {
+  std::vector<std::string> log;
+  if (next.device != settings_.device) {
+    log.push_back(fmt::format("reload: device {} -> {} needs a restart (the device stays open); kept {}",
+                              settings_.device, next.device, settings_.device));
+    next.device = settings_.device;
+  }
+  if (next.socket != settings_.socket || next.max_clients != settings_.max_clients) {
+    log.emplace_back("reload: [control] changes need a restart; kept the current socket");
+    next.socket = settings_.socket;
+    next.max_clients = settings_.max_clients;
+  }
+  const Settings& old = settings_;
+  const bridge::WorkspaceMapping& m0 = old.mapping;
+  const bridge::WorkspaceMapping& m1 = next.mapping;
+  const bool mapping_changed = m0.origin_x_m != m1.origin_x_m || m0.origin_y_m != m1.origin_y_m ||
+                               m0.cells_per_m != m1.cells_per_m || m0.rotation_rad != m1.rotation_rad ||
+                               m0.mirror_x != m1.mirror_x || m0.mirror_y != m1.mirror_y;
+  const bool source_changed = next.source != old.source || (mapping_changed && source_.scene != nullptr);
+  const bool loop_changed =
+      next.rate_hz != old.rate_hz || next.realtime != old.realtime || next.rt_priority != old.rt_priority;
+  const bool bridge_changed = loop_changed || mapping_changed || source_changed ||
+                              next.feedback_gain_per_s != old.feedback_gain_per_s ||
+                              next.footprint_cells != old.footprint_cells ||
+                              next.resend_period_s != old.resend_period_s ||
+                              next.stale_hold_s != old.stale_hold_s || next.stale_fade_s != old.stale_fade_s;
+  if (bridge_changed) {
+    // Everything is built while the old loop runs (the Bridge constructor reads only the session's
+    // identity and profile, fixed since the handshake), so the device misses a tick or two at the
+    // swap, far below its heartbeat watchdog.
+    OpenedSource fresh;
+    std::unique_ptr<WatchedSource> watched;
+    std::unique_ptr<Bridge> b;
+    std::unique_ptr<bridge::RealtimeLoop> new_loop;
+    try {
+      if (source_changed) {
+        fresh = open_source(next, clock_);
+        if (fresh.scene != nullptr) {
+          fresh.scene->set_start(t0_);  // the script carries on where it is
+        }
+      }
+      watched = std::make_unique<WatchedSource>(fresh.source ? *fresh.source : *source_.source);
+      b = std::make_unique<Bridge>(*dev_.session, *watched, bridge_options(next));
+      if (loop_changed) {
+        new_loop = std::make_unique<bridge::RealtimeLoop>(clock_, *this, loop_options(next));
+      }
+    } catch (const std::exception& e) {
+      log.push_back(fmt::format("reload refused, running on as before: {}", e.what()));
+      return log;
+    }
+    if (truth_) {
+      b->set_force_truth(&*truth_);
+    }
+    if (const unsigned char halt = operator_halt_.load(); halt != 0) {
+      b->request(static_cast<Bridge::Request>(halt));  // a reload never re-enables
+    }
+    stop();
+    ticks_base_.fetch_add(bridge_->live_ticks());
+    ticks_.store(0);
+    bridge_ = std::move(b);  // old bridge first, then the wrapper and the source it read
+    watched_ = std::move(watched);
+    if (fresh.source) {
+      source_ = std::move(fresh);
+    }
+    if (new_loop) {
+      loop_ = std::move(new_loop);
+    }
+    settings_ = next;
+    if (const std::string warning = start(); !warning.empty()) {
+      log.push_back("warning: " + warning);
+    }
+    log.push_back(fmt::format(
+        "reload: new bridge on the open device (rate {} Hz, feedback gain {} /s, footprint {} cells, mapping "
+        "origin ({}, {}) m, {} cells/m, source {})",
+        next.rate_hz, next.feedback_gain_per_s, next.footprint_cells, next.mapping.origin_x_m,
+        next.mapping.origin_y_m, next.mapping.cells_per_m, next.source));
+  } else {
+    log.emplace_back("reload: no bridge change; the loop runs on");
+  }
+  settings_ = next;
+  {
+    const std::lock_guard<std::mutex> lock(shown_mutex_);
+    shown_ = settings_;
+  }
+  reloads_.fetch_add(1);
+  return log;
+}
+
+}  // namespace mrskin::bridged

@@ -1,0 +1,146 @@
+// The running daemon: the device session opened once, the bridge and its real-time loop (rebuilt
+// on SIGHUP on the same session), and what the tick publishes for the control socket and the
+// status line.
+//
+// Threads: the main thread (signals, status, reload), the tick (RealtimeLoop), the control socket
+// thread. Only the tick touches the Bridge and the DeviceSession while the loop runs. It publishes
+// small values through atomics after every step; the control thread reads the session itself only
+// inside SessionGate (fault dump), which makes the tick skip its step meanwhile.
+#pragma once
+
+#include <atomic>
+#include <cstdint>
+#include <memory>
+#include <mutex>
+#include <optional>
+#include <string>
+
+#include "config.hpp"
+#include "control_server.hpp"
+#include "mrskin/bridge/bridge.hpp"
+#include "mrskin/bridge/loop.hpp"
+#include "mrskin/bridge/scene.hpp"
+#include "mrskin/bridge/sources.hpp"
+#include "mrskin/driver/device.hpp"
+
+namespace mrskin::bridged {
+
+// The slave stream named by a source URI. scene is set for scene:// (it also drives the mock's
+// simulated finger). The one place to switch to make_source() (bridge/sources.hpp).
+struct OpenedSource {
+  std::unique_ptr<bridge::SlaveSource> source;
+  bridge::Scene* scene = nullptr;          // scene:// only: it also drives the mock's finger
+  bridge::StreamSource* stream = nullptr;  // udp://, replay://, igtl://: its counters
+};
+OpenedSource open_source(const Settings& s, Clock& clock);
+bridge::LoopOptions loop_options(const Settings& s);
+
+// Wraps the source to time-stamp fresh samples (the stream watchdog in status).
+class WatchedSource final : public bridge::SlaveSource {
+ public:
+  explicit WatchedSource(bridge::SlaveSource& inner) noexcept : inner_(inner) {}
+  bool latest(TimePoint now, bridge::SlaveSample& out) noexcept override;
+  [[nodiscard]] TimePoint last_fresh() const noexcept { return last_fresh_; }  // tick thread
+
+ private:
+  bridge::SlaveSource& inner_;
+  TimePoint last_stamp_{};
+  TimePoint last_fresh_{};
+  bool any_ = false;
+};
+
+class Daemon final : public bridge::Tickable, public ControlBackend {
+ public:
+  // Opens the device and the source, builds the bridge and enables the device. Throws the
+  // driver's typed errors (exit codes in exit_codes.hpp).
+  Daemon(Settings settings, MonotonicClock& clock);
+  Daemon(const Daemon&) = delete;
+  Daemon& operator=(const Daemon&) = delete;
+  Daemon(Daemon&&) = delete;
+  Daemon& operator=(Daemon&&) = delete;
+  ~Daemon() override;
+
+  // Starts the loop; returns the real-time warning ("" if none, and on later starts).
+  std::string start();
+  void stop() noexcept;
+  // SIGHUP: applies next (already validated) without closing the device. Returns the log lines.
+  std::vector<std::string> reload(Settings next);
+
+  // Main thread.
+  [[nodiscard]] const Settings& settings() const noexcept { return settings_; }
+  [[nodiscard]] const DeviceInfo& info() const noexcept { return dev_.session->info(); }
+  void drive_finger();  // the mock's simulated finger follows a scene's script
+  [[nodiscard]] std::string status_line() const;
+  [[nodiscard]] bool device_lost(double for_s) const noexcept;
+  // Device in FAULT other than an e-stop the operator asked for.
+  [[nodiscard]] bool unrequested_fault() const noexcept;
+  // After stop(): the run's statistics (since the last reload) with the bus load filled in.
+  [[nodiscard]] bridge::BridgeStats final_stats() const;
+  [[nodiscard]] const bridge::LoopStats* loop_stats() const noexcept {
+    return loop_ ? &loop_->stats() : nullptr;
+  }
+  [[nodiscard]] double tick_period_s() const noexcept { return 1.0 / settings_.rate_hz; }
+  [[nodiscard]] double uptime_s() const noexcept { return to_seconds(clock_.now() - t0_); }
+  [[nodiscard]] std::uint64_t reloads() const noexcept { return reloads_.load(); }
+  [[nodiscard]] const SessionCounters& link_counters() const noexcept { return dev_.session->counters(); }
+
+  // Tick thread.
+  ResultCode tick(TimePoint now) noexcept override;
+
+  // ControlBackend (control thread).
+  std::string status_members() override;
+  std::string fault_members() override;
+  std::string telemetry_members() override;
+  void request(std::string_view cmd) override;
+
+ private:
+  void build_bridge(const Settings& s);  // setup, before the loop runs
+  void publish(TimePoint now) noexcept;
+  [[nodiscard]] std::string stream_state(std::int64_t now_ns) const;
+
+  Settings settings_;
+  MonotonicClock& clock_;
+  OpenedDevice dev_;
+  std::optional<bridge::MockDeviceTruth> truth_;
+  OpenedSource source_;
+  std::unique_ptr<WatchedSource> watched_;
+  std::unique_ptr<bridge::Bridge> bridge_;
+  std::unique_ptr<bridge::RealtimeLoop> loop_;
+  std::vector<double> finger_;
+  TimePoint t0_{};
+  bool warned_ = false;
+
+  // Control -> tick: the operator's request, forwarded to the current Bridge at the next tick.
+  std::atomic<unsigned char> pending_{0};
+  std::atomic<unsigned char> operator_halt_{0};  // last request: 0 enable, 2 disable, 3 estop
+  // SessionGate: the control thread reads the session while the tick stays out of it.
+  std::atomic<bool> in_tick_{false};
+  std::atomic<bool> reader_{false};
+  std::atomic<std::uint64_t> gated_ticks_{0};
+
+  // Published by the tick after every step.
+  std::atomic<std::uint8_t> state_{0};
+  std::atomic<std::uint8_t> fault_code_{0};
+  std::atomic<std::uint8_t> last_fault_code_{0};
+  std::atomic<std::uint64_t> faults_{0};
+  std::atomic<bool> halted_{false};
+  std::atomic<bool> connected_{true};
+  std::atomic<bool> valves_released_{true};
+  std::atomic<std::uint64_t> ticks_{0};       // this bridge's ticks
+  std::atomic<std::uint64_t> ticks_base_{0};  // earlier bridges' (reloads)
+  std::atomic<double> rms_N_{0.0};
+  std::atomic<double> stiffness_{0.0};
+  std::atomic<double> peak_target_N_{0.0};
+  std::atomic<double> peak_current_A_{0.0};
+  std::atomic<std::uint64_t> sent_{0};
+  std::atomic<std::uint64_t> received_{0};
+  std::atomic<std::uint64_t> identity_changes_{0};
+  std::atomic<std::int64_t> last_fresh_ns_{0};  // 0: no sample yet
+  std::atomic<std::int64_t> disconnected_since_ns_{0};
+  std::atomic<std::uint64_t> reloads_{0};
+  // Settings the control thread shows (rate, device, source): main writes on reload.
+  mutable std::mutex shown_mutex_;
+  Settings shown_;
+};
+
+}  // namespace mrskin::bridged
