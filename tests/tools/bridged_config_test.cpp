@@ -45,6 +45,7 @@ source = "scene://tumour"
 rate_hz = 500
 duration_s = 2.5
 stats_json = "/tmp/x.json"
+record = "/tmp/in.stream"
 quiet = true
 device_lost_s = 3
 [mapping]
@@ -71,6 +72,7 @@ max_clients = 4
   EXPECT_DOUBLE_EQ(s.rate_hz, 500.0);
   EXPECT_DOUBLE_EQ(s.duration_s, 2.5);
   EXPECT_EQ(s.stats_json, "/tmp/x.json");
+  EXPECT_EQ(s.record, "/tmp/in.stream");
   EXPECT_TRUE(s.quiet);
   EXPECT_DOUBLE_EQ(s.device_lost_s, 3.0);
   EXPECT_DOUBLE_EQ(s.mapping.origin_x_m, 0.01);

@@ -119,7 +119,7 @@ Settings load_settings(const std::string& path) {
   Settings s;
   const Reader r(path);
   r.check_keys(root, "",
-               {"device", "source", "rate_hz", "duration_s", "stats_json", "quiet", "device_lost_s",
+               {"device", "source", "rate_hz", "duration_s", "stats_json", "record", "quiet", "device_lost_s",
                 "mapping", "bridge", "control"});
   r.get(root, "", "device", s.device);
   r.get(root, "", "source", s.source);
@@ -127,6 +127,7 @@ Settings load_settings(const std::string& path) {
       root, "", "rate_hz", s.rate_hz, [](double v) { return v >= 1.0 && v <= 20000.0; }, "1 to 20000 Hz");
   r.get_checked(root, "", "duration_s", s.duration_s, non_negative, ">= 0; 0 runs until a signal");
   r.get(root, "", "stats_json", s.stats_json);
+  r.get(root, "", "record", s.record);
   r.get(root, "", "quiet", s.quiet);
   r.get_checked(root, "", "device_lost_s", s.device_lost_s, positive, "> 0 s");
   if (const toml::table* m = r.section(root, "mapping")) {
@@ -190,6 +191,7 @@ void apply(const Overrides& o, Settings& s) {
   s.rate_hz = o.rate_hz.value_or(s.rate_hz);
   s.duration_s = o.duration_s.value_or(s.duration_s);
   s.stats_json = o.stats_json.value_or(s.stats_json);
+  s.record = o.record.value_or(s.record);
   s.quiet = o.quiet.value_or(s.quiet);
   s.socket = o.socket.value_or(s.socket);
 }

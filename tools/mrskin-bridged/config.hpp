@@ -22,6 +22,7 @@ struct Settings {
   double rate_hz = 1000.0;
   double duration_s = 0.0;  // 0: until SIGINT/SIGTERM
   std::string stats_json;   // "" : none
+  std::string record;       // "" : none; else the input stream is recorded here (replay:// format)
   bool quiet = false;
   bridge::WorkspaceMapping mapping{};  // [mapping]; rotation given in degrees in the file
   // [bridge]
@@ -46,6 +47,7 @@ struct Overrides {
   std::optional<double> rate_hz;
   std::optional<double> duration_s;
   std::optional<std::string> stats_json;
+  std::optional<std::string> record;
   std::optional<bool> quiet;
   std::optional<std::string> socket;
 };

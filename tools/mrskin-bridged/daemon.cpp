@@ -34,6 +34,9 @@ bool WatchedSource::latest(TimePoint now, bridge::SlaveSample& out) noexcept {
     any_ = true;
     last_stamp_ = out.stamp;
     last_fresh_ = now;
+    if (recorder_ != nullptr) {
+      (void)recorder_->record(out);  // wait-free; a full queue is counted by the recorder
+    }
   }
   return ok;
 }
@@ -41,6 +44,9 @@ bool WatchedSource::latest(TimePoint now, bridge::SlaveSample& out) noexcept {
 Daemon::Daemon(Settings settings, MonotonicClock& clock)
     : settings_(std::move(settings)), clock_(clock), shown_(settings_) {
   source_ = open_source(settings_, clock_);  // a bad source URI fails before the device opens
+  if (!settings_.record.empty()) {
+    recorder_ = std::make_unique<bridge::SampleRecorder>(settings_.record);
+  }
   dev_ = open_device(settings_.device, clock_);
   if (dev_.mock) {
     truth_.emplace(*dev_.mock);
@@ -64,7 +70,7 @@ Daemon::~Daemon() {
 }
 
 void Daemon::build_bridge(const Settings& s) {
-  auto watched = std::make_unique<WatchedSource>(*source_.source);
+  auto watched = std::make_unique<WatchedSource>(*source_.source, recorder_.get());
   auto b = std::make_unique<Bridge>(*dev_.session, *watched, bridge_options(s));
   if (truth_) {
     b->set_force_truth(&*truth_);
@@ -96,6 +102,9 @@ std::string Daemon::start() {
 void Daemon::stop() noexcept {
   if (loop_) {
     loop_->stop();
+  }
+  if (recorder_) {
+    recorder_->close();  // the tick no longer records: flush and close the file
   }
 }
 
@@ -384,7 +393,8 @@ std::vector<std::string> Daemon::reload(Settings next) {
           fresh.scene->set_start(t0_);  // the script carries on where it is
         }
       }
-      watched = std::make_unique<WatchedSource>(fresh.source ? *fresh.source : *source_.source);
+      watched =
+          std::make_unique<WatchedSource>(fresh.source ? *fresh.source : *source_.source, recorder_.get());
       b = std::make_unique<Bridge>(*dev_.session, *watched, bridge_options(next));
       if (loop_changed) {
         new_loop = std::make_unique<bridge::RealtimeLoop>(clock_, *this, loop_options(next));

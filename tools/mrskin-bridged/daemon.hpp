@@ -38,12 +38,15 @@ bridge::LoopOptions loop_options(const Settings& s);
 // Wraps the source to time-stamp fresh samples (the stream watchdog in status).
 class WatchedSource final : public bridge::SlaveSource {
  public:
-  explicit WatchedSource(bridge::SlaveSource& inner) noexcept : inner_(inner) {}
+  // recorder (optional): every fresh sample is also recorded (replay:// format).
+  explicit WatchedSource(bridge::SlaveSource& inner, bridge::SampleRecorder* recorder = nullptr) noexcept
+      : inner_(inner), recorder_(recorder) {}
   bool latest(TimePoint now, bridge::SlaveSample& out) noexcept override;
   [[nodiscard]] TimePoint last_fresh() const noexcept { return last_fresh_; }  // tick thread
 
  private:
   bridge::SlaveSource& inner_;
+  bridge::SampleRecorder* recorder_;
   TimePoint last_stamp_{};
   TimePoint last_fresh_{};
   bool any_ = false;
@@ -82,6 +85,7 @@ class Daemon final : public bridge::Tickable, public ControlBackend {
   [[nodiscard]] double tick_period_s() const noexcept { return 1.0 / settings_.rate_hz; }
   [[nodiscard]] double uptime_s() const noexcept { return to_seconds(clock_.now() - t0_); }
   [[nodiscard]] std::uint64_t reloads() const noexcept { return reloads_.load(); }
+  [[nodiscard]] const bridge::SampleRecorder* recorder() const noexcept { return recorder_.get(); }
   [[nodiscard]] const SessionCounters& link_counters() const noexcept { return dev_.session->counters(); }
 
   // Tick thread.
@@ -103,6 +107,7 @@ class Daemon final : public bridge::Tickable, public ControlBackend {
   OpenedDevice dev_;
   std::optional<bridge::MockDeviceTruth> truth_;
   OpenedSource source_;
+  std::unique_ptr<bridge::SampleRecorder> recorder_;  // --record: the input, off the tick thread
   std::unique_ptr<WatchedSource> watched_;
   std::unique_ptr<bridge::Bridge> bridge_;
   std::unique_ptr<bridge::RealtimeLoop> loop_;

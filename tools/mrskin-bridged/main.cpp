@@ -192,6 +192,10 @@ int run(Settings cfg, const std::string& config_path, const mrskin::bridged::Ove
         ls->scheduler.memory_locked ? "locked" : "not locked", ls->wake_latency.percentile_ns(0.5) / 1e3,
         ls->wake_latency.percentile_ns(0.99) / 1e3, ls->wake_latency.percentile_ns(0.999) / 1e3);
   }
+  if (const bridge::SampleRecorder* rec = daemon.recorder(); rec != nullptr) {
+    fmt::print("recorded   {} samples to {} ({} dropped)\n", rec->written(), final_cfg.record,
+               rec->dropped());
+  }
   if (daemon.reloads() > 0) {
     fmt::print("reloads    {} (the statistics cover the run since the last bridge rebuild)\n",
                daemon.reloads());
@@ -255,6 +259,9 @@ int guarded_main(int argc, char** argv) {
   app.add_option("--duration", o.duration_s, "seconds to run; 0 runs until SIGINT/SIGTERM");
   app.add_option("--rate", o.rate_hz, "loop rate, Hz (1 to 20000; default 1000)");
   app.add_option("--stats-json", o.stats_json, "write loop statistics as JSON to this file at exit");
+  app.add_option("--record", o.record,
+                 "record the input stream to this file (replay:// format: play it back with "
+                 "--source replay://FILE)");
   app.add_flag("--quiet", o.quiet, "no live status lines");
   app.add_option("--socket", o.socket,
                  "control socket path (default $RUNTIME_DIRECTORY/bridged.sock, "
