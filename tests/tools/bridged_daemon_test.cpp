@@ -134,6 +134,38 @@ class BridgedDaemon : public ::testing::Test {
   std::string stats_;
 };
 
+// The stream watchdog: a recorded stream of 0.3 s ends; the status shows the bridge holding
+// the last estimate, then fading, then the released safe state.
+TEST_F(BridgedDaemon, AStreamThatStopsFadesToReleased) {
+  const fs::path recording = dir_ / "short.stream";
+  {
+    std::ofstream out(recording);
+    out << "# mrskin-stream 1\n";
+    for (int k = 0; k < 300; ++k) {
+      const double depth_m = 4e-3 * k / 300.0;
+      out << k * 1000000LL << " " << k * 1000000LL << " " << 300.0 * depth_m << " " << depth_m
+          << " 0 0 0.003\n";
+    }
+  }
+  const std::string body = "[bridge]\nrealtime = false";
+  std::string text = config_text(body);
+  text.replace(text.find("scene://demo"), 12, "replay://" + recording.string());
+  const fs::path cfg = dir_ / "replay.toml";
+  std::ofstream(cfg) << text;
+  Daemon d(dir_, "replay", {"--config", cfg.string()});
+  LineClient c = connect();
+  ASSERT_TRUE(c.connected()) << d.output();
+  std::string s;
+  EXPECT_TRUE(eventually([&] {
+    s = status(c);
+    return json_field(s, "stream") == "stale, released";
+  })) << s
+      << "\n"
+      << d.output();
+  d.signal(SIGTERM);
+  EXPECT_EQ(d.wait(60s), mrskin::tools::kOk) << d.output();
+}
+
 TEST_F(BridgedDaemon, ControlSocketEstopFaultEnableThenSigtermFlushesStatistics) {
   Daemon d(dir_, "d", {"--config", config("[bridge]\nrealtime = false").string()});
   LineClient c = connect();
