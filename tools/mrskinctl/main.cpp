@@ -9,6 +9,7 @@
 #include <utility>
 #include <vector>
 
+#include "command.hpp"
 #include "exit_codes.hpp"
 #include "json_text.hpp"
 #include "list_command.hpp"
@@ -222,8 +223,8 @@ int guarded_main(int argc, char** argv) {
                                         std::to_string(mrskin::protocol_version_minor()) + ")");
   app.require_subcommand(1);
   app.fallthrough();  // global flags such as --json may follow the subcommand
-  bool json = false;
-  app.add_flag("--json", json, "machine-readable output");
+  mrskin::ctl::GlobalOptions global;
+  app.add_flag("--json", global.json, "machine-readable output");
   std::string device = "mock://";
 
   auto* info = app.add_subcommand(
@@ -251,49 +252,29 @@ int guarded_main(int argc, char** argv) {
       "--no-probe", [&list_options](std::int64_t) { list_options.probe = false; },
       "do not open the units for their firmware and protocol version");
 
-  struct Planned {
-    const char* name;
-    const char* help;
-    const char* issue;
-  };
-  static constexpr Planned kPlanned[] = {
-      {"monitor", "show the grid live: force, displacement, current, temperature",
-       "mrskinctl complete (#11)"},
-      {"set", "send per-valve currents or per-cell targets", "mrskinctl complete (#11)"},
-      {"selftest", "valve sweep, sensor noise, latency histogram, leak and stuck-sensor checks",
-       "mrskinctl complete (#11)"},
-      {"calibrate", "yield-force sweep, degauss, tare; store on the device", "mrskinctl complete (#11)"},
-      {"record", "record telemetry and commands to a file", "mrskinctl complete (#11)"},
-      {"replay", "replay a recording", "mrskinctl complete (#11)"},
-      {"enable", "enable a running bridge's device", "Bridge II (#10)"},
-      {"disable", "disable a running bridge's device", "Bridge II (#10)"},
-      {"estop", "emergency stop through a running bridge", "Bridge II (#10)"},
-      {"fault", "show a running bridge's fault cause and ring log", "Bridge II (#10)"},
-  };
-  const Planned* chosen = nullptr;
-  for (const Planned& p : kPlanned) {
-    auto* sub = app.add_subcommand(p.name, std::string(p.help) + " [not in this build]");
-    sub->allow_extras();
-    sub->callback([&chosen, &p] { chosen = &p; });
-  }
+  int command_exit = 0;
+  mrskin::ctl::add_monitor_command(app, global, command_exit);
+  mrskin::ctl::add_set_command(app, global, command_exit);
+  mrskin::ctl::add_selftest_command(app, global, command_exit);
+  mrskin::ctl::add_calibrate_command(app, global, command_exit);
+  mrskin::ctl::add_record_commands(app, global, command_exit);
+  mrskin::ctl::add_bridge_commands(app, global, command_exit);
   int model_exit = 0;
   CLI::App* model = mrskin::ctl::add_model_command(app, model_exit);
   CLI11_PARSE(app, argc, argv);
   if (model->parsed()) {
     return model_exit;
   }
-  if (chosen != nullptr) {
-    fmt::print(stderr, "mrskinctl {}: not available in this build (planned in {})\n", chosen->name,
-               chosen->issue);
-    return mrskin::tools::kUnavailable;
+  if (!list->parsed() && !info->parsed()) {
+    return command_exit;
   }
   if (list->parsed()) {
-    list_options.json = json;
+    list_options.json = global.json;
     return mrskin::ctl::cmd_list(list_options);
   }
   if (info->parsed()) {
     info_options.uri = device;
-    info_options.json = json;
+    info_options.json = global.json;
     return cmd_info(info_options);
   }
   return 0;

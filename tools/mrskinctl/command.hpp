@@ -1,0 +1,35 @@
+// What every mrskinctl subcommand gets: the global options and where to put its exit code.
+// Each add_*_command() registers its subcommand(s) on the app; the work runs in the CLI11
+// callback after parsing. Setup errors are thrown (main maps them to exit codes,
+// tools/common/exit_codes.hpp); a command's own outcome goes into exit_code.
+#pragma once
+
+#include <CLI/CLI.hpp>
+
+namespace mrskin::ctl {
+
+struct GlobalOptions {
+  bool json = false;  // --json, before or after the subcommand
+};
+
+// Registers a placeholder subcommand for something not in this build: exit 69.
+inline CLI::App* add_unavailable_command(CLI::App& app, const char* name, const char* help, int& exit_code) {
+  auto* sub = app.add_subcommand(name, std::string(help) + " [not in this build]");
+  sub->allow_extras();
+  sub->callback([&exit_code, name] {
+    std::fprintf(stderr, "mrskinctl %s: not available in this build (mrskinctl complete, #11)\n", name);
+    exit_code = 69;
+  });
+  return sub;
+}
+
+void add_monitor_command(CLI::App& app, const GlobalOptions& global, int& exit_code);
+// enable, disable, estop and fault on a running mrskin-bridged.
+void add_bridge_commands(CLI::App& app, const GlobalOptions& global, int& exit_code);
+void add_set_command(CLI::App& app, const GlobalOptions& global, int& exit_code);
+void add_selftest_command(CLI::App& app, const GlobalOptions& global, int& exit_code);
+void add_calibrate_command(CLI::App& app, const GlobalOptions& global, int& exit_code);
+// record and replay.
+void add_record_commands(CLI::App& app, const GlobalOptions& global, int& exit_code);
+
+}  // namespace mrskin::ctl
