@@ -14,11 +14,12 @@
 namespace mrskin::bridge {
 namespace {
 
-constexpr std::array<std::string_view, 9> kSceneNames = {"demo", "hand",    "neck",  "abdomen", "thigh",
-                                                         "back", "stomach", "sweep", "tumour"};
+constexpr std::array<std::string_view, 10> kSceneNames = {"demo", "hand",    "neck",  "abdomen", "thigh",
+                                                          "back", "stomach", "sweep", "tumour",  "step"};
 
 constexpr double kFingerRadius_cells = 1.2;
 constexpr double kTipRadius_m = 3e-3;
+constexpr double kStepHoldDepth_m = 1.5e-3;  // scene "step": the hold before the step
 
 double smoothstep(double u) noexcept {
   u = std::clamp(u, 0.0, 1.0);
@@ -273,6 +274,19 @@ std::vector<Key> sweep_keys(double y_m, double depth_m) {
           {.t_s = 7.5, .x_m = kFrom_m, .y_m = y_m, .linear = true}};
 }
 
+// Press, hold, then load again at a constant 5 mm/s from a standstill: the tissue's damping makes
+// the target force step up at the start of the second press (a settling test), and step down
+// where it stops.
+std::vector<Key> step_keys() {
+  return {{.t_s = 0.0},
+          {.t_s = 0.6, .depth_m = kStepHoldDepth_m},
+          {.t_s = 1.0, .depth_m = kStepHoldDepth_m},
+          {.t_s = 1.6, .depth_m = 4.5e-3, .linear = true},
+          {.t_s = 2.0, .depth_m = 4.5e-3},
+          {.t_s = 3.0},
+          {.t_s = 3.5}};
+}
+
 std::string name_list() {
   std::string s;
   for (const std::string_view n : kSceneNames) {
@@ -307,6 +321,11 @@ std::unique_ptr<Scene> make_scene(std::string_view name, const WorkspaceMapping&
   if (scene == "sweep") {
     return std::make_unique<ScriptedScene>(scene, mapping, sweep_keys(0.0, 3e-3),
                                            Tissue{.base = *find_preset("stomach_linear")}, seed);
+  }
+  if (scene == "step") {
+    // k x + lambda x x': 0.15 N held at 1.5 mm, 0.45 N the moment it moves on at 5 mm/s.
+    return std::make_unique<ScriptedScene>(
+        scene, mapping, step_keys(), Tissue{.base = TissueModel::hunt_crossley(100.0, 1.0, 4.0e4)}, seed);
   }
   if (scene == "tumour") {
     const Tissue tissue{.base = *find_preset("abdomen"),

@@ -45,11 +45,14 @@ struct Bound {
 };
 
 // Measured (seed 7, g++ 12 release): demo 0.031 N / 5.6 %; the others between 0.035 and 0.055 N,
-// 8-18 %. Bounds: demo the product's 0.04 N / 7 %; the others their measured value + ~15 %.
+// 8-18 %, except step (0.14 N / 55 %: its force step is faster than the device can follow,
+// docs/bridge.md "Settling"). Bounds: demo the product's 0.04 N / 7 %; the others their measured value + ~15
+// %.
 constexpr Bound kBounds[] = {
     {"demo", 10.0, 0.040, 0.07},   {"hand", 8.6, 0.064, 0.21},  {"neck", 8.6, 0.055, 0.19},
     {"abdomen", 8.6, 0.060, 0.22}, {"thigh", 8.6, 0.050, 0.17}, {"back", 8.6, 0.052, 0.14},
     {"stomach", 8.6, 0.044, 0.15}, {"sweep", 7.5, 0.065, 0.20}, {"tumour", 7.5, 0.042, 0.09},
+    {"step", 7.0, 0.16, 0.65},
 };
 
 class ClosedLoop : public ::testing::TestWithParam<Bound> {};

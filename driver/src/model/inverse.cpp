@@ -1820,7 +1820,11 @@ void CellInverse::Impl::fallback_step() noexcept {
     t1[k] = t[comp_valves[k]];
   }
   const double lambda = opt.regularisation;
+  // Stop sweeping once no valve moves its rows by more than a tenth of the tolerance: a small
+  // patch settles in a few sweeps, so its cost follows its size, not the sweep cap.
+  const double settled_Pa = 0.1 * tol_Pa;
   for (int sweep = 0; sweep < kFallbackSweeps; ++sweep) {
+    double moved_Pa = 0.0;
     for (std::size_t k = 0; k < nv; ++k) {
       double a = lambda + damping;
       double g = lambda * t1[k] + damping * (t1[k] - t0[k]);
@@ -1838,9 +1842,13 @@ void CellInverse::Impl::fallback_step() noexcept {
         continue;
       }
       t1[k] = next_t;
+      moved_Pa = std::max(moved_Pa, std::fabs(delta) * std::sqrt(a));
       for (std::uint32_t j = inc_begin[k]; j < inc_begin[k + 1]; ++j) {
         res[inc_row[j]] += jac[inc_slot[j]] * delta;
       }
+    }
+    if (moved_Pa <= settled_Pa) {
+      break;
     }
   }
 }

@@ -104,6 +104,12 @@ class Scene : public SlaveSource {
 //   +20 mm, same timing) at 2 mm depth: 0.33 N over soft tissue, 1.32 N over the inclusion.
 //   Default mapping on the 5x5: along row 3, the inclusion under fluid cell (3,3).
 //
+// step: Hunt-Crossley tissue with n = 1 and heavy damping (k 100 N/m, lambda 4e4 N s/m^2) at the
+//   origin. Press to 1.5 mm in 0.6 s, hold 0.4 s (0.15 N), then from a standstill at a constant
+//   5 mm/s to 4.5 mm (0.6 s): the damping steps the force from 0.15 to 0.45 N at t = 1.0 s of
+//   each cycle, then it rises to 1.35 N; hold 0.4 s (0.45 N: a step down, rendered as the
+//   envelope allows), release in 1 s, rest 0.5 s (cycle 3.5 s). For settling measurements.
+//
 // Names: scene_names(); "scene://NAME" is accepted too. Throws InvalidArgument (listing the
 // names) for an unknown name, and for a mapping that is not valid().
 std::unique_ptr<Scene> make_scene(std::string_view name, const WorkspaceMapping& mapping = {});
