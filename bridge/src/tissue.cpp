@@ -457,9 +457,27 @@ TissueModel TissueEstimator::to_model(const Member& m) const noexcept {
   return {};
 }
 
-void TissueEstimator::restart_pair(double xs) noexcept {
+void TissueEstimator::bank_regressors(double xs) noexcept {
+  if (options_.kind == TissueKind::hunt_crossley && bank_size_ > 1) {
+    double g1 = pow_n(xs, bank_[0].shape);
+    const double factor = std::pow(xs, bank_[1].shape - bank_[0].shape);
+    for (std::size_t j = 0; j < bank_size_; ++j) {
+      g1_[j] = g1;
+      g2_[j] = g1 * xs / (bank_[j].shape + 1.0);
+      g1 *= factor;
+    }
+    return;
+  }
   for (std::size_t j = 0; j < bank_size_; ++j) {
-    regressors(bank_[j], xs, bank_[j].g1_prev, bank_[j].g2_prev);
+    regressors(bank_[j], xs, g1_[j], g2_[j]);
+  }
+}
+
+void TissueEstimator::restart_pair(double xs) noexcept {
+  bank_regressors(xs);
+  for (std::size_t j = 0; j < bank_size_; ++j) {
+    bank_[j].g1_prev = g1_[j];
+    bank_[j].g2_prev = g2_[j];
   }
   have_pair_ = true;
   filter_primed_ = false;
@@ -508,11 +526,11 @@ bool TissueEstimator::push(const TissueSample& sample) noexcept {
   const double d2 = o.reference_depth_m / (o.reference_rate_m_per_s * dt);
   const double force_mid = 0.5 * (sample.force_N + f_prev);
   force_f_ = filter_primed_ ? force_f_ + alpha * (force_mid - force_f_) : force_mid;
+  bank_regressors(xs);
   for (std::size_t j = 0; j < bank_size_; ++j) {
     Member& m = bank_[j];
-    double g1 = 0.0;
-    double g2 = 0.0;
-    regressors(m, xs, g1, g2);
+    const double g1 = g1_[j];
+    const double g2 = g2_[j];
     const double phi1 = 0.5 * (g1 + m.g1_prev);
     const double phi2 = (g2 - m.g2_prev) * d2;
     m.g1_prev = g1;

@@ -182,6 +182,7 @@ struct CellObserver::Impl {
 
 namespace {
 constexpr std::uint32_t kNoMark = 0;
+constexpr double kSettledFlow_m3_per_s = 1e-13;  // 0.1 nL/s: nothing left to relax
 }  // namespace
 
 // Projected coordinate descent on 1/2 |r|^2 + 1/2 w_p |d - d_pred|^2 + w_1 sum d, d >= 0. A
@@ -344,7 +345,12 @@ Status CellObserver::Impl::network_force(double dt_s, bool yields_changed) noexc
   for (std::size_t c = 0; c < cells; ++c) {
     moved = std::max(moved, std::abs(after[c] - last_force[c]));
   }
-  network_settled = moved <= 1e-6;
+  // And nothing flows: a released skin still refills with no contact force to show it.
+  double flow_m3_per_s = 0.0;
+  for (const double q : network->link_flow_m3_per_s()) {
+    flow_m3_per_s = std::max(flow_m3_per_s, std::abs(q));
+  }
+  network_settled = moved <= 1e-6 && flow_m3_per_s <= kSettledFlow_m3_per_s;
   network_primed = true;
   return Status::ok;
 }

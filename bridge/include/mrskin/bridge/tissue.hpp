@@ -196,11 +196,16 @@ class TissueEstimator {
     double err2 = 0.0;     // forgotten sum of squared prediction errors
   };
   void regressors(const Member& m, double xs, double& g1, double& g2) const noexcept;
+  // Every member's regressors at xs into g1_/g2_: the Hunt-Crossley bank's exponents are evenly
+  // spaced, so x^n climbs by one factor x^dn per member (two pow calls, not one each).
+  void bank_regressors(double xs) noexcept;
   [[nodiscard]] TissueModel to_model(const Member& m) const noexcept;
   void restart_pair(double xs) noexcept;
 
   TissueEstimatorOptions options_;
   std::array<Member, kMaxBank> bank_{};
+  std::array<double, kMaxBank> g1_{};
+  std::array<double, kMaxBank> g2_{};
   std::size_t bank_size_ = 1;
   std::size_t best_ = 0;
   TissueEstimatorStats stats_{};

@@ -20,7 +20,7 @@
 // changed and that has settled is not stepped. The force model is chosen per grid
 // (ObserverForceModel::automatic):
 //   - network (grids of at most network_max_cells fluid cells): the whole network is stepped
-//     every tick (skip_settled_network, off, skips it at rest);
+//     every tick (skip_settled_network skips it at rest);
 //   - local (larger grids): each contacted cell's force is the quasi-static cell law
 //     (DeviceModel::cell_force_at_yield, the law CellInverse inverts) at its depth and filtered
 //     rate (rates within hold_rate_m_per_s count as holding), at the mean yield stress of its
@@ -69,10 +69,11 @@ struct ObserverOptions {
   // Local force model: filtered rates within +-this count as holding (the rate's noise is
   // ~0.5 mm/s RMS on the 5 x 5), m/s.
   double hold_rate_m_per_s = 1.5e-3;
-  // Network model: skip the step while its inputs are unchanged and its forces moved less than
-  // 1 uN in the last one (5x5 idle tick 64k -> 28k instructions). Off: in the closed loop it
-  // freezes slow relaxation the plant still does (demo 0.031 -> 0.046 N RMS, p95 5.6 -> 20.6 %).
-  bool skip_settled_network = false;
+  // Network model: skip the step while its inputs are unchanged, its forces moved less than 1 uN
+  // in the last one and no link flows more than 0.1 nL/s (5x5 idle tick 64.5k -> 24.8k
+  // instructions). The flow test matters: on forces alone a released skin that still refills
+  // looked settled, and freezing it cost the demo 0.031 -> 0.046 N RMS.
+  bool skip_settled_network = true;
 };
 
 class CellObserver {
