@@ -5,6 +5,7 @@
 #pragma once
 
 #include <CLI/CLI.hpp>
+#include <cstdio>
 
 namespace mrskin::ctl {
 
@@ -17,7 +18,9 @@ inline CLI::App* add_unavailable_command(CLI::App& app, const char* name, const 
   auto* sub = app.add_subcommand(name, std::string(help) + " [not in this build]");
   sub->allow_extras();
   sub->callback([&exit_code, name] {
-    std::fprintf(stderr, "mrskinctl %s: not available in this build (mrskinctl complete, #11)\n", name);
+    std::fputs("mrskinctl ", stderr);
+    std::fputs(name, stderr);
+    std::fputs(": not available in this build (mrskinctl complete, #11)\n", stderr);
     exit_code = 69;
   });
   return sub;

@@ -182,9 +182,7 @@ class Bridge {
   std::vector<unsigned char> unloading_;    // per cell: latched release (direction_rate)
   std::vector<double> extreme_m_;           // per cell: peak depth while loaded, trough while unloading
   std::vector<double> smooth_depth_m_;      // per cell: depth smoothed for the unloading latch
-  std::vector<std::uint32_t> open_ticks_;   // per cell: ticks its valves have been at 0 A
   std::vector<unsigned char> below_floor_;  // per cell: target below the observed open-valve floor
-  std::uint32_t settle_ticks_ = 1;
   double unload_filter_alpha_ = 1.0;
   std::vector<double> current_A_;
   std::vector<double> valve_gain_;  // calibrated per-valve yield gain
