@@ -34,7 +34,7 @@ T parse_number(std::string_view key, std::string_view text) {
   return value;
 }
 
-// faults=drop:P,dup:P,corrupt:P,reorder:P,delay:S,disconnect:AT+FOR,stuck:N,noisy:N,
+// faults=drop:P,dup:P,corrupt:P,reorder:P,delay:S,disconnect:AT+FOR,stuck:N,noisy:N,leak:V,
 //        overheat:N,busoff:AT
 MockFaults parse_faults(std::string_view list) {
   MockFaults f;
@@ -83,10 +83,12 @@ MockFaults parse_faults(std::string_view list) {
       }
     } else if (name == "busoff") {
       f.bus_off_at_s = parse_number<double>(name, value);
+    } else if (name == "leak") {
+      f.leak_valve = parse_number<int>(name, value);
     } else {
       throw InvalidArgument("mock:// fault '" + std::string(name) +
                             "' is unknown: use drop, dup, corrupt, reorder, delay, disconnect, stuck, noisy, "
-                            "overheat or busoff");
+                            "overheat, busoff or leak");
     }
   }
   return f;

@@ -153,7 +153,7 @@ LoadedProfile load_profile_with_text(std::string_view name_or_path) {
 bool MockFaults::any() const noexcept {
   return drop_probability > 0.0 || duplicate_probability > 0.0 || corrupt_probability > 0.0 ||
          reorder_probability > 0.0 || delay_s > 0.0 || disconnect_at_s >= 0.0 || stuck_sensor >= 0 ||
-         noisy_sensor >= 0 || overheat_valve >= 0 || bus_off_at_s >= 0.0;
+         noisy_sensor >= 0 || overheat_valve >= 0 || bus_off_at_s >= 0.0 || leak_valve >= 0;
 }
 
 // Host end of the in-process link: pushes into the device's queue, pops from the host's.
@@ -209,6 +209,7 @@ MockDevice::MockDevice(const model::DeviceProfile& profile, std::string_view pro
       plant_(std::move(plant)),
       commanded_A_(layout_.valve_count(), 0.0),
       coil_A_(layout_.valve_count(), 0.0),
+      plant_A_(layout_.valve_count(), 0.0),
       coil_C_(layout_.valve_count(), options.ambient_C),
       delay_line_(kDelayLineCapacity),
       fault_rng_(options.seed ^ 0x5EEDFA017ULL),
@@ -743,8 +744,9 @@ void MockDevice::update_coils(double dt_s) noexcept {
     coil_C_[v] = t + dt_s * heat_W / options_.coil_heat_capacity_J_per_K;
     hottest = std::max(hottest, coil_C_[v]);
     overheated = overheated || coil_C_[v] >= options_.fault_C;
+    plant_A_[v] = static_cast<int>(v) == f.leak_valve ? coil_A_[v] * f.leak_current_fraction : coil_A_[v];
   }
-  plant_->set_valve_currents(coil_A_);
+  plant_->set_valve_currents(plant_A_);
   for (std::size_t i = 0; i < coil_A_.size(); ++i) {
     applied_A_[i].store(coil_A_[i], std::memory_order_relaxed);
   }

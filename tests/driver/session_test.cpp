@@ -217,6 +217,34 @@ TEST(Session, NoisySensorIsNoisy) {
   EXPECT_LT(std::sqrt(sum_sq_quiet / 200), 5e-6);
 }
 
+TEST(Session, LeakingValveHoldsLessPressure) {
+  // Press the centre cell (fluid cell 6) to 2 mm with every valve at 50 mA, then hold: the
+  // trapped fluid escapes through one of its valves when that valve leaks.
+  auto held_force_N = [](const std::string& uri) {
+    Rig rig(uri);
+    EXPECT_EQ(rig.dev.session->request_enable(), ResultCode::ok);
+    std::fill(rig.currents.begin(), rig.currents.end(), 0.05);
+    for (int k = 0; k < 200; ++k) {
+      rig.finger[6] = 2e-3 * (k + 1) / 200.0;
+      rig.run(1);
+    }
+    rig.run(300);
+    std::vector<double> force_N(rig.finger.size());
+    rig.dev.mock->true_contact_forces(force_N);
+    return force_N[6];
+  };
+  std::size_t valve = 0;
+  {
+    const Rig probe("mock://?seed=13");  // one owner per unit: closed before the runs
+    valve = probe.dev.mock->layout().valves_of_cell(6)[0];
+  }
+  const double tight_N = held_force_N("mock://?seed=13");
+  const double leaky_N = held_force_N("mock://?seed=13&faults=leak:" + std::to_string(valve));
+  std::printf("held force: tight %.3f N, leaking valve %zu %.3f N\n", tight_N, valve, leaky_N);
+  EXPECT_GT(tight_N, 0.3);
+  EXPECT_LT(leaky_N, 0.8 * tight_N);
+}
+
 TEST(Session, OverheatedCoilDeratesThenFaults) {
   Rig rig("mock://?seed=11&faults=overheat:2");
   ASSERT_EQ(rig.dev.session->request_enable(), ResultCode::ok);

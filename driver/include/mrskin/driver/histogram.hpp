@@ -42,12 +42,20 @@ class DurationHistogram {
   }
   [[nodiscard]] std::uint64_t count() const noexcept { return count_; }
   [[nodiscard]] std::int64_t max_ns() const noexcept { return max_ns_; }
+  // The buckets, for printing a histogram: bucket i counts durations up to upper_edge_ns(i)
+  // (bucket 0: below 10 ns; the last also holds everything above 10 s).
+  [[nodiscard]] static constexpr std::size_t bucket_count() noexcept { return kBuckets; }
+  [[nodiscard]] std::uint64_t bucket(std::size_t i) const noexcept { return i < kBuckets ? buckets_[i] : 0; }
+  [[nodiscard]] static double upper_edge_ns(std::size_t i) noexcept {
+    return i == 0 ? 10.0 : std::pow(10.0, 1.0 + static_cast<double>(i) / kPerDecade);
+  }
   void reset() noexcept { *this = DurationHistogram{}; }
 
  private:
   static constexpr int kPerDecade = 16;
   static constexpr int kDecades = 9;
-  std::array<std::uint64_t, static_cast<std::size_t>(kPerDecade* kDecades + 2)> buckets_{};
+  static constexpr std::size_t kBuckets = static_cast<std::size_t>(kPerDecade * kDecades + 2);
+  std::array<std::uint64_t, kBuckets> buckets_{};
   std::uint64_t count_ = 0;
   std::int64_t max_ns_ = 0;
 };

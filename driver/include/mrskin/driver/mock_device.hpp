@@ -45,6 +45,10 @@ struct MockFaults {
   double overheat_for_s = -1.0;  // ...for this long from power-up (< 0: for ever)
   double bus_off_at_s = -1.0;    // bus-off at this device time (< 0: never)
   double bus_off_for_s = 0.1;    // silent this long, then back in FAULT
+  // This valve leaks (a worn seal, a gap beside the channel): its field acts as if its coil
+  // carried only leak_current_fraction of its current, so it holds far less pressure.
+  int leak_valve = -1;
+  double leak_current_fraction = 0.2;
   [[nodiscard]] bool any() const noexcept;
 };
 
@@ -215,7 +219,8 @@ class MockDevice {
   SpscQueue<Datagram> to_device_{256};
   SpscQueue<Datagram> to_host_{1024};
   std::vector<double> commanded_A_;
-  std::vector<double> coil_A_;  // after slew limit and derating
+  std::vector<double> coil_A_;   // after slew limit and derating
+  std::vector<double> plant_A_;  // what the plant's field sees (coil_A_ less a leak fault)
   std::vector<double> coil_C_;
   std::vector<double> stuck_value_;
   struct Delayed {
