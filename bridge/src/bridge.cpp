@@ -65,6 +65,7 @@ Bridge::Bridge(DeviceSession& session, SlaveSource& source, BridgeOptions option
   tissue_N_.assign(cells, 0.0);
   feedback_N_.assign(cells, 0.0);
   unloading_.assign(cells, 0);
+  loading_.assign(cells, 0);
   below_floor_.assign(cells, 0);
   smooth_depth_m_.assign(cells, 0.0);
   unload_filter_alpha_ = 1.0 - std::exp(-1.0 / (options_.rate_hz * std::max(options_.unload_filter_s, 1e-9)));
@@ -160,6 +161,7 @@ double Bridge::direction_rate(std::size_t i, bool contact, double depth_m, doubl
   // trough. Between the two, rates within the deadband count as holding.
   const double retreat_m = options_.unload_retreat_m;
   if (!contact) {
+    loading_[i] = 0;
     unloading_[i] = 0;
     extreme_m_[i] = 0.0;
     smooth_depth_m_[i] = 0.0;
@@ -182,10 +184,20 @@ double Bridge::direction_rate(std::size_t i, bool contact, double depth_m, doubl
     }
   }
   if (unloading_[i] != 0) {
+    loading_[i] = 0;
     // Released: the inverse sees a retreating finger whatever the noise says.
     return std::min(rate_m_per_s, -options_.unload_rate_m_per_s);
   }
-  return rate_m_per_s > options_.unload_rate_m_per_s ? rate_m_per_s : 0.0;
+  // Loading starts above the deadband and lasts until the rate falls below load_exit_rate:
+  // hysteresis in rate, so the noise at a press's smooth start does not flip the inverse between
+  // loading and holding every few ticks (hand: 0.039 -> 0.032 N RMS, p95 14 -> 8.7 %).
+  if (rate_m_per_s > options_.unload_rate_m_per_s ||
+      (loading_[i] != 0 && rate_m_per_s > options_.load_exit_rate_m_per_s)) {
+    loading_[i] = 1;
+    return rate_m_per_s;
+  }
+  loading_[i] = 0;
+  return 0.0;
 }
 
 void Bridge::compute_targets() noexcept {

@@ -44,16 +44,16 @@ struct Bound {
   double p95;
 };
 
-// Measured (seed 7, g++ 12 release): demo 0.032 N / 6.3 %; the organs 0.030-0.039 N RMS (the
-// product's 0.04 N) at 7.2-14 % p95; sweep 0.054 N / 16 %; tumour 0.037 N / 7.9 %; step 0.086 N /
-// 29 % (its force step is faster than the device can follow, docs/bridge.md "Settling"). Bounds:
-// demo the product's 0.04 N / 7 %, as are the RMS bounds of scenes measured at 0.036 N or less;
-// the rest their measured value + ~15 % (numerics differ a little between compilers).
+// Measured (seed 7, g++ 12 release): demo 0.029 N / 6.3 %; the organs 0.025-0.032 N RMS at
+// 7.2-9.2 % p95; sweep 0.047 N / 13 %; tumour 0.037 N / 6.7 %; step 0.087 N / 29 % (its force
+// step is faster than the device can follow, docs/bridge.md "Settling"). Bounds: the product's
+// 0.04 N RMS wherever it is met, the demo's 7 % p95 too; the rest the measured value + ~15 %
+// (numerics differ a little between compilers, so tumour's 6.7 % is held at 7.5 %).
 constexpr Bound kBounds[] = {
-    {"demo", 10.0, 0.040, 0.07},   {"hand", 8.6, 0.045, 0.165},  {"neck", 8.6, 0.040, 0.092},
-    {"abdomen", 8.6, 0.040, 0.13}, {"thigh", 8.6, 0.040, 0.083}, {"back", 8.6, 0.043, 0.085},
-    {"stomach", 8.6, 0.040, 0.11}, {"sweep", 7.5, 0.062, 0.19},  {"tumour", 7.5, 0.043, 0.091},
-    {"step", 7.0, 0.099, 0.34},
+    {"demo", 10.0, 0.040, 0.07},    {"hand", 8.6, 0.040, 0.10},   {"neck", 8.6, 0.040, 0.09},
+    {"abdomen", 8.6, 0.040, 0.106}, {"thigh", 8.6, 0.040, 0.083}, {"back", 8.6, 0.040, 0.084},
+    {"stomach", 8.6, 0.040, 0.106}, {"sweep", 7.5, 0.054, 0.15},  {"tumour", 7.5, 0.040, 0.075},
+    {"step", 7.0, 0.10, 0.33},
 };
 
 class ClosedLoop : public ::testing::TestWithParam<Bound> {};

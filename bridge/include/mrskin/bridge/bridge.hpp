@@ -46,10 +46,11 @@ struct BridgeOptions {
   // peaks) at up to 2 N swings the energy by tens of uJ without any energy being made: deficits
   // within this count as passive.
   double passivity_tolerance_J = 50e-6;
-  double unload_rate_m_per_s = 2e-3;  // rates within +-this are holding (observer noise)
-  double unload_retreat_m = 30e-6;    // a cell unloads after retreating this far from its peak...
-  double unload_filter_s = 5e-3;      // ...on its depth smoothed with this time constant
-  double contact_force_N = 0.03;      // estimated force below this: the finger is not on the cell
+  double unload_rate_m_per_s = 2e-3;       // rates within +-this are holding (observer noise)...
+  double load_exit_rate_m_per_s = 0.5e-3;  // ...but a loading cell loads until its rate is below this
+  double unload_retreat_m = 30e-6;         // a cell unloads after retreating this far from its peak...
+  double unload_filter_s = 5e-3;           // ...on its depth smoothed with this time constant
+  double contact_force_N = 0.03;           // estimated force below this: the finger is not on the cell
   // Integral feedback on the observer's force, 1/s: corrects what the quasi-static inverse does
   // not know (the cell's fluid history, coil lag); frozen while the target is clamped.
   double feedback_gain_per_s = 40.0;
@@ -180,6 +181,7 @@ class Bridge {
   std::vector<double> tissue_N_;            // tissue law at the cell's state
   std::vector<double> feedback_N_;          // integral correction per cell
   std::vector<unsigned char> unloading_;    // per cell: latched release (direction_rate)
+  std::vector<unsigned char> loading_;      // per cell: latched loading (direction_rate)
   std::vector<double> extreme_m_;           // per cell: peak depth while loaded, trough while unloading
   std::vector<double> smooth_depth_m_;      // per cell: depth smoothed for the unloading latch
   std::vector<unsigned char> below_floor_;  // per cell: target below the observed open-valve floor

@@ -54,7 +54,7 @@ class DurationHistogram {
  private:
   static constexpr int kPerDecade = 16;
   static constexpr int kDecades = 9;
-  static constexpr std::size_t kBuckets = static_cast<std::size_t>(kPerDecade * kDecades + 2);
+  static constexpr std::size_t kBuckets = (static_cast<std::size_t>(kPerDecade) * kDecades) + 2;
   std::array<std::uint64_t, kBuckets> buckets_{};
   std::uint64_t count_ = 0;
   std::int64_t max_ns_ = 0;
