@@ -1,19 +1,11 @@
 # mrskinctl info against the mock: what it prints, and its exit codes on failure.
 # cmake -DMRSKINCTL=path/to/mrskinctl -P mrskinctl_info_test.cmake
+include(${CMAKE_CURRENT_LIST_DIR}/../tools/cli_check.cmake)
+
 function(run_info expected_exit)
-  execute_process(COMMAND ${MRSKINCTL} info ${ARGN} RESULT_VARIABLE code OUTPUT_VARIABLE out ERROR_VARIABLE err)
-  if(NOT code EQUAL expected_exit)
-    message(FATAL_ERROR "mrskinctl info ${ARGN}: exit ${code}, expected ${expected_exit}\n${out}\n${err}")
-  endif()
+  run(${expected_exit} info ${ARGN})
   set(out "${out}" PARENT_SCOPE)
   set(err "${err}" PARENT_SCOPE)
-endfunction()
-
-function(expect text haystack)
-  string(FIND "${haystack}" "${text}" at)
-  if(at EQUAL -1)
-    message(FATAL_ERROR "expected '${text}' in:\n${haystack}")
-  endif()
 endfunction()
 
 # Identity, protocol, profile, layout, limits, calibration, state and statistics.

@@ -1,8 +1,10 @@
 // The mrskin-bridged binary on mock://, driven over its control socket: permissions, status,
 // e-stop -> fault -> enable, malformed requests, telemetry, SIGHUP reload on the open device,
 // SIGTERM with the statistics flushed, and a second daemon refused. Waits are bounded polls.
+#include <arpa/inet.h>
 #include <fcntl.h>
 #include <gtest/gtest.h>
+#include <netinet/in.h>
 #include <sys/socket.h>
 #include <sys/stat.h>
 #include <sys/un.h>
@@ -20,8 +22,10 @@
 #include <thread>
 #include <vector>
 
+#include "child_process.hpp"
 #include "exit_codes.hpp"
 #include "line_client.hpp"
+#include "mrskin/bridge/sources.hpp"
 
 namespace {
 
@@ -30,78 +34,22 @@ using mrskin::ctl::json_field;
 using mrskin::ctl::LineClient;
 using namespace std::chrono_literals;
 
-std::string slurp(const fs::path& p) {
-  std::ifstream in(p);
-  std::stringstream s;
-  s << in.rdbuf();
-  return s.str();
-}
+using mrskin::test::eventually;
+using mrskin::test::slurp;
 
-class Daemon {
+// The daemon binary with stdout and stderr in one file, dir/NAME.out.
+class Daemon : public mrskin::test::ChildProcess {
  public:
   Daemon(const fs::path& dir, const std::string& name, std::vector<std::string> args)
-      : out_(dir / (name + ".out")), pid_(::fork()) {
-    if (pid_ == 0) {
-      args.insert(args.begin(), MRSKIN_BRIDGED_EXE);
-      // A loaded machine (ctest -j, sanitizers) may starve the loop for 100 ms, the mock's
-      // heartbeat watchdog: scale every session timeout (docs/api.md) unless the caller did.
-      ::setenv("MRSKIN_TIME_SCALE", "10", 0);
-      const int fd = ::open(out_.c_str(), O_WRONLY | O_CREAT | O_TRUNC, 0600);  // NOLINT(*-vararg)
-      ::dup2(fd, 1);
-      ::dup2(fd, 2);
-      std::vector<char*> argv;
-      argv.reserve(args.size() + 1);
-      for (std::string& a : args) {
-        argv.push_back(a.data());
-      }
-      argv.push_back(nullptr);
-      ::execv(argv[0], argv.data());
-      ::_exit(127);
-    }
-  }
-  Daemon(const Daemon&) = delete;
-  Daemon& operator=(const Daemon&) = delete;
-  Daemon(Daemon&&) = delete;
-  Daemon& operator=(Daemon&&) = delete;
-  ~Daemon() {
-    if (pid_ > 0 && !exited_) {
-      ::kill(pid_, SIGKILL);
-      (void)wait(60s);
-    }
-  }
-  void signal(int sig) const { ::kill(pid_, sig); }
-  // The exit code, or -1 when it did not exit within timeout.
-  int wait(std::chrono::seconds timeout) {
-    const auto end = std::chrono::steady_clock::now() + timeout;
-    while (std::chrono::steady_clock::now() < end) {
-      int status = 0;
-      if (::waitpid(pid_, &status, WNOHANG) == pid_) {
-        exited_ = true;
-        return WIFEXITED(status) ? WEXITSTATUS(status) : 128 + WTERMSIG(status);
-      }
-      std::this_thread::sleep_for(10ms);
-    }
-    return -1;
-  }
-  [[nodiscard]] std::string output() const { return slurp(out_); }
+      : ChildProcess(dir / (name + ".out"), dir / (name + ".out"), with_exe(std::move(args))) {}
+  [[nodiscard]] std::string output() const { return out(); }
 
  private:
-  fs::path out_;
-  pid_t pid_ = -1;
-  bool exited_ = false;
-};
-
-// Polls until pred holds or the bound passes (generous: the suite shares a loaded machine).
-bool eventually(const std::function<bool()>& pred, std::chrono::seconds bound = 20s) {
-  const auto end = std::chrono::steady_clock::now() + bound;
-  while (std::chrono::steady_clock::now() < end) {
-    if (pred()) {
-      return true;
-    }
-    std::this_thread::sleep_for(20ms);
+  static std::vector<std::string> with_exe(std::vector<std::string> args) {
+    args.insert(args.begin(), MRSKIN_BRIDGED_EXE);
+    return args;
   }
-  return pred();
-}
+};
 
 class BridgedDaemon : public ::testing::Test {
  protected:
@@ -297,6 +245,61 @@ TEST_F(BridgedDaemon, SighupReloadsOnTheOpenDevice) {
 
   d.signal(SIGINT);
   EXPECT_EQ(d.wait(30s), mrskin::tools::kOk) << d.output();
+}
+
+// The stream source's arrival hook wakes the loop: at 20 Hz, samples arriving between deadlines
+// run early ticks (counted in the exit summary). No timing is asserted, only that some did.
+TEST_F(BridgedDaemon, UdpSamplesWakeTheLoopEarly) {
+  std::uint16_t port = 0;
+  {  // a free loopback port (the daemon binds it next)
+    const int fd = ::socket(AF_INET, SOCK_DGRAM, 0);
+    sockaddr_in a{};
+    a.sin_family = AF_INET;
+    a.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
+    socklen_t len = sizeof(a);
+    // NOLINTNEXTLINE(cppcoreguidelines-pro-type-reinterpret-cast): the socket API's own cast
+    ASSERT_EQ(::bind(fd, reinterpret_cast<const sockaddr*>(&a), sizeof(a)), 0);
+    // NOLINTNEXTLINE(cppcoreguidelines-pro-type-reinterpret-cast): the socket API's own cast
+    ASSERT_EQ(::getsockname(fd, reinterpret_cast<sockaddr*>(&a), &len), 0);
+    port = ntohs(a.sin_port);
+    ::close(fd);
+  }
+  std::string text = config_text("rate_hz = 20\n[bridge]\nrealtime = false");
+  text.replace(text.find("scene://demo"), 12, "udp://127.0.0.1:" + std::to_string(port));
+  const fs::path cfg = dir_ / "udp.toml";
+  std::ofstream(cfg) << text;
+  Daemon d(dir_, "udp", {"--config", cfg.string(), "--quiet"});
+  LineClient c = connect();
+  ASSERT_TRUE(c.connected()) << d.output();
+  const int out = ::socket(AF_INET, SOCK_DGRAM, 0);
+  sockaddr_in to{};
+  to.sin_family = AF_INET;
+  to.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
+  to.sin_port = htons(port);
+  for (std::uint32_t k = 0; k < 100; ++k) {
+    mrskin::bridge::UdpSample s;
+    s.sequence = k;
+    s.stamp_ns = static_cast<std::int64_t>(k) * 7'000'000;
+    s.force_N = 0.5;
+    s.indentation_m = 1e-3;
+    s.tip_radius_m = 3e-3;
+    const auto bytes = mrskin::bridge::encode_udp_sample(s);
+    // NOLINTNEXTLINE(cppcoreguidelines-pro-type-reinterpret-cast): the socket API's own cast
+    (void)::sendto(out, bytes.data(), bytes.size(), 0, reinterpret_cast<const sockaddr*>(&to), sizeof(to));
+    std::this_thread::sleep_for(7ms);  // spread over several 50 ms periods
+  }
+  ::close(out);
+  std::string s;
+  EXPECT_TRUE(eventually([&] {
+    s = status(c);
+    return json_field(s, "stream").has_value() && json_field(s, "stream") != "no sample yet";
+  })) << s;
+  d.signal(SIGTERM);
+  ASSERT_EQ(d.wait(60s), mrskin::tools::kOk) << d.output();
+  const std::string output = d.output();
+  const std::size_t at = output.find("early wakes ");
+  ASSERT_NE(at, std::string::npos) << output;
+  EXPECT_GT(std::stoull(output.substr(at + 12)), 0U) << output;
 }
 
 TEST_F(BridgedDaemon, ASecondDaemonOnTheSameSocketIsBusy) {

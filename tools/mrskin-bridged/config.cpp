@@ -196,19 +196,6 @@ void apply(const Overrides& o, Settings& s) {
   s.socket = o.socket.value_or(s.socket);
 }
 
-std::string default_socket_path() {
-  // NOLINTNEXTLINE(concurrency-mt-unsafe): read at setup, before any thread
-  if (const char* rd = std::getenv("RUNTIME_DIRECTORY"); rd != nullptr && rd[0] != '\0') {
-    const std::string_view all(rd);  // systemd lists several directories with ':'
-    return fmt::format("{}/bridged.sock", all.substr(0, all.find(':')));
-  }
-  // NOLINTNEXTLINE(concurrency-mt-unsafe): read at setup, before any thread
-  if (const char* xdg = std::getenv("XDG_RUNTIME_DIR"); xdg != nullptr && xdg[0] != '\0') {
-    return fmt::format("{}/mrskin/bridged.sock", xdg);
-  }
-  return fmt::format("/tmp/mrskin-{}/bridged.sock", getuid());
-}
-
 bridge::BridgeOptions bridge_options(const Settings& s) {
   bridge::BridgeOptions o;
   o.rate_hz = s.rate_hz;

@@ -7,6 +7,7 @@
 
 #include "mrskin/bridge/bridge.hpp"
 #include "mrskin/driver/errors.hpp"
+#include "socket_path.hpp"  // default_socket_path()
 
 namespace mrskin::bridged {
 
@@ -58,9 +59,6 @@ Settings load_settings(const std::string& path);
 // Checks the ranges of values that may come from flags too; throws ConfigError naming origin.
 void validate(const Settings& s, const std::string& origin);
 void apply(const Overrides& o, Settings& s);
-// $RUNTIME_DIRECTORY/bridged.sock (systemd), else $XDG_RUNTIME_DIR/mrskin/bridged.sock, else
-// /tmp/mrskin-UID/bridged.sock.
-std::string default_socket_path();
 bridge::BridgeOptions bridge_options(const Settings& s);
 
 }  // namespace mrskin::bridged

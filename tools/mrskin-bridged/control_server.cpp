@@ -150,7 +150,16 @@ bool parse_request(std::string_view line, ControlRequest& out, std::string& erro
     }
     ++i;
     skip_ws(line, i);
-    if (i < line.size() && line[i] == '"') {
+    if (line.substr(i, 4) == "true" || line.substr(i, 5) == "false") {
+      const bool value = line[i] == 't';
+      i += value ? 4 : 5;
+      if (key == "grid") {
+        out.grid = value;
+      } else {
+        error = R"(unknown field ")" + key + R"(")";
+        return false;
+      }
+    } else if (i < line.size() && line[i] == '"') {
       std::string value;
       if (!parse_string(line, i, value)) {
         error = "malformed JSON: unterminated string";
@@ -325,10 +334,25 @@ void ControlServer::run() noexcept {
       }
     }
     const SteadyClock::time_point t = SteadyClock::now();
+    std::string grid;  // built once per round for every grid subscriber due
     for (Client& c : clients_) {
       if (c.telemetry_ms > 0.0 && !c.dead && !c.closing && t >= c.next_telemetry) {
         c.next_telemetry = t + std::chrono::microseconds(static_cast<std::int64_t>(c.telemetry_ms * 1e3));
-        send(c, R"({"event":"telemetry",)" + backend_->telemetry_members() + "}");
+        try {
+          if (c.grid && grid.empty()) {
+            grid = backend_->grid_members();
+          }
+          std::string line = R"({"event":"telemetry",)";
+          line += backend_->telemetry_members();
+          if (c.grid) {
+            line += ',';
+            line += grid;
+          }
+          line += '}';
+          send(c, line);
+        } catch (...) {
+          c.dead = true;  // out of memory: drop this client, keep serving the others
+        }
       }
     }
     for (Client& c : clients_) {
@@ -341,6 +365,16 @@ void ControlServer::run() noexcept {
       }
     }
     std::erase_if(clients_, [](const Client& c) { return c.fd < 0; });
+    const auto grid_clients = static_cast<std::size_t>(
+        std::count_if(clients_.begin(), clients_.end(), [](const Client& c) { return c.grid; }));
+    if (grid_clients != grid_clients_) {
+      grid_clients_ = grid_clients;
+      backend_->grid_subscribers(grid_clients);
+    }
+  }
+  if (grid_clients_ != 0) {
+    grid_clients_ = 0;
+    backend_->grid_subscribers(0);
   }
 }
 
@@ -430,21 +464,29 @@ void ControlServer::handle_line(Client& c, std::string_view line) {
       return;
     }
     c.telemetry_ms = r.period_ms;
+    c.grid = r.grid;
     c.next_telemetry = SteadyClock::now();
-    send(c, fmt::format(R"({{"ok":true,"cmd":"telemetry","period_ms":{}}})", ctl::json_number(r.period_ms)));
+    if (r.grid) {  // the round's end tells the tick; 20 ms lets it publish a first snapshot
+      c.next_telemetry += std::chrono::milliseconds(20);
+    }
+    send(c, fmt::format(R"({{"ok":true,"cmd":"telemetry","period_ms":{},"grid":{}}})",
+                        ctl::json_number(r.period_ms), r.grid));
   } else if (r.cmd == "stop") {
     c.telemetry_ms = 0.0;
+    c.grid = false;
     send(c, R"({"ok":true,"cmd":"stop"})");
   } else if (r.cmd == "help") {
-    send(c, R"({"ok":true,"cmd":"help","commands":{)"
-            R"("status":"state, fault, halted, ticks, live error, stiffness, stream, rate, device, uptime",)"
-            R"("enable":"leave a disable, an e-stop or a latched fault",)"
-            R"("disable":"release every valve and disable the device",)"
-            R"("estop":"release every valve within one tick and e-stop the device",)"
-            R"("fault":"fault cause and the decoded ring log frozen at the fault",)"
-            "\"telemetry\":\"{\\\"cmd\\\":\\\"telemetry\\\",\\\"period_ms\\\":N}: one line every N ms until "
-            R"(stop",)"
-            R"("stop":"end a telemetry subscription","help":"this"}})");
+    send(c,
+         R"({"ok":true,"cmd":"help","commands":{)"
+         R"("status":"state, fault, halted, ticks, live error, stiffness, stream, rate, device, uptime",)"
+         R"("enable":"leave a disable, an e-stop or a latched fault",)"
+         R"("disable":"release every valve and disable the device",)"
+         R"("estop":"release every valve within one tick and e-stop the device",)"
+         R"("fault":"fault cause and the decoded ring log frozen at the fault",)"
+         "\"telemetry\":\"{\\\"cmd\\\":\\\"telemetry\\\",\\\"period_ms\\\":N[,\\\"grid\\\":true]}: one line "
+         R"(every N ms until stop; grid adds per-cell force, displacement, target and per-valve current, )"
+         R"(coil temperature",)"
+         R"("stop":"end a telemetry subscription","help":"this"}})");
   } else {
     send(c, fmt::format(R"({{"ok":false,"cmd":"{}","error":"unknown command; send help"}})", cmd));
   }

@@ -29,6 +29,10 @@ class ControlBackend {
   virtual std::string status_members() = 0;
   virtual std::string fault_members() = 0;
   virtual std::string telemetry_members() = 0;
+  // The grid arrays and their context (telemetry with "grid":true).
+  virtual std::string grid_members() = 0;
+  // How many clients subscribe to the grid now: the tick publishes it only while some do.
+  virtual void grid_subscribers(std::size_t n) noexcept = 0;
   // cmd is "enable", "disable" or "estop"; returns what was requested, for the response.
   virtual void request(std::string_view cmd) = 0;
 };
@@ -42,8 +46,10 @@ class SocketBusy : public DeviceBusy {
 struct ControlRequest {
   std::string cmd;
   double period_ms = 100.0;  // telemetry
+  bool grid = false;         // telemetry: add the per-cell and per-valve arrays
 };
-// Parses one request line: a JSON object {"cmd": "...", "period_ms": N} or a bare command word.
+// Parses one request line: a JSON object {"cmd": "...", "period_ms": N, "grid": true} or a bare
+// command word.
 // Returns false with error set when it is malformed.
 bool parse_request(std::string_view line, ControlRequest& out, std::string& error);
 
@@ -75,6 +81,7 @@ class ControlServer {
     std::string in;
     std::string out;
     double telemetry_ms = 0.0;  // 0: not subscribed
+    bool grid = false;          // the subscription includes the grid arrays
     std::chrono::steady_clock::time_point next_telemetry{};
     bool closing = false;  // close once out is flushed
     bool dead = false;
@@ -93,6 +100,7 @@ class ControlServer {
   int listen_fd_ = -1;
   int wake_fd_ = -1;  // eventfd: stop()
   std::vector<Client> clients_;
+  std::size_t grid_clients_ = 0;  // as last told to the backend
   std::atomic<bool> stop_{false};
   std::thread thread_;
   std::mutex events_mutex_;  // control thread <-> main thread only; never the tick

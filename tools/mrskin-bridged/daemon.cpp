@@ -3,6 +3,8 @@
 #include <fmt/format.h>
 
 #include <algorithm>
+#include <array>
+#include <cmath>
 #include <thread>
 
 #include "json_text.hpp"
@@ -13,7 +15,12 @@ using bridge::Bridge;
 using ctl::json_escape;
 using ctl::json_number;
 
-OpenedSource open_source(const Settings& s, Clock& clock) {
+namespace {
+// A stream source's I/O thread, after it queued a sample: wake the loop for a tick now.
+void wake_loop(void* waiter) noexcept { static_cast<bridge::Waiter*>(waiter)->notify(); }
+}  // namespace
+
+OpenedSource open_source(const Settings& s, Clock& clock, bridge::Waiter* wake) {
   OpenedSource o;
   if (s.source.rfind("scene://", 0) == 0) {
     std::unique_ptr<bridge::Scene> scene = bridge::make_scene(s.source, s.mapping);
@@ -23,6 +30,9 @@ OpenedSource open_source(const Settings& s, Clock& clock) {
   }
   // udp://, replay://, igtl://, igtl-listen:// (docs/sources.md); InvalidArgument names the rest.
   std::unique_ptr<bridge::StreamSource> stream = bridge::open_stream(s.source, {}, &clock);
+  if (wake != nullptr) {
+    stream->set_arrival_hook(&wake_loop, wake);
+  }
   o.stream = stream.get();
   o.source = std::move(stream);
   return o;
@@ -42,8 +52,12 @@ bool WatchedSource::latest(TimePoint now, bridge::SlaveSample& out) noexcept {
 }
 
 Daemon::Daemon(Settings settings, MonotonicClock& clock)
-    : settings_(std::move(settings)), clock_(clock), shown_(settings_) {
-  source_ = open_source(settings_, clock_);  // a bad source URI fails before the device opens
+    : settings_(std::move(settings)),
+      clock_(clock),
+      waiter_(std::make_unique<bridge::MonotonicWaiter>()),
+      shown_(settings_) {
+  // A bad source URI fails before the device opens.
+  source_ = open_source(settings_, clock_, waiter_.get());
   if (!settings_.record.empty()) {
     recorder_ = std::make_unique<bridge::SampleRecorder>(settings_.record);
   }
@@ -52,7 +66,16 @@ Daemon::Daemon(Settings settings, MonotonicClock& clock)
     truth_.emplace(*dev_.mock);
     finger_.assign(dev_.mock->layout().fluid_cell_count(), 0.0);
   }
+  const DeviceInfo& info = dev_.session->info();
+  rows_ = info.rows;
+  cols_ = info.cols;
+  max_current_A_ = info.max_current_A;
+  grid_ = std::make_unique<GridSeqlock>(info.fluid_cells, info.valves);
+  const model::DeviceProfile* profile = dev_.session->profile();
+  force_range_N_ = profile != nullptr ? profile->design.force_range_N : 0.0;
+  thermal_.reset(info.valves, profile != nullptr ? profile->coil.resistance_ohm : 0.0);
   t0_ = clock_.now();
+  last_thermal_ = t0_;
   if (source_.scene != nullptr) {
     source_.scene->set_start(t0_);
   }
@@ -79,8 +102,9 @@ void Daemon::build_bridge(const Settings& s) {
   watched_ = std::move(watched);
 }
 
-bridge::LoopOptions loop_options(const Settings& s) {
+bridge::LoopOptions loop_options(const Settings& s, bridge::Waiter* waiter) {
   bridge::LoopOptions lo;
+  lo.waiter = waiter;
   lo.rate_hz = s.rate_hz;
   lo.realtime = s.realtime;
   lo.priority = s.rt_priority;
@@ -89,7 +113,7 @@ bridge::LoopOptions loop_options(const Settings& s) {
 
 std::string Daemon::start() {
   if (!loop_) {
-    loop_ = std::make_unique<bridge::RealtimeLoop>(clock_, *this, loop_options(settings_));
+    loop_ = std::make_unique<bridge::RealtimeLoop>(clock_, *this, loop_options(settings_, waiter_.get()));
   }
   std::string warning = loop_->start();
   if (warned_) {
@@ -159,6 +183,62 @@ void Daemon::publish(TimePoint now) noexcept {
   } else if (disconnected_since_ns_.load(std::memory_order_relaxed) == 0) {
     disconnected_since_ns_.store(std::max<std::int64_t>(1, now.count()), std::memory_order_relaxed);
   }
+  publish_grid(now);
+}
+
+void Daemon::publish_grid(TimePoint now) noexcept {
+  if (now - last_thermal_ < kGridPeriod) {
+    return;  // the arrays move slowly next to their readers: every 10 ms is plenty
+  }
+  const DeviceSession& s = *dev_.session;
+  thermal_.step(s.commanded_currents(), s.valves_released(), to_seconds(now - last_thermal_));
+  last_thermal_ = now;
+  if (grid_subscribers_.load(std::memory_order_relaxed) == 0) {
+    return;
+  }
+  const model::CellObserver& observer = bridge_->observer();
+  grid_->begin_write(now.count());
+  grid_->write(GridSeqlock::force_n, observer.force_N());
+  grid_->write(GridSeqlock::displacement_m, observer.indentation_m());
+  grid_->write(GridSeqlock::target_n, bridge_->targets_N());
+  grid_->write(GridSeqlock::current_a, s.commanded_currents());
+  grid_->write(GridSeqlock::temperature_c, thermal_.temperature_C());
+  grid_->end_write();
+}
+
+void Daemon::grid_subscribers(std::size_t n) noexcept {
+  grid_subscribers_.store(n, std::memory_order_relaxed);
+}
+
+std::string Daemon::grid_members() {
+  std::string out = fmt::format(
+      R"("fault":"{}","last_fault":"{}","faults":{},"valves_released":{},"connected":{},"rows":{},"cols":{},)"
+      R"("max_current_a":{},"force_range_n":{},)",
+      fault_name(fault_code_.load(std::memory_order_relaxed)),
+      fault_name(last_fault_code_.load(std::memory_order_relaxed)), faults_.load(std::memory_order_relaxed),
+      valves_released_.load(std::memory_order_relaxed), connected_.load(std::memory_order_relaxed), rows_,
+      cols_, json_number(max_current_A_), json_number(force_range_N_));
+  const double hottest_C = dev_.mock ? dev_.mock->max_coil_temperature_C() : NAN;
+  out += fmt::format(R"("max_coil_temperature_c":{})", json_number(hottest_C));
+  if (!grid_->read(grid_copy_)) {
+    return out + R"(,"grid_t_s":null)";  // nothing published yet (the first 10 ms of a subscription)
+  }
+  out += fmt::format(R"(,"grid_t_s":{})",
+                     json_number(static_cast<double>(grid_copy_.t_ns - t0_.count()) * 1e-9));
+  static constexpr std::array<const char*, GridSeqlock::kArrays> kNames = {
+      "force_n", "displacement_m", "target_n", "current_a", "temperature_c"};
+  for (std::size_t a = 0; a < GridSeqlock::kArrays; ++a) {
+    out += fmt::format(R"(,"{}":[)", kNames.at(a));
+    const std::vector<double>& values = grid_copy_.arrays.at(a);
+    for (std::size_t i = 0; i < values.size(); ++i) {
+      if (i != 0) {
+        out += ',';
+      }
+      out += json_number(values[i]);
+    }
+    out += ']';
+  }
+  return out;
 }
 
 void Daemon::request(std::string_view cmd) {
@@ -388,7 +468,7 @@ std::vector<std::string> Daemon::reload(Settings next) {
     std::unique_ptr<bridge::RealtimeLoop> new_loop;
     try {
       if (source_changed) {
-        fresh = open_source(next, clock_);
+        fresh = open_source(next, clock_, waiter_.get());
         if (fresh.scene != nullptr) {
           fresh.scene->set_start(t0_);  // the script carries on where it is
         }
@@ -397,7 +477,7 @@ std::vector<std::string> Daemon::reload(Settings next) {
           std::make_unique<WatchedSource>(fresh.source ? *fresh.source : *source_.source, recorder_.get());
       b = std::make_unique<Bridge>(*dev_.session, *watched, bridge_options(next));
       if (loop_changed) {
-        new_loop = std::make_unique<bridge::RealtimeLoop>(clock_, *this, loop_options(next));
+        new_loop = std::make_unique<bridge::RealtimeLoop>(clock_, *this, loop_options(next, waiter_.get()));
       }
     } catch (const std::exception& e) {
       log.push_back(fmt::format("reload refused, running on as before: {}", e.what()));

@@ -17,6 +17,7 @@
 
 #include "config.hpp"
 #include "control_server.hpp"
+#include "grid_snapshot.hpp"
 #include "mrskin/bridge/bridge.hpp"
 #include "mrskin/bridge/loop.hpp"
 #include "mrskin/bridge/scene.hpp"
@@ -32,8 +33,10 @@ struct OpenedSource {
   bridge::Scene* scene = nullptr;          // scene:// only: it also drives the mock's finger
   bridge::StreamSource* stream = nullptr;  // udp://, replay://, igtl://: its counters
 };
-OpenedSource open_source(const Settings& s, Clock& clock);
-bridge::LoopOptions loop_options(const Settings& s);
+// wake (optional): a stream source's arrival hook notifies it (from the source's I/O thread), so
+// it must outlive the source.
+OpenedSource open_source(const Settings& s, Clock& clock, bridge::Waiter* wake = nullptr);
+bridge::LoopOptions loop_options(const Settings& s, bridge::Waiter* waiter = nullptr);
 
 // Wraps the source to time-stamp fresh samples (the stream watchdog in status).
 class WatchedSource final : public bridge::SlaveSource {
@@ -95,17 +98,24 @@ class Daemon final : public bridge::Tickable, public ControlBackend {
   std::string status_members() override;
   std::string fault_members() override;
   std::string telemetry_members() override;
+  std::string grid_members() override;
+  void grid_subscribers(std::size_t n) noexcept override;
   void request(std::string_view cmd) override;
 
  private:
   void build_bridge(const Settings& s);  // setup, before the loop runs
   void publish(TimePoint now) noexcept;
+  void publish_grid(TimePoint now) noexcept;
   [[nodiscard]] std::string stream_state(std::int64_t now_ns) const;
 
   Settings settings_;
   MonotonicClock& clock_;
   OpenedDevice dev_;
   std::optional<bridge::MockDeviceTruth> truth_;
+  // One waiter for the daemon's life, shared by every RealtimeLoop it builds (one runs at a
+  // time) and woken by the stream sources' arrival hook: declared before the sources, so it
+  // outlives their I/O threads, and never destroyed with a loop on a reload.
+  std::unique_ptr<bridge::MonotonicWaiter> waiter_;
   OpenedSource source_;
   std::unique_ptr<bridge::SampleRecorder> recorder_;  // --record: the input, off the tick thread
   std::unique_ptr<WatchedSource> watched_;
@@ -146,6 +156,18 @@ class Daemon final : public bridge::Tickable, public ControlBackend {
   // Settings the control thread shows (rate, device, source): main writes on reload.
   mutable std::mutex shown_mutex_;
   Settings shown_;
+
+  // Grid telemetry: the tick publishes the arrays every kGridPeriod while a client subscribes.
+  static constexpr Duration kGridPeriod = std::chrono::milliseconds(10);
+  std::unique_ptr<GridSeqlock> grid_;
+  std::atomic<std::size_t> grid_subscribers_{0};
+  CoilThermalEstimate thermal_;  // tick thread (setup before)
+  TimePoint last_thermal_{};
+  int rows_ = 0;
+  int cols_ = 0;
+  double max_current_A_ = 0.0;
+  double force_range_N_ = 0.0;
+  GridSeqlock::Copy grid_copy_;  // control thread
 };
 
 }  // namespace mrskin::bridged

@@ -1,13 +1,176 @@
-// Placeholder until this command lands (#11).
+// enable, disable, estop and fault on a running mrskin-bridged, through its control socket
+// (docs/daemon.md). The daemon acts on a request at its next tick; --wait polls `status` until
+// the bridge shows it.
+#include <fmt/format.h>
+
+#include <chrono>
+#include <cstdlib>
+#include <memory>
+#include <string>
+#include <thread>
+
+#include "bridge_client.hpp"
 #include "command.hpp"
+#include "exit_codes.hpp"
+#include "line_client.hpp"
 
 namespace mrskin::ctl {
+namespace {
 
-void add_bridge_commands(CLI::App& app, const GlobalOptions& /*global*/, int& exit_code) {
-  add_unavailable_command(app, "enable", "enable a running bridge", exit_code);
-  add_unavailable_command(app, "disable", "disable a running bridge", exit_code);
-  add_unavailable_command(app, "estop", "emergency stop through a running bridge", exit_code);
-  add_unavailable_command(app, "fault", "a running bridge's fault cause and ring log", exit_code);
+using namespace std::chrono_literals;
+
+struct BridgeOptions {
+  std::string socket;  // "" : the daemon's default
+  double timeout_s = 5.0;
+  bool wait = false;
+};
+
+std::chrono::milliseconds timeout_ms(const BridgeOptions& o) {
+  return std::chrono::milliseconds(static_cast<std::int64_t>(o.timeout_s * 1e3));
+}
+
+// One request, its response line; throws when the daemon does not answer.
+std::string ask(LineClient& c, const std::string& path, const std::string& cmd, const BridgeOptions& o) {
+  std::optional<std::string> line = c.request(fmt::format(R"({{"cmd":"{}"}})", cmd), timeout_ms(o));
+  if (!line) {
+    throw Error(fmt::format("mrskin-bridged on {} did not answer `{}` within {} s (closed or busy)", path,
+                            cmd, o.timeout_s));
+  }
+  return *std::move(line);
+}
+
+std::string field(const std::string& json, std::string_view key) {
+  return json_unescape(json_field(json, key).value_or("?"));
+}
+
+// Whether a status line shows the request done.
+bool confirmed(const std::string& cmd, const std::string& status) {
+  const std::string halted = field(status, "halted");
+  if (cmd == "enable") {
+    return halted == "false" && field(status, "state") == "ENABLED";
+  }
+  return halted == "true" && field(status, "operator") == cmd;
+}
+
+int run_request(const std::string& cmd, const BridgeOptions& o, const GlobalOptions& global) {
+  const std::string path = bridge_socket(o.socket);
+  LineClient c = connect_bridge(path);
+  const std::string response = ask(c, path, cmd, o);
+  const bool ok = json_field(response, "ok") == "true";
+  if (global.json) {
+    fmt::print("{}\n", response);
+  }
+  if (!ok) {
+    fmt::print(stderr, "mrskinctl {}: mrskin-bridged on {} refused: {}\n", cmd, path,
+               field(response, "error"));
+    return tools::kFailure;
+  }
+  if (!o.wait) {
+    if (!global.json) {
+      fmt::print("{} requested on {}: {}\n", cmd, path, field(response, "note"));
+    }
+    return tools::kOk;
+  }
+  const auto end = std::chrono::steady_clock::now() + timeout_ms(o);
+  std::string status;
+  for (;;) {
+    status = ask(c, path, "status", o);
+    if (confirmed(cmd, status)) {
+      break;
+    }
+    if (std::chrono::steady_clock::now() >= end) {
+      fmt::print(stderr,
+                 "mrskinctl {}: requested, but the bridge did not show it within {} s: state {}, halted {}, "
+                 "fault {}\n",
+                 cmd, o.timeout_s, field(status, "state"), field(status, "halted"), field(status, "fault"));
+      return tools::kFailure;
+    }
+    std::this_thread::sleep_for(20ms);
+  }
+  if (global.json) {
+    fmt::print("{}\n", status);
+  } else {
+    fmt::print("{} done on {}: state {}, fault {}, {}\n", cmd, path, field(status, "state"),
+               field(status, "fault"), field(status, "halted") == "true" ? "halted" : "running");
+  }
+  return tools::kOk;
+}
+
+int run_fault(const BridgeOptions& o, const GlobalOptions& global) {
+  const std::string path = bridge_socket(o.socket);
+  LineClient c = connect_bridge(path);
+  const std::string response = ask(c, path, "fault", o);
+  const bool ok = json_field(response, "ok") == "true" && !json_field(response, "error").has_value();
+  if (global.json) {
+    fmt::print("{}\n", response);
+  }
+  if (!ok) {
+    fmt::print(stderr, "mrskinctl fault: mrskin-bridged on {} answered with an error: {}\n", path,
+               field(response, "error"));
+    return tools::kFailure;
+  }
+  if (global.json) {
+    return tools::kOk;
+  }
+  const std::string faults = field(response, "faults");
+  fmt::print("state {}, fault: {} ({} fault{} since the daemon started", field(response, "state"),
+             field(response, "fault"), faults, faults == "1" ? "" : "s");
+  if (faults == "0") {
+    fmt::print(")\nno fault yet: no ring log frozen\n");
+    return tools::kOk;
+  }
+  const double at_s = std::strtod(field(response, "last_fault_time_s").c_str(), nullptr);
+  fmt::print("; last: {} at {:.3f} s)\n", field(response, "last_fault"), at_s);
+  const std::vector<std::string> lines = json_strings_in_array(response, "log", "text");
+  fmt::print("ring log frozen at the last fault, {} records, oldest first:\n", lines.size());
+  for (const std::string& line : lines) {
+    fmt::print("  {}\n", line);
+  }
+  return tools::kOk;
+}
+
+CLI::App* add_one(CLI::App& app, const char* name, const char* help, BridgeOptions& o) {
+  CLI::App* sub = app.add_subcommand(name, help);
+  sub->add_option(
+      "--bridge", o.socket,
+      "the daemon's control socket (default: mrskin-bridged's, " + bridged::default_socket_path() + " here)");
+  sub->add_option("--timeout", o.timeout_s, "seconds to wait for the daemon's answer (and for --wait)")
+      ->check(CLI::Range(0.05, 600.0))
+      ->capture_default_str();
+  sub->footer(
+      "Exit codes: 0 done; 1 the daemon refused or did not confirm (--wait); 2 bad arguments; 3 no "
+      "mrskin-bridged answers on the socket.");
+  return sub;
+}
+
+}  // namespace
+
+void add_bridge_commands(CLI::App& app, const GlobalOptions& global, int& exit_code) {
+  const struct {
+    const char* name;
+    const char* help;
+  } requests[] = {
+      {"enable", "enable a running bridge: leave a disable, an e-stop or a latched fault"},
+      {"disable", "disable a running bridge: every valve released, the device disabled"},
+      {"estop",
+       "emergency stop through a running bridge: zero currents within one tick, the device e-stopped"},
+  };
+  for (const auto& r : requests) {
+    // Shared with the callback, which CLI11 keeps: the options outlive parsing.
+    auto o = std::make_shared<BridgeOptions>();
+    CLI::App* sub = add_one(app, r.name, r.help, *o);
+    sub->add_flag("--wait", o->wait,
+                  "poll the daemon's status until the bridge shows the request done (up to --timeout)");
+    sub->callback(
+        [name = std::string(r.name), o, &global, &exit_code] { exit_code = run_request(name, *o, global); });
+  }
+  auto fault_o = std::make_shared<BridgeOptions>();
+  CLI::App* fault =
+      add_one(app, "fault",
+              "a running bridge's device state, fault cause and the ring log frozen at the last "
+              "fault, decoded",
+              *fault_o);
+  fault->callback([fault_o, &global, &exit_code] { exit_code = run_fault(*fault_o, global); });
 }
 
 }  // namespace mrskin::ctl

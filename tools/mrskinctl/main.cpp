@@ -261,7 +261,13 @@ int guarded_main(int argc, char** argv) {
   mrskin::ctl::add_bridge_commands(app, global, command_exit);
   int model_exit = 0;
   CLI::App* model = mrskin::ctl::add_model_command(app, model_exit);
-  CLI11_PARSE(app, argc, argv);
+  try {
+    app.parse(argc, argv);
+  } catch (const CLI::ParseError& e) {
+    // --help and --version exit 0; every bad argument is a usage error (2), whatever CLI11's own
+    // code for it.
+    return app.exit(e) == 0 ? mrskin::tools::kOk : mrskin::tools::kUsage;
+  }
   if (model->parsed()) {
     return model_exit;
   }

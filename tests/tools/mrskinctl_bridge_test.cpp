@@ -1,0 +1,281 @@
+// mrskinctl against a running mrskin-bridged on mock:// (monitor --bridge gets the grid; e-stop,
+// then fault, then enable), without a daemon (exit 3), and against fake daemons that refuse or
+// answer garbage (exit 1, no crash). UNIX sockets only; waits are bounded, nothing is timed.
+#include <fcntl.h>
+#include <gtest/gtest.h>
+#include <sys/socket.h>
+#include <sys/un.h>
+#include <sys/wait.h>
+#include <unistd.h>
+
+#include <algorithm>
+#include <array>
+#include <atomic>
+#include <chrono>
+#include <csignal>
+#include <cstdlib>
+#include <filesystem>
+#include <fstream>
+#include <functional>
+#include <memory>
+#include <sstream>
+#include <string>
+#include <thread>
+#include <vector>
+
+#include "child_process.hpp"
+#include "control_server.hpp"
+#include "exit_codes.hpp"
+#include "line_client.hpp"
+
+namespace {
+
+namespace fs = std::filesystem;
+using mrskin::ctl::json_field;
+using mrskin::ctl::LineClient;
+using namespace std::chrono_literals;
+
+using mrskin::test::eventually;
+using mrskin::test::slurp;
+using Process = mrskin::test::ChildProcess;
+
+struct Result {
+  int code = -1;
+  std::string out;
+  std::string err;
+};
+
+std::vector<std::string> lines_of(const std::string& text) {
+  std::vector<std::string> out;
+  std::istringstream in(text);
+  for (std::string line; std::getline(in, line);) {
+    out.push_back(line);
+  }
+  return out;
+}
+
+// Elements of a top-level array member (counts the commas of a flat array of numbers).
+std::size_t array_size(const std::string& json, const std::string& key) {
+  const std::string open = "\"" + key + "\":[";
+  const std::size_t at = json.find(open);
+  if (at == std::string::npos) {
+    return 0;
+  }
+  const std::size_t end = json.find(']', at);
+  const std::string body = json.substr(at + open.size(), end - at - open.size());
+  return body.empty() ? 0 : 1 + static_cast<std::size_t>(std::count(body.begin(), body.end(), ','));
+}
+
+class MrskinctlBridge : public ::testing::Test {
+ protected:
+  void SetUp() override {
+    std::string tmpl = (fs::temp_directory_path() / "mrskinctl-bridge-test-XXXXXX").string();
+    ASSERT_NE(::mkdtemp(tmpl.data()), nullptr);
+    dir_ = tmpl;
+    socket_ = (dir_ / "s.sock").string();
+  }
+  void TearDown() override { fs::remove_all(dir_); }
+
+  Result ctl(std::vector<std::string> args) {
+    args.insert(args.begin(), MRSKINCTL_EXE);
+    const std::string name = "ctl" + std::to_string(runs_++);
+    Process p(dir_ / (name + ".out"), dir_ / (name + ".err"), std::move(args));
+    Result r;
+    r.code = p.wait(120s);
+    r.out = p.out();
+    r.err = p.err();
+    return r;
+  }
+  // mrskin-bridged on mock:// with the demo scene, not real-time (a shared test machine).
+  std::unique_ptr<Process> daemon() {
+    const fs::path cfg = dir_ / "bridged.toml";
+    std::ofstream(cfg) << "[bridge]\nrealtime = false\n";
+    auto d = std::make_unique<Process>(
+        dir_ / "d.out", dir_ / "d.err",
+        std::vector<std::string>{MRSKIN_BRIDGED_EXE, "--config", cfg.string(), "--device", "mock://",
+                                 "--scene", "demo", "--socket", socket_, "--duration", "120", "--quiet"});
+    LineClient c;
+    EXPECT_TRUE(eventually([&] { return c.connect(socket_); })) << d->out() << d->err();
+    return d;
+  }
+
+  fs::path dir_;
+  std::string socket_;
+  int runs_ = 0;
+};
+
+TEST_F(MrskinctlBridge, MonitorGetsTheGridThenEstopFaultEnable) {
+  std::unique_ptr<Process> d = daemon();
+
+  // monitor --bridge --json: grid lines from the daemon (13 cells, 12 valves on the 5 x 5).
+  Result r = ctl({"monitor", "--bridge", socket_, "--duration", "1", "--period-ms", "50", "--json"});
+  ASSERT_EQ(r.code, 0) << r.out << r.err;
+  const std::vector<std::string> lines = lines_of(r.out);
+  ASSERT_FALSE(lines.empty()) << r.err;
+  const std::string& line = lines.back();
+  EXPECT_EQ(json_field(line, "source"), "bridge:" + socket_) << line;
+  EXPECT_EQ(json_field(line, "rows"), "5") << line;
+  EXPECT_EQ(array_size(line, "force_n"), 13U) << line;
+  EXPECT_EQ(array_size(line, "displacement_m"), 13U) << line;
+  EXPECT_EQ(array_size(line, "target_n"), 13U) << line;
+  EXPECT_EQ(array_size(line, "current_a"), 12U) << line;
+  EXPECT_EQ(array_size(line, "temperature_c"), 12U) << line;
+  EXPECT_TRUE(json_field(line, "state").has_value()) << line;
+
+  // Piped: plain lines.
+  r = ctl({"monitor", "--bridge", socket_, "--duration", "0.5"});
+  ASSERT_EQ(r.code, 0) << r.out << r.err;
+  EXPECT_NE(r.out.find("t="), std::string::npos) << r.out;
+  EXPECT_NE(r.out.find("force max"), std::string::npos) << r.out;
+
+  // Emergency stop (--wait: until the status shows it), then the fault and its log, then enable.
+  r = ctl({"estop", "--bridge", socket_, "--wait", "--timeout", "30"});
+  ASSERT_EQ(r.code, 0) << r.out << r.err;
+  EXPECT_NE(r.out.find("estop done"), std::string::npos) << r.out;
+  EXPECT_NE(r.out.find("halted"), std::string::npos) << r.out;
+  LineClient c;
+  ASSERT_TRUE(c.connect(socket_));
+  std::string status;
+  ASSERT_TRUE(eventually([&] {
+    status = c.request(R"({"cmd":"status"})").value_or("");
+    return json_field(status, "state") == "FAULT";
+  })) << status;
+  EXPECT_EQ(json_field(status, "operator"), "estop") << status;
+
+  r = ctl({"fault", "--bridge", socket_});
+  ASSERT_EQ(r.code, 0) << r.out << r.err;
+  EXPECT_NE(r.out.find("state FAULT, fault: emergency stop"), std::string::npos) << r.out;
+  EXPECT_NE(r.out.find("ring log frozen at the last fault"), std::string::npos) << r.out;
+  EXPECT_NE(r.out.find("state request"), std::string::npos) << r.out;  // the e-stop request, decoded
+  r = ctl({"fault", "--bridge", socket_, "--json"});
+  ASSERT_EQ(r.code, 0) << r.out << r.err;
+  EXPECT_EQ(json_field(r.out, "last_fault"), "emergency stop") << r.out;
+
+  r = ctl({"monitor", "--bridge", socket_, "--duration", "0.3", "--json"});
+  ASSERT_EQ(r.code, 0) << r.out << r.err;
+  EXPECT_NE(r.out.find(R"("halted":true)"), std::string::npos) << r.out;
+
+  r = ctl({"enable", "--bridge", socket_, "--wait", "--timeout", "30", "--json"});
+  ASSERT_EQ(r.code, 0) << r.out << r.err;
+  const std::vector<std::string> enable_lines = lines_of(r.out);
+  ASSERT_EQ(enable_lines.size(), 2U) << r.out;
+  EXPECT_EQ(json_field(enable_lines[0], "cmd"), "enable") << r.out;
+  EXPECT_EQ(json_field(enable_lines[1], "state"), "ENABLED") << r.out;
+  EXPECT_EQ(json_field(enable_lines[1], "halted"), "false") << r.out;
+
+  r = ctl({"disable", "--bridge", socket_});
+  ASSERT_EQ(r.code, 0) << r.out << r.err;
+  EXPECT_NE(r.out.find("disable requested"), std::string::npos) << r.out;
+
+  d->signal(SIGTERM);
+  EXPECT_EQ(d->wait(60s), mrskin::tools::kOk) << d->out() << d->err();
+}
+
+TEST_F(MrskinctlBridge, NoDaemonIsExit3NamingTheSocket) {
+  const std::string none = (dir_ / "none.sock").string();
+  for (const char* cmd : {"enable", "disable", "estop", "fault"}) {
+    const Result r = ctl({cmd, "--bridge", none});
+    EXPECT_EQ(r.code, mrskin::tools::kNoDevice) << cmd << "\n" << r.out << r.err;
+    EXPECT_NE(r.err.find(none), std::string::npos) << r.err;
+    EXPECT_NE(r.err.find("is mrskin-bridged running?"), std::string::npos) << r.err;
+  }
+  const Result r = ctl({"monitor", "--bridge", none, "--duration", "1"});
+  EXPECT_EQ(r.code, mrskin::tools::kNoDevice) << r.out << r.err;
+  EXPECT_NE(r.err.find("is mrskin-bridged running?"), std::string::npos) << r.err;
+}
+
+// A one-client fake daemon: answers every request line with the next canned line (then closes).
+class FakeDaemon {
+ public:
+  FakeDaemon(const std::string& path, std::vector<std::string> replies)
+      : fd_(::socket(AF_UNIX, SOCK_STREAM | SOCK_CLOEXEC, 0)), replies_(std::move(replies)) {
+    sockaddr_un addr{};
+    addr.sun_family = AF_UNIX;
+    std::copy(path.begin(), path.end(), static_cast<char*>(addr.sun_path));
+    // NOLINTNEXTLINE(cppcoreguidelines-pro-type-reinterpret-cast): the socket API's own cast
+    EXPECT_EQ(::bind(fd_, reinterpret_cast<const sockaddr*>(&addr), sizeof(addr)), 0);
+    EXPECT_EQ(::listen(fd_, 4), 0);
+    thread_ = std::thread([this] { serve(); });
+  }
+  FakeDaemon(const FakeDaemon&) = delete;
+  FakeDaemon& operator=(const FakeDaemon&) = delete;
+  FakeDaemon(FakeDaemon&&) = delete;
+  FakeDaemon& operator=(FakeDaemon&&) = delete;
+  ~FakeDaemon() {
+    ::shutdown(fd_, SHUT_RDWR);  // wakes accept()
+    thread_.join();
+    ::close(fd_);
+  }
+
+ private:
+  void serve() {
+    const int c = ::accept(fd_, nullptr, nullptr);
+    if (c < 0) {
+      return;
+    }
+    std::string in;
+    std::array<char, 512> buf{};
+    std::size_t next = 0;
+    while (next < replies_.size()) {
+      const ssize_t n = ::recv(c, buf.data(), buf.size(), 0);
+      if (n <= 0) {
+        break;
+      }
+      in.append(buf.data(), static_cast<std::size_t>(n));
+      while (in.find('\n') != std::string::npos && next < replies_.size()) {
+        in.erase(0, in.find('\n') + 1);
+        const std::string reply = replies_[next++];
+        (void)::send(c, reply.data(), reply.size(), MSG_NOSIGNAL);
+      }
+    }
+    ::close(c);
+  }
+  int fd_ = -1;
+  std::vector<std::string> replies_;
+  std::thread thread_;
+};
+
+TEST_F(MrskinctlBridge, ARefusalIsExit1AndGarbageDoesNotCrash) {
+  {
+    const FakeDaemon fake(socket_, {"{\"ok\":false,\"error\":\"not today\"}\n"});
+    const Result r = ctl({"enable", "--bridge", socket_});
+    EXPECT_EQ(r.code, mrskin::tools::kFailure) << r.out << r.err;
+    EXPECT_NE(r.err.find("not today"), std::string::npos) << r.err;
+  }
+  fs::remove(socket_);
+  {
+    const FakeDaemon fake(socket_, {"this is not JSON at all\n"});
+    const Result r = ctl({"fault", "--bridge", socket_, "--timeout", "5"});
+    EXPECT_EQ(r.code, mrskin::tools::kFailure) << r.out << r.err;
+  }
+  fs::remove(socket_);
+  {  // A telemetry acknowledgement, then events without a grid, broken arrays, then the end.
+    const FakeDaemon fake(socket_,
+                          {"{\"ok\":true,\"cmd\":\"telemetry\"}\n"
+                           "{\"event\":\"telemetry\",\"rows\":5,\"cols\":5,\"force_n\":[1,2,\"x\"]}\n"
+                           "{\"event\":\"telemetry\",\"rows\":300,\"cols\":5,\"force_n\":[],\"displacement_"
+                           "m\":[],\"current_a\":[]}\n"
+                           "{\"event\":\"telemetry\",\"rows\":5,\"cols\":5,\"force_n\":[1],\"displacement_"
+                           "m\":[1],\"current_a\":[1]}\n"
+                           "{\"event\":\n"});
+    const Result r = ctl({"monitor", "--bridge", socket_, "--duration", "30", "--json"});
+    EXPECT_EQ(r.code, mrskin::tools::kFailure) << r.out << r.err;  // it closed: an error, not a crash
+    EXPECT_TRUE(r.out.empty()) << r.out;                           // nothing drawable was sent
+    EXPECT_NE(r.err.find("stopped sending"), std::string::npos) << r.err;
+  }
+}
+
+TEST(ControlRequestGrid, TelemetryTakesAGridFlag) {
+  mrskin::bridged::ControlRequest r;
+  std::string error;
+  ASSERT_TRUE(mrskin::bridged::parse_request(R"({"cmd":"telemetry","period_ms":50,"grid":true})", r, error))
+      << error;
+  EXPECT_TRUE(r.grid);
+  ASSERT_TRUE(mrskin::bridged::parse_request(R"({"cmd":"telemetry","grid":false})", r, error)) << error;
+  EXPECT_FALSE(r.grid);
+  for (const char* bad : {R"({"cmd":"telemetry","grid":tru})", R"({"cmd":"status","halted":true})"}) {
+    EXPECT_FALSE(mrskin::bridged::parse_request(bad, r, error)) << bad;
+  }
+}
+
+}  // namespace
