@@ -45,8 +45,12 @@ Bridge::Bridge(DeviceSession& session, SlaveSource& source, BridgeOptions option
   model::Calibration calibration;
   if (!session.info().calibration.empty()) {
     calibration = model::parse_calibration(session.info().calibration, "the calibration stored on the device",
-                                           layout_.valve_count());
+                                           layout_.valve_count(), profile->sensors.size());
   }
+  // The sensors' zero at rest (mrskinctl calibrate), subtracted before the observer reads them.
+  sensor_offset_.assign(profile->sensors.size(), 0.0);
+  std::copy(calibration.sensor_offset.begin(), calibration.sensor_offset.end(), sensor_offset_.begin());
+  sensor_reading_.assign(profile->sensors.size(), 0.0);
   model_ = std::make_unique<model::DeviceModel>(model::apply_calibration(*profile, calibration));
   observer_ = std::make_unique<model::CellObserver>(*model_, options_.observer);
   inverse_ = std::make_unique<model::CellInverse>(*model_, options_.inverse);
@@ -398,7 +402,11 @@ ResultCode Bridge::step(TimePoint now) noexcept {
     return rc;
   }
   const double dt = 1.0 / options_.rate_hz;
-  if (observer_->update(session_.sensors(), current_A_, dt) != model::Status::ok) {
+  const std::span<const double> raw = session_.sensors();
+  for (std::size_t k = 0; k < sensor_reading_.size() && k < raw.size(); ++k) {
+    sensor_reading_[k] = raw[k] - sensor_offset_[k];
+  }
+  if (observer_->update(sensor_reading_, current_A_, dt) != model::Status::ok) {
     ++stats_.observer_errors;  // the estimate of the last good tick stands
   }
   update_tissue_model(now);

@@ -29,7 +29,10 @@ TEST(ModelCalibration, RoundTripsThroughItsText) {
   c.turns_scale = 1.05;
   c.gap_scale = 0.991;
   c.valve_yield_gain = {1.02, 0.97, 1.1};
-  const Calibration back = parse_calibration(format_calibration(c), "test", 3);
+  c.sensor_offset = {1.25e-7, -3.5e-8};
+  const Calibration back = parse_calibration(format_calibration(c), "test", 3, 2);
+  EXPECT_EQ(back.sensor_offset, c.sensor_offset);
+  EXPECT_EQ(back.sensor_offset_unit, "m");
   EXPECT_EQ(back.version, 7);
   EXPECT_EQ(back.serial, 0xBEEFU);
   EXPECT_EQ(back.profile, "mr-skin-5x5");
@@ -52,6 +55,12 @@ TEST(ModelCalibration, RefusesWhatCannotBeAUnit) {
   EXPECT_THROW(parse_calibration("version = 1\nvalve_yield_gain = [1.0, 1.0]\n", "t", 12),
                mrskin::InvalidArgument);
   EXPECT_THROW(parse_calibration("version = [\n", "t"), mrskin::InvalidArgument);
+  EXPECT_THROW(parse_calibration("version = 1\nsensor_offset_m = [0.0, nan]\n", "t"),
+               mrskin::InvalidArgument);
+  EXPECT_THROW(parse_calibration("version = 1\nsensor_offset_m = [0.0]\n", "t", 0, 12),
+               mrskin::InvalidArgument);
+  EXPECT_THROW(parse_calibration("version = 1\nsensor_offset_m = [0.0]\nsensor_offset_n = [0.0]\n", "t"),
+               mrskin::InvalidArgument);
   try {
     parse_calibration("version = 1\ngap_scale = 0.1\n", "calibration on unit 7");
     FAIL();

@@ -1,10 +1,392 @@
-// Placeholder until this command lands (#11).
+// mrskinctl calibrate: sensor zero (tare), coil conditioning ("degauss"), a yield sweep at low
+// currents fitted to the profile's model (the calibration's yield_scale), a held-out sweep that
+// must not get worse, then the calibration stored versioned and read back. docs/cli.md.
+#include <fmt/format.h>
+
+#include <algorithm>
+#include <cmath>
+#include <limits>
+#include <memory>
+#include <string>
+#include <vector>
+
 #include "command.hpp"
+#include "ctl_device_calibrate.hpp"
+#include "ctl_device_rig.hpp"
+#include "ctl_device_sampler.hpp"
+#include "exit_codes.hpp"
+#include "json_text.hpp"
 
 namespace mrskin::ctl {
+namespace {
 
-void add_calibrate_command(CLI::App& app, const GlobalOptions& /*global*/, int& exit_code) {
-  add_unavailable_command(app, "calibrate", "yield sweep, degauss, tare; store on the device", exit_code);
+struct CalibrateOptions {
+  std::string uri = "mock://";
+  bool realtime = false;
+  bool dry_run = false;
+  double max_current_a = 0.0;  // 0: a fifth of the device's maximum
+  int levels = 8;
+  double rest_s = 0.3;
+};
+
+constexpr int kTablePoints = 12;
+constexpr double kModelStep_s = 5e-4;
+constexpr double kScaleMin = 0.5;  // the range parse_calibration accepts
+constexpr double kScaleMax = 2.0;
+
+std::string numbers(const std::vector<double>& v, double unit_scale = 1.0) {
+  std::string out = "[";
+  for (std::size_t i = 0; i < v.size(); ++i) {
+    out += (i == 0 ? "" : ", ") + json_number(v[i] * unit_scale);
+  }
+  return out + "]";
+}
+
+// What was measured and fitted; printed as text or JSON.
+struct Report {
+  std::string result;  // WRITTEN, DRY_RUN, REFUSED, FAILED
+  std::string reason;
+  long stored_version = 0;
+  long new_version = 0;
+  std::vector<double> offset_m;
+  double noise_m = 0.0;  // largest sensor noise at rest
+  std::vector<double> degauss_a;
+  RemanenceModel remanence;
+  double zero_residual_m = 0.0;  // largest |residual| at 0 A after conditioning
+  std::vector<double> fit_a;
+  std::vector<double> held_out_a;
+  double stored_scale = 1.0;
+  double new_scale = 1.0;
+  double rms_fit_stored_m = 0.0;
+  double rms_fit_new_m = 0.0;
+  double rms_held_stored_m = 0.0;
+  double rms_held_new_m = 0.0;
+  double sensitivity_m = 0.0;  // RMS rise when the scale moves 20 % off the fit
+  double resolution_m = 0.0;   // what the sweep can resolve (noise of a residual)
+  std::string text;
+  std::string read_back;
+  bool read_back_matches = false;
+};
+
+void print_report(const Report& r, const CalibrateOptions& o, const GlobalOptions& global) {
+  if (global.json) {
+    fmt::print(
+        R"({{"uri": "{}", "dry_run": {}, "result": "{}", "reason": "{}", "stored_version": {}, "new_version": {}, )"
+        R"("tare": {{"sensor_offset_m": {}, "noise_m": {}}}, )"
+        R"("degauss": {{"amplitudes_a": {}, "model_remanent_yield_after_max_pa": {}, "model_remanent_yield_after_degauss_pa": {}, "residual_at_0_a_m": {}}}, )"
+        R"("fit": {{"currents_a": {}, "held_out_currents_a": {}, "yield_scale_stored": {}, "yield_scale": {}, )"
+        R"("rms_fit_stored_m": {}, "rms_fit_new_m": {}, "rms_held_out_stored_m": {}, "rms_held_out_new_m": {}, )"
+        R"("sensitivity_m": {}, "resolution_m": {}}}, "calibration": "{}", "read_back": "{}", "read_back_matches": {}}})"
+        "\n",
+        json_escape(o.uri), o.dry_run ? "true" : "false", r.result, json_escape(r.reason), r.stored_version,
+        r.new_version, numbers(r.offset_m), json_number(r.noise_m), numbers(r.degauss_a),
+        json_number(r.remanence.after_max_pa), json_number(r.remanence.after_degauss_pa),
+        json_number(r.zero_residual_m), numbers(r.fit_a), numbers(r.held_out_a), json_number(r.stored_scale),
+        json_number(r.new_scale), json_number(r.rms_fit_stored_m), json_number(r.rms_fit_new_m),
+        json_number(r.rms_held_stored_m), json_number(r.rms_held_new_m), json_number(r.sensitivity_m),
+        json_number(r.resolution_m), json_escape(r.text), json_escape(r.read_back),
+        r.read_back_matches ? "true" : "false");
+    return;
+  }
+  fmt::print("calibrate {}{}\n", o.uri, o.dry_run ? " (dry run: nothing is written)" : "");
+  if (!r.offset_m.empty()) {
+    std::string offsets;
+    for (const double v : r.offset_m) {
+      offsets += fmt::format(" {:.2f}", v * 1e6);
+    }
+    fmt::print("  zero (tare)  sensor offsets at rest, um:{}; noise up to {:.2f} um\n", offsets,
+               r.noise_m * 1e6);
+  }
+  if (!r.degauss_a.empty()) {
+    fmt::print(
+        "  degauss      {} on/off steps {:.4g} .. {:.4g} A; model remanence at 0 A {:.3g} Pa after the "
+        "maximum, "
+        "{:.3g} Pa after degauss (a unipolar drive cannot reverse the core: the steps only leave every core "
+        "on "
+        "the same branch); measured residual at 0 A {:.2f} um\n",
+        r.degauss_a.size(), r.degauss_a.front(), r.degauss_a.back(), r.remanence.after_max_pa,
+        r.remanence.after_degauss_pa, r.zero_residual_m * 1e6);
+  }
+  if (!r.fit_a.empty()) {
+    fmt::print("  yield sweep  {} fit currents {:.4g} .. {:.4g} A, {} held out\n", r.fit_a.size(),
+               r.fit_a.front(), r.fit_a.back(), r.held_out_a.size());
+    fmt::print(
+        "  fit          yield_scale {:.4f} (stored {:.4f}); rms residual fit {:.2f} um (stored {:.2f})\n",
+        r.new_scale, r.stored_scale, r.rms_fit_new_m * 1e6, r.rms_fit_stored_m * 1e6);
+    fmt::print(
+        "  held out     rms residual {:.2f} um (stored {:.2f}); sensitivity {:.2f} um per 20 % (resolution "
+        "{:.2f})\n",
+        r.rms_held_new_m * 1e6, r.rms_held_stored_m * 1e6, r.sensitivity_m * 1e6, r.resolution_m * 1e6);
+  }
+  if (!r.text.empty()) {
+    fmt::print("calibration version {}{}:\n", r.new_version, r.result == "WRITTEN" ? "" : " (not written)");
+    fmt::print("{}", r.text);
+  }
+  if (r.result == "WRITTEN") {
+    fmt::print("read back from the device ({}):\n{}", r.read_back_matches ? "matches" : "DIFFERS",
+               r.read_back);
+  }
+  fmt::print("result: {}{}\n", r.result, r.reason.empty() ? "" : " (" + r.reason + ")");
+}
+
+double rms(const std::vector<std::vector<double>>& measured,
+           const std::vector<std::vector<double>>& predicted, const std::vector<bool>& use) {
+  double sum = 0.0;
+  std::size_t n = 0;
+  for (std::size_t k = 0; k < measured.size(); ++k) {
+    for (std::size_t s = 0; s < measured[k].size(); ++s) {
+      if (use[s]) {
+        sum += (measured[k][s] - predicted[k][s]) * (measured[k][s] - predicted[k][s]);
+        ++n;
+      }
+    }
+  }
+  return n > 0 ? std::sqrt(sum / static_cast<double>(n)) : 0.0;
+}
+
+int run_calibrate(const CalibrateOptions& o, const GlobalOptions& global) {
+  Report r;
+  Rig rig(o.uri, o.realtime);
+  const DeviceInfo& info = rig.info();
+  const model::DeviceProfile* profile = rig.session().profile();
+  const auto refuse = [&](std::string result, std::string reason) {
+    r.result = std::move(result);
+    r.reason = std::move(reason);
+    rig.release();
+    print_report(r, o, global);
+    return tools::kFailure;
+  };
+  if (profile == nullptr) {
+    return refuse("FAILED", "the device holds no readable profile: nothing to fit against");
+  }
+  model::Calibration stored;
+  try {
+    stored = model::parse_calibration(info.calibration, "stored calibration", info.valves);
+  } catch (const InvalidArgument& e) {
+    return refuse("FAILED", fmt::format("{}; write a calibration by hand or ask the vendor", e.what()));
+  }
+  r.stored_version = stored.version;
+  r.stored_scale = stored.yield_scale;
+  const double max_a = o.max_current_a > 0.0 ? o.max_current_a : 0.2 * info.max_current_A;
+  if (max_a > info.max_current_A + 1e-12) {
+    throw InvalidArgument(
+        fmt::format("--max-current-a {} A is above the device's maximum {} A", max_a, info.max_current_A));
+  }
+  if (rig.fixture() == nullptr) {
+    return refuse(
+        "FAILED",
+        "the yield sweep needs a press: only mock:// has a fixture the host can drive (docs/cli.md)");
+  }
+  if (info.sensor_unit != "m") {
+    return refuse("FAILED", "the yield sweep needs displacement sensors (it measures the residual depth)");
+  }
+  const int levels = o.levels;
+  const int total = 2 + (levels + 1) + kTablePoints + 1;
+  Progress progress(!global.json, "calibrate", total);
+  int step = 0;
+  try {
+    rig.enable();
+  } catch (const Error& e) {
+    return refuse("FAILED", e.what());
+  }
+
+  // Zero: each sensor's mean at rest (valves open, nothing pressing) is its offset.
+  CurrentHolder hold(rig);
+  hold.set(0.0);
+  rig.run_for(0.1, hold);  // let the first readings settle after enabling
+  const SensorStats rest = sample_sensors(rig, o.rest_s, hold);
+  progress.step(++step);
+  r.offset_m = rest.mean;
+  for (const double sd : rest.std_dev) {
+    r.noise_m = std::max(r.noise_m, sd);
+  }
+
+  // Degauss: decaying on/off steps from the maximum current (30 ms each: the coil settles in ~5 ms).
+  r.degauss_a = degauss_amplitudes_a(info.max_current_A);
+  for (const double a : r.degauss_a) {
+    hold.set(a);
+    rig.run_for(0.03, hold);
+    hold.set(0.0);
+    rig.run_for(0.03, hold);
+  }
+  r.remanence = model_remanence(model::apply_calibration(*profile, stored), r.degauss_a);
+  progress.step(++step);
+
+  // The sweep: level 0 (0 A), then k * max / levels; odd k fit, even k held out.
+  PressRelease pr;
+  YieldSweepModel sweep_model(*profile, stored, pr, kModelStep_s);
+  const std::vector<std::size_t> shares = sweep_model.groups_per_sensor();
+  std::vector<bool> use(info.sensors, false);
+  for (std::size_t s = 0; s < info.sensors && s < shares.size(); ++s) {
+    use[s] = shares[s] > 0;
+  }
+  std::vector<std::vector<double>> fit_measured;
+  std::vector<std::vector<double>> held_measured;
+  for (int k = 0; k <= levels; ++k) {
+    const double current_a = max_a * k / levels;
+    PressReleaseResult m = press_release(rig, current_a, pr);
+    if (rig.session().state() != DeviceState::enabled || Rig::interrupted()) {
+      return refuse("FAILED",
+                    fmt::format("the unit left ENABLED during the sweep: state {}, fault {}",
+                                to_string(rig.session().state()), fault_name(rig.session().fault_code())));
+    }
+    for (std::size_t s = 0; s < m.residual_m.size(); ++s) {
+      m.residual_m[s] -= r.offset_m[s] * static_cast<double>(s < shares.size() ? shares[s] : 0);
+    }
+    if (k == 0) {
+      for (const double v : m.residual_m) {
+        r.zero_residual_m = std::max(r.zero_residual_m, std::abs(v));
+      }
+    } else if (k % 2 == 1) {
+      r.fit_a.push_back(current_a);
+      fit_measured.push_back(m.residual_m);
+    } else {
+      r.held_out_a.push_back(current_a);
+      held_measured.push_back(m.residual_m);
+    }
+    progress.step(++step);
+  }
+  rig.release();  // the unit takes a calibration only while not ENABLED
+
+  // The model: residual against valve yield, over every yield the scale range can give.
+  std::vector<double> unit_fit;
+  std::vector<double> unit_held;
+  for (const double a : r.fit_a) {
+    unit_fit.push_back(sweep_model.unit_yield_pa(a));
+  }
+  for (const double a : r.held_out_a) {
+    unit_held.push_back(sweep_model.unit_yield_pa(a));
+  }
+  const double u_lo = kScaleMin * std::max(1e-3, std::min(unit_fit.front(), unit_held.front()));
+  const double u_hi = kScaleMax * std::max(unit_fit.back(), unit_held.back()) * 1.01;
+  const ResidualTable table(sweep_model, u_lo, std::max(u_hi, 2.0 * u_lo), kTablePoints,
+                            [&] { progress.step(++step); });
+  const auto predict = [&](const std::vector<double>& unit, double scale) {
+    std::vector<std::vector<double>> out;
+    out.reserve(unit.size());
+    for (const double u : unit) {
+      out.push_back(table.at(scale * u));
+    }
+    return out;
+  };
+  const auto fit_rms = [&](double scale) { return rms(fit_measured, predict(unit_fit, scale), use); };
+  // Coarse scan in log scale, then golden section around the best point.
+  constexpr int kScan = 61;
+  double best = stored.yield_scale;
+  double best_rms = std::numeric_limits<double>::infinity();
+  const double step_log = std::log(kScaleMax / kScaleMin) / (kScan - 1);
+  for (int i = 0; i < kScan; ++i) {
+    const double s = kScaleMin * std::exp(step_log * i);
+    const double e = fit_rms(s);
+    if (e < best_rms) {
+      best_rms = e;
+      best = s;
+    }
+  }
+  double lo = std::log(std::max(kScaleMin, best * std::exp(-step_log)));
+  double hi = std::log(std::min(kScaleMax, best * std::exp(step_log)));
+  constexpr double kGolden = 0.6180339887498949;
+  for (int i = 0; i < 40; ++i) {
+    const double a = hi - kGolden * (hi - lo);
+    const double b = lo + kGolden * (hi - lo);
+    if (fit_rms(std::exp(a)) < fit_rms(std::exp(b))) {
+      hi = b;
+    } else {
+      lo = a;
+    }
+  }
+  if (fit_rms(std::exp(0.5 * (lo + hi))) < best_rms) {
+    best = std::exp(0.5 * (lo + hi));
+  }
+  r.new_scale = best;
+  r.rms_fit_new_m = fit_rms(best);
+  r.rms_fit_stored_m = fit_rms(stored.yield_scale);
+  r.rms_held_new_m = rms(held_measured, predict(unit_held, best), use);
+  r.rms_held_stored_m = rms(held_measured, predict(unit_held, stored.yield_scale), use);
+  r.sensitivity_m = std::min(fit_rms(std::clamp(best * 1.2, kScaleMin, kScaleMax)),
+                             fit_rms(std::clamp(best / 1.2, kScaleMin, kScaleMax))) -
+                    r.rms_fit_new_m;
+  // A residual is the sum of 50 ms means (50 samples) over the groups that load the sensor.
+  const double groups = static_cast<double>(*std::max_element(shares.begin(), shares.end()));
+  r.resolution_m = 3.0 * std::max(r.noise_m, info.sensor_lsb) * std::sqrt(groups / 50.0);
+
+  model::Calibration next = stored;
+  next.version = stored.version + 1;
+  next.yield_scale = best;
+  r.new_version = next.version;
+  next.sensor_offset = r.offset_m;  // the zero at rest; the bridge subtracts it from each reading
+  next.sensor_offset_unit = "m";
+  r.text = model::format_calibration(next);
+
+  // Refusals: a sweep that cannot tell the scale, or a fit worse than the stored calibration.
+  if (r.sensitivity_m < r.resolution_m) {
+    r.result = "REFUSED";
+    r.reason = fmt::format(
+        "ill-conditioned: moving yield_scale 20 % changes the fit by {:.2f} um, below the {:.2f} um the "
+        "sweep "
+        "resolves; sweep higher currents (--max-current-a) or check the sensors",
+        r.sensitivity_m * 1e6, r.resolution_m * 1e6);
+    print_report(r, o, global);
+    return tools::kFailure;
+  }
+  if (r.rms_held_new_m > r.rms_held_stored_m) {
+    r.result = "REFUSED";
+    r.reason = fmt::format(
+        "the new yield_scale fits the held-out sweep worse than the stored calibration ({:.2f} "
+        "um against {:.2f} um rms); nothing written",
+        r.rms_held_new_m * 1e6, r.rms_held_stored_m * 1e6);
+    print_report(r, o, global);
+    return tools::kFailure;
+  }
+  if (o.dry_run) {
+    r.result = "DRY_RUN";
+    print_report(r, o, global);
+    return tools::kOk;
+  }
+  try {
+    rig.session().write_calibration(r.text);
+  } catch (const Error& e) {
+    r.result = "FAILED";
+    r.reason = fmt::format("the device did not take the calibration: {}", e.what());
+    print_report(r, o, global);
+    return tools::kFailure;
+  }
+  progress.step(++step);
+  r.read_back = rig.session().info().calibration;
+  const model::Calibration back = model::parse_calibration(r.read_back, "read-back calibration", info.valves);
+  r.read_back_matches = r.read_back == r.text && back.version == next.version &&
+                        std::abs(back.yield_scale - next.yield_scale) <= 1e-5 * next.yield_scale;
+  r.result = r.read_back_matches ? "WRITTEN" : "FAILED";
+  if (!r.read_back_matches) {
+    r.reason = "the calibration read back differs from what was written";
+  }
+  print_report(r, o, global);
+  return r.read_back_matches ? tools::kOk : tools::kFailure;
+}
+
+}  // namespace
+
+void add_calibrate_command(CLI::App& app, const GlobalOptions& global, int& exit_code) {
+  auto options = std::make_shared<CalibrateOptions>();
+  auto* sub = app.add_subcommand(
+      "calibrate",
+      "zero the sensors, degauss the cores, sweep the valves' yield at low currents and fit the "
+      "calibration's "
+      "yield_scale to the profile's model; store it versioned and read it back (docs/cli.md). Exit 0 written "
+      "(or --dry-run), 1 refused or failed (nothing written)");
+  add_device_options(sub, options->uri, options->realtime);
+  sub->add_flag("--dry-run", options->dry_run, "measure and fit, print the calibration, write nothing");
+  sub->add_option("--max-current-a", options->max_current_a,
+                  "highest sweep current, A (default: a fifth of the device's maximum)")
+      ->check(CLI::Range(1e-4, 10.0));
+  sub->add_option("--levels", options->levels,
+                  "sweep currents above 0 A (odd ones fitted, even ones held out)")
+      ->check(CLI::Range(4, 40))
+      ->capture_default_str();
+  sub->add_option("--rest", options->rest_s, "seconds of rest sampled for the zero")
+      ->check(CLI::Range(0.05, 10.0))
+      ->capture_default_str();
+  sub->callback([options, &global, &exit_code] { exit_code = run_calibrate(*options, global); });
 }
 
 }  // namespace mrskin::ctl

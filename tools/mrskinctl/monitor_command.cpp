@@ -468,7 +468,10 @@ int monitor_bridge(const MonitorOptions& o, Renderer& out) {
       fmt::format(R"({{"cmd":"telemetry","period_ms":{},"grid":true}})", json_number(o.period_ms));
   const std::optional<std::string> ack = c.request(request, 5s);
   if (!ack) {
-    throw Error(fmt::format("mrskin-bridged on {} did not answer the telemetry request within 5 s", path));
+    throw Error(
+        fmt::format("mrskin-bridged on {} did not answer the telemetry request within 5 s (it closed the "
+                    "connection or is busy)",
+                    path));
   }
   if (json_field(*ack, "ok") != "true") {
     fmt::print(stderr, "mrskinctl monitor: mrskin-bridged on {} refused the grid telemetry: {}\n", path,

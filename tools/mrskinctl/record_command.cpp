@@ -1,11 +1,434 @@
-// Placeholder until this command lands (#11).
+// mrskinctl record / replay: telemetry and the commands sent, to an NDJSON file and back
+// (format: ctl_device_record.hpp, docs/cli.md). replay --to-device re-sends the recorded
+// commands at their recorded times, with the target device's limits checked again first.
+#include <fmt/format.h>
+
+#include <cerrno>
+#include <cstdio>
+#include <cstring>
+#include <fstream>
+#include <memory>
+#include <string>
+#include <vector>
+
 #include "command.hpp"
+#include "ctl_device_record.hpp"
+#include "ctl_device_rig.hpp"
+#include "exit_codes.hpp"
+#include "json_text.hpp"
 
 namespace mrskin::ctl {
+namespace {
 
-void add_record_commands(CLI::App& app, const GlobalOptions& /*global*/, int& exit_code) {
-  add_unavailable_command(app, "record", "record telemetry and commands to a file", exit_code);
-  add_unavailable_command(app, "replay", "replay a recording", exit_code);
+struct RecordOptions {
+  std::string uri = "mock://";
+  bool realtime = false;
+  std::string out;
+  double duration_s = 1.0;
+  std::string currents;
+};
+
+struct ReplayOptions {
+  std::string file;
+  std::string to_device;
+  bool realtime = false;
+};
+
+// Writes lines; a failed write is remembered and reported once at the end.
+class LineWriter {
+ public:
+  explicit LineWriter(const std::string& path) : file_(std::fopen(path.c_str(), "w")) {
+    if (file_ == nullptr) {
+      throw InvalidArgument(
+          fmt::format("record: cannot write {}: {}; give a writable --out path", path, std::strerror(errno)));
+    }
+  }
+  LineWriter(const LineWriter&) = delete;
+  LineWriter& operator=(const LineWriter&) = delete;
+  LineWriter(LineWriter&&) = delete;
+  LineWriter& operator=(LineWriter&&) = delete;
+  ~LineWriter() { (void)close(); }
+  void line(const std::string& text) noexcept {
+    if (file_ != nullptr && (std::fputs(text.c_str(), file_) < 0 || std::fputc('\n', file_) == EOF)) {
+      failed_ = true;
+    }
+    ++lines_;
+  }
+  bool close() noexcept {
+    if (file_ != nullptr) {
+      // NOLINTNEXTLINE(cppcoreguidelines-owning-memory): the FILE* this class owns
+      failed_ = std::fclose(file_) != 0 || failed_;
+      file_ = nullptr;
+    }
+    return !failed_;
+  }
+  [[nodiscard]] std::size_t lines() const noexcept { return lines_; }
+
+ private:
+  std::FILE* file_;
+  bool failed_ = false;
+  std::size_t lines_ = 0;
+};
+
+struct RecordContext {
+  Rig* rig = nullptr;
+  LineWriter* out = nullptr;
+  std::size_t telemetry = 0;
+};
+
+void on_telemetry(void* context, const TelemetryView& view) noexcept {
+  auto* c = static_cast<RecordContext*>(context);
+  try {
+    c->out->line(
+        fmt::format(R"({{"t_s": {}, "dir": "rx", "kind": "telemetry", "device_time_s": {}, "first": {}, )"
+                    R"("values": {}}})",
+                    json_number(c->rig->elapsed_s()), json_number(view.device_time_us * 1e-6), view.first,
+                    record_numbers(view.values)));
+    ++c->telemetry;
+  } catch (...) {  // formatting allocates; a full memory loses the line, never the unit
+  }
+}
+
+int run_record(const RecordOptions& o, const GlobalOptions& global) {
+  if (o.out.empty()) {
+    throw InvalidArgument("record: --out FILE is required");
+  }
+  if (!std::isfinite(o.duration_s) || o.duration_s <= 0.0 || o.duration_s > 3600.0) {
+    throw InvalidArgument("record: --duration must be in (0, 3600] s");
+  }
+  Rig rig(o.uri, o.realtime);
+  const DeviceInfo& info = rig.info();
+  std::vector<double> current_a;
+  if (!o.currents.empty()) {
+    current_a = parse_number_list(o.currents, "--currents");
+    check_currents(current_a, info, "--currents");
+  }
+  LineWriter out(o.out);
+  out.line(fmt::format(R"({{"format": "{}", "version": {}, "uri": "{}", "valves": {}, "fluid_cells": {}, )"
+                       R"("sensors": {}, "sensor_unit": "{}", "max_current_a": {}}})",
+                       kRecordFormat, kRecordVersion, json_escape(o.uri), info.valves, info.fluid_cells,
+                       info.sensors, info.sensor_unit, json_number(info.max_current_A)));
+  RecordContext context{&rig, &out, 0};
+  rig.session().set_telemetry_callback(&on_telemetry, &context);
+  std::size_t commands = 0;
+  const auto status_line = [&] {
+    out.line(fmt::format(R"({{"t_s": {}, "dir": "rx", "kind": "status", "state": "{}", "fault": "{}"}})",
+                         json_number(rig.elapsed_s()), to_string(rig.session().state()),
+                         fault_name(rig.session().fault_code())));
+  };
+  const auto send_currents = [&] {
+    out.line(fmt::format(R"({{"t_s": {}, "dir": "tx", "kind": "currents", "values": {}}})",
+                         json_number(rig.elapsed_s()), record_numbers(current_a)));
+    (void)rig.session().send_valve_currents(current_a);
+    ++commands;
+  };
+  status_line();
+  DeviceState state = rig.session().state();
+  std::uint8_t fault = rig.session().fault_code();
+  if (!current_a.empty()) {
+    out.line(fmt::format(R"({{"t_s": {}, "dir": "tx", "kind": "state", "request": "enable"}})",
+                         json_number(rig.elapsed_s())));
+    ++commands;
+    rig.enable();
+    send_currents();
+  }
+  int k = 0;
+  rig.run_for(o.duration_s, [&] {
+    if (rig.session().state() != state || rig.session().fault_code() != fault) {
+      state = rig.session().state();
+      fault = rig.session().fault_code();
+      status_line();
+    }
+    if (!current_a.empty() && ++k % 20 == 0 && rig.last() == ResultCode::ok) {
+      send_currents();  // resent every heartbeat period, like set
+    }
+  });
+  if (!current_a.empty()) {
+    out.line(fmt::format(R"({{"t_s": {}, "dir": "tx", "kind": "state", "request": "disable"}})",
+                         json_number(rig.elapsed_s())));
+    ++commands;
+    rig.release();
+  }
+  rig.session().set_telemetry_callback(nullptr, nullptr);
+  const std::size_t lines = out.lines();
+  if (!out.close()) {
+    throw Error(fmt::format("record: writing {} failed (disk full?); the file is incomplete", o.out));
+  }
+  if (global.json) {
+    fmt::print(
+        R"({{"out": "{}", "duration_s": {}, "lines": {}, "telemetry": {}, "commands": {}, "interrupted": {}}})"
+        "\n",
+        json_escape(o.out), json_number(rig.elapsed_s()), lines, context.telemetry, commands,
+        Rig::interrupted() ? "true" : "false");
+  } else {
+    fmt::print("recorded {:.3f} s to {}: {} lines, {} telemetry packets, {} commands{}\n", rig.elapsed_s(),
+               o.out, lines, context.telemetry, commands, Rig::interrupted() ? " (interrupted)" : "");
+  }
+  return tools::kOk;
+}
+
+// --- replay ----------------------------------------------------------------------------
+
+struct Event {
+  std::size_t line = 0;
+  double t_s = 0.0;
+  bool tx = false;
+  std::string kind;
+  std::string request;  // state requests
+  std::string state;    // status
+  std::string fault;
+  std::size_t first = 0;
+  double device_time_s = 0.0;
+  std::vector<double> values;
+};
+
+struct Recording {
+  std::string uri;
+  std::size_t valves = 0;
+  std::size_t fluid_cells = 0;
+  std::size_t sensors = 0;
+  std::string sensor_unit;
+  double max_current_a = 0.0;
+  std::vector<Event> events;
+};
+
+Recording read_recording(const std::string& path) {
+  std::ifstream in(path);
+  if (!in) {
+    throw InvalidArgument(fmt::format("replay: cannot read {}: {}", path, std::strerror(errno)));
+  }
+  Recording r;
+  std::string text;
+  std::size_t n = 0;
+  double last_t_s = 0.0;
+  while (std::getline(in, text)) {
+    ++n;
+    const std::string where = fmt::format("{}:{}", path, n);
+    if (text.empty() || text.find_first_not_of(" \t\r") == std::string::npos) {
+      continue;
+    }
+    const RecordObject object = RecordLineParser(text, where).parse();
+    const RecordFields f(object, where);
+    if (n == 1) {
+      if (f.text("format") != kRecordFormat || f.number("version") != kRecordVersion) {
+        throw InvalidArgument(
+            fmt::format("{}: not a {} version {} header", where, kRecordFormat, kRecordVersion));
+      }
+      r.uri = f.text("uri");
+      r.valves = f.index("valves");
+      r.fluid_cells = f.index("fluid_cells");
+      r.sensors = f.index("sensors");
+      r.sensor_unit = f.text("sensor_unit");
+      r.max_current_a = f.number("max_current_a");
+      continue;
+    }
+    Event e;
+    e.line = n;
+    e.t_s = f.number("t_s");
+    if (!(e.t_s >= last_t_s) || !std::isfinite(e.t_s)) {
+      throw InvalidArgument(
+          fmt::format("{}: t_s {} goes back in time (previous {})", where, e.t_s, last_t_s));
+    }
+    last_t_s = e.t_s;
+    const std::string& dir = f.text("dir");
+    if (dir != "tx" && dir != "rx") {
+      throw InvalidArgument(fmt::format(R"({}: dir must be "tx" or "rx", not "{}")", where, dir));
+    }
+    e.tx = dir == "tx";
+    e.kind = f.text("kind");
+    if (e.tx && e.kind == "state") {
+      e.request = f.text("request");
+      if (e.request != "enable" && e.request != "disable" && e.request != "pause" && e.request != "estop") {
+        throw InvalidArgument(fmt::format("{}: unknown state request \"{}\"", where, e.request));
+      }
+    } else if (e.tx && e.kind == "currents") {
+      e.values = f.array("values");
+      DeviceInfo recorded;
+      recorded.valves = r.valves;
+      recorded.max_current_A = r.max_current_a;
+      check_currents(e.values, recorded, where);
+    } else if (e.tx && e.kind == "targets") {
+      e.first = f.index("first");
+      e.values = f.array("values");
+      if (e.values.size() != 4) {
+        throw InvalidArgument(
+            fmt::format("{}: a target has 4 values: stiffness N/m, offset m, ceiling N, validity s", where));
+      }
+    } else if (!e.tx && e.kind == "telemetry") {
+      e.device_time_s = f.number("device_time_s");
+      e.first = f.index("first");
+      e.values = f.array("values");
+    } else if (!e.tx && e.kind == "status") {
+      e.state = f.text("state");
+      e.fault = f.text("fault");
+    } else {
+      throw InvalidArgument(fmt::format("{}: unknown event {} \"{}\"", where, dir, e.kind));
+    }
+    r.events.push_back(std::move(e));
+  }
+  if (n == 0) {
+    throw InvalidArgument(fmt::format("{}:1: empty file; expected a {} header", path, kRecordFormat));
+  }
+  return r;
+}
+
+std::string event_json(const Event& e) {
+  std::string out = fmt::format(R"({{"line": {}, "t_s": {}, "dir": "{}", "kind": "{}")", e.line,
+                                json_number(e.t_s), e.tx ? "tx" : "rx", e.kind);
+  if (!e.request.empty()) {
+    out += fmt::format(R"(, "request": "{}")", e.request);
+  }
+  if (!e.state.empty()) {
+    out += fmt::format(R"(, "state": "{}", "fault": "{}")", json_escape(e.state), json_escape(e.fault));
+  }
+  if (e.kind == "telemetry") {
+    out += fmt::format(R"(, "device_time_s": {})", json_number(e.device_time_s));
+  }
+  if (e.kind == "telemetry" || e.kind == "targets") {
+    out += fmt::format(R"(, "first": {})", e.first);
+  }
+  if (!e.values.empty()) {
+    out += ", \"values\": " + record_numbers(e.values);
+  }
+  return out + "}";
+}
+
+std::string event_text(const Event& e, const Recording& r) {
+  std::string out = fmt::format("{:10.6f} s {} {:<9}", e.t_s, e.tx ? "tx" : "rx", e.kind);
+  if (e.kind == "state") {
+    out += " " + e.request;
+  } else if (e.kind == "status") {
+    out += fmt::format(" {} (fault: {})", e.state, e.fault);
+  } else if (e.kind == "currents") {
+    out += fmt::format(" valves 0..{} [A]: {:.6g}", e.values.size() - 1, fmt::join(e.values, " "));
+  } else if (e.kind == "targets") {
+    out += fmt::format(" cell {}: {:.6g} N/m, {:.6g} m, {:.6g} N, {:.6g} s", e.first, e.values[0],
+                       e.values[1], e.values[2], e.values[3]);
+  } else if (e.kind == "telemetry") {
+    out += fmt::format(" device {:.6f} s sensors {}..{} [{}]: {:.4g}", e.device_time_s, e.first,
+                       e.first + e.values.size() - 1, r.sensor_unit, fmt::join(e.values, " "));
+  }
+  return out;
+}
+
+int run_replay(const ReplayOptions& o, const GlobalOptions& global) {
+  const Recording r = read_recording(o.file);
+  std::size_t commands = 0;
+  std::size_t telemetry = 0;
+  for (const Event& e : r.events) {
+    commands += e.tx ? 1U : 0U;
+    telemetry += e.kind == "telemetry" ? 1U : 0U;
+  }
+  if (o.to_device.empty()) {
+    if (global.json) {
+      std::string out = fmt::format(
+          R"({{"file": "{}", "uri": "{}", "valves": {}, "fluid_cells": {}, "sensors": {}, "sensor_unit": "{}", )"
+          R"("max_current_a": {}, "commands": {}, "telemetry": {}, "events": [)",
+          json_escape(o.file), json_escape(r.uri), r.valves, r.fluid_cells, r.sensors,
+          json_escape(r.sensor_unit), json_number(r.max_current_a), commands, telemetry);
+      for (std::size_t i = 0; i < r.events.size(); ++i) {
+        out += (i == 0 ? "" : ", ") + event_json(r.events[i]);
+      }
+      fmt::print("{}]}}\n", out);
+    } else {
+      fmt::print("recording of {}: {} valves, {} sensors in {}; {} events ({} commands, {} telemetry)\n",
+                 r.uri, r.valves, r.sensors, r.sensor_unit, r.events.size(), commands, telemetry);
+      for (const Event& e : r.events) {
+        fmt::print("{}\n", event_text(e, r));
+      }
+    }
+    return tools::kOk;
+  }
+
+  Rig rig(o.to_device, o.realtime);
+  const DeviceInfo& info = rig.info();
+  // The target device's limits, checked for every command before the first is sent.
+  std::vector<protocol::CellTarget> targets(r.events.size());
+  for (std::size_t i = 0; i < r.events.size(); ++i) {
+    const Event& e = r.events[i];
+    const std::string where = fmt::format("{}:{}", o.file, e.line);
+    if (e.kind == "currents") {
+      check_currents(e.values, info, where);
+    } else if (e.kind == "targets") {
+      targets[i] = check_target(e.first, {e.values[0], e.values[1], e.values[2], e.values[3]}, info, where);
+    }
+  }
+  std::size_t sent = 0;
+  std::size_t refused = 0;
+  for (std::size_t i = 0; i < r.events.size() && !Rig::interrupted(); ++i) {
+    const Event& e = r.events[i];
+    if (!e.tx) {
+      continue;
+    }
+    while (rig.elapsed_s() < e.t_s && !Rig::interrupted()) {
+      rig.tick();
+    }
+    ResultCode rc = ResultCode::ok;
+    if (e.kind == "state") {
+      if (e.request == "enable") {
+        rig.enable();
+      } else if (e.request == "disable") {
+        rig.release();
+      } else if (e.request == "pause") {
+        rc = rig.session().request_pause();
+      } else {
+        rc = rig.session().request_estop();
+      }
+    } else if (e.kind == "currents") {
+      rc = rig.session().send_valve_currents(e.values);
+    } else {
+      const std::array<protocol::CellTarget, 1> one{targets[i]};
+      rc = rig.session().send_cell_targets(static_cast<std::uint16_t>(e.first), one);
+    }
+    ++sent;
+    refused += rc == ResultCode::ok ? 0U : 1U;
+  }
+  rig.run_for(0.02);
+  const DeviceState state = rig.session().state();
+  const std::uint8_t fault = rig.session().fault_code();
+  const std::uint64_t received = rig.session().counters().telemetry;
+  rig.release();
+  if (global.json) {
+    fmt::print(R"({{"file": "{}", "to_device": "{}", "commands_sent": {}, "commands_refused": {}, )"
+               R"("telemetry_received": {}, "state": "{}", "fault": "{}", "interrupted": {}}})"
+               "\n",
+               json_escape(o.file), json_escape(o.to_device), sent, refused, received, to_string(state),
+               fault_name(fault), Rig::interrupted() ? "true" : "false");
+  } else {
+    fmt::print(
+        "replayed {} commands from {} to {} over {:.3f} s ({} refused by the session); {} telemetry "
+        "packets received; state {} (fault: {}); released\n",
+        sent, o.file, o.to_device, rig.elapsed_s(), refused, received, to_string(state), fault_name(fault));
+  }
+  return refused == 0 && !Rig::interrupted() ? tools::kOk : tools::kFailure;
+}
+
+}  // namespace
+
+void add_record_commands(CLI::App& app, const GlobalOptions& global, int& exit_code) {
+  auto record = std::make_shared<RecordOptions>();
+  auto* rec = app.add_subcommand(
+      "record",
+      "record telemetry, status changes and the commands sent to an NDJSON file (docs/cli.md); with "
+      "--currents, "
+      "enable and hold those currents while recording, then release. Exit 0 recorded, 2 bad arguments");
+  add_device_options(rec, record->uri, record->realtime);
+  rec->add_option("--out", record->out, "file to write")->required();
+  rec->add_option("--duration", record->duration_s, "seconds to record")->capture_default_str();
+  rec->add_option("--currents", record->currents, "hold these per-valve currents (A) while recording");
+  rec->callback([record, &global, &exit_code] { exit_code = run_record(*record, global); });
+
+  auto replay = std::make_shared<ReplayOptions>();
+  auto* rep = app.add_subcommand("replay",
+                                 "print a recording (or --json), or with --to-device re-send its commands "
+                                 "with their timing, the device's "
+                                 "limits checked again first. Exit 0 done, 1 the session refused a command, "
+                                 "2 malformed file (the line is "
+                                 "named) or a command outside the device's limits");
+  rep->add_option("file", replay->file, "recording written by mrskinctl record")->required();
+  rep->add_option("--to-device", replay->to_device, "device URI to re-send the recorded commands to");
+  rep->add_flag("--realtime", replay->realtime, "run a mock:// unit in real time instead of simulated time");
+  rep->callback([replay, &global, &exit_code] { exit_code = run_replay(*replay, global); });
 }
 
 }  // namespace mrskin::ctl

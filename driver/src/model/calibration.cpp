@@ -41,7 +41,8 @@ double checked_scale(const toml::node& n, const std::string& origin, std::string
 
 }  // namespace
 
-Calibration parse_calibration(std::string_view text, const std::string& origin, std::size_t valves) {
+Calibration parse_calibration(std::string_view text, const std::string& origin, std::size_t valves,
+                              std::size_t sensors) {
   toml::table root;
   try {
     root = toml::parse(text, origin);
@@ -77,6 +78,40 @@ Calibration parse_calibration(std::string_view text, const std::string& origin, 
       c.valve_yield_gain.push_back(checked_scale(*n, origin, "valve_yield_gain"));
     }
   }
+  int offset_keys = 0;
+  for (const char* unit : {"m", "n", "pa"}) {
+    const std::string key = std::string("sensor_offset_") + unit;
+    const toml::node* n = root.get(key);
+    if (n == nullptr) {
+      continue;
+    }
+    ++offset_keys;
+    std::string where = origin;
+    where += ": ";
+    where += key;
+    const toml::array* list = n->as_array();
+    if (list == nullptr) {
+      throw InvalidArgument(where + " must be a list, one number per sensor");
+    }
+    c.sensor_offset_unit = unit;
+    for (const toml::node& v : *list) {
+      const std::optional<double> x = v.value<double>();
+      if (!x || !std::isfinite(*x)) {
+        throw InvalidArgument(where +
+                              " must hold finite numbers; recalibrate the unit (mrskinctl calibrate)");
+      }
+      c.sensor_offset.push_back(*x);
+    }
+    if (sensors != 0 && c.sensor_offset.size() != sensors) {
+      std::ostringstream m;
+      m << where << " lists " << c.sensor_offset.size() << " sensors; the unit has " << sensors
+        << ": recalibrate the unit";
+      throw InvalidArgument(m.str());
+    }
+  }
+  if (offset_keys > 1) {
+    throw InvalidArgument(origin + ": give one of sensor_offset_m, sensor_offset_n, sensor_offset_pa");
+  }
   return c;
 }
 
@@ -94,6 +129,14 @@ std::string format_calibration(const Calibration& c) {
     s << "valve_yield_gain = [";
     for (std::size_t v = 0; v < c.valve_yield_gain.size(); ++v) {
       s << (v == 0 ? "" : ", ") << c.valve_yield_gain[v];
+    }
+    s << "]\n";
+  }
+  if (!c.sensor_offset.empty()) {
+    s << "sensor_offset_" << c.sensor_offset_unit << " = [";
+    s.precision(9);
+    for (std::size_t i = 0; i < c.sensor_offset.size(); ++i) {
+      s << (i == 0 ? "" : ", ") << c.sensor_offset[i];
     }
     s << "]\n";
   }

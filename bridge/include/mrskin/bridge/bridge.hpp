@@ -187,8 +187,10 @@ class Bridge {
   std::vector<unsigned char> below_floor_;  // per cell: target below the observed open-valve floor
   double unload_filter_alpha_ = 1.0;
   std::vector<double> current_A_;
-  std::vector<double> valve_gain_;  // calibrated per-valve yield gain
-  std::vector<double> sent_A_;      // currents last sent
+  std::vector<double> valve_gain_;      // calibrated per-valve yield gain
+  std::vector<double> sensor_offset_;   // calibrated zero per sensor, the sensors' SI unit
+  std::vector<double> sensor_reading_;  // this tick's readings less their zero
+  std::vector<double> sent_A_;          // currents last sent
   TimePoint last_send_{};
   bool ever_sent_ = false;
   std::atomic<unsigned char> pending_request_{0};

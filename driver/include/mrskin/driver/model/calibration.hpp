@@ -14,6 +14,8 @@
 //   turns_scale = 1.0
 //   gap_scale = 0.991
 //   valve_yield_gain = [1.02, 0.97, ...]   # per valve, or one number for all
+//   sensor_offset_m = [1.2e-7, ...]         # per sensor: its reading at rest, subtracted from
+//                                           # every reading (_m, _n or _pa: the sensors' unit)
 #pragma once
 
 #include <cstdint>
@@ -38,6 +40,10 @@ struct Calibration {
   double turns_scale = 1.0;
   double gap_scale = 1.0;
   std::vector<double> valve_yield_gain;  // empty: 1 for every valve
+  // Per sensor, in the sensors' SI unit (sensor_offset_unit: "m", "n" or "pa", the key's
+  // suffix): the reading at rest, subtracted from every reading. Empty: no offsets.
+  std::vector<double> sensor_offset;
+  std::string sensor_offset_unit = "m";
 
   // The gain of valve v (1 when not calibrated per valve).
   [[nodiscard]] double valve_gain(std::size_t v) const noexcept {
@@ -49,8 +55,10 @@ struct Calibration {
 
 // Parses calibration text; origin names it in errors. Throws InvalidArgument naming the bad
 // key: scales must be in [0.5, 2], a per-valve list must have one entry per valve of the
-// profile (valves = 0 skips that check).
-Calibration parse_calibration(std::string_view text, const std::string& origin, std::size_t valves = 0);
+// profile (valves = 0 skips that check), sensor offsets finite, one per sensor (sensors = 0
+// skips that check).
+Calibration parse_calibration(std::string_view text, const std::string& origin, std::size_t valves = 0,
+                              std::size_t sensors = 0);
 std::string format_calibration(const Calibration& c);
 
 // The nominal profile with the calibration's scales applied (per-valve gains are not part of

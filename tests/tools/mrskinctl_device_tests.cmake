@@ -1,0 +1,9 @@
+# mrskinctl set, selftest, calibrate, record and replay against mock:// (simulated clock: fixed seeds,
+# deterministic, no timing asserts). Included from tests/tools/CMakeLists.txt.
+foreach(part set selftest calibrate calibrate_dry calibrate_refuse calibrate_noisy record)
+  add_test(NAME ToolsMrskinctlDevice_${part}
+           COMMAND ${CMAKE_COMMAND} -DMRSKINCTL=$<TARGET_FILE:mrskinctl> -DPART=${part}
+                   -DWORK=${CMAKE_CURRENT_BINARY_DIR}/mrskinctl_device_${part}
+                   -P ${CMAKE_CURRENT_SOURCE_DIR}/mrskinctl_device_test.cmake)
+  set_tests_properties(ToolsMrskinctlDevice_${part} PROPERTIES LABELS tools TIMEOUT 300)
+endforeach()
