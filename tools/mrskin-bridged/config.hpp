@@ -27,7 +27,7 @@ struct Settings {
   bool quiet = false;
   bridge::WorkspaceMapping mapping{};  // [mapping]; rotation given in degrees in the file
   // [bridge]
-  double feedback_gain_per_s = 40.0;
+  double feedback_gain_per_s = 30.0;
   double footprint_cells = 1.5;
   double resend_period_s = 0.05;
   bool realtime = true;

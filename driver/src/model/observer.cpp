@@ -8,6 +8,7 @@
 
 #include "mrskin/driver/errors.hpp"
 #include "mrskin/driver/model/coil.hpp"
+#include "mrskin/driver/model/magnetic.hpp"
 
 namespace mrskin::model {
 
@@ -98,6 +99,11 @@ struct CellObserver::Impl {
     yield_Pa.assign(grid.valve_count(), 0.0);
     valve_gain.assign(grid.valve_count(), 1.0);
     command_A.assign(grid.valve_count(), 0.0);
+    falling.assign(grid.valve_count(), 0);
+    branch_field_A.assign(grid.valve_count(), 0.0);
+    if (o.steel_hysteresis && p.magnetic.steel.coercivity_A_per_m > 0.0) {
+      tabulate_branches();
+    }
     force.assign(cells, 0.0);
     last_force.assign(cells, 0.0);
     visit.reserve(cells);
@@ -124,6 +130,8 @@ struct CellObserver::Impl {
     std::fill(used_reading.begin(), used_reading.end(), 0.0);
     std::fill(velocity.begin(), velocity.end(), 0.0);
     std::fill(coil.begin(), coil.end(), CoilState{});
+    std::fill(falling.begin(), falling.end(), 0);
+    std::fill(branch_field_A.begin(), branch_field_A.end(), 0.0);
     std::fill(yield_Pa.begin(), yield_Pa.end(), 0.0);
     std::fill(command_A.begin(), command_A.end(), 0.0);
     std::fill(force.begin(), force.end(), 0.0);
@@ -133,6 +141,33 @@ struct CellObserver::Impl {
     }
     network_primed = false;
     misfit_m = 0.0;
+  }
+
+  // Runs the plant's hysteretic gap field up from 0 A to the maximum and back down.
+  void tabulate_branches() {
+    const DeviceProfile& p = model.profile();
+    constexpr std::size_t kSteps = 512;
+    branch_step_A = p.coil.max_current_A / static_cast<double>(kSteps);
+    rising_Pa.assign(kSteps + 1, 0.0);
+    falling_Pa.assign(kSteps + 1, 0.0);
+    HysteresisState state{};
+    for (std::size_t k = 0; k <= kSteps; ++k) {
+      const Result<GapField> g =
+          gap_field_hysteretic(p.magnetic, p.fluid, static_cast<double>(k) * branch_step_A, state);
+      rising_Pa[k] = g.ok() ? g.value.yield_stress_Pa : (k > 0 ? rising_Pa[k - 1] : 0.0);
+    }
+    for (std::size_t k = kSteps + 1; k-- > 0;) {
+      const Result<GapField> g =
+          gap_field_hysteretic(p.magnetic, p.fluid, static_cast<double>(k) * branch_step_A, state);
+      falling_Pa[k] = g.ok() ? g.value.yield_stress_Pa : (k < kSteps ? falling_Pa[k + 1] : rising_Pa[k]);
+    }
+  }
+  [[nodiscard]] double branch_yield_Pa(const std::vector<double>& table, double field_A) const noexcept {
+    const double u = field_A / branch_step_A;
+    const std::size_t last = table.size() - 1;
+    const auto k = std::min(static_cast<std::size_t>(u), last - 1);
+    const double t = std::clamp(u - static_cast<double>(k), 0.0, 1.0);
+    return table[k] + t * (table[k + 1] - table[k]);
   }
 
   void fit(std::span<const double> readings) noexcept;
@@ -160,6 +195,13 @@ struct CellObserver::Impl {
   std::vector<double> predicted_m;
   std::vector<double> velocity;
   std::vector<CoilState> coil;
+  // The steel's hysteresis (a play operator, as in the plant) as two branches tabulated over the
+  // coil current at setup: rising and falling. Each valve follows the branch of its last move.
+  std::vector<double> rising_Pa;
+  std::vector<double> falling_Pa;
+  double branch_step_A = 0.0;
+  std::vector<unsigned char> falling;  // per valve: on the falling branch
+  std::vector<double> branch_field_A;  // per valve: field current at the last branch decision
   std::vector<double> yield_Pa;
   std::vector<double> valve_gain;       // calibrated true / nominal yield stress per valve
   std::vector<double> command_A;        // last command per valve (a settled coil is not stepped)
@@ -183,6 +225,7 @@ struct CellObserver::Impl {
 namespace {
 constexpr std::uint32_t kNoMark = 0;
 constexpr double kSettledFlow_m3_per_s = 1e-13;  // 0.1 nL/s: nothing left to relax
+constexpr double kBranchDeadband_A = 1e-7;       // field-current moves below this keep the branch
 }  // namespace
 
 // Projected coordinate descent on 1/2 |r|^2 + 1/2 w_p |d - d_pred|^2 + w_1 sum d, d >= 0. A
@@ -304,8 +347,22 @@ bool CellObserver::Impl::update_coils(std::span<const double> valve_current_A, d
       state = next.value;
     }
     const double field_A = std::clamp(state.field_current_A, 0.0, coil_params.max_current_A);
-    const Result<double> tau_y = model.yield_stress_at_current_Pa(field_A);
-    const double y = tau_y.ok() ? tau_y.value * valve_gain[v] : yield_Pa[v];
+    double y = yield_Pa[v];
+    if (!rising_Pa.empty()) {
+      // The steel's hysteresis, as the plant has it: after any current the valve keeps a
+      // remanent yield at 0 A (about 1 Pa on the 5 x 5, where a press is held from 3-6 Pa).
+      if (field_A > branch_field_A[v] + kBranchDeadband_A) {
+        falling[v] = 0;
+        branch_field_A[v] = field_A;
+      } else if (field_A < branch_field_A[v] - kBranchDeadband_A) {
+        falling[v] = 1;
+        branch_field_A[v] = field_A;
+      }
+      y = branch_yield_Pa(falling[v] != 0 ? falling_Pa : rising_Pa, field_A) * valve_gain[v];
+    } else {
+      const Result<double> tau_y = model.yield_stress_at_current_Pa(field_A);
+      y = tau_y.ok() ? tau_y.value * valve_gain[v] : y;
+    }
     changed = changed || y != yield_Pa[v];
     yield_Pa[v] = y;
   }

@@ -53,7 +53,7 @@ struct BridgeOptions {
   double contact_force_N = 0.03;           // estimated force below this: the finger is not on the cell
   // Integral feedback on the observer's force, 1/s: corrects what the quasi-static inverse does
   // not know (the cell's fluid history, coil lag); frozen while the target is clamped.
-  double feedback_gain_per_s = 40.0;
+  double feedback_gain_per_s = 30.0;
   bool freeze_feedback_while_holding = false;
   // A holding cell's valves stay at least this fraction above the threshold of its target, so
   // model error does not leak the trapped volume away. Off: slow loading that reads as a hold

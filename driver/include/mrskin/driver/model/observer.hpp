@@ -74,6 +74,9 @@ struct ObserverOptions {
   // instructions). The flow test matters: on forces alone a released skin that still refills
   // looked settled, and freezing it cost the demo 0.031 -> 0.046 N RMS.
   bool skip_settled_network = true;
+  // The steel's hysteresis (the profile's coercivity, a play operator as in the plant): after
+  // any current a valve keeps a remanent yield at 0 A. Off: the anhysteretic yield curve.
+  bool steel_hysteresis = true;
 };
 
 class CellObserver {
