@@ -39,8 +39,13 @@ inline void add_device_options(CLI::App* sub, std::string& uri, bool& realtime) 
   sub->add_flag("--realtime", realtime, "run a mock:// unit in real time instead of simulated time");
 }
 
-inline volatile std::sig_atomic_t g_interrupted = 0;
-inline void on_interrupt(int /*signal*/) { g_interrupted = 1; }
+// SIGINT/SIGTERM set it; the command loops poll it. Constant-initialised: no guard, safe to
+// touch from the handler.
+inline volatile std::sig_atomic_t& interrupted_flag() noexcept {
+  static volatile std::sig_atomic_t flag = 0;
+  return flag;
+}
+inline void on_interrupt(int /*signal*/) { interrupted_flag() = 1; }
 
 // "0.01,0.02" -> {0.01, 0.02}; option names the flag in the error.
 inline std::vector<double> parse_number_list(std::string_view text, std::string_view option) {
@@ -156,7 +161,7 @@ class Rig {
     dev_ = open_device(uri, clock(), open);
     start_ = clock().now();
     next_ = start_;  // NOLINT(cppcoreguidelines-prefer-member-initializer): after the handshake
-    g_interrupted = 0;
+    interrupted_flag() = 0;
     struct sigaction sa {};
     sa.sa_handler = &on_interrupt;
     sigemptyset(&sa.sa_mask);
@@ -179,7 +184,7 @@ class Rig {
   [[nodiscard]] const DeviceInfo& info() const noexcept { return dev_.session->info(); }
   // The press fixture: the mock's finger (nullptr on a real unit).
   [[nodiscard]] MockDevice* fixture() const noexcept { return dev_.mock.get(); }
-  [[nodiscard]] static bool interrupted() noexcept { return g_interrupted != 0; }
+  [[nodiscard]] static bool interrupted() noexcept { return interrupted_flag() != 0; }
   double elapsed_s() noexcept { return to_seconds(clock().now() - start_); }
   [[nodiscard]] ResultCode last() const noexcept { return last_; }
 
