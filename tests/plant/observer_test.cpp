@@ -8,11 +8,13 @@
 #include <cmath>
 #include <cstdio>
 #include <limits>
+#include <utility>
 #include <vector>
 
 #include "counting_new.hpp"
 #include "mrskin/driver/errors.hpp"
 #include "mrskin/driver/model/device_model.hpp"
+#include "mrskin/driver/model/magnetic.hpp"
 #include "mrskin/driver/network_plant.hpp"
 
 namespace {
@@ -205,6 +207,71 @@ TEST(ObserverInputs, BadInputsAreRefusedAndStateKept) {
   ObserverOptions wrong;
   wrong.sweeps = 0;
   EXPECT_THROW(CellObserver(nominal, wrong), mrskin::InvalidArgument);
+}
+
+// Net outflow per fluid cell from the network model's passages: a press through open valves
+// sends fluid out; the same press (1 mm, below the full-current threshold) held behind valves at
+// full current seals the cell. The local
+// force model tracks no flows.
+TEST(ObserverFlows, OpenValvesFlowAndFullCurrentSeals) {
+  const DeviceModel nominal(mrskin::model::default_profile());
+  const std::size_t centre = 6;  // the default 5 x 5's centre fluid cell
+  auto outflow_while_pressing = [&](double current_A, double hold_s) {
+    NetworkPlant plant(nominal.profile(), ideal());
+    CellObserver observer(nominal, ObserverOptions{});
+    std::vector<double> depth(nominal.layout().fluid_cell_count(), 0.0);
+    std::vector<double> sensors(plant.sensor_count());
+    std::vector<double> current(nominal.layout().valve_count(), current_A);
+    plant.set_valve_currents(current);
+    const int ramp = 500;  // 0 -> 1 mm in 0.5 s (2 mm/s), then held
+    const int total = ramp + static_cast<int>(hold_s * 1000.0);
+    for (int tick = 1; tick <= total; ++tick) {
+      depth[centre] = 1e-3 * std::min(1.0, static_cast<double>(tick) / ramp);
+      plant.set_finger_indentation(depth);
+      for (int s = 0; s < kSubsteps; ++s) {
+        plant.step(kTick_s / kSubsteps);
+      }
+      plant.read_sensors(sensors);
+      EXPECT_EQ(observer.update(sensors, current, kTick_s), Status::ok);
+    }
+    EXPECT_EQ(observer.outflow_m3_per_s().size(), nominal.layout().fluid_cell_count());
+    return observer.outflow_m3_per_s()[centre];
+  };
+  EXPECT_GT(outflow_while_pressing(0.0, 0.0), 1e-7);  // loading at 2 mm/s through open valves
+  EXPECT_LT(outflow_while_pressing(0.1, 0.2), 1e-9);  // held at full current: sealed (creep 3e-10)
+  ObserverOptions local;
+  local.force_model = mrskin::model::ObserverForceModel::local;
+  EXPECT_TRUE(CellObserver(nominal, local).outflow_m3_per_s().empty());
+}
+
+// The compensated current lands the plant's hysteretic valve (magnetic.hpp's play operator, run
+// exactly) on the yield the anhysteretic curve gives at the requested current, coming down from
+// a high current and going up from a low one.
+TEST(ObserverHysteresis, CompensatedCurrentReachesTheAnhystereticYield) {
+  const DeviceModel nominal(mrskin::model::default_profile());
+  const auto& profile = nominal.profile();
+  ASSERT_GT(profile.magnetic.steel.coercivity_A_per_m, 0.0);
+  for (const auto& [from_A, wanted_A] :
+       {std::pair{0.08, 0.02}, std::pair{0.01, 0.05}, std::pair{0.06, 0.03}}) {
+    SCOPED_TRACE(testing::Message() << from_A << " A -> " << wanted_A << " A");
+    CellObserver observer(nominal, ObserverOptions{});
+    std::vector<double> sensors(profile.sensors.size(), 0.0);
+    std::vector<double> current(nominal.layout().valve_count(), from_A);
+    for (int i = 0; i < 200; ++i) {  // 40 coil time constants: settled
+      ASSERT_EQ(observer.update(sensors, current, 1e-3), Status::ok);
+    }
+    const double command_A = observer.hysteresis_compensated_current_A(0, wanted_A);
+    EXPECT_EQ(from_A > wanted_A, command_A < wanted_A);
+    mrskin::model::HysteresisState plant{};
+    ASSERT_TRUE(mrskin::model::gap_field_hysteretic(profile.magnetic, profile.fluid, from_A, plant).ok());
+    const auto reached =
+        mrskin::model::gap_field_hysteretic(profile.magnetic, profile.fluid, command_A, plant);
+    const auto anhysteretic = mrskin::model::gap_field(profile.magnetic, profile.fluid, wanted_A);
+    ASSERT_TRUE(reached.ok() && anhysteretic.ok());
+    EXPECT_NEAR(reached.value.yield_stress_Pa, anhysteretic.value.yield_stress_Pa,
+                0.01 * anhysteretic.value.yield_stress_Pa);
+  }
+  EXPECT_EQ(CellObserver(nominal, ObserverOptions{}).hysteresis_compensated_current_A(0, 0.0), 0.0);
 }
 
 TEST(ObserverHotPath, UpdateDoesNotAllocate) {

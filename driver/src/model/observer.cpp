@@ -99,13 +99,15 @@ struct CellObserver::Impl {
     yield_Pa.assign(grid.valve_count(), 0.0);
     valve_gain.assign(grid.valve_count(), 1.0);
     command_A.assign(grid.valve_count(), 0.0);
-    falling.assign(grid.valve_count(), 0);
-    branch_field_A.assign(grid.valve_count(), 0.0);
+    play_index.assign(grid.valve_count(), 0.0);
     if (o.steel_hysteresis && p.magnetic.steel.coercivity_A_per_m > 0.0) {
-      tabulate_branches();
+      tabulate_play();
     }
     force.assign(cells, 0.0);
     last_force.assign(cells, 0.0);
+    if (network) {
+      outflow.assign(cells, 0.0);
+    }
     visit.reserve(cells);
     next_visit.reserve(cells);
     mark.assign(cells, 0);
@@ -130,12 +132,12 @@ struct CellObserver::Impl {
     std::fill(used_reading.begin(), used_reading.end(), 0.0);
     std::fill(velocity.begin(), velocity.end(), 0.0);
     std::fill(coil.begin(), coil.end(), CoilState{});
-    std::fill(falling.begin(), falling.end(), 0);
-    std::fill(branch_field_A.begin(), branch_field_A.end(), 0.0);
+    std::fill(play_index.begin(), play_index.end(), 0.0);
     std::fill(yield_Pa.begin(), yield_Pa.end(), 0.0);
     std::fill(command_A.begin(), command_A.end(), 0.0);
     std::fill(force.begin(), force.end(), 0.0);
     std::fill(last_force.begin(), last_force.end(), 0.0);
+    std::fill(outflow.begin(), outflow.end(), 0.0);
     if (network) {
       network->reset();
     }
@@ -143,31 +145,64 @@ struct CellObserver::Impl {
     misfit_m = 0.0;
   }
 
-  // Runs the plant's hysteretic gap field up from 0 A to the maximum and back down.
-  void tabulate_branches() {
+  // The steel's play operator (magnetic.hpp) in the current domain. The flux, hence the yield,
+  // depends on the played field p alone; p moves only when the coil's current leaves the band
+  // I_base(p) +- half_width around it (I_base: the current that holds the steel at p without
+  // hysteresis, half_width = H_c l_steel / N). Both are tabulated along the rising branch from
+  // the virgin state at setup; each valve's state is its fractional index into the tables. Exact
+  // for the plant's model, at a table lookup per changed valve.
+  void tabulate_play() {
     const DeviceProfile& p = model.profile();
     constexpr std::size_t kSteps = 512;
-    branch_step_A = p.coil.max_current_A / static_cast<double>(kSteps);
-    rising_Pa.assign(kSteps + 1, 0.0);
-    falling_Pa.assign(kSteps + 1, 0.0);
+    play_half_width_A = p.magnetic.steel.coercivity_A_per_m * p.magnetic.steel_path_length_m /
+                        static_cast<double>(p.magnetic.turns);
+    const double top_A = p.coil.max_current_A + play_half_width_A;
+    play_base_A.assign(kSteps + 1, 0.0);
+    play_yield_Pa.assign(kSteps + 1, 0.0);
+    anhysteretic_Pa.assign(kSteps + 1, 0.0);
+    anhysteretic_step_A = p.coil.max_current_A / static_cast<double>(kSteps);
     HysteresisState state{};
     for (std::size_t k = 0; k <= kSteps; ++k) {
-      const Result<GapField> g =
-          gap_field_hysteretic(p.magnetic, p.fluid, static_cast<double>(k) * branch_step_A, state);
-      rising_Pa[k] = g.ok() ? g.value.yield_stress_Pa : (k > 0 ? rising_Pa[k - 1] : 0.0);
-    }
-    for (std::size_t k = kSteps + 1; k-- > 0;) {
-      const Result<GapField> g =
-          gap_field_hysteretic(p.magnetic, p.fluid, static_cast<double>(k) * branch_step_A, state);
-      falling_Pa[k] = g.ok() ? g.value.yield_stress_Pa : (k < kSteps ? falling_Pa[k + 1] : rising_Pa[k]);
+      // Along the rising branch the play sits at the band's lower edge: I = I_base(p) + half_width.
+      const double current_A = play_half_width_A + static_cast<double>(k) * (top_A - play_half_width_A) /
+                                                       static_cast<double>(kSteps);
+      const Result<GapField> g = gap_field_hysteretic(p.magnetic, p.fluid, current_A, state);
+      play_base_A[k] = current_A - play_half_width_A;
+      play_yield_Pa[k] = g.ok() ? g.value.yield_stress_Pa : (k > 0 ? play_yield_Pa[k - 1] : 0.0);
+      const Result<double> y = model.yield_stress_at_current_Pa(static_cast<double>(k) * anhysteretic_step_A);
+      anhysteretic_Pa[k] = y.ok() ? y.value : (k > 0 ? anhysteretic_Pa[k - 1] : 0.0);
     }
   }
-  [[nodiscard]] double branch_yield_Pa(const std::vector<double>& table, double field_A) const noexcept {
-    const double u = field_A / branch_step_A;
+  // Linear interpolation in a table at a fractional index.
+  [[nodiscard]] static double at_index(const std::vector<double>& table, double u) noexcept {
     const std::size_t last = table.size() - 1;
-    const auto k = std::min(static_cast<std::size_t>(u), last - 1);
+    const auto k = std::min(static_cast<std::size_t>(std::max(u, 0.0)), last - 1);
     const double t = std::clamp(u - static_cast<double>(k), 0.0, 1.0);
     return table[k] + t * (table[k + 1] - table[k]);
+  }
+  // The fractional index at which a non-decreasing table reaches value (clamped to its ends).
+  [[nodiscard]] static double index_of(const std::vector<double>& table, double value) noexcept {
+    if (!(value > table.front())) {
+      return 0.0;
+    }
+    if (!(value < table.back())) {
+      return static_cast<double>(table.size() - 1);
+    }
+    const auto above = std::upper_bound(table.begin(), table.end(), value);
+    const auto k = static_cast<std::size_t>(above - table.begin()) - 1;
+    const double span = table[k + 1] - table[k];
+    return static_cast<double>(k) + (span > 0.0 ? (value - table[k]) / span : 0.0);
+  }
+  // Moves a valve's play to the current field_A; returns its (nominal) yield stress.
+  double play_to(std::size_t v, double field_A) noexcept {
+    double& u = play_index[v];
+    const double base_A = at_index(play_base_A, u);
+    if (field_A - play_half_width_A > base_A) {
+      u = index_of(play_base_A, field_A - play_half_width_A);
+    } else if (field_A + play_half_width_A < base_A) {
+      u = index_of(play_base_A, field_A + play_half_width_A);
+    }
+    return at_index(play_yield_Pa, u);
   }
 
   void fit(std::span<const double> readings) noexcept;
@@ -195,18 +230,19 @@ struct CellObserver::Impl {
   std::vector<double> predicted_m;
   std::vector<double> velocity;
   std::vector<CoilState> coil;
-  // The steel's hysteresis (a play operator, as in the plant) as two branches tabulated over the
-  // coil current at setup: rising and falling. Each valve follows the branch of its last move.
-  std::vector<double> rising_Pa;
-  std::vector<double> falling_Pa;
-  double branch_step_A = 0.0;
-  std::vector<unsigned char> falling;  // per valve: on the falling branch
-  std::vector<double> branch_field_A;  // per valve: field current at the last branch decision
+  // The steel's hysteresis (a play operator, as in the plant), tabulated by tabulate_play().
+  std::vector<double> play_base_A;      // current holding the steel at the k-th play, no hysteresis
+  std::vector<double> play_yield_Pa;    // nominal yield stress at the k-th play
+  double play_half_width_A = 0.0;       // H_c l_steel / N
+  std::vector<double> play_index;       // per valve: fractional index of its play
+  std::vector<double> anhysteretic_Pa;  // nominal yield without hysteresis, every anhysteretic_step_A
+  double anhysteretic_step_A = 0.0;
   std::vector<double> yield_Pa;
   std::vector<double> valve_gain;       // calibrated true / nominal yield stress per valve
   std::vector<double> command_A;        // last command per valve (a settled coil is not stepped)
   std::vector<double> force;            // local force model's output, N
   std::vector<double> last_force;       // network model: forces before the last step
+  std::vector<double> outflow;          // network model: each fluid cell's net outflow, m^3/s
   std::vector<std::size_t> visit;       // the fit's cells to visit this sweep...
   std::vector<std::size_t> next_visit;  // ...and next sweep
   std::vector<std::uint32_t> mark;      // generation stamp per cell (dedupes next_visit)
@@ -225,7 +261,6 @@ struct CellObserver::Impl {
 namespace {
 constexpr std::uint32_t kNoMark = 0;
 constexpr double kSettledFlow_m3_per_s = 1e-13;  // 0.1 nL/s: nothing left to relax
-constexpr double kBranchDeadband_A = 1e-7;       // field-current moves below this keep the branch
 }  // namespace
 
 // Projected coordinate descent on 1/2 |r|^2 + 1/2 w_p |d - d_pred|^2 + w_1 sum d, d >= 0. A
@@ -348,17 +383,10 @@ bool CellObserver::Impl::update_coils(std::span<const double> valve_current_A, d
     }
     const double field_A = std::clamp(state.field_current_A, 0.0, coil_params.max_current_A);
     double y = yield_Pa[v];
-    if (!rising_Pa.empty()) {
+    if (!play_base_A.empty()) {
       // The steel's hysteresis, as the plant has it: after any current the valve keeps a
       // remanent yield at 0 A (about 1 Pa on the 5 x 5, where a press is held from 3-6 Pa).
-      if (field_A > branch_field_A[v] + kBranchDeadband_A) {
-        falling[v] = 0;
-        branch_field_A[v] = field_A;
-      } else if (field_A < branch_field_A[v] - kBranchDeadband_A) {
-        falling[v] = 1;
-        branch_field_A[v] = field_A;
-      }
-      y = branch_yield_Pa(falling[v] != 0 ? falling_Pa : rising_Pa, field_A) * valve_gain[v];
+      y = play_to(v, field_A) * valve_gain[v];
     } else {
       const Result<double> tau_y = model.yield_stress_at_current_Pa(field_A);
       y = tau_y.ok() ? tau_y.value * valve_gain[v] : y;
@@ -404,8 +432,17 @@ Status CellObserver::Impl::network_force(double dt_s, bool yields_changed) noexc
   }
   // And nothing flows: a released skin still refills with no contact force to show it.
   double flow_m3_per_s = 0.0;
-  for (const double q : network->link_flow_m3_per_s()) {
-    flow_m3_per_s = std::max(flow_m3_per_s, std::abs(q));
+  std::fill(outflow.begin(), outflow.end(), 0.0);
+  const std::span<const double> q = network->link_flow_m3_per_s();
+  const std::vector<HydraulicLink>& links = model.profile().links;
+  for (std::size_t l = 0; l < q.size() && l < links.size(); ++l) {
+    flow_m3_per_s = std::max(flow_m3_per_s, std::abs(q[l]));
+    if (links[l].a.kind == NodeKind::fluid_cell) {
+      outflow[links[l].a.index] += q[l];
+    }
+    if (links[l].b.kind == NodeKind::fluid_cell) {
+      outflow[links[l].b.index] -= q[l];
+    }
   }
   network_settled = moved <= 1e-6 && flow_m3_per_s <= kSettledFlow_m3_per_s;
   network_primed = true;
@@ -512,6 +549,29 @@ std::span<const double> CellObserver::indentation_m() const noexcept { return im
 std::span<const double> CellObserver::velocity_m_per_s() const noexcept { return impl_->velocity; }
 std::span<const double> CellObserver::force_N() const noexcept {
   return impl_->network ? impl_->network->cell_force_N() : std::span<const double>(impl_->force);
+}
+std::span<const double> CellObserver::outflow_m3_per_s() const noexcept { return impl_->outflow; }
+
+double CellObserver::hysteresis_compensated_current_A(std::size_t valve, double current_A) const noexcept {
+  const Impl& m = *impl_;
+  if (m.play_base_A.empty() || valve >= m.play_index.size() || !(current_A > 0.0)) {
+    return current_A;
+  }
+  // The play that yields what the anhysteretic curve gives at current_A (nominal units: the
+  // valve's gain cancels), and the current that moves the valve's play there: the band's upper
+  // edge going up, its lower edge going down (0 A at most: the remanence is the floor).
+  const double wanted_Pa = Impl::at_index(m.anhysteretic_Pa, current_A / m.anhysteretic_step_A);
+  const double wanted_u = Impl::index_of(m.play_yield_Pa, wanted_Pa);
+  const double u = m.play_index[valve];
+  const double wanted_base_A = Impl::at_index(m.play_base_A, wanted_u);
+  if (wanted_u > u) {
+    return wanted_base_A + m.play_half_width_A;
+  }
+  if (wanted_u < u) {
+    return std::max(0.0, wanted_base_A - m.play_half_width_A);
+  }
+  const double base_A = Impl::at_index(m.play_base_A, u);
+  return std::clamp(current_A, std::max(0.0, base_A - m.play_half_width_A), base_A + m.play_half_width_A);
 }
 ObserverForceModel CellObserver::force_model() const noexcept { return impl_->force_model; }
 double CellObserver::sensor_misfit_m() const noexcept { return impl_->misfit_m; }

@@ -55,6 +55,19 @@ struct BridgeOptions {
   // not know (the cell's fluid history, coil lag); frozen while the target is clamped.
   double feedback_gain_per_s = 30.0;
   bool freeze_feedback_while_holding = false;
+  // A cell whose passages let out less than this (the observer's network flows) is sealed: more
+  // current cannot raise its force, so the feedback does not wind up asking for it (the surplus
+  // pressurised the next press: hand 0.93 N against 0.79 N). The regularised network's creep
+  // through a locked passage is ~1e-10 m^3/s; a flowing press moves ~1e-6.
+  double sealed_outflow_m3_per_s = 1e-9;
+  // Currents moved along the steel's play (the observer's model) so each valve reaches the yield
+  // the inverse asked for on the anhysteretic curve: the band's upper edge going up, its lower
+  // edge coming down.
+  bool compensate_hysteresis = true;
+  // A loading cell whose observed force is below its request holds its valves at the request's
+  // threshold until the force gets there (the quasi-static feed-forward assumes the compliance
+  // has filled). Over 9 scenes x seeds 1-8: 72 of 72 runs meet both figures with it, 69 without.
+  bool lock_while_short = true;
   // A holding cell's valves stay at least this fraction above the threshold of its target, so
   // model error does not leak the trapped volume away. Off: slow loading that reads as a hold
   // then overshoots (demo 0.031 -> 0.046 N RMS at 0.1, sweep 0.055 -> 0.088 N).
@@ -162,7 +175,8 @@ class Bridge {
   double direction_rate(std::size_t i, bool contact, double depth_m, double rate_m_per_s) noexcept;
   void lock_short_cells() noexcept;
   void clamp_targets_into_envelope() noexcept;
-  bool apply_request() noexcept;  // true while halted
+  [[nodiscard]] bool valves_open(std::size_t cell) const noexcept;  // every valve of the cell at ~0 A
+  bool apply_request() noexcept;                                    // true while halted
   void score() noexcept;
 
   DeviceSession& session_;

@@ -74,8 +74,8 @@ struct ObserverOptions {
   // instructions). The flow test matters: on forces alone a released skin that still refills
   // looked settled, and freezing it cost the demo 0.031 -> 0.046 N RMS.
   bool skip_settled_network = true;
-  // The steel's hysteresis (the profile's coercivity, a play operator as in the plant): after
-  // any current a valve keeps a remanent yield at 0 A. Off: the anhysteretic yield curve.
+  // The steel's hysteresis (the profile's coercivity, the plant's play operator, tabulated):
+  // after any current a valve keeps a remanent yield at 0 A. Off: the anhysteretic yield curve.
   bool steel_hysteresis = true;
 };
 
@@ -103,6 +103,14 @@ class CellObserver {
   [[nodiscard]] std::span<const double> indentation_m() const noexcept;
   [[nodiscard]] std::span<const double> velocity_m_per_s() const noexcept;
   [[nodiscard]] std::span<const double> force_N() const noexcept;
+  // Network force model: each fluid cell's net flow out through its passages in the last step,
+  // m^3/s (negative: inflow). Near zero while the finger presses, the cell's passages hold: more
+  // current cannot raise its force. Empty for the local force model, which tracks no flows.
+  [[nodiscard]] std::span<const double> outflow_m3_per_s() const noexcept;
+  // The current that gives `valve` the yield stress the anhysteretic curve gives at current_A, as
+  // this observer models the steel's play: the band's upper edge when that moves the play up,
+  // its lower edge (at least 0 A) when down. current_A itself without hysteresis or at 0 A.
+  [[nodiscard]] double hysteresis_compensated_current_A(std::size_t valve, double current_A) const noexcept;
   // Root-mean-square misfit of the displacement sensors after the last update, m.
   [[nodiscard]] double sensor_misfit_m() const noexcept;
   [[nodiscard]] std::size_t fluid_cell_count() const noexcept;
