@@ -96,6 +96,7 @@ if(PART STREQUAL "calibrate_dry")
   run(0 calibrate --help)
   expect("--dry-run" "${out}")
   expect("--max-current-a" "${out}")
+  expect("--zero-only" "${out}")
   # --dry-run fits but writes nothing: no read-back.
   run(0 calibrate --device "mock://?seed=7" --dry-run --json)
   expect_json_field("${out}" result DRY_RUN)
@@ -113,6 +114,29 @@ if(PART STREQUAL "calibrate_refuse")
   run(1 calibrate --device "mock://?seed=7" --max-current-a 0.004)
   expect("result: REFUSED (ill-conditioned" "${out}")
   expect("(not written)" "${out}")
+endif()
+
+if(PART STREQUAL "calibrate_faults")
+  # A stuck sensor is refused from the zero, before any sweep; a leaking valve leaves a sweep the
+  # model does not explain (docs/cli.md).
+  run(1 calibrate --device "mock://?seed=7&faults=stuck:3" --json)
+  expect_json_field("${out}" result REFUSED)
+  expect("stuck?" "${out}")
+  expect_json_field("${out}" read_back "")
+  run(1 calibrate --device "mock://?seed=7&faults=leak:5")
+  expect("result: REFUSED (the model does not explain the sweep" "${out}")
+  expect("(not written)" "${out}")
+endif()
+
+if(PART STREQUAL "calibrate_zero")
+  # --zero-only: the tare alone, stored as version 2 and read back; no degauss, no sweep.
+  run(0 calibrate --device "mock://?seed=7" --zero-only --json)
+  expect_json_field("${out}" result WRITTEN)
+  expect_json_field("${out}" new_version 2)
+  expect_json_field("${out}" read_back_matches ON)
+  run(0 calibrate --device "mock://?seed=7" --zero-only --dry-run)
+  expect("sensor_offset_m = [" "${out}")
+  expect("result: DRY_RUN" "${out}")
 endif()
 
 if(PART STREQUAL "calibrate_noisy")

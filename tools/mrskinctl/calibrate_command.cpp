@@ -27,7 +27,34 @@ struct CalibrateOptions {
   double max_current_a = 0.0;  // 0: a fifth of the device's maximum
   int levels = 8;
   double rest_s = 0.3;
+  bool zero_only = false;  // tare alone: no fixture, no sweep
 };
+
+// A fit whose median sensor misses the model by more than this many sweep resolutions is not a
+// healthy unit: the model explains a perturbed unit to 0.8-3.2 resolutions (mock seeds 1-8),
+// while a leaking valve leaves 5.7-12.6 (leak:0, 2, 5, 6, 8 on seeds 1, 3, 7, 8).
+constexpr double kMisfitResolutions = 4.5;
+
+// Sensors whose reading never changed over the rest while most others did (selftest's rule).
+std::string still_sensors(const SensorStats& rest) {
+  std::size_t moving = 0;
+  for (const double sd : rest.std_dev) {
+    moving += sd > 0.0 ? 1U : 0U;
+  }
+  std::string still;
+  if (moving * 2 > rest.std_dev.size()) {
+    for (std::size_t s = 0; s < rest.std_dev.size(); ++s) {
+      if (!(rest.std_dev[s] > 0.0)) {
+        still += fmt::format("{}{}", still.empty() ? "" : ", ", s);
+      }
+    }
+  }
+  return still;
+}
+
+std::string offset_unit(const std::string& sensor_unit) {
+  return sensor_unit == "N" ? "n" : sensor_unit == "Pa" ? "pa" : "m";
+}
 
 constexpr int kTablePoints = 12;
 constexpr double kModelStep_s = 5e-4;
@@ -61,8 +88,11 @@ struct Report {
   double rms_fit_new_m = 0.0;
   double rms_held_stored_m = 0.0;
   double rms_held_new_m = 0.0;
-  double sensitivity_m = 0.0;  // RMS rise when the scale moves 20 % off the fit
-  double resolution_m = 0.0;   // what the sweep can resolve (noise of a residual)
+  double sensitivity_m = 0.0;           // RMS rise when the scale moves 20 % off the fit
+  double resolution_m = 0.0;            // what the sweep can resolve (noise of a residual)
+  std::string sensor_unit = "m";        // the unit's sensors: "m", "N" or "Pa"
+  double worst_sensor_misfit_m = 0.0;   // the fit's largest per-sensor rms miss
+  double median_sensor_misfit_m = 0.0;  // ...and its median
   std::string text;
   std::string read_back;
   bool read_back_matches = false;
@@ -72,30 +102,36 @@ void print_report(const Report& r, const CalibrateOptions& o, const GlobalOption
   if (global.json) {
     fmt::print(
         R"({{"uri": "{}", "dry_run": {}, "result": "{}", "reason": "{}", "stored_version": {}, "new_version": {}, )"
-        R"("tare": {{"sensor_offset_m": {}, "noise_m": {}}}, )"
+        R"("tare": {{"sensor_unit": "{}", "sensor_offset_m": {}, "noise_m": {}}}, )"
         R"("degauss": {{"amplitudes_a": {}, "model_remanent_yield_after_max_pa": {}, "model_remanent_yield_after_degauss_pa": {}, "residual_at_0_a_m": {}}}, )"
         R"("fit": {{"currents_a": {}, "held_out_currents_a": {}, "yield_scale_stored": {}, "yield_scale": {}, )"
         R"("rms_fit_stored_m": {}, "rms_fit_new_m": {}, "rms_held_out_stored_m": {}, "rms_held_out_new_m": {}, )"
-        R"("sensitivity_m": {}, "resolution_m": {}}}, "calibration": "{}", "read_back": "{}", "read_back_matches": {}}})"
+        R"("sensitivity_m": {}, "resolution_m": {}, "worst_sensor_misfit_m": {}, "median_sensor_misfit_m": {}}}, )"
+        R"("calibration": "{}", "read_back": "{}", "read_back_matches": {}}})"
         "\n",
         json_escape(o.uri), o.dry_run ? "true" : "false", r.result, json_escape(r.reason), r.stored_version,
-        r.new_version, numbers(r.offset_m), json_number(r.noise_m), numbers(r.degauss_a),
-        json_number(r.remanence.after_max_pa), json_number(r.remanence.after_degauss_pa),
-        json_number(r.zero_residual_m), numbers(r.fit_a), numbers(r.held_out_a), json_number(r.stored_scale),
-        json_number(r.new_scale), json_number(r.rms_fit_stored_m), json_number(r.rms_fit_new_m),
-        json_number(r.rms_held_stored_m), json_number(r.rms_held_new_m), json_number(r.sensitivity_m),
-        json_number(r.resolution_m), json_escape(r.text), json_escape(r.read_back),
-        r.read_back_matches ? "true" : "false");
+        r.new_version, json_escape(r.sensor_unit), numbers(r.offset_m), json_number(r.noise_m),
+        numbers(r.degauss_a), json_number(r.remanence.after_max_pa),
+        json_number(r.remanence.after_degauss_pa), json_number(r.zero_residual_m), numbers(r.fit_a),
+        numbers(r.held_out_a), json_number(r.stored_scale), json_number(r.new_scale),
+        json_number(r.rms_fit_stored_m), json_number(r.rms_fit_new_m), json_number(r.rms_held_stored_m),
+        json_number(r.rms_held_new_m), json_number(r.sensitivity_m), json_number(r.resolution_m),
+        json_number(r.worst_sensor_misfit_m), json_number(r.median_sensor_misfit_m), json_escape(r.text),
+        json_escape(r.read_back), r.read_back_matches ? "true" : "false");
     return;
   }
   fmt::print("calibrate {}{}\n", o.uri, o.dry_run ? " (dry run: nothing is written)" : "");
   if (!r.offset_m.empty()) {
+    // Displacement in micrometres; force and pressure sensors in their SI unit.
+    const bool metres = r.sensor_unit == "m";
+    const double scale = metres ? 1e6 : 1.0;
+    const std::string unit = metres ? "um" : r.sensor_unit;
     std::string offsets;
     for (const double v : r.offset_m) {
-      offsets += fmt::format(" {:.2f}", v * 1e6);
+      offsets += fmt::format(" {:.4g}", v * scale);
     }
-    fmt::print("  zero (tare)  sensor offsets at rest, um:{}; noise up to {:.2f} um\n", offsets,
-               r.noise_m * 1e6);
+    fmt::print("  zero (tare)  sensor offsets at rest, {}:{}; noise up to {:.4g} {}\n", unit, offsets,
+               r.noise_m * scale, unit);
   }
   if (!r.degauss_a.empty()) {
     fmt::print(
@@ -129,6 +165,21 @@ void print_report(const Report& r, const CalibrateOptions& o, const GlobalOption
   fmt::print("result: {}{}\n", r.result, r.reason.empty() ? "" : " (" + r.reason + ")");
 }
 
+// Per sensor: the rms of measured - predicted over the currents (0 for unused sensors).
+std::vector<double> rms_per_sensor(const std::vector<std::vector<double>>& measured,
+                                   const std::vector<std::vector<double>>& predicted,
+                                   const std::vector<bool>& use) {
+  std::vector<double> out(use.size(), 0.0);
+  for (std::size_t s = 0; s < use.size(); ++s) {
+    double sum = 0.0;
+    for (std::size_t k = 0; k < measured.size() && use[s]; ++k) {
+      sum += (measured[k][s] - predicted[k][s]) * (measured[k][s] - predicted[k][s]);
+    }
+    out[s] = measured.empty() ? 0.0 : std::sqrt(sum / static_cast<double>(measured.size()));
+  }
+  return out;
+}
+
 double rms(const std::vector<std::vector<double>>& measured,
            const std::vector<std::vector<double>>& predicted, const std::vector<bool>& use) {
   double sum = 0.0;
@@ -142,6 +193,37 @@ double rms(const std::vector<std::vector<double>>& measured,
     }
   }
   return n > 0 ? std::sqrt(sum / static_cast<double>(n)) : 0.0;
+}
+
+// Dry run: print and stop. Otherwise write `next` (already formatted in r.text), read it back
+// and compare.
+int write_and_read_back(Report& r, const model::Calibration& next, const CalibrateOptions& o,
+                        const GlobalOptions& global, Rig& rig, Progress& progress, int& step) {
+  if (o.dry_run) {
+    r.result = "DRY_RUN";
+    print_report(r, o, global);
+    return tools::kOk;
+  }
+  try {
+    rig.session().write_calibration(r.text);
+  } catch (const Error& e) {
+    r.result = "FAILED";
+    r.reason = fmt::format("the device did not take the calibration: {}", e.what());
+    print_report(r, o, global);
+    return tools::kFailure;
+  }
+  progress.step(++step);
+  r.read_back = rig.session().info().calibration;
+  const model::Calibration back =
+      model::parse_calibration(r.read_back, "read-back calibration", rig.info().valves);
+  r.read_back_matches = r.read_back == r.text && back.version == next.version &&
+                        std::abs(back.yield_scale - next.yield_scale) <= 1e-5 * next.yield_scale;
+  r.result = r.read_back_matches ? "WRITTEN" : "FAILED";
+  if (!r.read_back_matches) {
+    r.reason = "the calibration read back differs from what was written";
+  }
+  print_report(r, o, global);
+  return r.read_back_matches ? tools::kOk : tools::kFailure;
 }
 
 int run_calibrate(const CalibrateOptions& o, const GlobalOptions& global) {
@@ -166,22 +248,25 @@ int run_calibrate(const CalibrateOptions& o, const GlobalOptions& global) {
     return refuse("FAILED", fmt::format("{}; write a calibration by hand or ask the vendor", e.what()));
   }
   r.stored_version = stored.version;
+  r.sensor_unit = info.sensor_unit;
   r.stored_scale = stored.yield_scale;
   const double max_a = o.max_current_a > 0.0 ? o.max_current_a : 0.2 * info.max_current_A;
   if (max_a > info.max_current_A + 1e-12) {
     throw InvalidArgument(
         fmt::format("--max-current-a {} A is above the device's maximum {} A", max_a, info.max_current_A));
   }
-  if (rig.fixture() == nullptr) {
-    return refuse(
-        "FAILED",
-        "the yield sweep needs a press: only mock:// has a fixture the host can drive (docs/cli.md)");
+  if (!o.zero_only && rig.fixture() == nullptr) {
+    return refuse("FAILED",
+                  "the yield sweep needs a press: only mock:// has a fixture the host can drive; "
+                  "--zero-only tares the sensors alone (docs/cli.md)");
   }
-  if (info.sensor_unit != "m") {
-    return refuse("FAILED", "the yield sweep needs displacement sensors (it measures the residual depth)");
+  if (!o.zero_only && info.sensor_unit != "m") {
+    return refuse("FAILED",
+                  "the yield sweep needs displacement sensors (it measures the residual depth); "
+                  "--zero-only tares the sensors alone");
   }
   const int levels = o.levels;
-  const int total = 2 + (levels + 1) + kTablePoints + 1;
+  const int total = o.zero_only ? 2 : 2 + (levels + 1) + kTablePoints + 1;
   Progress progress(!global.json, "calibrate", total);
   int step = 0;
   try {
@@ -199,6 +284,23 @@ int run_calibrate(const CalibrateOptions& o, const GlobalOptions& global) {
   r.offset_m = rest.mean;
   for (const double sd : rest.std_dev) {
     r.noise_m = std::max(r.noise_m, sd);
+  }
+  if (const std::string still = still_sensors(rest); !still.empty()) {
+    return refuse("REFUSED",
+                  fmt::format("sensor(s) {} read the same value throughout the rest while the others "
+                              "moved: stuck? (run mrskinctl selftest); nothing written",
+                              still));
+  }
+  if (o.zero_only) {
+    rig.release();  // the unit takes a calibration only while not ENABLED
+    model::Calibration next = stored;
+    next.version = stored.version + 1;
+    next.sensor_offset = r.offset_m;
+    next.sensor_offset_unit = offset_unit(info.sensor_unit);
+    r.new_version = next.version;
+    r.new_scale = stored.yield_scale;
+    r.text = model::format_calibration(next);
+    return write_and_read_back(r, next, o, global, rig, progress, step);
   }
 
   // Degauss: decaying on/off steps from the maximum current (30 ms each: the coil settles in ~5 ms).
@@ -315,10 +417,36 @@ int run_calibrate(const CalibrateOptions& o, const GlobalOptions& global) {
   next.yield_scale = best;
   r.new_version = next.version;
   next.sensor_offset = r.offset_m;  // the zero at rest; the bridge subtracts it from each reading
-  next.sensor_offset_unit = "m";
+  next.sensor_offset_unit = offset_unit(info.sensor_unit);
   r.text = model::format_calibration(next);
 
-  // Refusals: a sweep that cannot tell the scale, or a fit worse than the stored calibration.
+  // Refusals: a sweep the model does not explain (a fault), a sweep that cannot tell the scale,
+  // or a fit worse than the stored calibration.
+  {
+    std::vector<double> per_sensor = rms_per_sensor(fit_measured, predict(unit_fit, best), use);
+    std::vector<double> used;
+    std::size_t worst = 0;
+    for (std::size_t s = 0; s < per_sensor.size(); ++s) {
+      if (use[s]) {
+        used.push_back(per_sensor[s]);
+        worst = per_sensor[s] > per_sensor[worst] || !use[worst] ? s : worst;
+      }
+    }
+    std::nth_element(used.begin(), used.begin() + static_cast<std::ptrdiff_t>(used.size() / 2), used.end());
+    r.median_sensor_misfit_m = used.empty() ? 0.0 : used[used.size() / 2];
+    r.worst_sensor_misfit_m = per_sensor.empty() ? 0.0 : per_sensor[worst];
+    if (r.median_sensor_misfit_m > kMisfitResolutions * r.resolution_m) {
+      r.result = "REFUSED";
+      r.reason = fmt::format(
+          "the model does not explain the sweep: the median sensor misses it by {:.1f} um rms ({:.1f} "
+          "resolutions; the worst, sensor {}, by {:.1f} um): a leaking valve or a faulty sensor? (run "
+          "mrskinctl selftest); nothing written",
+          r.median_sensor_misfit_m * 1e6, r.median_sensor_misfit_m / r.resolution_m, worst,
+          r.worst_sensor_misfit_m * 1e6);
+      print_report(r, o, global);
+      return tools::kFailure;
+    }
+  }
   if (r.sensitivity_m < r.resolution_m) {
     r.result = "REFUSED";
     r.reason = fmt::format(
@@ -338,30 +466,7 @@ int run_calibrate(const CalibrateOptions& o, const GlobalOptions& global) {
     print_report(r, o, global);
     return tools::kFailure;
   }
-  if (o.dry_run) {
-    r.result = "DRY_RUN";
-    print_report(r, o, global);
-    return tools::kOk;
-  }
-  try {
-    rig.session().write_calibration(r.text);
-  } catch (const Error& e) {
-    r.result = "FAILED";
-    r.reason = fmt::format("the device did not take the calibration: {}", e.what());
-    print_report(r, o, global);
-    return tools::kFailure;
-  }
-  progress.step(++step);
-  r.read_back = rig.session().info().calibration;
-  const model::Calibration back = model::parse_calibration(r.read_back, "read-back calibration", info.valves);
-  r.read_back_matches = r.read_back == r.text && back.version == next.version &&
-                        std::abs(back.yield_scale - next.yield_scale) <= 1e-5 * next.yield_scale;
-  r.result = r.read_back_matches ? "WRITTEN" : "FAILED";
-  if (!r.read_back_matches) {
-    r.reason = "the calibration read back differs from what was written";
-  }
-  print_report(r, o, global);
-  return r.read_back_matches ? tools::kOk : tools::kFailure;
+  return write_and_read_back(r, next, o, global, rig, progress, step);
 }
 
 }  // namespace
@@ -376,6 +481,8 @@ void add_calibrate_command(CLI::App& app, const GlobalOptions& global, int& exit
       "(or --dry-run), 1 refused or failed (nothing written)");
   add_device_options(sub, options->uri, options->realtime);
   sub->add_flag("--dry-run", options->dry_run, "measure and fit, print the calibration, write nothing");
+  sub->add_flag("--zero-only", options->zero_only,
+                "tare the sensors at rest and store only that (no degauss, no sweep, no fixture needed)");
   sub->add_option("--max-current-a", options->max_current_a,
                   "highest sweep current, A (default: a fifth of the device's maximum)")
       ->check(CLI::Range(1e-4, 10.0));
