@@ -86,6 +86,8 @@ Bridge::Bridge(DeviceSession& session, SlaveSource& source, BridgeOptions option
   }
   finger_m_.assign(cells, 0.0);
   finger_prev_m_.assign(cells, 0.0);
+  finger_still_ticks_.assign(cells, 0);
+  finger_retreated_.assign(cells, 0);
   current_A_.assign(layout_.valve_count(), 0.0);
   sent_A_.assign(layout_.valve_count(), 0.0);
 }
@@ -373,7 +375,21 @@ void Bridge::score() noexcept {
     if (finger_known) {
       const bool touching = finger_m_[i] > options_.contact_threshold_m;
       const double finger_rate = (finger_m_[i] - finger_prev_m_[i]) / dt;
-      pressing = touching && finger_rate >= -kHoldRate_m_per_s;
+      // A finger still for one tick in the middle of a retreat is one whose script was not
+      // advanced that tick (the daemon moves it from another thread, every ~1.1 ms): it holds
+      // once it has been still for kStillTicks, not before (real time: the demo's score counted
+      // those ticks as presses against a releasing cell, 0.08-0.09 N RMS).
+      if (finger_rate < -kHoldRate_m_per_s) {
+        finger_still_ticks_[i] = 0;
+        finger_retreated_[i] = 1;
+      } else if (finger_rate > kHoldRate_m_per_s) {
+        finger_still_ticks_[i] = 0;
+        finger_retreated_[i] = 0;
+      } else if (finger_still_ticks_[i] < kStillTicks) {
+        ++finger_still_ticks_[i];
+      }
+      const bool holding_still = finger_still_ticks_[i] >= kStillTicks || finger_retreated_[i] == 0;
+      pressing = touching && finger_rate >= -kHoldRate_m_per_s && holding_still;
       retreating = touching && !pressing;
     }
     // A pressed cell the controller does not load is scored against the bare tissue law, except

@@ -23,8 +23,10 @@ struct SceneRun {
 };
 
 // network: nullptr for a direct stream, else the slave stream goes through ImpairedSource.
+// stall_every > 0: the finger's script is not advanced on every stall_every-th tick, as when a
+// daemon's thread moves it on its own ~1.1 ms period.
 inline SceneRun run_scene(const std::string& scene_name, double seconds, const std::string& device_uri,
-                          const ImpairmentOptions* network = nullptr) {
+                          const ImpairmentOptions* network = nullptr, int stall_every = 0) {
   SimulatedClock clock;
   OpenOptions open;
   open.synchronous_mock = true;
@@ -45,8 +47,10 @@ inline SceneRun run_scene(const std::string& scene_name, double seconds, const s
   std::vector<double> finger(dev.mock->layout().fluid_cell_count());
   const auto ticks = static_cast<int>(seconds * 1000.0);
   for (int k = 0; k < ticks; ++k) {
-    scene->finger(to_seconds(clock.now() - scene->start()), dev.mock->layout(), finger);
-    dev.mock->set_finger_indentation(finger);
+    if (stall_every <= 0 || k % stall_every != 0) {
+      scene->finger(to_seconds(clock.now() - scene->start()), dev.mock->layout(), finger);
+      dev.mock->set_finger_indentation(finger);
+    }
     dev.mock->step(clock.now());
     (void)loop.step(clock.now());
     clock.advance(std::chrono::milliseconds(1));

@@ -210,8 +210,11 @@ class Bridge {
   std::atomic<unsigned char> pending_request_{0};
   std::atomic<bool> halted_{false};
   std::vector<double> truth_N_;
-  std::vector<double> finger_m_;       // the truth's finger this tick...
-  std::vector<double> finger_prev_m_;  // ...and last tick
+  std::vector<double> finger_m_;                 // the truth's finger this tick...
+  std::vector<double> finger_prev_m_;            // ...and last tick
+  std::vector<int> finger_still_ticks_;          // per cell: ticks the true finger has not moved
+  std::vector<unsigned char> finger_retreated_;  // per cell: its last move was out
+  static constexpr int kStillTicks = 5;          // still this long after a retreat: holding
   SlaveSample slave_{};
   bool fresh_sample_ = false;  // this tick consumed a new slave sample
   TimePoint fresh_arrival_{};
