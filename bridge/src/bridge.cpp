@@ -372,9 +372,10 @@ void Bridge::score() noexcept {
         cells[i].role == model::CellRole::loading || cells[i].role == model::CellRole::holding;
     bool pressing = role_loaded;
     bool retreating = false;
+    double finger_rate = 0.0;
     if (finger_known) {
       const bool touching = finger_m_[i] > options_.contact_threshold_m;
-      const double finger_rate = (finger_m_[i] - finger_prev_m_[i]) / dt;
+      finger_rate = (finger_m_[i] - finger_prev_m_[i]) / dt;
       // A finger still for one tick in the middle of a retreat is one whose script was not
       // advanced that tick (the daemon moves it from another thread, every ~1.1 ms): it holds
       // once it has been still for kStillTicks, not before (real time: the demo's score counted
@@ -407,6 +408,22 @@ void Bridge::score() noexcept {
       ++stats_.force_samples;
       if (target_N >= 0.3) {
         stats_.relative_error.add(e / target_N);
+      }
+      // The same law and envelope at the finger's true state (without it: the estimated one).
+      double true_state_N = target_N;
+      if (finger_known) {
+        true_state_N = std::min(cell_law_[i].force_N(finger_m_[i], finger_rate), options_.max_force_N);
+        if (role_loaded) {
+          const double floor_N = valves_open(i) ? force_N[i] : cells[i].force_min_N;
+          true_state_N = std::clamp(true_state_N, floor_N, std::max(floor_N, cells[i].force_max_N));
+        } else if (cells[i].role == model::CellRole::unloading && valves_open(i)) {
+          true_state_N = std::max(true_state_N, std::min(force_N[i], options_.max_force_N));
+        }
+      }
+      const double e_true = truth_N_[i] - true_state_N;
+      stats_.true_state_sq_error_sum_N2 += e_true * e_true;
+      if (true_state_N >= 0.3) {
+        stats_.true_state_relative_error.add(e_true / true_state_N);
       }
     } else if (retreating) {
       stats_.release_sq_error_sum_N2 += e * e;

@@ -41,6 +41,11 @@ double BridgeStats::release_rms_error_N() const noexcept {
                               : std::sqrt(release_sq_error_sum_N2 / static_cast<double>(release_samples));
 }
 
+double BridgeStats::true_state_rms_error_N() const noexcept {
+  return force_samples == 0 ? 0.0
+                            : std::sqrt(true_state_sq_error_sum_N2 / static_cast<double>(force_samples));
+}
+
 double BridgeStats::clamped_fraction() const noexcept {
   return target_cell_ticks == 0
              ? 0.0
@@ -79,6 +84,7 @@ std::string to_json(const BridgeStats& s, double tick_period_s) {
       "  \"force_max_abs_error_n\": {:.6g},\n"
       "  \"relative_error_p95\": {:.6g},\n"
       "  \"relative_error_samples\": {},\n"
+      "  \"true_state\": {{\"force_rms_error_n\": {:.6g}, \"relative_error_p95\": {:.6g}}},\n"
       "  \"release_rms_error_n\": {:.6g},\n"
       "  \"outside_envelope_fraction\": {:.6g},\n"
       "  \"max_current_a\": {:.6g},\n"
@@ -91,9 +97,10 @@ std::string to_json(const BridgeStats& s, double tick_period_s) {
       s.slave_samples, s.samples_accepted, s.samples_dropped, s.stale_ticks, percentiles_us(s.tick_time),
       percentiles_us(s.processing_latency), percentiles_us(s.end_to_end_latency), s.force_samples,
       s.force_rms_error_N(), s.force_max_abs_error_N, s.relative_error.percentile(0.95),
-      s.relative_error.count(), s.release_rms_error_N(), s.clamped_fraction(), s.max_current_A, s.bus_load,
-      s.passivity_energy_J, s.passivity_min_energy_J, s.active_ticks, s.observer_errors, s.inverse_errors,
-      s.inverse_cached, s.ticks == 0 ? 0.0 : s.inverse_residual_sum_N / static_cast<double>(s.ticks));
+      s.relative_error.count(), s.true_state_rms_error_N(), s.true_state_relative_error.percentile(0.95),
+      s.release_rms_error_N(), s.clamped_fraction(), s.max_current_A, s.bus_load, s.passivity_energy_J,
+      s.passivity_min_energy_J, s.active_ticks, s.observer_errors, s.inverse_errors, s.inverse_cached,
+      s.ticks == 0 ? 0.0 : s.inverse_residual_sum_N / static_cast<double>(s.ticks));
 }
 
 }  // namespace mrskin::bridge

@@ -23,16 +23,23 @@ using LoopRun = test::SceneRun;
 LoopRun simulate(const std::string& scene_name, double seconds, const ImpairmentOptions* network) {
   // MRSKIN_CLOSED_LOOP_SEED picks another perturbed unit (docs/bridge.md: the spread over seeds);
   // the bounds below are for seed 7.
+  // MRSKIN_RATE_FILTER_S sets the observer's rate filter (docs/bridge.md: chosen on the true state).
   const char* seed = std::getenv("MRSKIN_CLOSED_LOOP_SEED");
+  BridgeOptions options;
+  if (const char* tau = std::getenv("MRSKIN_RATE_FILTER_S"); tau != nullptr) {
+    options.observer.rate_filter_time_constant_s = std::strtod(tau, nullptr);
+  }
   return test::run_scene(scene_name, seconds, std::string("mock://?seed=") + (seed != nullptr ? seed : "7"),
-                         network);
+                         network, 0, options);
 }
 
 void print(const std::string& name, const LoopRun& r) {
   std::printf(
-      "closed loop %-8s rms %.4f N  p95 %5.1f %%  release rms %.3f N  outside %4.1f %%  max %.4f A  energy "
-      "%.2f mJ\n",
+      "closed loop %-8s rms %.4f N  p95 %5.1f %%  (true state: rms %.4f N  p95 %5.1f %%)  release rms %.3f N "
+      " "
+      "outside %4.1f %%  max %.4f A  energy %.2f mJ\n",
       name.c_str(), r.stats.force_rms_error_N(), 100.0 * r.stats.relative_error.percentile(0.95),
+      r.stats.true_state_rms_error_N(), 100.0 * r.stats.true_state_relative_error.percentile(0.95),
       r.stats.release_rms_error_N(), 100.0 * r.stats.clamped_fraction(), r.stats.max_current_A,
       1e3 * r.stats.passivity_energy_J);
 }
@@ -42,17 +49,23 @@ struct Bound {
   double seconds;
   double rms_N;
   double p95;
+  double true_state_rms_N;  // the same, against the law at the finger's true depth and rate
+  double true_state_p95;
 };
 
 // Measured (seed 7, g++ 12 release): demo 0.012 N / 2.2 %; the organs 0.012-0.019 N RMS, p95
 // 2.0-3.9 %; sweep 0.024 N / 3.1 %; tumour 0.014 N / 2.0 %; step 0.077 N / 23 % (its force step is
 // faster than the device can follow, docs/bridge.md "Settling"). Bounds: the product's 0.04 N RMS
-// and 7 % p95 on every scene but step, which holds its measured value + ~20 %.
+// and 7 % p95 on every scene but step, which holds its measured value + ~20 %. Against the law at
+// the finger's true state every scene but step is within 0.001 N and 0.2 points of the above;
+// step reads 0.054 N / 13.9 %: a third of its 0.077 N is the target chattering with the observer's
+// rate noise (heavy damping), which the plant does not follow and the finger does not feel.
 constexpr Bound kBounds[] = {
-    {"demo", 10.0, 0.040, 0.07},   {"hand", 8.6, 0.040, 0.07},  {"neck", 8.6, 0.040, 0.07},
-    {"abdomen", 8.6, 0.040, 0.07}, {"thigh", 8.6, 0.040, 0.07}, {"back", 8.6, 0.040, 0.07},
-    {"stomach", 8.6, 0.040, 0.07}, {"sweep", 7.5, 0.040, 0.07}, {"tumour", 7.5, 0.040, 0.07},
-    {"step", 7.0, 0.095, 0.31},
+    {"demo", 10.0, 0.040, 0.07, 0.040, 0.07},   {"hand", 8.6, 0.040, 0.07, 0.040, 0.07},
+    {"neck", 8.6, 0.040, 0.07, 0.040, 0.07},    {"abdomen", 8.6, 0.040, 0.07, 0.040, 0.07},
+    {"thigh", 8.6, 0.040, 0.07, 0.040, 0.07},   {"back", 8.6, 0.040, 0.07, 0.040, 0.07},
+    {"stomach", 8.6, 0.040, 0.07, 0.040, 0.07}, {"sweep", 7.5, 0.040, 0.07, 0.040, 0.07},
+    {"tumour", 7.5, 0.040, 0.07, 0.040, 0.07},  {"step", 7.0, 0.095, 0.31, 0.065, 0.17},
 };
 
 class ClosedLoop : public ::testing::TestWithParam<Bound> {};
@@ -73,6 +86,8 @@ TEST_P(ClosedLoop, RendersTheSceneWithinItsBound) {
     EXPECT_GT(r.stats.force_samples, 1000U);
     EXPECT_LE(r.stats.force_rms_error_N(), b.rms_N);
     EXPECT_LE(r.stats.relative_error.percentile(0.95), b.p95);
+    EXPECT_LE(r.stats.true_state_rms_error_N(), b.true_state_rms_N);
+    EXPECT_LE(r.stats.true_state_relative_error.percentile(0.95), b.true_state_p95);
   }
   EXPECT_EQ(r.stats.active_ticks, 0U) << "the rendering gave energy";
   EXPECT_EQ(r.stats.observer_errors, 0U);

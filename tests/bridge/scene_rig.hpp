@@ -26,7 +26,8 @@ struct SceneRun {
 // stall_every > 0: the finger's script is not advanced on every stall_every-th tick, as when a
 // daemon's thread moves it on its own ~1.1 ms period.
 inline SceneRun run_scene(const std::string& scene_name, double seconds, const std::string& device_uri,
-                          const ImpairmentOptions* network = nullptr, int stall_every = 0) {
+                          const ImpairmentOptions* network = nullptr, int stall_every = 0,
+                          const BridgeOptions& options = {}) {
   SimulatedClock clock;
   OpenOptions open;
   open.synchronous_mock = true;
@@ -38,7 +39,7 @@ inline SceneRun run_scene(const std::string& scene_name, double seconds, const s
     impaired = std::make_unique<ImpairedSource>(*scene, *network);
     source = impaired.get();
   }
-  Bridge loop(*dev.session, *source);
+  Bridge loop(*dev.session, *source, options);
   MockDeviceTruth truth(*dev.mock);
   loop.set_force_truth(&truth);
   loop.set_perf_clock(&clock);  // deterministic: no wall time anywhere

@@ -52,6 +52,11 @@ struct BridgeStats {
   double force_sq_error_sum_N2 = 0.0;
   double force_max_abs_error_N = 0.0;
   RelativeErrorHistogram relative_error;  // where the clamped target is >= 0.3 N
+  // The same scored samples against the law at the finger's true depth and rate (truth only):
+  // this also counts what the observer's depth and rate estimates get wrong (rate noise on a
+  // heavily damped tissue, or the lag of filtering it), which the target above hides.
+  double true_state_sq_error_sum_N2 = 0.0;
+  RelativeErrorHistogram true_state_relative_error;
   // While the finger retreats: the true force minus the tissue law (semi-active valves can only
   // release, so this is reported apart from the loading/holding error).
   std::uint64_t release_samples = 0;
@@ -73,6 +78,7 @@ struct BridgeStats {
 
   [[nodiscard]] double force_rms_error_N() const noexcept;
   [[nodiscard]] double release_rms_error_N() const noexcept;
+  [[nodiscard]] double true_state_rms_error_N() const noexcept;
   [[nodiscard]] double clamped_fraction() const noexcept;
 };
 
