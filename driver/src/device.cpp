@@ -131,13 +131,25 @@ MockUri parse_mock_uri(std::string_view uri) {
       if (!(options.time_scale >= 1.0 && options.time_scale <= 1000.0)) {
         throw InvalidArgument("mock:// time_scale must be in [1, 1000]");
       }
+    } else if (key == "protocol_major") {
+      const auto major = parse_number<unsigned>(key, value);
+      if (major < 1 || major > 255) {
+        throw InvalidArgument("mock:// protocol_major must be in [1, 255]");
+      }
+      options.protocol_major = static_cast<std::uint8_t>(major);
+    } else if (key == "bipolar") {
+      if (value != "0" && value != "1") {
+        throw InvalidArgument("mock:// bipolar must be 0 (a unipolar coil driver: no degauss) or 1");
+      }
+      options.bipolar_driver = value == "1";
     } else if (key == "rows" || key == "cols") {
       throw InvalidArgument("mock:// parameter '" + std::string(key) +
                             "' is gone: the grid comes from the device profile; name one "
                             "(mock://fingertip-16x16) or give a profile file (mock:///path/to/unit.toml)");
     } else {
       throw InvalidArgument("mock:// parameter '" + std::string(key) +
-                            "' is unknown: use seed, perturbation, faults or time_scale");
+                            "' is unknown: use seed, perturbation, faults, time_scale, bipolar or "
+                            "protocol_major");
     }
   }
   return parsed;

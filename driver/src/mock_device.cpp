@@ -480,12 +480,16 @@ void MockDevice::send_status() noexcept {
   if (derated_) {
     flags |= proto::kFlagDerated;
   }
+  if (degaussing_) {
+    flags |= proto::kFlagDegaussing;
+  }
   s.flags = static_cast<std::uint8_t>(flags);
   send_message(s);
 }
 
 void MockDevice::release_valves() noexcept {
   rendering_targets_ = false;
+  degaussing_ = false;  // a fault, a disable or a lost host ends a degauss too
   std::fill(commanded_A_.begin(), commanded_A_.end(), 0.0);
   std::fill(coil_A_.begin(), coil_A_.end(), 0.0);  // the driver's fast-off path ignores slew
   plant_->set_valve_currents(coil_A_);
@@ -657,6 +661,7 @@ void MockDevice::handle(const std::uint8_t* bytes, std::size_t length, TimePoint
     id.valves = static_cast<std::uint16_t>(layout_.valve_count());
     id.sensors = static_cast<std::uint16_t>(sensor_si_.size());
     id.serial = options_.serial;
+    id.proto_major = options_.protocol_major;
     id.current_lsb_nA = static_cast<std::uint32_t>(std::lround(current_lsb_A_ * 1e9));
     id.current_max_counts = static_cast<std::uint16_t>(
         std::min<long>(std::lround(max_current_A_ / current_lsb_A_), proto::kCurrentCountMax));
@@ -668,7 +673,18 @@ void MockDevice::handle(const std::uint8_t* bytes, std::size_t length, TimePoint
     send_message(id);
     send_status();
   } else if (const auto* r = std::get_if<proto::StateRequest>(&p.message)) {
+    if (degaussing_ && r->request != static_cast<std::uint8_t>(proto::StateRequestCode::degauss)) {
+      release_valves();  // any other request ends the degauss first
+    }
     switch (static_cast<proto::StateRequestCode>(r->request)) {
+      case proto::StateRequestCode::degauss:
+        // Disabled units with an H-bridge driver only; others answer with their status alone.
+        if (options_.bipolar_driver && !degaussing_ &&
+            state_.load() == static_cast<std::uint8_t>(proto::DeviceState::disabled)) {
+          degaussing_ = true;
+          degauss_elapsed_s_ = 0.0;
+        }
+        break;
       case proto::StateRequestCode::enable:
         if (std::any_of(coil_C_.begin(), coil_C_.end(), [this](double c) { return c >= options_.fault_C; })) {
           enter_fault(proto::FaultCode::overtemperature);  // too hot to enable: stays latched
@@ -730,13 +746,28 @@ void MockDevice::update_coils(double dt_s) noexcept {
   double hottest = options_.ambient_C;
   bool derated = false;
   bool overheated = false;
+  if (degaussing_) {
+    // Half-cycle k holds (-1)^k max_current_A ratio^k; done once it is under half a count.
+    const auto k = static_cast<int>(degauss_elapsed_s_ / options_.degauss_step_s);
+    const double amplitude_A = max_current_A_ * std::pow(options_.degauss_ratio, k);
+    degauss_elapsed_s_ += dt_s;
+    if (amplitude_A < 0.5 * current_lsb_A_) {
+      degaussing_ = false;
+      std::fill(commanded_A_.begin(), commanded_A_.end(), 0.0);
+      send_status();
+    } else {
+      std::fill(commanded_A_.begin(), commanded_A_.end(), k % 2 == 0 ? amplitude_A : -amplitude_A);
+    }
+  }
   for (std::size_t v = 0; v < coil_A_.size(); ++v) {
     // Current limit falls linearly from derate_start_C to zero at fault_C.
     const double t = coil_C_[v];
     const double limit_fraction =
         std::clamp((options_.fault_C - t) / (options_.fault_C - options_.derate_start_C), 0.0, 1.0);
-    const double wanted = std::min(commanded_A_[v], max_current_A_ * limit_fraction);
-    derated = derated || wanted < commanded_A_[v];
+    // Negative only while degaussing (the H-bridge reversed); the limit holds both ways.
+    const double limit_A = max_current_A_ * limit_fraction;
+    const double wanted = std::clamp(commanded_A_[v], -limit_A, limit_A);
+    derated = derated || std::fabs(wanted) < std::fabs(commanded_A_[v]);
     coil_A_[v] += std::clamp(wanted - coil_A_[v], -max_step_A, max_step_A);
     const double extra_W = heating && static_cast<int>(v) == f.overheat_valve ? f.overheat_power_W : 0.0;
     const double heat_W = coil_resistance_ohm_ * coil_A_[v] * coil_A_[v] + extra_W -

@@ -146,7 +146,8 @@ void NetworkPlant::set_valve_currents(std::span<const double> current_A) noexcep
   const double max_A = m.truth.profile().coil.max_current_A;
   for (std::size_t v = 0; v < valves; ++v) {
     const double i = current_A[v];
-    m.ring_A[slot * valves + v] = std::isfinite(i) ? std::clamp(i, 0.0, max_A) : 0.0;
+    // Negative: a bipolar driver reversing the field (the mock's degauss); hosts send 0..max.
+    m.ring_A[slot * valves + v] = std::isfinite(i) ? std::clamp(i, -max_A, max_A) : 0.0;
   }
   m.ring_time_s[slot] = m.time_s + m.options.command_delay_s;
   ++m.ring_count;

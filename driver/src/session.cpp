@@ -60,6 +60,8 @@ const char* request_name(std::uint8_t r) noexcept {
       return "pause";
     case proto::StateRequestCode::estop:
       return "e-stop";
+    case proto::StateRequestCode::degauss:
+      return "degauss";
   }
   return "unknown";
 }
@@ -566,6 +568,7 @@ void DeviceSession::handle(const Datagram& d, TimePoint now) noexcept {
     fault_ = s->fault;
     valves_released_ = (s->flags & proto::kFlagValvesReleased) != 0;
     derated_ = (s->flags & proto::kFlagDerated) != 0;
+    degaussing_ = (s->flags & proto::kFlagDegaussing) != 0;
   } else if (const auto* h = std::get_if<proto::Heartbeat>(&p.message)) {
     const TimePoint sent = heartbeat_sent_[h->counter % heartbeat_sent_.size()];
     if (sent.count() != 0 && now >= sent) {
@@ -787,6 +790,11 @@ ResultCode DeviceSession::request_pause() noexcept {
   wanted_state_ = DeviceState::paused;
   return send_state_request(proto::StateRequestCode::pause);
 }
+ResultCode DeviceSession::request_degauss() noexcept {
+  // The device stays disabled; a device without a bipolar driver ignores it (no degaussing flag).
+  wanted_state_ = DeviceState::disabled;
+  return send_state_request(proto::StateRequestCode::degauss);
+}
 ResultCode DeviceSession::request_estop() noexcept {
   wanted_state_ = DeviceState::disabled;  // FAULT (e-stop) confirms it
   return send_state_request(proto::StateRequestCode::estop);
@@ -953,7 +961,8 @@ std::vector<LogEntry> DeviceSession::decode_log(const std::vector<TrafficRecord>
       std::string flags;
       for (const auto& [bit, name] :
            {std::pair{proto::kFlagValvesReleased, "valves released"},
-            std::pair{proto::kFlagDerated, "derated"}, std::pair{proto::kFlagCalibrated, "calibrated"}}) {
+            std::pair{proto::kFlagDerated, "derated"}, std::pair{proto::kFlagCalibrated, "calibrated"},
+            std::pair{proto::kFlagDegaussing, "degaussing"}}) {
         if ((s->flags & bit) != 0) {
           flags += flags.empty() ? name : fmt::format(", {}", name);
         }

@@ -69,7 +69,7 @@ Error check(const Status& m) noexcept {
   return (m.state > 3 || m.fault > 7) ? Error::out_of_range : Error::ok;
 }
 Error check(const Heartbeat& /*m*/) noexcept { return Error::ok; }
-Error check(const StateRequest& m) noexcept { return m.request > 3 ? Error::out_of_range : Error::ok; }
+Error check(const StateRequest& m) noexcept { return m.request > 4 ? Error::out_of_range : Error::ok; }
 Error check(const ConfigRead& m) noexcept {
   return (m.length == 0 || m.length > kMaxConfigBytes) ? Error::out_of_range : Error::ok;
 }

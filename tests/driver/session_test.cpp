@@ -96,7 +96,7 @@ TEST(Session, VersionMismatchNamesBothVersions) {
     FAIL() << "handshake accepted protocol v2";
   } catch (const ProtocolMismatch& e) {
     EXPECT_NE(std::string(e.what()).find("v2.3"), std::string::npos) << e.what();
-    EXPECT_NE(std::string(e.what()).find("v1.0"), std::string::npos) << e.what();
+    EXPECT_NE(std::string(e.what()).find("v1.1"), std::string::npos) << e.what();
   }
   // A packet whose framing itself is another major version.
   packet[0] = 7;
@@ -106,6 +106,49 @@ TEST(Session, VersionMismatchNamesBothVersions) {
   } catch (const ProtocolMismatch& e) {
     EXPECT_NE(std::string(e.what()).find("v7"), std::string::npos) << e.what();
     EXPECT_NE(std::string(e.what()).find("v1"), std::string::npos) << e.what();
+  }
+}
+
+// Protocol 1.1: a disabled unit with a bipolar driver degausses on request (a decaying
+// alternating current, the degaussing flag while it runs) and stays disabled; a unipolar one
+// ignores the request.
+TEST(Session, DegaussRunsAnAlternatingDecayOnBipolarUnitsOnly) {
+  for (const bool bipolar : {true, false}) {
+    test::Rig rig(bipolar ? "mock://?seed=7" : "mock://?seed=7&bipolar=0");
+    DeviceSession& s = *rig.dev.session;
+    ASSERT_EQ(s.request_enable(), ResultCode::ok);
+    std::fill(rig.currents.begin(), rig.currents.end(), s.info().max_current_A);
+    rig.run(50);
+    std::fill(rig.currents.begin(), rig.currents.end(), 0.0);
+    rig.run(5);
+    ASSERT_EQ(s.request_disable(), ResultCode::ok);
+    rig.run(20);
+    ASSERT_EQ(s.state(), DeviceState::disabled);
+    ASSERT_EQ(s.request_degauss(), ResultCode::ok);
+    bool seen = false;
+    double lowest_A = 0.0;
+    std::vector<double> applied(rig.currents.size());
+    int ms = 0;
+    for (; ms < 3000 && (ms < 300 || s.degaussing()); ++ms) {
+      rig.run(1);
+      seen = seen || s.degaussing();
+      rig.dev.mock->applied_currents(applied);
+      lowest_A = std::min(lowest_A, *std::min_element(applied.begin(), applied.end()));
+    }
+    EXPECT_EQ(seen, bipolar);
+    EXPECT_FALSE(s.degaussing());
+    EXPECT_EQ(s.state(), DeviceState::disabled);
+    rig.dev.mock->applied_currents(applied);
+    for (const double a : applied) {
+      EXPECT_EQ(a, 0.0);
+    }
+    if (bipolar) {
+      EXPECT_LT(lowest_A, -0.5 * s.info().max_current_A);  // the field was reversed
+      EXPECT_GT(ms, 500);                                  // ~57 half-cycles of 20 ms
+      EXPECT_LT(ms, 3000);
+    } else {
+      EXPECT_EQ(lowest_A, 0.0);
+    }
   }
 }
 

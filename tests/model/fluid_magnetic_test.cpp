@@ -213,7 +213,10 @@ TEST(ModelCoil, EddyCurrentsLagTheField) {
 TEST(ModelCoil, BadCommandsAreExplicitErrors) {
   const CoilParams c = coil();
   EXPECT_EQ(coil_step(c, CoilState{}, 0.6, 1e-3).status, Status::out_of_range);
-  EXPECT_EQ(coil_step(c, CoilState{}, -0.1, 1e-3).status, Status::out_of_range);
+  EXPECT_EQ(coil_step(c, CoilState{}, -0.6, 1e-3).status, Status::out_of_range);
+  // A bipolar driver reverses the current (degauss): the same lag the other way.
+  EXPECT_EQ(coil_step(c, CoilState{}, -0.1, 1e-3).status, Status::ok);
+  EXPECT_LT(coil_step(c, CoilState{}, -0.1, 1e-3).value.current_A, 0.0);
   EXPECT_EQ(coil_step(c, CoilState{}, 0.1, -1e-3).status, Status::negative);
   EXPECT_EQ(coil_step(c, CoilState{}, std::nan(""), 1e-3).status, Status::not_finite);
   EXPECT_STREQ(check_coil(c), "");

@@ -3,6 +3,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <cstdio>
 #include <vector>
 
 #include "counting_new.hpp"
@@ -99,6 +100,51 @@ TEST(PlantCommands, BadCommandsAreClampedOrIgnored) {
     EXPECT_GT(plant.coil_current_A()[v], 0.5 * max_A);
   }
   EXPECT_EQ(plant.failed_steps(), 0U);
+}
+
+// The steel's play keeps a remanent yield at 0 A after the maximum current. On/off steps (a
+// unipolar driver) cannot lower it; a decaying alternating current (a bipolar driver's degauss,
+// MockDevice's StateRequest degauss) walks the play back towards zero.
+TEST(PlantHysteresis, AnAlternatingDecayDegaussesTheCores) {
+  NetworkPlantOptions o;
+  o.command_delay_s = 0.0;
+  const double max_A = mrskin::model::default_profile().coil.max_current_A;
+  const auto remanent_Pa = [&](bool alternating) {
+    NetworkPlant plant(mrskin::model::default_profile(), o);
+    std::vector<double> current(12, max_A);
+    const auto hold = [&](double a, int steps = 200) {  // 20 ms: about four coil time constants
+      std::fill(current.begin(), current.end(), a);
+      plant.set_valve_currents(current);
+      for (int i = 0; i < steps; ++i) {
+        plant.step(1e-4);
+      }
+    };
+    hold(max_A);
+    hold(0.0, 2000);  // settled: no current left in the coil
+    const double after_max_Pa = plant.valve_yield_stress_Pa()[0];
+    double sign = 1.0;
+    for (double a = max_A; a > 1e-3 * max_A; a *= 0.85) {
+      hold(sign * a);
+      if (alternating) {
+        sign = -sign;
+      } else {
+        hold(0.0);
+      }
+    }
+    hold(0.0, 2000);
+    EXPECT_EQ(plant.failed_steps(), 0U);
+    return std::pair{after_max_Pa, plant.valve_yield_stress_Pa()[0]};
+  };
+  const auto [after_max_Pa, unipolar_Pa] = remanent_Pa(false);
+  EXPECT_GT(after_max_Pa, 0.1);  // the remanence is there to remove (~1 Pa on the 5 x 5)
+  EXPECT_NEAR(unipolar_Pa, after_max_Pa, 0.05 * after_max_Pa);
+  const auto [again_Pa, degaussed_Pa] = remanent_Pa(true);
+  std::printf(
+      "remanent yield at 0 A: %.3f Pa after the maximum, %.3f Pa after on/off steps, %.3f Pa after "
+      "an alternating decay\n",
+      after_max_Pa, unipolar_Pa, degaussed_Pa);
+  EXPECT_EQ(again_Pa, after_max_Pa);
+  EXPECT_LT(degaussed_Pa, 0.2 * after_max_Pa);
 }
 
 TEST(PlantHotPath, SteppingDoesNotAllocate) {

@@ -292,7 +292,7 @@ TEST(ProtocolMalformed, OutOfRangeOnEncode) {
 
   EXPECT_EQ(encode_error(Status{4, 0, 0, 0}), Error::out_of_range);
   EXPECT_EQ(encode_error(Status{0, 8, 0, 0}), Error::out_of_range);
-  EXPECT_EQ(encode_error(StateRequest{4}), Error::out_of_range);
+  EXPECT_EQ(encode_error(StateRequest{5}), Error::out_of_range);
   EXPECT_EQ(encode_error(ConfigRead{1, 0, 0}), Error::out_of_range);
   EXPECT_EQ(encode_error(ConfigRead{1, 0, kMaxConfigBytes + 1}), Error::out_of_range);
   ConfigWrite w;

@@ -1,9 +1,14 @@
 // The mrskin-bridged binary on mock://, driven over its control socket: permissions, status,
-// e-stop -> fault -> enable, malformed requests, telemetry, SIGHUP reload on the open device,
-// SIGTERM with the statistics flushed, and a second daemon refused. Waits are bounded polls.
+// e-stop -> fault -> enable, the e-stop's released valves, malformed requests, telemetry, SIGHUP
+// reload on the open device, SIGTERM and SIGINT with the statistics flushed, UDP, replay and
+// OpenIGTLink sources, and every exit code the daemon can be driven to here. Waits are bounded
+// polls.
 #include <arpa/inet.h>
 #include <fcntl.h>
 #include <gtest/gtest.h>
+#include <igtlClientSocket.h>
+#include <igtlSensorMessage.h>
+#include <igtlUnit.h>
 #include <netinet/in.h>
 #include <sys/socket.h>
 #include <sys/stat.h>
@@ -11,6 +16,7 @@
 #include <sys/wait.h>
 #include <unistd.h>
 
+#include <algorithm>
 #include <chrono>
 #include <csignal>
 #include <cstdlib>
@@ -36,6 +42,47 @@ using namespace std::chrono_literals;
 
 using mrskin::test::eventually;
 using mrskin::test::slurp;
+
+// A free loopback port of this type (SOCK_DGRAM, SOCK_STREAM): the daemon binds it next.
+std::uint16_t free_port(int type) {
+  const int fd = ::socket(AF_INET, type, 0);
+  sockaddr_in a{};
+  a.sin_family = AF_INET;
+  a.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
+  socklen_t len = sizeof(a);
+  // NOLINTNEXTLINE(cppcoreguidelines-pro-type-reinterpret-cast): the socket API's own cast
+  const bool ok = ::bind(fd, reinterpret_cast<const sockaddr*>(&a), sizeof(a)) == 0 &&
+                  // NOLINTNEXTLINE(cppcoreguidelines-pro-type-reinterpret-cast): the socket API's own cast
+                  ::getsockname(fd, reinterpret_cast<sockaddr*>(&a), &len) == 0;
+  ::close(fd);
+  return ok ? ntohs(a.sin_port) : 0;
+}
+
+// The numbers in text, separated by blanks or commas.
+std::vector<double> numbers(std::string text) {
+  std::replace(text.begin(), text.end(), ',', ' ');
+  std::istringstream in(text);
+  std::vector<double> out;
+  for (double x = 0; in >> x;) {
+    out.push_back(x);
+  }
+  return out;
+}
+
+// The flat records of the "log" array of a `fault` response (their text holds no braces).
+std::vector<std::string> log_records(const std::string& fault) {
+  std::vector<std::string> out;
+  for (std::size_t at = fault.find(R"("log":[{)"); at != std::string::npos;) {
+    const std::size_t begin = fault.find('{', at);
+    const std::size_t end = fault.find('}', begin);
+    if (end == std::string::npos) {
+      break;
+    }
+    out.push_back(fault.substr(begin, end - begin + 1));
+    at = fault.compare(end + 1, 2, ",{") == 0 ? end + 1 : std::string::npos;
+  }
+  return out;
+}
 
 // The daemon binary with stdout and stderr in one file, dir/NAME.out.
 class Daemon : public mrskin::test::ChildProcess {
@@ -65,6 +112,17 @@ class BridgedDaemon : public ::testing::Test {
     return "device = \"mock://\"\nsource = \"scene://demo\"\nstats_json = \"" + stats_ + "\"\n" + body +
            "\n[control]\nsocket = \"" + socket_ + "\"\n";
   }
+  // Runs the daemon on a configuration body and flags until it stops by itself; returns its
+  // output after checking its exit code and that the output says `says`.
+  std::string expect_exit(const std::string& body, std::vector<std::string> flags, int code, const char* says,
+                          std::chrono::seconds within = std::chrono::seconds(30)) const {
+    std::vector<std::string> args{"--config", config(body).string(), "--quiet"};
+    args.insert(args.end(), flags.begin(), flags.end());
+    Daemon d(dir_, "d", std::move(args));
+    EXPECT_EQ(d.wait(within), code) << d.output();
+    EXPECT_NE(d.output().find(says), std::string::npos) << d.output();
+    return d.output();
+  }
   fs::path config(const std::string& body) const {
     fs::path p = dir_ / "bridged.toml";
     std::ofstream(p) << config_text(body);
@@ -76,6 +134,17 @@ class BridgedDaemon : public ::testing::Test {
     return c;
   }
   static std::string status(LineClient& c) { return c.request(R"({"cmd":"status"})").value_or(""); }
+  // Sends estop and waits (bounded) for FAULT and halted; returns the last status.
+  static std::string estop(LineClient& c) {
+    EXPECT_EQ(json_field(c.request(R"({"cmd":"estop"})").value_or(""), "ok"), "true");
+    std::string s;
+    EXPECT_TRUE(eventually([&] {
+      s = status(c);
+      return json_field(s, "halted") == "true" && json_field(s, "state") == "FAULT";
+    })) << s;
+    EXPECT_EQ(json_field(s, "fault"), "emergency stop") << s;
+    return s;
+  }
 
   fs::path dir_;
   std::string socket_;
@@ -152,13 +221,7 @@ TEST_F(BridgedDaemon, ControlSocketEstopFaultEnableThenSigtermFlushesStatistics)
   EXPECT_EQ(json_field(r, "faults"), "0") << r;
   EXPECT_NE(r.find(R"("log":[])"), std::string::npos) << r;
 
-  r = c.request(R"({"cmd":"estop"})").value_or("");
-  EXPECT_EQ(json_field(r, "ok"), "true") << r;
-  ASSERT_TRUE(eventually([&] {
-    s = status(c);
-    return json_field(s, "halted") == "true" && json_field(s, "state") == "FAULT";
-  })) << s;
-  EXPECT_EQ(json_field(s, "fault"), "emergency stop") << s;
+  s = estop(c);
   EXPECT_EQ(json_field(s, "operator"), "estop") << s;
 
   r = c.request(R"({"cmd":"fault"})").value_or("");
@@ -203,7 +266,7 @@ TEST_F(BridgedDaemon, ControlSocketEstopFaultEnableThenSigtermFlushesStatistics)
   EXPECT_NE(d.output().find("summary:"), std::string::npos) << d.output();
 }
 
-TEST_F(BridgedDaemon, SighupReloadsOnTheOpenDevice) {
+TEST_F(BridgedDaemon, SighupReloadsOnTheOpenDeviceAndSigintFlushesStatistics) {
   const fs::path cfg = config("rate_hz = 1000\n[bridge]\nrealtime = false\nfeedback_gain_per_s = 40");
   Daemon d(dir_, "d", {"--config", cfg.string()});
   LineClient c = connect();
@@ -243,27 +306,181 @@ TEST_F(BridgedDaemon, SighupReloadsOnTheOpenDevice) {
   EXPECT_TRUE(eventually([&] { return d.output().find("not reloaded") != std::string::npos; })) << d.output();
   EXPECT_EQ(json_field(status(c), "rate_hz"), "500");
 
+  // SIGINT stops it like SIGTERM: exit 0, the statistics written at exit.
+  ASSERT_FALSE(fs::exists(stats_));
   d.signal(SIGINT);
   EXPECT_EQ(d.wait(30s), mrskin::tools::kOk) << d.output();
+  EXPECT_NE(d.output().find("stopped by signal 2 (SIGINT)"), std::string::npos) << d.output();
+  const std::string stats = slurp(stats_);
+  ASSERT_TRUE(json_field(stats, "ticks").has_value()) << stats << d.output();
+  EXPECT_GT(std::stoull(*json_field(stats, "ticks")), 0U) << stats;
+  EXPECT_FALSE(fs::exists(socket_)) << "the socket is removed at exit";
+}
+
+// Emergency stop: every valve released in the tick that acts on it. In the ring log frozen at the
+// e-stop, the packet sent just before the e-stop request commands zero current on every valve;
+// then the status (the bridge's peak current, valves_released) and the grid telemetry (the
+// currents the session last commanded) show nothing flowing. An operator's e-stop still in force
+// at exit is no failure: SIGTERM gives exit 0.
+TEST_F(BridgedDaemon, EstopReleasesEveryValveAndIsNoFailureAtExit) {
+  Daemon d(dir_, "d", {"--config", config("[bridge]\nrealtime = false").string(), "--quiet"});
+  LineClient c = connect();
+  ASSERT_TRUE(c.connected()) << d.output();
+  std::string s;
+  ASSERT_TRUE(eventually([&] {
+    s = status(c);
+    return std::stod(json_field(s, "peak_current_a").value_or("0")) > 0.0;  // the demo scene presses
+  })) << s;
+  s = estop(c);
+  EXPECT_EQ(json_field(s, "peak_current_a"), "0") << s;
+  EXPECT_EQ(json_field(s, "valves_released"), "true") << s;
+
+  const std::string f = c.request(R"({"cmd":"fault"})").value_or("");
+  const std::vector<std::string> log = log_records(f);
+  const auto estop = std::find_if(log.rbegin(), log.rend(), [](const std::string& r) {
+    return json_field(r, "kind") == "state request" && json_field(r, "state") == "e-stop";
+  });
+  ASSERT_NE(estop, log.rend()) << f;
+  const auto before = std::find_if(std::next(estop), log.rend(),
+                                   [](const std::string& r) { return json_field(r, "dir") == "tx"; });
+  ASSERT_NE(before, log.rend()) << f;
+  EXPECT_EQ(json_field(*before, "kind"), "currents") << *before;
+  EXPECT_EQ(std::stoull(json_field(*before, "seq").value_or("0")) + 1,
+            std::stoull(json_field(*estop, "seq").value_or("0")))
+      << *before << "\n"
+      << *estop;
+  const std::string text = json_field(*before, "text").value_or("");
+  const std::size_t amps = text.find("[A]:");
+  ASSERT_NE(amps, std::string::npos) << text;
+  const std::vector<double> sent = numbers(text.substr(amps + 4));
+  EXPECT_EQ(sent.size(), 12U) << text;
+  EXPECT_TRUE(std::all_of(sent.begin(), sent.end(), [](double a) { return a == 0.0; })) << text;
+
+  LineClient t = connect();
+  ASSERT_TRUE(t.send_line(R"({"cmd":"telemetry","period_ms":20,"grid":true})"));
+  std::string line;
+  ASSERT_TRUE(eventually([&] {
+    line = t.read_line(5s).value_or("");
+    return json_field(line, "grid_t_s").value_or("null") != "null";
+  })) << line;
+  const std::size_t at = line.find(R"("current_a":[)");
+  ASSERT_NE(at, std::string::npos) << line;
+  const std::vector<double> commanded = numbers(line.substr(at + 13, line.find(']', at) - at - 13));
+  EXPECT_EQ(commanded.size(), 12U) << line;
+  EXPECT_TRUE(std::all_of(commanded.begin(), commanded.end(), [](double a) { return a == 0.0; })) << line;
+  EXPECT_EQ(json_field(line, "valves_released"), "true") << line;
+
+  d.signal(SIGTERM);
+  EXPECT_EQ(d.wait(30s), mrskin::tools::kOk) << d.output();
+}
+
+// An OpenIGTLink robot connects to the daemon's igtl-listen:// source with the library's
+// ClientSocket and sends SENSOR messages (ContactForce, N): they are taken and counted.
+TEST_F(BridgedDaemon, OpenIgtlinkSensorMessagesAreAccepted) {
+  const std::uint16_t port = free_port(SOCK_STREAM);
+  ASSERT_NE(port, 0);
+  Daemon d(dir_, "igtl",
+           {"--config", config("[bridge]\nrealtime = false").string(), "--source",
+            "igtl-listen://127.0.0.1:" + std::to_string(port), "--quiet"});
+  LineClient c = connect();
+  ASSERT_TRUE(c.connected()) << d.output();
+  igtl::ClientSocket::Pointer robot;
+  ASSERT_TRUE(eventually([&] {
+    robot = igtl::ClientSocket::New();
+    return robot->ConnectToServer("127.0.0.1", port) == 0;
+  })) << d.output();
+  for (std::uint32_t k = 1; k <= 5; ++k) {
+    auto m = igtl::SensorMessage::New();
+    m->SetDeviceName("ContactForce");
+    m->SetLength(1);
+    auto unit = igtl::Unit::New();
+    unit->Init();
+    unit->SetPrefix(igtl::Unit::SI_PREFIX_NONE);
+    unit->Append(igtl::Unit::SI_DERIVED_NEWTON, 1);
+    m->SetUnit(unit);
+    m->SetValue(0U, 0.1 * k);
+    auto ts = igtl::TimeStamp::New();
+    ts->SetTime(1000U, k * 1'000'000U);  // 1 ms apart
+    m->SetTimeStamp(ts);
+    m->Pack();
+    ASSERT_EQ(robot->Send(m->GetPackPointer(), static_cast<int>(m->GetPackSize())), 1);
+  }
+  std::string s;
+  EXPECT_TRUE(eventually([&] {
+    s = status(c);
+    return json_field(s, "stream").has_value() && json_field(s, "stream") != "no sample yet";
+  })) << s;
+  robot->CloseSocket();
+  d.signal(SIGTERM);
+  ASSERT_EQ(d.wait(60s), mrskin::tools::kOk) << d.output();
+  const std::string stats = slurp(stats_);
+  ASSERT_TRUE(json_field(stats, "samples_accepted").has_value()) << stats << d.output();
+  EXPECT_GT(std::stoull(*json_field(stats, "samples_accepted")), 0U) << stats;
+}
+
+// Exit 1: a device fault nobody asked for (the mock's bus-off at 1 s) latched at exit; the
+// statistics are written all the same.
+TEST_F(BridgedDaemon, AFaultLatchedAtExitIsExit1) {
+  Daemon d(dir_, "d",
+           {"--config", config("[bridge]\nrealtime = false").string(), "--device", "mock://?faults=busoff:1",
+            "--quiet"});
+  LineClient c = connect();
+  ASSERT_TRUE(c.connected()) << d.output();
+  std::string s;
+  ASSERT_TRUE(eventually([&] {
+    s = status(c);
+    return json_field(s, "state") == "FAULT" && json_field(s, "fault") == "bus off";
+  })) << s;
+  d.signal(SIGTERM);
+  EXPECT_EQ(d.wait(30s), mrskin::tools::kFailure) << d.output();
+  EXPECT_NE(d.output().find("in FAULT at exit"), std::string::npos) << d.output();
+  EXPECT_TRUE(fs::exists(stats_));
+}
+
+// Exit 1: the device disconnected (at 0.5 s, for good) for longer than device_lost_s; the daemon
+// stops by itself.
+TEST_F(BridgedDaemon, ADeviceLostForGoodIsExit1) {
+  (void)expect_exit("device_lost_s = 0.5\n[bridge]\nrealtime = false",
+                    {"--device", "mock://?faults=disconnect:0.5+600"}, mrskin::tools::kFailure,
+                    "lost for good", 60s);
+  EXPECT_TRUE(fs::exists(stats_));
+}
+
+// Exit 1: the statistics file cannot be written (its directory does not exist).
+TEST_F(BridgedDaemon, UnwritableStatisticsAreExit1) {
+  (void)expect_exit("duration_s = 0.5\n[bridge]\nrealtime = false",
+                    {"--stats-json", (dir_ / "missing" / "stats.json").string()}, mrskin::tools::kFailure,
+                    "cannot write statistics");
+}
+
+// Exit 3: no such device (a serial no unit has); the control socket it bound first is removed.
+TEST_F(BridgedDaemon, NoSuchDeviceIsExit3) {
+  (void)expect_exit("[bridge]\nrealtime = false", {"--device", "hid://1209:4d52?serial=0BADF00D"},
+                    mrskin::tools::kNoDevice, "no MR skin for hid://1209:4d52");
+  EXPECT_FALSE(fs::exists(socket_));
+}
+
+// Exit 4: a unit that reports another protocol major version in its Identity.
+TEST_F(BridgedDaemon, AUnitOfAnotherProtocolMajorIsExit4) {
+  (void)expect_exit("[bridge]\nrealtime = false", {"--device", "mock://?protocol_major=2"},
+                    mrskin::tools::kMismatch, "reports protocol v2.");
+  EXPECT_FALSE(fs::exists(socket_));
+}
+
+// What the daemon's main does with the handshake's ProtocolMismatch, without a daemon.
+TEST(BridgedExitCodes, AProtocolMismatchMapsToExit4) {
+  try {
+    throw mrskin::ProtocolMismatch("device on hid://1209:4d52 reports protocol v2.0");
+  } catch (...) {
+    EXPECT_EQ(mrskin::tools::exit_code_for_current_exception(), mrskin::tools::kMismatch);
+  }
 }
 
 // The stream source's arrival hook wakes the loop: at 20 Hz, samples arriving between deadlines
 // run early ticks (counted in the exit summary). No timing is asserted, only that some did.
 TEST_F(BridgedDaemon, UdpSamplesWakeTheLoopEarly) {
-  std::uint16_t port = 0;
-  {  // a free loopback port (the daemon binds it next)
-    const int fd = ::socket(AF_INET, SOCK_DGRAM, 0);
-    sockaddr_in a{};
-    a.sin_family = AF_INET;
-    a.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
-    socklen_t len = sizeof(a);
-    // NOLINTNEXTLINE(cppcoreguidelines-pro-type-reinterpret-cast): the socket API's own cast
-    ASSERT_EQ(::bind(fd, reinterpret_cast<const sockaddr*>(&a), sizeof(a)), 0);
-    // NOLINTNEXTLINE(cppcoreguidelines-pro-type-reinterpret-cast): the socket API's own cast
-    ASSERT_EQ(::getsockname(fd, reinterpret_cast<sockaddr*>(&a), &len), 0);
-    port = ntohs(a.sin_port);
-    ::close(fd);
-  }
+  const std::uint16_t port = free_port(SOCK_DGRAM);
+  ASSERT_NE(port, 0);
   std::string text = config_text("rate_hz = 20\n[bridge]\nrealtime = false");
   text.replace(text.find("scene://demo"), 12, "udp://127.0.0.1:" + std::to_string(port));
   const fs::path cfg = dir_ / "udp.toml";

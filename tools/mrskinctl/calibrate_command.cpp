@@ -57,6 +57,7 @@ std::string offset_unit(const std::string& sensor_unit) {
 }
 
 constexpr int kTablePoints = 12;
+constexpr double kDegaussTimeout_s = 5.0;  // the mock's takes ~1.1 s (57 half-cycles of 20 ms)
 constexpr double kModelStep_s = 5e-4;
 constexpr double kScaleMin = 0.5;  // the range parse_calibration accepts
 constexpr double kScaleMax = 2.0;
@@ -76,9 +77,12 @@ struct Report {
   long stored_version = 0;
   long new_version = 0;
   std::vector<double> offset_m;
-  double noise_m = 0.0;  // largest sensor noise at rest
-  std::vector<double> degauss_a;
-  RemanenceModel remanence;
+  double noise_m = 0.0;             // largest sensor noise at rest
+  std::vector<double> condition_a;  // on/off steps before the sweep
+  RemanenceModel remanence;         // ...and the model's remanence after them
+  std::string degauss = "not run";  // the unit's own degauss after the sweep: done, unsupported, unfinished
+  RemanenceModel
+      degauss_remanence;         // the model's remanence after the maximum, and after an alternating decay
   double zero_residual_m = 0.0;  // largest |residual| at 0 A after conditioning
   std::vector<double> fit_a;
   std::vector<double> held_out_a;
@@ -103,7 +107,8 @@ void print_report(const Report& r, const CalibrateOptions& o, const GlobalOption
     fmt::print(
         R"({{"uri": "{}", "dry_run": {}, "result": "{}", "reason": "{}", "stored_version": {}, "new_version": {}, )"
         R"("tare": {{"sensor_unit": "{}", "sensor_offset_m": {}, "noise_m": {}}}, )"
-        R"("degauss": {{"amplitudes_a": {}, "model_remanent_yield_after_max_pa": {}, "model_remanent_yield_after_degauss_pa": {}, "residual_at_0_a_m": {}}}, )"
+        R"("condition": {{"amplitudes_a": {}, "model_remanent_yield_after_max_pa": {}, "model_remanent_yield_after_steps_pa": {}, "residual_at_0_a_m": {}}}, )"
+        R"("degauss": {{"outcome": "{}", "model_remanent_yield_before_pa": {}, "model_remanent_yield_after_pa": {}}}, )"
         R"("fit": {{"currents_a": {}, "held_out_currents_a": {}, "yield_scale_stored": {}, "yield_scale": {}, )"
         R"("rms_fit_stored_m": {}, "rms_fit_new_m": {}, "rms_held_out_stored_m": {}, "rms_held_out_new_m": {}, )"
         R"("sensitivity_m": {}, "resolution_m": {}, "worst_sensor_misfit_m": {}, "median_sensor_misfit_m": {}}}, )"
@@ -111,9 +116,10 @@ void print_report(const Report& r, const CalibrateOptions& o, const GlobalOption
         "\n",
         json_escape(o.uri), o.dry_run ? "true" : "false", r.result, json_escape(r.reason), r.stored_version,
         r.new_version, json_escape(r.sensor_unit), numbers(r.offset_m), json_number(r.noise_m),
-        numbers(r.degauss_a), json_number(r.remanence.after_max_pa),
-        json_number(r.remanence.after_degauss_pa), json_number(r.zero_residual_m), numbers(r.fit_a),
-        numbers(r.held_out_a), json_number(r.stored_scale), json_number(r.new_scale),
+        numbers(r.condition_a), json_number(r.remanence.after_max_pa),
+        json_number(r.remanence.after_degauss_pa), json_number(r.zero_residual_m), r.degauss,
+        json_number(r.degauss_remanence.after_max_pa), json_number(r.degauss_remanence.after_degauss_pa),
+        numbers(r.fit_a), numbers(r.held_out_a), json_number(r.stored_scale), json_number(r.new_scale),
         json_number(r.rms_fit_stored_m), json_number(r.rms_fit_new_m), json_number(r.rms_held_stored_m),
         json_number(r.rms_held_new_m), json_number(r.sensitivity_m), json_number(r.resolution_m),
         json_number(r.worst_sensor_misfit_m), json_number(r.median_sensor_misfit_m), json_escape(r.text),
@@ -133,15 +139,28 @@ void print_report(const Report& r, const CalibrateOptions& o, const GlobalOption
     fmt::print("  zero (tare)  sensor offsets at rest, {}:{}; noise up to {:.4g} {}\n", unit, offsets,
                r.noise_m * scale, unit);
   }
-  if (!r.degauss_a.empty()) {
+  if (!r.condition_a.empty()) {
     fmt::print(
-        "  degauss      {} on/off steps {:.4g} .. {:.4g} A; model remanence at 0 A {:.3g} Pa after the "
-        "maximum, "
-        "{:.3g} Pa after degauss (a unipolar drive cannot reverse the core: the steps only leave every core "
-        "on "
-        "the same branch); measured residual at 0 A {:.2f} um\n",
-        r.degauss_a.size(), r.degauss_a.front(), r.degauss_a.back(), r.remanence.after_max_pa,
-        r.remanence.after_degauss_pa, r.zero_residual_m * 1e6);
+        "  condition    {} on/off steps {:.4g} .. {:.4g} A: every core on the branch down from the maximum, "
+        "the history the sweep's model assumes (model remanence at 0 A {:.3g} Pa); measured residual at 0 A "
+        "{:.2f} um\n",
+        r.condition_a.size(), r.condition_a.front(), r.condition_a.back(), r.remanence.after_degauss_pa,
+        r.zero_residual_m * 1e6);
+  }
+  if (r.degauss == "done") {
+    fmt::print(
+        "  degauss      done by the unit: a decaying alternating current through every coil; model "
+        "remanence at 0 A {:.3g} Pa after the maximum -> {:.3g} Pa\n",
+        r.degauss_remanence.after_max_pa, r.degauss_remanence.after_degauss_pa);
+  } else if (r.degauss == "unsupported") {
+    fmt::print(
+        "  degauss      not supported by this unit (a unipolar coil driver cannot reverse the field): the "
+        "cores keep up to {:.3g} Pa of remanent yield at 0 A on the model\n",
+        r.degauss_remanence.after_max_pa);
+  } else if (r.degauss == "unfinished") {
+    fmt::print(
+        "  degauss      started but not finished within {:.0f} s: check the unit (mrskinctl info --log)\n",
+        kDegaussTimeout_s);
   }
   if (!r.fit_a.empty()) {
     fmt::print("  yield sweep  {} fit currents {:.4g} .. {:.4g} A, {} held out\n", r.fit_a.size(),
@@ -266,7 +285,7 @@ int run_calibrate(const CalibrateOptions& o, const GlobalOptions& global) {
                   "--zero-only tares the sensors alone");
   }
   const int levels = o.levels;
-  const int total = o.zero_only ? 2 : 2 + (levels + 1) + kTablePoints + 1;
+  const int total = o.zero_only ? 2 : 2 + (levels + 1) + 1 + kTablePoints + 1;
   Progress progress(!global.json, "calibrate", total);
   int step = 0;
   try {
@@ -303,15 +322,16 @@ int run_calibrate(const CalibrateOptions& o, const GlobalOptions& global) {
     return write_and_read_back(r, next, o, global, rig, progress, step);
   }
 
-  // Degauss: decaying on/off steps from the maximum current (30 ms each: the coil settles in ~5 ms).
-  r.degauss_a = degauss_amplitudes_a(info.max_current_A);
-  for (const double a : r.degauss_a) {
+  // Conditioning: decaying on/off steps from the maximum current (30 ms each: the coil settles in
+  // ~5 ms) leave every core on the branch down from the maximum, which the sweep's model assumes.
+  r.condition_a = degauss_amplitudes_a(info.max_current_A);
+  for (const double a : r.condition_a) {
     hold.set(a);
     rig.run_for(0.03, hold);
     hold.set(0.0);
     rig.run_for(0.03, hold);
   }
-  r.remanence = model_remanence(model::apply_calibration(*profile, stored), r.degauss_a);
+  r.remanence = model_remanence(model::apply_calibration(*profile, stored), r.condition_a);
   progress.step(++step);
 
   // The sweep: level 0 (0 A), then k * max / levels; odd k fit, even k held out.
@@ -349,6 +369,24 @@ int run_calibrate(const CalibrateOptions& o, const GlobalOptions& global) {
     progress.step(++step);
   }
   rig.release();  // the unit takes a calibration only while not ENABLED
+
+  // Degauss (protocol 1.1): the unit's own decaying alternating current, so the sweep's currents
+  // leave no remanence behind (the valves' floor at 0 A as low as the steel allows, and the state
+  // the bridge's observer starts from). A unipolar unit ignores it.
+  switch (rig.degauss(kDegaussTimeout_s)) {
+    case Rig::DegaussOutcome::done:
+      r.degauss = "done";
+      break;
+    case Rig::DegaussOutcome::unsupported:
+      r.degauss = "unsupported";
+      break;
+    case Rig::DegaussOutcome::unfinished:
+      r.degauss = "unfinished";
+      break;
+  }
+  r.degauss_remanence = model_remanence(model::apply_calibration(*profile, stored),
+                                        degauss_amplitudes_a(info.max_current_A, 0.85, 1e-3), true);
+  progress.step(++step);
 
   // The model: residual against valve yield, over every yield the scale range can give.
   std::vector<double> unit_fit;

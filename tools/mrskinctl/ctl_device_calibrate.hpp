@@ -17,8 +17,8 @@
 
 namespace mrskin::ctl {
 
-// Decaying on/off steps: the coil driver is unipolar (0..max_current_A), so the field cannot be
-// reversed; amplitude max * ratio^k, k = 0.. while above floor_fraction of the maximum.
+// Decaying steps: amplitude max * ratio^k, k = 0.. while above floor_fraction of the maximum
+// (on/off steps through the host's unipolar commands; the device's own degauss alternates them).
 inline std::vector<double> degauss_amplitudes_a(double max_current_a, double ratio = 0.6,
                                                 double floor_fraction = 0.01) {
   std::vector<double> out;
@@ -29,12 +29,14 @@ inline std::vector<double> degauss_amplitudes_a(double max_current_a, double rat
 }
 
 // The steel's remanence on the play-operator model (magnetic.hpp) of a profile: the yield
-// stress left at 0 A after the maximum current, and after the degauss sequence that follows it.
+// stress left at 0 A after the maximum current, and after the sequence that follows it, each
+// step back to 0 A (on/off), or with alternating signs (a bipolar driver's degauss).
 struct RemanenceModel {
   double after_max_pa = 0.0;
   double after_degauss_pa = 0.0;
 };
-inline RemanenceModel model_remanence(const model::DeviceProfile& p, std::span<const double> amplitudes_a) {
+inline RemanenceModel model_remanence(const model::DeviceProfile& p, std::span<const double> amplitudes_a,
+                                      bool alternating = false) {
   model::HysteresisState h;
   const auto yield_at = [&](double current_a) {
     const auto f = model::gap_field_hysteretic(p.magnetic, p.fluid, current_a, h);
@@ -43,9 +45,14 @@ inline RemanenceModel model_remanence(const model::DeviceProfile& p, std::span<c
   RemanenceModel out;
   (void)yield_at(p.coil.max_current_A);
   out.after_max_pa = yield_at(0.0);
+  double sign = 1.0;
   for (const double a : amplitudes_a) {
-    (void)yield_at(a);
-    (void)yield_at(0.0);
+    (void)yield_at(sign * a);
+    if (alternating) {
+      sign = -sign;
+    } else {
+      (void)yield_at(0.0);
+    }
   }
   out.after_degauss_pa = yield_at(0.0);
   return out;

@@ -247,6 +247,27 @@ class Rig {
       tick();
     }
   }
+  // Protocol 1.1 degauss: disables the unit and asks it to run a decaying alternating current
+  // through its coils, then ticks until its status clears the degaussing flag (bounded). A unit
+  // with a unipolar driver ignores the request: its status never shows the flag.
+  enum class DegaussOutcome { done, unsupported, unfinished };
+  DegaussOutcome degauss(double timeout_s) noexcept {
+    release();
+    (void)session().request_degauss();
+    const TimePoint start = clock().now();
+    bool seen = false;
+    while (clock().now() - start < from_seconds(timeout_s) && !interrupted()) {
+      tick();
+      seen = seen || session().degaussing();
+      if (seen && !session().degaussing()) {
+        return DegaussOutcome::done;
+      }
+      if (!seen && clock().now() - start > std::chrono::milliseconds(300)) {
+        return DegaussOutcome::unsupported;  // its status came back (every 100 ms) without the flag
+      }
+    }
+    return seen ? DegaussOutcome::unfinished : DegaussOutcome::unsupported;
+  }
   void lift_finger() const noexcept {
     if (MockDevice* f = fixture(); f != nullptr) {
       const std::vector<double> none(info().fluid_cells, 0.0);

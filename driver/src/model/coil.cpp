@@ -59,7 +59,7 @@ Result<CoilState> coil_step(const CoilParams& c, const CoilState& s, double comm
   if (dt_s < 0.0) {
     return failure<CoilState>(Status::negative);
   }
-  if (command_A < 0.0 || command_A > c.max_current_A) {
+  if (std::fabs(command_A) > c.max_current_A) {  // negative: a bipolar driver reversing the field
     return failure<CoilState>(Status::out_of_range);
   }
   CoilState out;

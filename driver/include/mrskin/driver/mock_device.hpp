@@ -78,6 +78,15 @@ struct MockOptions {
   // relative spread (model::measure_calibration). Negative: store the nominal calibration
   // (every ratio 1), as an uncalibrated unit would.
   double calibration_error = 0.01;
+  // An H-bridge coil driver: the unit takes StateRequest degauss (protocol 1.1) while disabled
+  // and runs a decaying alternating current through every coil. false: a unipolar driver, which
+  // ignores the request (mock://?bipolar=0).
+  bool bipolar_driver = true;
+  // The protocol major version the unit reports in its Identity (mock://?protocol_major=N): a
+  // unit from another major release, which a host must refuse (ProtocolMismatch).
+  std::uint8_t protocol_major = protocol::kVersionMajor;
+  double degauss_step_s = 0.02;  // each half-cycle's hold (about 4 coil time constants)
+  double degauss_ratio = 0.85;   // amplitude ratio between half-cycles, from max_current_A
 };
 
 // A device profile found by name or path, with the text it was read from.
@@ -248,6 +257,8 @@ class MockDevice {
   bool bus_off_done_ = false;
   bool disconnect_done_ = false;
   bool derated_ = false;
+  bool degaussing_ = false;
+  double degauss_elapsed_s_ = 0.0;
   std::vector<double> sensor_si_;
   std::vector<std::atomic<double>> finger_m_;
   std::vector<std::atomic<double>> truth_N_;

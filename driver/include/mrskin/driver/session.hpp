@@ -198,6 +198,9 @@ class DeviceSession {
   ResultCode request_disable() noexcept;
   ResultCode request_pause() noexcept;
   ResultCode request_estop() noexcept;
+  // Protocol 1.1: asks a disabled device to degauss its cores with a decaying alternating
+  // current (bipolar coil drivers only); degaussing() is true while it runs.
+  ResultCode request_degauss() noexcept;
   // A state request is repeated every handshake_retry (at most 10 times) until a status
   // confirms the state, or a new FAULT overrides it: a lossy link cannot eat an enable.
   // Stops heartbeats (used to test the device's watchdog).
@@ -215,6 +218,8 @@ class DeviceSession {
   [[nodiscard]] std::uint8_t fault_code() const noexcept { return fault_; }
   [[nodiscard]] bool valves_released() const noexcept { return valves_released_; }
   [[nodiscard]] bool derated() const noexcept { return derated_; }
+  // Protocol 1.1: a degauss cycle is running (request_degauss), per the device's last Status.
+  [[nodiscard]] bool degaussing() const noexcept { return degaussing_; }
   [[nodiscard]] bool connected() const noexcept { return connected_; }
   [[nodiscard]] const SessionCounters& counters() const noexcept { return counters_; }
   [[nodiscard]] TransportState transport_state() const noexcept { return transport_->state(); }
@@ -276,6 +281,7 @@ class DeviceSession {
   DeviceState wanted_state_ = DeviceState::disabled;
   std::uint8_t fault_ = 0;
   bool valves_released_ = true;
+  bool degaussing_ = false;
   bool derated_ = false;
   bool suppress_heartbeat_ = false;
   bool state_request_pending_ = false;

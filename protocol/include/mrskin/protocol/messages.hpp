@@ -11,7 +11,7 @@
 namespace mrskin::protocol {
 
 inline constexpr std::uint8_t kVersionMajor = 1;
-inline constexpr std::uint8_t kVersionMinor = 0;
+inline constexpr std::uint8_t kVersionMinor = 1;  // 1.1: StateRequest degauss, Status flag degaussing
 
 enum class MessageType : std::uint8_t {
   identify_request = 0x01,
@@ -127,6 +127,7 @@ enum StatusFlags : std::uint8_t {
   kFlagValvesReleased = 1U << 0U,
   kFlagDerated = 1U << 1U,
   kFlagCalibrated = 1U << 2U,
+  kFlagDegaussing = 1U << 3U,  // 1.1: a degauss cycle is running (StateRequestCode::degauss)
 };
 
 struct Status {
@@ -142,7 +143,9 @@ struct Heartbeat {
   bool operator==(const Heartbeat&) const = default;
 };
 
-enum class StateRequestCode : std::uint8_t { disable = 0, enable = 1, pause = 2, estop = 3 };
+// degauss (1.1): a disabled device with a bipolar coil driver runs a decaying alternating current
+// through every coil and stays disabled; a device without one ignores it (no degaussing flag).
+enum class StateRequestCode : std::uint8_t { disable = 0, enable = 1, pause = 2, estop = 3, degauss = 4 };
 struct StateRequest {
   std::uint8_t request = 0;  // StateRequestCode
   bool operator==(const StateRequest&) const = default;

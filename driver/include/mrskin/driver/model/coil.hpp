@@ -29,7 +29,8 @@ struct CoilState {
   double field_current_A = 0.0;  // eddy-lagged current that sets the gap field
 };
 
-// Advances the coil by dt under a constant command in [0, max_current_A].
+// Advances the coil by dt under a constant command in [-max_current_A, max_current_A] (negative:
+// a bipolar driver reversing the field, as a degauss does; hosts command 0..max).
 Result<CoilState> coil_step(const CoilParams& c, const CoilState& s, double command_A, double dt_s) noexcept;
 
 // Current-loop time constant 1 / (2 pi f_bw), s.
