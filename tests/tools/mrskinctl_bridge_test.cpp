@@ -128,6 +128,24 @@ TEST_F(MrskinctlBridge, MonitorGetsTheGridThenEstopFaultEnable) {
   EXPECT_NE(r.out.find("t="), std::string::npos) << r.out;
   EXPECT_NE(r.out.find("force max"), std::string::npos) << r.out;
 
+  // record --bridge: the daemon's raw sensors and commanded currents as the record format, which
+  // replay prints and replays onto a free device.
+  const std::string file = (dir_ / "bridge.ndjson").string();
+  r = ctl({"record", "--bridge", socket_, "--out", file, "--duration", "1", "--json"});
+  ASSERT_EQ(r.code, 0) << r.out << r.err;
+  EXPECT_GT(std::stoi(json_field(r.out, "telemetry").value_or("0")), 10) << r.out;
+  EXPECT_GT(std::stoi(json_field(r.out, "commands").value_or("0")), 1) << r.out;  // enable, currents
+  const std::vector<std::string> recorded = lines_of(slurp(file));
+  ASSERT_GT(recorded.size(), 3U);
+  EXPECT_NE(recorded[0].find(R"("uri": "bridge:)" + socket_ + "\""), std::string::npos) << recorded[0];
+  EXPECT_NE(recorded[0].find(R"("sensors": 12,)"), std::string::npos) << recorded[0];
+  EXPECT_NE(slurp(file).find(R"("kind": "currents")"), std::string::npos);
+  r = ctl({"replay", file, "--to-device", "mock://?seed=3"});
+  ASSERT_EQ(r.code, 0) << r.out << r.err;
+  EXPECT_NE(r.out.find("(0 refused by the session)"), std::string::npos) << r.out;
+  r = ctl({"record", "--bridge", socket_, "--currents", "0.01", "--out", file});
+  EXPECT_EQ(r.code, 2) << r.out << r.err;  // the daemon drives the valves: no --currents through it
+
   // Emergency stop (--wait: until the status shows it), then the fault and its log, then enable.
   r = ctl({"estop", "--bridge", socket_, "--wait", "--timeout", "30"});
   ASSERT_EQ(r.code, 0) << r.out << r.err;
@@ -179,9 +197,20 @@ TEST_F(MrskinctlBridge, NoDaemonIsExit3NamingTheSocket) {
     EXPECT_NE(r.err.find(none), std::string::npos) << r.err;
     EXPECT_NE(r.err.find("is mrskin-bridged running?"), std::string::npos) << r.err;
   }
-  const Result r = ctl({"monitor", "--bridge", none, "--duration", "1"});
-  EXPECT_EQ(r.code, mrskin::tools::kNoDevice) << r.out << r.err;
-  EXPECT_NE(r.err.find("is mrskin-bridged running?"), std::string::npos) << r.err;
+  for (const std::vector<std::string>& args :
+       {std::vector<std::string>{"monitor", "--bridge", none, "--duration", "1"},
+        std::vector<std::string>{"record", "--bridge", none, "--duration", "1", "--out",
+                                 (dir_ / "r.ndjson").string()}}) {
+    const Result r = ctl(args);
+    EXPECT_EQ(r.code, mrskin::tools::kNoDevice) << args[0] << "\n" << r.out << r.err;
+    EXPECT_NE(r.err.find("is mrskin-bridged running?"), std::string::npos) << r.err;
+  }
+  // The commands that drive the valves themselves are refused through a daemon, saying why.
+  for (const char* cmd : {"set", "selftest", "calibrate"}) {
+    const Result r = ctl({cmd, "--bridge", none});
+    EXPECT_EQ(r.code, mrskin::tools::kBusy) << cmd << "\n" << r.out << r.err;
+    EXPECT_NE(r.err.find("needs the device to itself"), std::string::npos) << r.err;
+  }
 }
 
 // A one-client fake daemon: answers every request line with the next canned line (then closes).

@@ -70,7 +70,8 @@ Daemon::Daemon(Settings settings, MonotonicClock& clock)
   rows_ = info.rows;
   cols_ = info.cols;
   max_current_A_ = info.max_current_A;
-  grid_ = std::make_unique<GridSeqlock>(info.fluid_cells, info.valves);
+  grid_ = std::make_unique<GridSeqlock>(info.fluid_cells, info.valves, info.sensors);
+  sensor_unit_ = info.sensor_unit;
   const model::DeviceProfile* profile = dev_.session->profile();
   force_range_N_ = profile != nullptr ? profile->design.force_range_N : 0.0;
   thermal_.reset(info.valves, profile != nullptr ? profile->coil.resistance_ohm : 0.0);
@@ -203,6 +204,7 @@ void Daemon::publish_grid(TimePoint now) noexcept {
   grid_->write(GridSeqlock::target_n, bridge_->targets_N());
   grid_->write(GridSeqlock::current_a, s.commanded_currents());
   grid_->write(GridSeqlock::temperature_c, thermal_.temperature_C());
+  grid_->write(GridSeqlock::sensor, s.sensors());
   grid_->end_write();
 }
 
@@ -213,11 +215,11 @@ void Daemon::grid_subscribers(std::size_t n) noexcept {
 std::string Daemon::grid_members() {
   std::string out = fmt::format(
       R"("fault":"{}","last_fault":"{}","faults":{},"valves_released":{},"connected":{},"rows":{},"cols":{},)"
-      R"("max_current_a":{},"force_range_n":{},)",
+      R"("max_current_a":{},"force_range_n":{},"sensor_unit":"{}",)",
       fault_name(fault_code_.load(std::memory_order_relaxed)),
       fault_name(last_fault_code_.load(std::memory_order_relaxed)), faults_.load(std::memory_order_relaxed),
       valves_released_.load(std::memory_order_relaxed), connected_.load(std::memory_order_relaxed), rows_,
-      cols_, json_number(max_current_A_), json_number(force_range_N_));
+      cols_, json_number(max_current_A_), json_number(force_range_N_), sensor_unit_);
   const double hottest_C = dev_.mock ? dev_.mock->max_coil_temperature_C() : NAN;
   out += fmt::format(R"("max_coil_temperature_c":{})", json_number(hottest_C));
   if (!grid_->read(grid_copy_)) {
@@ -226,7 +228,7 @@ std::string Daemon::grid_members() {
   out += fmt::format(R"(,"grid_t_s":{})",
                      json_number(static_cast<double>(grid_copy_.t_ns - t0_.count()) * 1e-9));
   static constexpr std::array<const char*, GridSeqlock::kArrays> kNames = {
-      "force_n", "displacement_m", "target_n", "current_a", "temperature_c"};
+      "force_n", "displacement_m", "target_n", "current_a", "temperature_c", "sensor"};
   for (std::size_t a = 0; a < GridSeqlock::kArrays; ++a) {
     out += fmt::format(R"(,"{}":[)", kNames.at(a));
     const std::vector<double>& values = grid_copy_.arrays.at(a);

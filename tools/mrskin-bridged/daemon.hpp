@@ -167,6 +167,7 @@ class Daemon final : public bridge::Tickable, public ControlBackend {
   int cols_ = 0;
   double max_current_A_ = 0.0;
   double force_range_N_ = 0.0;
+  std::string sensor_unit_ = "m";
   GridSeqlock::Copy grid_copy_;  // control thread
 };
 

@@ -58,11 +58,12 @@ class CoilThermalEstimate {
 // odd. The writer never waits; arrays are sized once at setup.
 class GridSeqlock {
  public:
-  enum Array : std::uint8_t { force_n, displacement_m, target_n, current_a, temperature_c, kArrays };
+  // sensor: the raw readings in the sensors' SI unit (what mrskinctl record --bridge writes).
+  enum Array : std::uint8_t { force_n, displacement_m, target_n, current_a, temperature_c, sensor, kArrays };
   GridSeqlock() = default;
-  GridSeqlock(std::size_t cells, std::size_t valves) {
+  GridSeqlock(std::size_t cells, std::size_t valves, std::size_t sensors = 0) {
     for (std::size_t a = 0; a < kArrays; ++a) {
-      const std::size_t n = a == current_a || a == temperature_c ? valves : cells;
+      const std::size_t n = a == current_a || a == temperature_c ? valves : a == sensor ? sensors : cells;
       arrays_.at(a) = std::vector<std::atomic<double>>(n);
     }
   }

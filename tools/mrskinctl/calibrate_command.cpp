@@ -22,6 +22,7 @@ namespace {
 
 struct CalibrateOptions {
   std::string uri = "mock://";
+  std::string bridge;  // --bridge: refused (add_exclusive_bridge_option)
   bool realtime = false;
   bool dry_run = false;
   double max_current_a = 0.0;  // 0: a fifth of the device's maximum
@@ -531,7 +532,12 @@ void add_calibrate_command(CLI::App& app, const GlobalOptions& global, int& exit
   sub->add_option("--rest", options->rest_s, "seconds of rest sampled for the zero")
       ->check(CLI::Range(0.05, 10.0))
       ->capture_default_str();
-  sub->callback([options, &global, &exit_code] { exit_code = run_calibrate(*options, global); });
+  CLI::Option* bridge = add_exclusive_bridge_option(sub, options->bridge);
+  sub->callback([options, bridge, &global, &exit_code] {
+    if (!refused_through_bridge(bridge, "calibrate", exit_code)) {
+      exit_code = run_calibrate(*options, global);
+    }
+  });
 }
 
 }  // namespace mrskin::ctl

@@ -24,6 +24,7 @@
 #include <string_view>
 #include <vector>
 
+#include "exit_codes.hpp"
 #include "mrskin/driver/device.hpp"
 #include "mrskin/driver/errors.hpp"
 #include "mrskin/protocol/messages.hpp"
@@ -37,6 +38,32 @@ namespace mrskin::ctl {
 inline void add_device_options(CLI::App* sub, std::string& uri, bool& realtime) {
   sub->add_option("--device", uri, "device URI")->capture_default_str();
   sub->add_flag("--realtime", realtime, "run a mock:// unit in real time instead of simulated time");
+}
+
+// --bridge on a command that drives the valves itself (set, selftest, calibrate): a running
+// mrskin-bridged owns the device and its loop drives the valves, so the command is refused with
+// what to do (exit 5, as for a device another process holds). refused_through_bridge() is called
+// first in the command's callback.
+inline CLI::Option* add_exclusive_bridge_option(CLI::App* sub, std::string& socket) {
+  return sub
+      ->add_option("--bridge", socket,
+                   "refused (exit 5): this command drives the valves and needs the device to itself; stop "
+                   "mrskin-bridged first (docs/cli.md)")
+      ->expected(0, 1);
+}
+inline bool refused_through_bridge(const CLI::Option* bridge, const char* command, int& exit_code) {
+  if (bridge->count() == 0) {
+    return false;
+  }
+  fmt::print(
+      stderr,
+      "mrskinctl {0}: not through mrskin-bridged: {0} drives the valves and needs the device to itself, "
+      "while the daemon's loop drives them. Stop the daemon (systemctl stop mrskin-bridged, or SIGTERM), "
+      "run mrskinctl {0} --device URI, then start it again. Through the daemon: monitor, record, enable, "
+      "disable, estop, fault.\n",
+      command);
+  exit_code = tools::kBusy;
+  return true;
 }
 
 // SIGINT/SIGTERM set it; the command loops poll it. Constant-initialised: no guard, safe to

@@ -41,35 +41,6 @@ struct MonitorOptions {
   std::string color = "auto";  // auto, always, never
 };
 
-// SIGINT/SIGTERM: end the monitor cleanly (exit 0). Set from the handler, read by the loop.
-std::atomic<bool> g_stop{false};  // NOLINT(cppcoreguidelines-avoid-non-const-global-variables)
-static_assert(std::atomic<bool>::is_always_lock_free);
-extern "C" void on_stop_signal(int /*signal*/) { g_stop.store(true, std::memory_order_relaxed); }
-
-class StopSignals {
- public:
-  StopSignals() {
-    g_stop.store(false);
-    struct sigaction sa {};
-    sa.sa_handler = &on_stop_signal;  // no SA_RESTART: poll(2) returns and the loop looks
-    sigemptyset(&sa.sa_mask);
-    (void)::sigaction(SIGINT, &sa, &old_int_);
-    (void)::sigaction(SIGTERM, &sa, &old_term_);
-  }
-  StopSignals(const StopSignals&) = delete;
-  StopSignals& operator=(const StopSignals&) = delete;
-  StopSignals(StopSignals&&) = delete;
-  StopSignals& operator=(StopSignals&&) = delete;
-  ~StopSignals() {
-    (void)::sigaction(SIGINT, &old_int_, nullptr);
-    (void)::sigaction(SIGTERM, &old_term_, nullptr);
-  }
-
- private:
-  struct sigaction old_int_ {};
-  struct sigaction old_term_ {};
-};
-
 // One refresh: what is known now. Arrays are in GridLayout order (fluid cells, valves).
 struct Frame {
   double t_s = 0.0;
@@ -369,7 +340,7 @@ int monitor_device(const MonitorOptions& o, Renderer& out) {
       (void)observer->update(session.sensors(), session.commanded_currents(), dt_s);  // errors: keep the last
     }
     thermal.step(session.commanded_currents(), session.valves_released(), dt_s);
-    const bool over = (o.duration_s > 0.0 && now >= end) || g_stop.load(std::memory_order_relaxed);
+    const bool over = (o.duration_s > 0.0 && now >= end) || stop_requested();
     if (now >= next_frame || (over && out.frames() == 0)) {
       next_frame = std::max(next_frame + period_of(o), now);
       f.t_s = to_seconds(now - t0);
@@ -463,54 +434,12 @@ bool frame_from_event(const std::string& line, const std::string& path, Frame& f
 
 int monitor_bridge(const MonitorOptions& o, Renderer& out) {
   const std::string path = bridge_socket(o.bridge);
-  LineClient c = connect_bridge(path);
-  const std::string request =
-      fmt::format(R"({{"cmd":"telemetry","period_ms":{},"grid":true}})", json_number(o.period_ms));
-  const std::optional<std::string> ack = c.request(request, 5s);
-  if (!ack) {
-    throw Error(
-        fmt::format("mrskin-bridged on {} did not answer the telemetry request within 5 s (it closed the "
-                    "connection or is busy)",
-                    path));
-  }
-  if (json_field(*ack, "ok") != "true") {
-    fmt::print(stderr, "mrskinctl monitor: mrskin-bridged on {} refused the grid telemetry: {}\n", path,
-               field_or(*ack, "error", *ack));
-    return tools::kFailure;
-  }
-  const auto t0 = std::chrono::steady_clock::now();
-  const auto end = t0 + std::chrono::microseconds(static_cast<std::int64_t>(o.duration_s * 1e6));
-  // Silence for this long means the daemon is stuck or gone.
-  const auto patience = std::max(std::chrono::milliseconds(5000),
-                                 std::chrono::milliseconds(static_cast<std::int64_t>(3.0 * o.period_ms)));
-  auto last_event = t0;
   Frame f;
-  while (!g_stop.load(std::memory_order_relaxed)) {
-    const auto now = std::chrono::steady_clock::now();
-    if (o.duration_s > 0.0 && now >= end) {
-      break;
-    }
-    auto wait = std::chrono::duration_cast<std::chrono::milliseconds>(o.duration_s > 0.0 ? end - now : 200ms);
-    wait = std::clamp(wait, std::chrono::milliseconds(1), std::chrono::milliseconds(200));
-    const auto asked = std::chrono::steady_clock::now();
-    const std::optional<std::string> line = c.read_line(wait);
-    if (!line) {
-      // Nothing long before the wait was up: the daemon closed the socket.
-      const bool closed = wait >= 20ms && std::chrono::steady_clock::now() - asked < wait / 2;
-      if (closed || std::chrono::steady_clock::now() - last_event > patience) {
-        fmt::print(stderr, "mrskinctl monitor: mrskin-bridged on {} stopped sending (closed or stuck)\n",
-                   path);
-        return tools::kFailure;
-      }
-      continue;
-    }
-    last_event = std::chrono::steady_clock::now();
-    if (frame_from_event(*line, path, f)) {
+  return stream_bridge_grid(path, o.period_ms, o.duration_s, "monitor", [&](const std::string& line) {
+    if (frame_from_event(line, path, f)) {
       out.show(f);
     }
-  }
-  (void)c.send_line("stop");
-  return tools::kOk;
+  });
 }
 
 }  // namespace

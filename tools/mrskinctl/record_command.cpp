@@ -4,13 +4,17 @@
 #include <fmt/format.h>
 
 #include <cerrno>
+#include <chrono>
+#include <cmath>
 #include <cstdio>
 #include <cstring>
 #include <fstream>
 #include <memory>
+#include <optional>
 #include <string>
 #include <vector>
 
+#include "bridge_client.hpp"
 #include "command.hpp"
 #include "ctl_device_record.hpp"
 #include "ctl_device_rig.hpp"
@@ -26,6 +30,8 @@ struct RecordOptions {
   std::string out;
   double duration_s = 1.0;
   std::string currents;
+  std::string bridge;       // the daemon's socket ("": its default)
+  bool use_bridge = false;  // --bridge given, with or without a value
 };
 
 struct ReplayOptions {
@@ -89,13 +95,121 @@ void on_telemetry(void* context, const TelemetryView& view) noexcept {
   }
 }
 
-int run_record(const RecordOptions& o, const GlobalOptions& global) {
+void check_record_options(const RecordOptions& o) {
   if (o.out.empty()) {
     throw InvalidArgument("record: --out FILE is required");
   }
   if (!std::isfinite(o.duration_s) || o.duration_s <= 0.0 || o.duration_s > 3600.0) {
     throw InvalidArgument("record: --duration must be in (0, 3600] s");
   }
+}
+
+void print_record_summary(const RecordOptions& o, const GlobalOptions& global, double elapsed_s,
+                          std::size_t lines, std::size_t telemetry, std::size_t commands, bool interrupted) {
+  if (global.json) {
+    fmt::print(
+        R"({{"out": "{}", "duration_s": {}, "lines": {}, "telemetry": {}, "commands": {}, "interrupted": {}}})"
+        "\n",
+        json_escape(o.out), json_number(elapsed_s), lines, telemetry, commands,
+        interrupted ? "true" : "false");
+  } else {
+    fmt::print("recorded {:.3f} s to {}: {} lines, {} telemetry packets, {} commands{}\n", elapsed_s, o.out,
+               lines, telemetry, commands, interrupted ? " (interrupted)" : "");
+  }
+}
+
+std::string header_line(const std::string& uri, std::size_t valves, std::size_t fluid_cells,
+                        std::size_t sensors, const std::string& sensor_unit, double max_current_a) {
+  return fmt::format(R"({{"format": "{}", "version": {}, "uri": "{}", "valves": {}, "fluid_cells": {}, )"
+                     R"("sensors": {}, "sensor_unit": "{}", "max_current_a": {}}})",
+                     kRecordFormat, kRecordVersion, json_escape(uri), valves, fluid_cells, sensors,
+                     json_escape(sensor_unit), json_number(max_current_a));
+}
+
+// Through a running mrskin-bridged (which owns the device): its grid telemetry every 10 ms, as
+// the same NDJSON: the sensors as rx telemetry, the bridge's commanded currents as tx currents
+// when they change, status changes; an ENABLED unit starts with a tx enable, so the file
+// replays onto a free device (replay --to-device) as the bridge drove it, at 10 ms resolution.
+int run_record_bridge(const RecordOptions& o, const GlobalOptions& global) {
+  check_record_options(o);
+  const std::string path = bridge_socket(o.bridge);
+  (void)connect_bridge(path);  // no daemon: exit 3 before the file is created
+  LineWriter out(o.out);
+  const auto t0 = std::chrono::steady_clock::now();
+  const auto elapsed_s = [&] {
+    return std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
+  };
+  bool header = false;
+  std::string state;
+  std::string fault;
+  std::vector<double> last_currents;
+  std::size_t telemetry = 0;
+  std::size_t commands = 0;
+  const StopSignals signals;
+  const int code = stream_bridge_grid(path, 10.0, o.duration_s, "record", [&](const std::string& line) {
+    if (json_field(line, "event") != "telemetry") {
+      return;
+    }
+    std::optional<std::vector<double>> sensors = json_numbers_field(line, "sensor");
+    std::optional<std::vector<double>> currents = json_numbers_field(line, "current_a");
+    const std::optional<std::vector<double>> cells = json_numbers_field(line, "force_n");
+    if (!sensors || !currents || !cells || sensors->empty()) {
+      return;  // no grid yet, or a daemon without the raw sensors (older)
+    }
+    const double t_s = elapsed_s();
+    const std::string now_state = json_field(line, "state").value_or("?");
+    const std::string now_fault = json_field(line, "fault").value_or("?");
+    if (!header) {
+      const std::optional<std::string> max_a = json_field(line, "max_current_a");
+      out.line(header_line("bridge:" + path, currents->size(), cells->size(), sensors->size(),
+                           json_field(line, "sensor_unit").value_or("m"),
+                           max_a ? std::strtod(max_a->c_str(), nullptr) : 0.0));
+      header = true;
+    }
+    if (now_state != state || now_fault != fault) {
+      state = now_state;
+      fault = now_fault;
+      out.line(fmt::format(R"({{"t_s": {}, "dir": "rx", "kind": "status", "state": "{}", "fault": "{}"}})",
+                           json_number(t_s), json_escape(state), json_escape(fault)));
+      if (commands == 0 && state == "ENABLED") {
+        out.line(fmt::format(R"({{"t_s": {}, "dir": "tx", "kind": "state", "request": "enable"}})",
+                             json_number(t_s)));
+        ++commands;
+      }
+    }
+    if (*currents != last_currents) {
+      out.line(fmt::format(R"({{"t_s": {}, "dir": "tx", "kind": "currents", "values": {}}})",
+                           json_number(t_s), record_numbers(*currents)));
+      last_currents = *std::move(currents);
+      ++commands;
+    }
+    out.line(fmt::format(R"({{"t_s": {}, "dir": "rx", "kind": "telemetry", "device_time_s": {}, "first": 0, )"
+                         R"("values": {}}})",
+                         json_number(t_s), json_field(line, "grid_t_s").value_or("0"),
+                         record_numbers(*sensors)));
+    ++telemetry;
+  });
+  const std::size_t lines = out.lines();
+  if (!out.close()) {
+    throw Error(fmt::format("record: writing {} failed (disk full?); the file is incomplete", o.out));
+  }
+  if (code != tools::kOk) {
+    return code;
+  }
+  if (!header) {
+    throw Error(
+        fmt::format("record: mrskin-bridged on {} sent no grid with raw sensors in {} s (an older daemon?)",
+                    path, o.duration_s));
+  }
+  print_record_summary(o, global, elapsed_s(), lines, telemetry, commands, stop_requested());
+  return tools::kOk;
+}
+
+int run_record(const RecordOptions& o, const GlobalOptions& global) {
+  if (o.use_bridge) {
+    return run_record_bridge(o, global);
+  }
+  check_record_options(o);
   Rig rig(o.uri, o.realtime);
   const DeviceInfo& info = rig.info();
   std::vector<double> current_a;
@@ -104,10 +218,8 @@ int run_record(const RecordOptions& o, const GlobalOptions& global) {
     check_currents(current_a, info, "--currents");
   }
   LineWriter out(o.out);
-  out.line(fmt::format(R"({{"format": "{}", "version": {}, "uri": "{}", "valves": {}, "fluid_cells": {}, )"
-                       R"("sensors": {}, "sensor_unit": "{}", "max_current_a": {}}})",
-                       kRecordFormat, kRecordVersion, json_escape(o.uri), info.valves, info.fluid_cells,
-                       info.sensors, info.sensor_unit, json_number(info.max_current_A)));
+  out.line(
+      header_line(o.uri, info.valves, info.fluid_cells, info.sensors, info.sensor_unit, info.max_current_A));
   RecordContext context{&rig, &out, 0};
   rig.session().set_telemetry_callback(&on_telemetry, &context);
   std::size_t commands = 0;
@@ -154,16 +266,7 @@ int run_record(const RecordOptions& o, const GlobalOptions& global) {
   if (!out.close()) {
     throw Error(fmt::format("record: writing {} failed (disk full?); the file is incomplete", o.out));
   }
-  if (global.json) {
-    fmt::print(
-        R"({{"out": "{}", "duration_s": {}, "lines": {}, "telemetry": {}, "commands": {}, "interrupted": {}}})"
-        "\n",
-        json_escape(o.out), json_number(rig.elapsed_s()), lines, context.telemetry, commands,
-        Rig::interrupted() ? "true" : "false");
-  } else {
-    fmt::print("recorded {:.3f} s to {}: {} lines, {} telemetry packets, {} commands{}\n", rig.elapsed_s(),
-               o.out, lines, context.telemetry, commands, Rig::interrupted() ? " (interrupted)" : "");
-  }
+  print_record_summary(o, global, rig.elapsed_s(), lines, context.telemetry, commands, Rig::interrupted());
   return tools::kOk;
 }
 
@@ -415,8 +518,23 @@ void add_record_commands(CLI::App& app, const GlobalOptions& global, int& exit_c
   add_device_options(rec, record->uri, record->realtime);
   rec->add_option("--out", record->out, "file to write")->required();
   rec->add_option("--duration", record->duration_s, "seconds to record")->capture_default_str();
-  rec->add_option("--currents", record->currents, "hold these per-valve currents (A) while recording");
-  rec->callback([record, &global, &exit_code] { exit_code = run_record(*record, global); });
+  CLI::Option* currents =
+      rec->add_option("--currents", record->currents, "hold these per-valve currents (A) while recording");
+  CLI::Option* bridge =
+      rec->add_option("--bridge", record->bridge,
+                      "record through a running mrskin-bridged on this control socket (it owns "
+                      "the device): its raw sensors and commanded currents every 10 ms; "
+                      "without a value, its default socket (" +
+                          bridged::default_socket_path() + " here)")
+          ->expected(0, 1)
+          ->excludes(currents);
+  if (CLI::Option* device = rec->get_option_no_throw("--device"); device != nullptr) {
+    bridge->excludes(device);
+  }
+  rec->callback([record, bridge, &global, &exit_code] {
+    record->use_bridge = bridge->count() > 0;
+    exit_code = run_record(*record, global);
+  });
 
   auto replay = std::make_shared<ReplayOptions>();
   auto* rep = app.add_subcommand("replay",

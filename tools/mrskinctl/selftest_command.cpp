@@ -21,6 +21,7 @@ namespace {
 
 struct SelftestOptions {
   std::string uri = "mock://";
+  std::string bridge;  // --bridge: refused (add_exclusive_bridge_option)
   bool realtime = false;
   double rest_s = 0.3;
   double press_depth_m = 3e-3;
@@ -375,7 +376,12 @@ void add_selftest_command(CLI::App& app, const GlobalOptions& global, int& exit_
   sub->add_option("--press-depth-m", options->press_depth_m, "fixture press depth, m")
       ->check(CLI::Range(0.5e-3, 6e-3))
       ->capture_default_str();
-  sub->callback([options, &global, &exit_code] { exit_code = run_selftest(*options, global); });
+  CLI::Option* bridge = add_exclusive_bridge_option(sub, options->bridge);
+  sub->callback([options, bridge, &global, &exit_code] {
+    if (!refused_through_bridge(bridge, "selftest", exit_code)) {
+      exit_code = run_selftest(*options, global);
+    }
+  });
 }
 
 }  // namespace mrskin::ctl

@@ -16,6 +16,7 @@ namespace {
 
 struct SetOptions {
   std::string uri = "mock://";
+  std::string bridge;  // --bridge: refused (add_exclusive_bridge_option)
   bool realtime = false;
   std::string currents;
   std::optional<std::size_t> valve;
@@ -172,7 +173,12 @@ void add_set_command(CLI::App& app, const GlobalOptions& global, int& exit_code)
   sub->add_option("--validity-s", options->validity_s, "validity of each resend, s (0..0.63)")
       ->capture_default_str();
   sub->add_option("--hold", options->hold_s, "seconds to hold the setting")->capture_default_str();
-  sub->callback([options, &global, &exit_code] { exit_code = run_set(*options, global); });
+  CLI::Option* bridge = add_exclusive_bridge_option(sub, options->bridge);
+  sub->callback([options, bridge, &global, &exit_code] {
+    if (!refused_through_bridge(bridge, "set", exit_code)) {
+      exit_code = run_set(*options, global);
+    }
+  });
 }
 
 }  // namespace mrskin::ctl
