@@ -437,6 +437,20 @@ TEST_F(BridgedDaemon, AFaultLatchedAtExitIsExit1) {
   EXPECT_TRUE(fs::exists(stats_));
 }
 
+// --record: the input stream to a file in the replay:// format, which a second run plays back.
+TEST_F(BridgedDaemon, RecordsItsInputForReplay) {
+  const fs::path file = dir_ / "input.stream";
+  const std::string body = "duration_s = 1\n[bridge]\nrealtime = false";
+  const std::string out = expect_exit(body, {"--record", file.string()}, mrskin::tools::kOk, "recorded ");
+  const std::string text = slurp(file);
+  EXPECT_EQ(text.rfind("# mrskin-stream 1", 0), 0U) << text.substr(0, 200);
+  EXPECT_GT(std::count(text.begin(), text.end(), '\n'), 100) << out;
+  fs::remove(stats_);
+  (void)expect_exit(body, {"--source", "replay://" + file.string()}, mrskin::tools::kOk, "summary:");
+  const std::string stats = slurp(stats_);
+  EXPECT_GT(std::stoull(json_field(stats, "samples_accepted").value_or("0")), 100U) << stats;
+}
+
 // Exit 1: the device disconnected (at 0.5 s, for good) for longer than device_lost_s; the daemon
 // stops by itself.
 TEST_F(BridgedDaemon, ADeviceLostForGoodIsExit1) {

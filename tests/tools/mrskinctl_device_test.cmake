@@ -67,6 +67,7 @@ if(PART STREQUAL "selftest")
   expect("\"name\": \"link\", \"result\": \"FAIL\"" "${out}")
   run(1 selftest --device "mock://?seed=3&faults=overheat:5")
   expect("result: FAIL" "${out}")
+  expect("FAIL valve sweep" "${out}")  # the hot coil derates, then the unit faults mid-sweep
   # A leaking valve (its field as if at a fifth of the current) refills its pads at half current.
   run(1 selftest --device "mock://?seed=3&faults=leak:5")
   expect("FAIL leak (held drift)" "${out}")
