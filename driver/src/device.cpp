@@ -34,7 +34,7 @@ T parse_number(std::string_view key, std::string_view text) {
   return value;
 }
 
-// faults=drop:P,dup:P,corrupt:P,reorder:P,delay:S,disconnect:AT+FOR,stuck:N,noisy:N,leak:V,
+// faults=drop:P,dup:P,corrupt:P,reorder:P,delay:S,disconnect:AT+FOR,stuck:N,noisy:N,offset:N,leak:V,
 //        overheat:N,busoff:AT
 MockFaults parse_faults(std::string_view list) {
   MockFaults f;
@@ -75,6 +75,8 @@ MockFaults parse_faults(std::string_view list) {
       f.stuck_sensor = parse_number<int>(name, value);
     } else if (name == "noisy") {
       f.noisy_sensor = parse_number<int>(name, value);
+    } else if (name == "offset") {
+      f.offset_sensor = parse_number<int>(name, value);
     } else if (name == "overheat") {
       const auto plus = value.find('+');
       f.overheat_valve = parse_number<int>(name, value.substr(0, plus));
@@ -88,7 +90,7 @@ MockFaults parse_faults(std::string_view list) {
     } else {
       throw InvalidArgument("mock:// fault '" + std::string(name) +
                             "' is unknown: use drop, dup, corrupt, reorder, delay, disconnect, stuck, noisy, "
-                            "overheat, busoff or leak");
+                            "offset, overheat, busoff or leak");
     }
   }
   return f;

@@ -153,7 +153,8 @@ LoadedProfile load_profile_with_text(std::string_view name_or_path) {
 bool MockFaults::any() const noexcept {
   return drop_probability > 0.0 || duplicate_probability > 0.0 || corrupt_probability > 0.0 ||
          reorder_probability > 0.0 || delay_s > 0.0 || disconnect_at_s >= 0.0 || stuck_sensor >= 0 ||
-         noisy_sensor >= 0 || overheat_valve >= 0 || bus_off_at_s >= 0.0 || leak_valve >= 0;
+         noisy_sensor >= 0 || offset_sensor >= 0 || overheat_valve >= 0 || bus_off_at_s >= 0.0 ||
+         leak_valve >= 0;
 }
 
 // Host end of the in-process link: pushes into the device's queue, pops from the host's.
@@ -809,6 +810,9 @@ void MockDevice::emit_telemetry(TimePoint now) noexcept {
       double value = sensor_si_[s] + sigma * gaussian(noise_state_);
       if (static_cast<int>(s) == f.stuck_sensor) {
         value = stuck_value_[s];
+      }
+      if (static_cast<int>(s) == f.offset_sensor) {
+        value += f.offset_sensor_lsb * sensor_lsb_;
       }
       const double counts = std::nearbyint(value / sensor_lsb_);
       t.counts[i] = static_cast<std::int16_t>(std::clamp(counts, static_cast<double>(proto::kSensorCountMin),

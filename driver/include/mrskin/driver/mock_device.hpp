@@ -40,6 +40,8 @@ struct MockFaults {
   int stuck_sensor = -1;                 // this sensor freezes at its first reading
   int noisy_sensor = -1;                 // this sensor gets noisy_sensor_noise_lsb of noise
   double noisy_sensor_noise_lsb = 20.0;  // standard deviation, in the sensor's resolution
+  int offset_sensor = -1;                // this sensor reads offset_sensor_lsb off (a shifted zero)
+  double offset_sensor_lsb = 80.0;       // 200 um on the 5 x 5's 2.5 um displacement sensors
   int overheat_valve = -1;               // this coil gets overheat_power_W of extra heat...
   double overheat_power_W = 10.0;
   double overheat_for_s = -1.0;  // ...for this long from power-up (< 0: for ever)
