@@ -86,17 +86,30 @@ class MrskinctlBridge : public ::testing::Test {
     r.err = p.err();
     return r;
   }
-  // mrskin-bridged on mock:// with the demo scene, not real-time (a shared test machine).
-  std::unique_ptr<Process> daemon() {
+  // mrskin-bridged on mock:// with the demo scene (its finger presses the skin), or another
+  // source (the finger stays off), not real-time (a shared test machine).
+  std::unique_ptr<Process> daemon(const std::string& source = "scene://demo") {
     const fs::path cfg = dir_ / "bridged.toml";
     std::ofstream(cfg) << "[bridge]\nrealtime = false\n";
     auto d = std::make_unique<Process>(
         dir_ / "d.out", dir_ / "d.err",
         std::vector<std::string>{MRSKIN_BRIDGED_EXE, "--config", cfg.string(), "--device", "mock://",
-                                 "--scene", "demo", "--socket", socket_, "--duration", "120", "--quiet"});
+                                 "--source", source, "--socket", socket_, "--duration", "120", "--quiet"});
     LineClient c;
     EXPECT_TRUE(eventually([&] { return c.connect(socket_); })) << d->out() << d->err();
     return d;
+  }
+
+  // Polls the daemon's status (bounded) until key reads value; returns the last status.
+  std::string await_status(const char* key, const char* value) const {
+    LineClient c;
+    EXPECT_TRUE(c.connect(socket_));
+    std::string status;
+    EXPECT_TRUE(eventually([&] {
+      status = c.request(R"({"cmd":"status"})").value_or("");
+      return json_field(status, key) == value;
+    })) << status;
+    return status;
   }
 
   fs::path dir_;
@@ -151,13 +164,7 @@ TEST_F(MrskinctlBridge, MonitorGetsTheGridThenEstopFaultEnable) {
   ASSERT_EQ(r.code, 0) << r.out << r.err;
   EXPECT_NE(r.out.find("estop done"), std::string::npos) << r.out;
   EXPECT_NE(r.out.find("halted"), std::string::npos) << r.out;
-  LineClient c;
-  ASSERT_TRUE(c.connect(socket_));
-  std::string status;
-  ASSERT_TRUE(eventually([&] {
-    status = c.request(R"({"cmd":"status"})").value_or("");
-    return json_field(status, "state") == "FAULT";
-  })) << status;
+  const std::string status = await_status("state", "FAULT");
   EXPECT_EQ(json_field(status, "operator"), "estop") << status;
 
   r = ctl({"fault", "--bridge", socket_});
@@ -189,6 +196,43 @@ TEST_F(MrskinctlBridge, MonitorGetsTheGridThenEstopFaultEnable) {
   EXPECT_EQ(d->wait(60s), mrskin::tools::kOk) << d->out() << d->err();
 }
 
+// set, selftest and calibrate lease the daemon's device: the bridge is disabled, their own session
+// runs through the control socket, and the bridge stays halted after until enabled. The source
+// is a UDP stream nobody sends to, so no scripted finger touches the skin.
+TEST_F(MrskinctlBridge, SetSelftestAndCalibrateLeaseTheDevice) {
+  std::unique_ptr<Process> d = daemon("udp://127.0.0.1:0");
+  Result r = ctl({"set", "--bridge", socket_, "--currents",
+                  "0.01,0.01,0.01,0.01,0.01,0.01,0.01,0.01,0.01,0.01,0.01,0.01", "--hold", "0.3"});
+  ASSERT_EQ(r.code, 0) << r.out << r.err;
+  EXPECT_NE(r.out.find("state ENABLED"), std::string::npos) << r.out;  // its own enable, through the lease
+  r = ctl({"selftest", "--bridge", socket_});
+  EXPECT_EQ(r.code, 0) << r.out << r.err;
+  EXPECT_NE(r.out.find("PASS sensor noise"), std::string::npos) << r.out;
+  EXPECT_NE(r.out.find("SKIP valve sweep"), std::string::npos) << r.out;  // the fixture is the daemon's
+  r = ctl({"calibrate", "--bridge", socket_, "--zero-only", "--dry-run"});
+  EXPECT_EQ(r.code, 0) << r.out << r.err;
+  EXPECT_NE(r.out.find("calibrate bridge:" + socket_), std::string::npos) << r.out;
+  EXPECT_NE(r.out.find("result: DRY_RUN"), std::string::npos) << r.out;
+
+  // One lease at a time: a second client is refused (exit 5) while the first holds it.
+  LineClient holder;
+  ASSERT_TRUE(holder.connect(socket_));
+  const std::string granted = holder.request(R"({"cmd":"lease"})").value_or("");
+  ASSERT_EQ(json_field(granted, "ok"), "true") << granted;
+  r = ctl({"set", "--bridge", socket_, "--currents", "0,0,0,0,0,0,0,0,0,0,0,0"});
+  EXPECT_EQ(r.code, mrskin::tools::kBusy) << r.out << r.err;
+  EXPECT_NE(r.err.find("another client holds the device lease"), std::string::npos) << r.err;
+  holder.close();
+
+  // After the leases the bridge is halted, not leased, and enables again.
+  const std::string status = await_status("leased", "false");
+  EXPECT_EQ(json_field(status, "halted"), "true") << status;
+  r = ctl({"enable", "--bridge", socket_, "--wait", "--timeout", "30"});
+  EXPECT_EQ(r.code, 0) << r.out << r.err;
+  d->signal(SIGTERM);
+  EXPECT_EQ(d->wait(60s), mrskin::tools::kOk) << d->out() << d->err();
+}
+
 TEST_F(MrskinctlBridge, NoDaemonIsExit3NamingTheSocket) {
   const std::string none = (dir_ / "none.sock").string();
   for (const char* cmd : {"enable", "disable", "estop", "fault"}) {
@@ -205,11 +249,15 @@ TEST_F(MrskinctlBridge, NoDaemonIsExit3NamingTheSocket) {
     EXPECT_EQ(r.code, mrskin::tools::kNoDevice) << args[0] << "\n" << r.out << r.err;
     EXPECT_NE(r.err.find("is mrskin-bridged running?"), std::string::npos) << r.err;
   }
-  // The commands that drive the valves themselves are refused through a daemon, saying why.
-  for (const char* cmd : {"set", "selftest", "calibrate"}) {
-    const Result r = ctl({cmd, "--bridge", none});
-    EXPECT_EQ(r.code, mrskin::tools::kBusy) << cmd << "\n" << r.out << r.err;
-    EXPECT_NE(r.err.find("needs the device to itself"), std::string::npos) << r.err;
+  // The commands that lease the device: the same.
+  for (const std::vector<std::string>& args :
+       {std::vector<std::string>{"set", "--bridge", none, "--currents", "0,0,0,0,0,0,0,0,0,0,0,0"},
+        std::vector<std::string>{"selftest", "--bridge", none},
+        std::vector<std::string>{"calibrate", "--bridge", none}}) {
+    const Result r = ctl(args);
+    const std::string& cmd = args[0];
+    EXPECT_EQ(r.code, mrskin::tools::kNoDevice) << cmd << "\n" << r.out << r.err;
+    EXPECT_NE(r.err.find("is mrskin-bridged running?"), std::string::npos) << r.err;
   }
 }
 

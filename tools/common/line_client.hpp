@@ -15,6 +15,7 @@
 #include <optional>
 #include <string>
 #include <string_view>
+#include <utility>
 
 namespace mrskin::ctl {
 
@@ -101,6 +102,15 @@ class LineClient {
       }
       buffer_.append(chunk.data(), static_cast<std::size_t>(n));
     }
+  }
+
+  // Hands over the socket and whatever was read past the last line (a connection that leaves
+  // the line protocol: mrskinctl's device lease); the client is closed after.
+  std::pair<int, std::string> release() noexcept {
+    std::pair<int, std::string> out{fd_, std::move(buffer_)};
+    fd_ = -1;
+    buffer_.clear();
+    return out;
   }
 
   // One request, one response line.

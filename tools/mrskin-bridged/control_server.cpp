@@ -309,6 +309,9 @@ void ControlServer::run() noexcept {
     int timeout_ms = 1000;
     for (const Client& c : clients_) {
       fds.push_back({c.fd, static_cast<short>(POLLIN | (c.out.empty() ? 0 : POLLOUT)), 0});
+      if (c.leased) {
+        timeout_ms = 1;  // the device's datagrams are pumped every millisecond
+      }
       if (c.telemetry_ms > 0.0) {
         const auto wait =
             std::chrono::duration_cast<std::chrono::milliseconds>(c.next_telemetry - now).count();
@@ -331,6 +334,11 @@ void ControlServer::run() noexcept {
       }
       if ((re & POLLOUT) != 0) {
         flush(c);
+      }
+    }
+    for (Client& c : clients_) {
+      if (c.leased && !c.dead) {
+        pump_lease(c);
       }
     }
     const SteadyClock::time_point t = SteadyClock::now();
@@ -360,6 +368,11 @@ void ControlServer::run() noexcept {
         c.dead = true;
       }
       if (c.dead) {
+        if (c.leased) {
+          c.leased = false;
+          backend_->lease_end();
+          event("control socket: the device lease ended; the bridge stays halted until enabled");
+        }
         ::close(c.fd);
         c.fd = -1;
       }
@@ -375,6 +388,12 @@ void ControlServer::run() noexcept {
   if (grid_clients_ != 0) {
     grid_clients_ = 0;
     backend_->grid_subscribers(0);
+  }
+  for (Client& c : clients_) {
+    if (c.leased) {
+      c.leased = false;
+      backend_->lease_end();
+    }
   }
 }
 
@@ -419,10 +438,14 @@ void ControlServer::read_client(Client& c) noexcept {
     try {
       c.in.append(buf.data(), static_cast<std::size_t>(n));
       std::size_t nl = 0;
-      while (!c.dead && !c.closing && (nl = c.in.find('\n')) != std::string::npos) {
+      while (!c.leased && !c.dead && !c.closing && (nl = c.in.find('\n')) != std::string::npos) {
         const std::string line = c.in.substr(0, nl);
         c.in.erase(0, nl + 1);
         handle_line(c, line);
+      }
+      if (c.leased) {
+        read_frames(c);
+        continue;
       }
       if (c.in.size() > kMaxLine) {
         send(c, fmt::format(R"({{"ok":false,"error":"request longer than {} bytes"}})", kMaxLine));
@@ -471,25 +494,84 @@ void ControlServer::handle_line(Client& c, std::string_view line) {
     }
     send(c, fmt::format(R"({{"ok":true,"cmd":"telemetry","period_ms":{},"grid":{}}})",
                         ctl::json_number(r.period_ms), r.grid));
+  } else if (r.cmd == "lease") {
+    if (std::any_of(clients_.begin(), clients_.end(), [](const Client& o) { return o.leased; })) {
+      send(c, R"({"ok":false,"cmd":"lease","error":"another client holds the device lease"})");
+      return;
+    }
+    const std::string why = backend_->lease_begin();
+    if (!why.empty()) {
+      send(c, fmt::format(R"({{"ok":false,"cmd":"lease","error":"{}"}})", ctl::json_escape(why)));
+      return;
+    }
+    c.telemetry_ms = 0.0;
+    c.grid = false;
+    send(c, R"({"ok":true,"cmd":"lease","framing":"u8 length, then the datagram, both ways"})");
+    c.leased = true;
+    event("control socket: the device is leased to a client (bridge halted)");
   } else if (r.cmd == "stop") {
     c.telemetry_ms = 0.0;
     c.grid = false;
     send(c, R"({"ok":true,"cmd":"stop"})");
   } else if (r.cmd == "help") {
-    send(c,
-         R"({"ok":true,"cmd":"help","commands":{)"
-         R"("status":"state, fault, halted, ticks, live error, stiffness, stream, rate, device, uptime",)"
-         R"("enable":"leave a disable, an e-stop or a latched fault",)"
-         R"("disable":"release every valve and disable the device",)"
-         R"("estop":"release every valve within one tick and e-stop the device",)"
-         R"("fault":"fault cause and the decoded ring log frozen at the fault",)"
-         "\"telemetry\":\"{\\\"cmd\\\":\\\"telemetry\\\",\\\"period_ms\\\":N[,\\\"grid\\\":true]}: one line "
-         R"(every N ms until stop; grid adds per-cell force, displacement, target and per-valve current, )"
-         R"(coil temperature",)"
-         R"("stop":"end a telemetry subscription","help":"this"}})");
+    send(
+        c,
+        R"({"ok":true,"cmd":"help","commands":{)"
+        R"("status":"state, fault, halted, ticks, live error, stiffness, stream, rate, device, uptime",)"
+        R"("enable":"leave a disable, an e-stop or a latched fault",)"
+        R"("disable":"release every valve and disable the device",)"
+        R"("estop":"release every valve within one tick and e-stop the device",)"
+        R"("fault":"fault cause and the decoded ring log frozen at the fault",)"
+        "\"telemetry\":\"{\\\"cmd\\\":\\\"telemetry\\\",\\\"period_ms\\\":N[,\\\"grid\\\":true]}: one line "
+        R"(every N ms until stop; grid adds per-cell force, displacement, target and per-valve current, )"
+        R"(coil temperature",)"
+        R"("stop":"end a telemetry subscription",)"
+        R"("lease":"disable, then this connection carries the device's datagrams (u8 length + bytes) until it )"
+        R"(closes; the bridge stays halted after",)"
+        R"("help":"this"}})");
   } else {
     send(c, fmt::format(R"({{"ok":false,"cmd":"{}","error":"unknown command; send help"}})", cmd));
   }
+}
+
+// Leased: each datagram is one length byte (1..kMaxDatagramBytes) then its bytes, both ways. A
+// zero or oversized length is a broken client: it loses the lease.
+void ControlServer::read_frames(Client& c) noexcept {
+  Transport* t = backend_->leased_transport();
+  std::size_t at = 0;
+  while (t != nullptr && at < c.in.size()) {
+    const auto length = static_cast<std::uint8_t>(c.in[at]);
+    if (length == 0 || length > kMaxDatagramBytes) {
+      c.dead = true;
+      return;
+    }
+    if (c.in.size() - at < 1U + length) {
+      break;
+    }
+    const auto* bytes = reinterpret_cast<const std::uint8_t*>(c.in.data() + at + 1);  // NOLINT
+    (void)t->send(std::span<const std::uint8_t>(bytes, length));  // a full queue drops it, as a bus would
+    at += 1U + length;
+  }
+  c.in.erase(0, at);
+}
+
+void ControlServer::pump_lease(Client& c) noexcept {
+  Transport* t = backend_->leased_transport();
+  Datagram d;
+  while (t != nullptr && !c.dead && t->receive(d) == ResultCode::ok) {
+    try {
+      c.out.push_back(static_cast<char>(d.length));
+      c.out.append(reinterpret_cast<const char*>(d.bytes.data()), d.length);  // NOLINT
+    } catch (...) {
+      c.dead = true;
+      return;
+    }
+    if (c.out.size() > kMaxPending) {
+      c.dead = true;  // it does not read: end the lease rather than buffer without bound
+      return;
+    }
+  }
+  flush(c);
 }
 
 void ControlServer::send(Client& c, std::string_view line) noexcept {

@@ -13,6 +13,7 @@
 #include <vector>
 
 #include "mrskin/driver/errors.hpp"
+#include "mrskin/driver/transport.hpp"
 
 namespace mrskin::bridged {
 
@@ -35,6 +36,11 @@ class ControlBackend {
   virtual void grid_subscribers(std::size_t n) noexcept = 0;
   // cmd is "enable", "disable" or "estop"; returns what was requested, for the response.
   virtual void request(std::string_view cmd) = 0;
+  // The device lease: disable, then hand the device's transport to one client, whose own
+  // session drives it through the socket while the tick keeps out. "" on success, else why not.
+  virtual std::string lease_begin() = 0;
+  virtual Transport* leased_transport() noexcept = 0;  // nullptr unless leased
+  virtual void lease_end() noexcept = 0;               // the tick takes the session back (halted)
 };
 
 // Another daemon answers on the socket: exit kBusy.
@@ -85,7 +91,10 @@ class ControlServer {
     std::chrono::steady_clock::time_point next_telemetry{};
     bool closing = false;  // close once out is flushed
     bool dead = false;
+    bool leased = false;  // the device lease: `in` and `out` carry length-prefixed datagrams
   };
+  void read_frames(Client& c) noexcept;
+  void pump_lease(Client& c) noexcept;
   void run() noexcept;
   void accept_clients() noexcept;
   void read_client(Client& c) noexcept;

@@ -290,7 +290,7 @@ std::string Daemon::status_members() {
       R"(",)"
       R"("valves_released":{},"connected":{},"stream":"{}","ticks":{},"rms_error_n":{},)"
       R"("stiffness_n_per_m":{},"peak_target_n":{},"peak_current_a":{},"rate_hz":{},"device":"{}",)"
-      R"("source":"{}","uptime_s":{},"link_sent":{},"link_received":{},"reloads":{},"pid":{})",
+      R"("source":"{}","uptime_s":{},"link_sent":{},"link_received":{},"reloads":{},"pid":{},"leased":{})",
       to_string(state), fault_name(fault_code_.load(std::memory_order_relaxed)),
       fault_name(last_fault_code_.load(std::memory_order_relaxed)), faults_.load(std::memory_order_relaxed),
       halted_.load(std::memory_order_relaxed),
@@ -305,7 +305,7 @@ std::string Daemon::status_members() {
       json_number(peak_current_A_.load(std::memory_order_relaxed)), json_number(shown.rate_hz),
       json_escape(shown.device), json_escape(shown.source),
       json_number(static_cast<double>(now_ns - t0_.count()) * 1e-9), sent_.load(std::memory_order_relaxed),
-      received_.load(std::memory_order_relaxed), reloads_.load(), ::getpid());
+      received_.load(std::memory_order_relaxed), reloads_.load(), ::getpid(), leased_.load());
 }
 
 std::string Daemon::telemetry_members() {
@@ -318,6 +318,41 @@ std::string Daemon::telemetry_members() {
                      ticks_base_.load() + ticks_.load(std::memory_order_relaxed), json_number(rms_N_.load()),
                      json_number(stiffness_.load()), json_number(peak_target_N_.load()),
                      json_number(peak_current_A_.load()));
+}
+
+std::string Daemon::lease_begin() {
+  if (leased_.load()) {
+    return "the device is already leased";
+  }
+  request("disable");  // the valves released and the device disabled by the bridge's own tick
+  const auto give_up = std::chrono::steady_clock::now() + std::chrono::seconds(2);
+  while (!halted_.load(std::memory_order_acquire) || pending_.load(std::memory_order_acquire) != 0) {
+    if (std::chrono::steady_clock::now() > give_up) {
+      return "the bridge did not halt within 2 s";
+    }
+    std::this_thread::sleep_for(std::chrono::milliseconds(1));
+  }
+  // SessionGate, reader side, held until lease_end(): the tick skips its step meanwhile.
+  reader_.store(true, std::memory_order_seq_cst);
+  const auto tick_out = std::chrono::steady_clock::now() + std::chrono::milliseconds(200);
+  while (in_tick_.load(std::memory_order_seq_cst)) {
+    if (std::chrono::steady_clock::now() > tick_out) {
+      reader_.store(false, std::memory_order_seq_cst);
+      return "the tick did not yield; try again";
+    }
+    std::this_thread::yield();
+  }
+  leased_.store(true);
+  return {};
+}
+
+Transport* Daemon::leased_transport() noexcept {
+  return leased_.load() ? &dev_.session->transport() : nullptr;
+}
+
+void Daemon::lease_end() noexcept {
+  leased_.store(false);
+  reader_.store(false, std::memory_order_seq_cst);
 }
 
 std::string Daemon::fault_members() {

@@ -101,6 +101,9 @@ class Daemon final : public bridge::Tickable, public ControlBackend {
   std::string grid_members() override;
   void grid_subscribers(std::size_t n) noexcept override;
   void request(std::string_view cmd) override;
+  std::string lease_begin() override;
+  Transport* leased_transport() noexcept override;
+  void lease_end() noexcept override;
 
  private:
   void build_bridge(const Settings& s);  // setup, before the loop runs
@@ -132,6 +135,7 @@ class Daemon final : public bridge::Tickable, public ControlBackend {
   std::atomic<bool> in_tick_{false};
   std::atomic<bool> reader_{false};
   std::atomic<std::uint64_t> gated_ticks_{0};
+  std::atomic<bool> leased_{false};  // control thread: it holds the gate for a client's session
 
   // Published by the tick after every step.
   std::atomic<std::uint8_t> state_{0};

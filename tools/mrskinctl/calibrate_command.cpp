@@ -22,7 +22,7 @@ namespace {
 
 struct CalibrateOptions {
   std::string uri = "mock://";
-  std::string bridge;  // --bridge: refused (add_exclusive_bridge_option)
+  LeaseOption lease;  // --bridge: the device of a running mrskin-bridged
   bool realtime = false;
   bool dry_run = false;
   double max_current_a = 0.0;  // 0: a fifth of the device's maximum
@@ -248,7 +248,7 @@ int write_and_read_back(Report& r, const model::Calibration& next, const Calibra
 
 int run_calibrate(const CalibrateOptions& o, const GlobalOptions& global) {
   Report r;
-  Rig rig(o.uri, o.realtime);
+  Rig rig(o.uri, o.realtime, o.lease.lease_socket());
   const DeviceInfo& info = rig.info();
   const model::DeviceProfile* profile = rig.session().profile();
   const auto refuse = [&](std::string result, std::string reason) {
@@ -532,11 +532,12 @@ void add_calibrate_command(CLI::App& app, const GlobalOptions& global, int& exit
   sub->add_option("--rest", options->rest_s, "seconds of rest sampled for the zero")
       ->check(CLI::Range(0.05, 10.0))
       ->capture_default_str();
-  CLI::Option* bridge = add_exclusive_bridge_option(sub, options->bridge);
-  sub->callback([options, bridge, &global, &exit_code] {
-    if (!refused_through_bridge(bridge, "calibrate", exit_code)) {
-      exit_code = run_calibrate(*options, global);
+  add_lease_option(sub, options->lease);
+  sub->callback([options, &global, &exit_code] {
+    if (const std::optional<std::string> socket = options->lease.lease_socket()) {
+      options->uri = "bridge:" + *socket;  // what the report names; the Rig leases the socket
     }
+    exit_code = run_calibrate(*options, global);
   });
 }
 

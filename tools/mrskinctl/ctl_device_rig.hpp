@@ -19,6 +19,7 @@
 #include <csignal>
 #include <cstdio>
 #include <cstdlib>
+#include <optional>
 #include <span>
 #include <string>
 #include <string_view>
@@ -29,6 +30,7 @@
 #include "mrskin/driver/errors.hpp"
 #include "mrskin/protocol/messages.hpp"
 #include "mrskin/protocol/units.hpp"
+#include "tunnel_transport.hpp"
 
 namespace mrskin::ctl {
 
@@ -40,30 +42,30 @@ inline void add_device_options(CLI::App* sub, std::string& uri, bool& realtime) 
   sub->add_flag("--realtime", realtime, "run a mock:// unit in real time instead of simulated time");
 }
 
-// --bridge on a command that drives the valves itself (set, selftest, calibrate): a running
-// mrskin-bridged owns the device and its loop drives the valves, so the command is refused with
-// what to do (exit 5, as for a device another process holds). refused_through_bridge() is called
-// first in the command's callback.
-inline CLI::Option* add_exclusive_bridge_option(CLI::App* sub, std::string& socket) {
-  return sub
-      ->add_option("--bridge", socket,
-                   "refused (exit 5): this command drives the valves and needs the device to itself; stop "
-                   "mrskin-bridged first (docs/cli.md)")
-      ->expected(0, 1);
-}
-inline bool refused_through_bridge(const CLI::Option* bridge, const char* command, int& exit_code) {
-  if (bridge->count() == 0) {
-    return false;
+// --bridge [SOCKET] on a command that drives the valves itself (set, selftest, calibrate): lease
+// the device of a running mrskin-bridged (TunnelTransport; the bridge is disabled and stays
+// halted after). lease_socket() is the socket to lease, or nullopt without --bridge.
+struct LeaseOption {
+  std::string socket;
+  const CLI::Option* option = nullptr;
+  [[nodiscard]] std::optional<std::string> lease_socket() const {
+    if (option == nullptr || option->count() == 0) {
+      return std::nullopt;
+    }
+    return bridge_socket(socket);
   }
-  fmt::print(
-      stderr,
-      "mrskinctl {0}: not through mrskin-bridged: {0} drives the valves and needs the device to itself, "
-      "while the daemon's loop drives them. Stop the daemon (systemctl stop mrskin-bridged, or SIGTERM), "
-      "run mrskinctl {0} --device URI, then start it again. Through the daemon: monitor, record, enable, "
-      "disable, estop, fault.\n",
-      command);
-  exit_code = tools::kBusy;
-  return true;
+};
+inline void add_lease_option(CLI::App* sub, LeaseOption& lease) {
+  CLI::Option* o =
+      sub->add_option("--bridge", lease.socket,
+                      "run through a running mrskin-bridged on this control socket: it disables the "
+                      "bridge and lends its device until the command ends (the bridge stays halted "
+                      "after: mrskinctl enable); without a value, its default socket")
+          ->expected(0, 1);
+  if (CLI::Option* device = sub->get_option_no_throw("--device"); device != nullptr) {
+    o->excludes(device);
+  }
+  lease.option = o;
 }
 
 // SIGINT/SIGTERM set it; the command loops poll it. Constant-initialised: no guard, safe to
@@ -182,10 +184,17 @@ class Rig {
  public:
   static constexpr Duration kTick = std::chrono::milliseconds(1);
 
-  Rig(const std::string& uri, bool realtime) : simulated_(uri.rfind("mock://", 0) == 0 && !realtime) {
-    OpenOptions open;
-    open.synchronous_mock = simulated_;
-    dev_ = open_device(uri, clock(), open);
+  // lease_socket: the device of a running mrskin-bridged on that socket instead of uri (real time).
+  Rig(const std::string& uri, bool realtime, const std::optional<std::string>& lease_socket = std::nullopt)
+      : simulated_(!lease_socket && uri.rfind("mock://", 0) == 0 && !realtime) {
+    if (lease_socket) {
+      dev_.session =
+          std::make_unique<DeviceSession>(std::make_unique<TunnelTransport>(*lease_socket), clock());
+    } else {
+      OpenOptions open;
+      open.synchronous_mock = simulated_;
+      dev_ = open_device(uri, clock(), open);
+    }
     start_ = clock().now();
     next_ = start_;  // NOLINT(cppcoreguidelines-prefer-member-initializer): after the handshake
     interrupted_flag() = 0;

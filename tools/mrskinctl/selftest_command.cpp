@@ -21,7 +21,7 @@ namespace {
 
 struct SelftestOptions {
   std::string uri = "mock://";
-  std::string bridge;  // --bridge: refused (add_exclusive_bridge_option)
+  LeaseOption lease;  // --bridge: the device of a running mrskin-bridged
   bool realtime = false;
   double rest_s = 0.3;
   double press_depth_m = 3e-3;
@@ -55,7 +55,7 @@ std::vector<std::pair<double, std::uint64_t>> rtt_buckets(const DurationHistogra
 }
 
 int run_selftest(const SelftestOptions& o, const GlobalOptions& global) {
-  Rig rig(o.uri, o.realtime);
+  Rig rig(o.uri, o.realtime, o.lease.lease_socket());
   const DeviceInfo& info = rig.info();
   const model::DeviceProfile* profile = rig.session().profile();
   const std::size_t n = info.sensors;
@@ -376,11 +376,12 @@ void add_selftest_command(CLI::App& app, const GlobalOptions& global, int& exit_
   sub->add_option("--press-depth-m", options->press_depth_m, "fixture press depth, m")
       ->check(CLI::Range(0.5e-3, 6e-3))
       ->capture_default_str();
-  CLI::Option* bridge = add_exclusive_bridge_option(sub, options->bridge);
-  sub->callback([options, bridge, &global, &exit_code] {
-    if (!refused_through_bridge(bridge, "selftest", exit_code)) {
-      exit_code = run_selftest(*options, global);
+  add_lease_option(sub, options->lease);
+  sub->callback([options, &global, &exit_code] {
+    if (const std::optional<std::string> socket = options->lease.lease_socket()) {
+      options->uri = "bridge:" + *socket;  // what the report names; the Rig leases the socket
     }
+    exit_code = run_selftest(*options, global);
   });
 }
 

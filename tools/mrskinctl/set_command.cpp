@@ -16,7 +16,7 @@ namespace {
 
 struct SetOptions {
   std::string uri = "mock://";
-  std::string bridge;  // --bridge: refused (add_exclusive_bridge_option)
+  LeaseOption lease;  // --bridge: the device of a running mrskin-bridged
   bool realtime = false;
   std::string currents;
   std::optional<std::size_t> valve;
@@ -55,7 +55,7 @@ int run_set(const SetOptions& o, const GlobalOptions& global) {
   if (!std::isfinite(o.hold_s) || o.hold_s < 0.0 || o.hold_s > 3600.0) {
     throw InvalidArgument("set: --hold must be 0..3600 s");
   }
-  Rig rig(o.uri, o.realtime);
+  Rig rig(o.uri, o.realtime, o.lease.lease_socket());
   const DeviceInfo& info = rig.info();
   // Every limit is checked before anything is sent.
   std::vector<double> current_a(info.valves, 0.0);
@@ -173,11 +173,12 @@ void add_set_command(CLI::App& app, const GlobalOptions& global, int& exit_code)
   sub->add_option("--validity-s", options->validity_s, "validity of each resend, s (0..0.63)")
       ->capture_default_str();
   sub->add_option("--hold", options->hold_s, "seconds to hold the setting")->capture_default_str();
-  CLI::Option* bridge = add_exclusive_bridge_option(sub, options->bridge);
-  sub->callback([options, bridge, &global, &exit_code] {
-    if (!refused_through_bridge(bridge, "set", exit_code)) {
-      exit_code = run_set(*options, global);
+  add_lease_option(sub, options->lease);
+  sub->callback([options, &global, &exit_code] {
+    if (const std::optional<std::string> socket = options->lease.lease_socket()) {
+      options->uri = "bridge:" + *socket;  // what the report names; the Rig leases the socket
     }
+    exit_code = run_set(*options, global);
   });
 }
 

@@ -218,6 +218,9 @@ class DeviceSession {
   [[nodiscard]] std::uint8_t fault_code() const noexcept { return fault_; }
   [[nodiscard]] bool valves_released() const noexcept { return valves_released_; }
   [[nodiscard]] bool derated() const noexcept { return derated_; }
+  // The transport underneath, for a host that lends its device to another session
+  // (mrskin-bridged's lease): only while nothing polls or sends through this session.
+  [[nodiscard]] Transport& transport() noexcept { return *transport_; }
   // Protocol 1.1: a degauss cycle is running (request_degauss), per the device's last Status.
   [[nodiscard]] bool degaussing() const noexcept { return degaussing_; }
   [[nodiscard]] bool connected() const noexcept { return connected_; }
