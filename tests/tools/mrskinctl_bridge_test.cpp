@@ -209,6 +209,13 @@ TEST_F(MrskinctlBridge, SetSelftestAndCalibrateLeaseTheDevice) {
   EXPECT_EQ(r.code, 0) << r.out << r.err;
   EXPECT_NE(r.out.find("PASS sensor noise"), std::string::npos) << r.out;
   EXPECT_NE(r.out.find("SKIP valve sweep"), std::string::npos) << r.out;  // the fixture is the daemon's
+  // A recording replayed onto the daemon's device (record first, from a free mock).
+  const std::string file = (dir_ / "held.ndjson").string();
+  r = ctl({"record", "--out", file, "--duration", "0.2", "--currents", "0.01,0,0,0,0,0,0,0,0,0,0,0"});
+  ASSERT_EQ(r.code, 0) << r.out << r.err;
+  r = ctl({"replay", file, "--bridge", socket_});
+  EXPECT_EQ(r.code, 0) << r.out << r.err;
+  EXPECT_NE(r.out.find("to bridge:" + socket_), std::string::npos) << r.out;
   r = ctl({"calibrate", "--bridge", socket_, "--zero-only", "--dry-run"});
   EXPECT_EQ(r.code, 0) << r.out << r.err;
   EXPECT_NE(r.out.find("calibrate bridge:" + socket_), std::string::npos) << r.out;

@@ -38,6 +38,7 @@ struct ReplayOptions {
   std::string file;
   std::string to_device;
   bool realtime = false;
+  LeaseOption lease;  // --bridge: re-send to the device of a running mrskin-bridged
 };
 
 // Writes lines; a failed write is remembered and reported once at the end.
@@ -443,7 +444,7 @@ int run_replay(const ReplayOptions& o, const GlobalOptions& global) {
     return tools::kOk;
   }
 
-  Rig rig(o.to_device, o.realtime);
+  Rig rig(o.to_device, o.realtime, o.lease.lease_socket());
   const DeviceInfo& info = rig.info();
   // The target device's limits, checked for every command before the first is sent.
   std::vector<protocol::CellTarget> targets(r.events.size());
@@ -546,7 +547,13 @@ void add_record_commands(CLI::App& app, const GlobalOptions& global, int& exit_c
   rep->add_option("file", replay->file, "recording written by mrskinctl record")->required();
   rep->add_option("--to-device", replay->to_device, "device URI to re-send the recorded commands to");
   rep->add_flag("--realtime", replay->realtime, "run a mock:// unit in real time instead of simulated time");
-  rep->callback([replay, &global, &exit_code] { exit_code = run_replay(*replay, global); });
+  add_lease_option(rep, replay->lease);
+  rep->callback([replay, &global, &exit_code] {
+    if (const std::optional<std::string> socket = replay->lease.lease_socket()) {
+      replay->to_device = "bridge:" + *socket;  // re-sent through the daemon's device lease
+    }
+    exit_code = run_replay(*replay, global);
+  });
 }
 
 }  // namespace mrskin::ctl
