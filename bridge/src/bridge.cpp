@@ -129,6 +129,7 @@ void Bridge::update_tissue_model(TimePoint now) noexcept {
     ++stats_.slave_samples;
     if (!slave_.valid || sample.stamp != slave_.stamp) {
       fresh_sample_ = true;  // its effect leaves with this tick's frame (latency figures)
+      stats_.slave_force.add(sample.force_N);
       fresh_arrival_ = sample.received.count() != 0 ? sample.received : sample.stamp;
     }
     slave_ = sample;

@@ -32,6 +32,39 @@ double RelativeErrorHistogram::percentile(double q) const noexcept {
   return static_cast<double>(kBins) * kBinWidth;
 }
 
+void ForceHistogram::add(double force_N) noexcept {
+  if (!std::isfinite(force_N)) {
+    return;  // sources drop these; nothing to place
+  }
+  std::size_t bin = 0;
+  if (force_N > kLow_N) {
+    const double pos = std::log(force_N / kLow_N) / std::log(kRatio);
+    bin = 1 + static_cast<std::size_t>(std::min(pos, static_cast<double>(kBins - 2)));
+  }
+  ++bins_.at(bin);
+  ++count_;
+  max_N_ = std::max(max_N_, force_N);
+}
+
+double ForceHistogram::percentile_N(double q) const noexcept {
+  if (count_ == 0) {
+    return 0.0;
+  }
+  const auto rank =
+      std::max<std::uint64_t>(1, static_cast<std::uint64_t>(std::ceil(q * static_cast<double>(count_))));
+  std::uint64_t seen = 0;
+  for (std::size_t i = 0; i < kBins; ++i) {
+    seen += bins_.at(i);
+    if (seen >= rank) {
+      if (i == 0) {
+        return std::min(kLow_N, max_N_);
+      }
+      return std::min(kLow_N * std::pow(kRatio, static_cast<double>(i)), max_N_);
+    }
+  }
+  return max_N_;
+}
+
 double BridgeStats::force_rms_error_N() const noexcept {
   return force_samples == 0 ? 0.0 : std::sqrt(force_sq_error_sum_N2 / static_cast<double>(force_samples));
 }
@@ -61,6 +94,15 @@ std::string percentiles_us(const DurationHistogram& h) {
       h.percentile_ns(0.999) / 1e3, static_cast<double>(h.max_ns()) / 1e3);
 }
 
+std::string drops_by_reason(const DropCounts& drops) {
+  std::string out = "{";
+  for (std::size_t i = 0; i < kDropReasonCount; ++i) {
+    out += fmt::format("{}\"{}\": {}", i == 0 ? "" : ", ", drop_reason_name(static_cast<DropReason>(i)),
+                       drops.at(i));
+  }
+  return out + "}";
+}
+
 }  // namespace
 
 std::string to_json(const BridgeStats& s, double tick_period_s) {
@@ -75,6 +117,8 @@ std::string to_json(const BridgeStats& s, double tick_period_s) {
       "  \"slave_samples\": {},\n"
       "  \"samples_accepted\": {},\n"
       "  \"samples_dropped\": {},\n"
+      "  \"samples_dropped_by_reason\": {},\n"
+      "  \"slave_force_n\": {{\"samples\": {}, \"p50\": {:.6g}, \"p99\": {:.6g}, \"max\": {:.6g}}},\n"
       "  \"stale_ticks\": {},\n"
       "  \"tick_us\": {},\n"
       "  \"processing_latency_us\": {},\n"
@@ -94,12 +138,14 @@ std::string to_json(const BridgeStats& s, double tick_period_s) {
       "  \"inverse\": {{\"errors\": {}, \"cached_ticks\": {}, \"mean_residual_n\": {:.6g}}}\n"
       "}}\n",
       tick_period_s, s.ticks, s.overruns, s.skipped_periods, s.send_failures, s.unchanged_sends_skipped,
-      s.slave_samples, s.samples_accepted, s.samples_dropped, s.stale_ticks, percentiles_us(s.tick_time),
-      percentiles_us(s.processing_latency), percentiles_us(s.end_to_end_latency), s.force_samples,
-      s.force_rms_error_N(), s.force_max_abs_error_N, s.relative_error.percentile(0.95),
-      s.relative_error.count(), s.true_state_rms_error_N(), s.true_state_relative_error.percentile(0.95),
-      s.release_rms_error_N(), s.clamped_fraction(), s.max_current_A, s.bus_load, s.passivity_energy_J,
-      s.passivity_min_energy_J, s.active_ticks, s.observer_errors, s.inverse_errors, s.inverse_cached,
+      s.slave_samples, s.samples_accepted, s.samples_dropped, drops_by_reason(s.samples_dropped_by_reason),
+      s.slave_force.count(), s.slave_force.percentile_N(0.5), s.slave_force.percentile_N(0.99),
+      s.slave_force.max_N(), s.stale_ticks, percentiles_us(s.tick_time), percentiles_us(s.processing_latency),
+      percentiles_us(s.end_to_end_latency), s.force_samples, s.force_rms_error_N(), s.force_max_abs_error_N,
+      s.relative_error.percentile(0.95), s.relative_error.count(), s.true_state_rms_error_N(),
+      s.true_state_relative_error.percentile(0.95), s.release_rms_error_N(), s.clamped_fraction(),
+      s.max_current_A, s.bus_load, s.passivity_energy_J, s.passivity_min_energy_J, s.active_ticks,
+      s.observer_errors, s.inverse_errors, s.inverse_cached,
       s.ticks == 0 ? 0.0 : s.inverse_residual_sum_N / static_cast<double>(s.ticks));
 }
 

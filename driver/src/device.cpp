@@ -144,14 +144,23 @@ MockUri parse_mock_uri(std::string_view uri) {
         throw InvalidArgument("mock:// bipolar must be 0 (a unipolar coil driver: no degauss) or 1");
       }
       options.bipolar_driver = value == "1";
+    } else if (key == "finger") {
+      const bool name_chars = std::all_of(value.begin(), value.end(), [](char c) {
+        return (c >= 'a' && c <= 'z') || (c >= '0' && c <= '9') || c == '_' || c == '-';
+      });
+      if (value.empty() || value.size() > 64 || !name_chars) {
+        throw InvalidArgument("mock:// finger must name a scene (mrskin-bridged --help lists them), not '" +
+                              std::string(value) + "'");
+      }
+      options.finger_scene = std::string(value);
     } else if (key == "rows" || key == "cols") {
       throw InvalidArgument("mock:// parameter '" + std::string(key) +
                             "' is gone: the grid comes from the device profile; name one "
                             "(mock://fingertip-16x16) or give a profile file (mock:///path/to/unit.toml)");
     } else {
       throw InvalidArgument("mock:// parameter '" + std::string(key) +
-                            "' is unknown: use seed, perturbation, faults, time_scale, bipolar or "
-                            "protocol_major");
+                            "' is unknown: use seed, perturbation, faults, time_scale, bipolar, "
+                            "protocol_major or finger");
     }
   }
   return parsed;

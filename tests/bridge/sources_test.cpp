@@ -8,7 +8,9 @@
 #include <igtlClientSocket.h>
 #include <igtlNDArrayMessage.h>
 #include <igtlPositionMessage.h>
+#include <igtlQuaternionTrackingDataMessage.h>
 #include <igtlSensorMessage.h>
+#include <igtlTrackingDataMessage.h>
 #include <igtlTransformMessage.h>
 #include <igtlUnit.h>
 #include <netinet/in.h>
@@ -16,6 +18,7 @@
 #include <sys/socket.h>
 #include <unistd.h>
 
+#include <algorithm>
 #include <chrono>
 #include <cmath>
 #include <cstdio>
@@ -223,13 +226,22 @@ TEST(UdpSource, EveryMalformedKindIsDroppedAndCounted) {
   ASSERT_TRUE(wait_for_force(*src, 0.7, out));
   const SourceStats st = stream.stats();
   EXPECT_EQ(st.accepted, 3U);
-  EXPECT_EQ(st.malformed, 4U);  // version, CRC, short, empty
-  EXPECT_EQ(st.oversized, 1U);
-  EXPECT_EQ(st.non_finite, 2U);
-  EXPECT_EQ(st.out_of_range, 4U);
-  EXPECT_EQ(st.out_of_order, 1U);
-  EXPECT_EQ(st.duplicate, 1U);
+  EXPECT_EQ(st.of(DropReason::format), 1U);  // version
+  EXPECT_EQ(st.of(DropReason::crc), 1U);
+  EXPECT_EQ(st.of(DropReason::length), 2U);  // short, empty
+  EXPECT_EQ(st.of(DropReason::oversized), 1U);
+  EXPECT_EQ(st.of(DropReason::non_finite), 2U);
+  EXPECT_EQ(st.of(DropReason::out_of_range), 3U);
+  EXPECT_EQ(st.of(DropReason::stamp), 1U);
+  EXPECT_EQ(st.of(DropReason::out_of_order), 1U);
+  EXPECT_EQ(st.of(DropReason::duplicate), 1U);
   EXPECT_EQ(st.dropped(), 13U);
+  // Each reason is explained once, with what to do.
+  const std::vector<SourceEvent> events = stream.events_after(0);
+  EXPECT_EQ(events.size(), 9U);
+  EXPECT_TRUE(std::all_of(events.begin(), events.end(), [](const SourceEvent& e) { return e.warning; }));
+  EXPECT_EQ(stream.event_count(), events.size());
+  EXPECT_NE(stream.last_warning().find("repeats the last one"), std::string::npos) << stream.last_warning();
 }
 
 TEST(UdpSource, AStreamThatRestartsIsFollowedAfterARunOfOlderStamps) {
@@ -244,7 +256,7 @@ TEST(UdpSource, AStreamThatRestartsIsFollowedAfterARunOfOlderStamps) {
   }
   SlaveSample out;
   ASSERT_TRUE(wait_for_force(*src, 0.26, out));
-  EXPECT_EQ(stream.stats().out_of_order, 4U);
+  EXPECT_EQ(stream.stats().of(DropReason::out_of_order), 4U);
   EXPECT_EQ(stream.stats().restarts, 1U);
 }
 
@@ -298,7 +310,7 @@ TEST(UdpSource, AFloodOfTenTimesTheRateIsAbsorbedAndTheNewestWins) {
   const SourceStats st = stream.stats();
   EXPECT_GT(st.accepted, 64U);
   EXPECT_LE(st.accepted, 10'000U + (marker - 20'000U));
-  EXPECT_EQ(st.malformed + st.out_of_order + st.duplicate, 0U);
+  EXPECT_EQ(st.dropped() - st.of(DropReason::superseded), 0U);
 }
 
 TEST(UdpSource, WithoutATickTheQueueOverflowsIntoQueueFullAndTheNewestStillGetsThrough) {
@@ -310,7 +322,7 @@ TEST(UdpSource, WithoutATickTheQueueOverflowsIntoQueueFullAndTheNewestStillGetsT
     std::this_thread::sleep_for(std::chrono::microseconds(100));  // within the socket's buffer
   }
   ASSERT_TRUE(eventually([&] { return stream.stats().accepted == 40U; }));
-  EXPECT_GT(stream.stats().queue_full, 0U);
+  EXPECT_GT(stream.stats().of(DropReason::superseded), 0U);
   SlaveSample out;
   ASSERT_TRUE(src->latest(TimePoint{}, out));  // the queue's 8 oldest; the newest is held back
   ASSERT_TRUE(wait_for_force(*src, 0.4, out));
@@ -483,12 +495,17 @@ TEST(Replay, BadLinesAreDroppedAndCountedAndABadHeaderRefused) {
   auto src = open_stream("replay://" + path.string());
   const SourceStats st = src->stats();
   EXPECT_EQ(st.accepted, 3U);
-  EXPECT_EQ(st.malformed, 3U);
-  EXPECT_EQ(st.non_finite, 2U);
-  EXPECT_EQ(st.out_of_range, 2U);
-  EXPECT_EQ(st.duplicate, 1U);
-  EXPECT_EQ(st.out_of_order, 1U);
-  EXPECT_EQ(st.oversized, 1U);
+  EXPECT_EQ(st.of(DropReason::format), 3U);
+  EXPECT_EQ(st.of(DropReason::non_finite), 2U);
+  EXPECT_EQ(st.of(DropReason::out_of_range), 1U);
+  EXPECT_EQ(st.of(DropReason::stamp), 1U);
+  EXPECT_EQ(st.of(DropReason::duplicate), 1U);
+  EXPECT_EQ(st.of(DropReason::out_of_order), 1U);
+  EXPECT_EQ(st.of(DropReason::oversized), 1U);
+  const std::vector<SourceEvent> events = src->events_after(0);
+  ASSERT_FALSE(events.empty());
+  EXPECT_NE(events.front().text.find("replay line 4 skipped: not 7 numbers"), std::string::npos)
+      << events.front().text;
   {
     std::FILE* f = std::fopen(path.c_str(), "w");
     std::fputs("# mrskin-stream 2\n0 0 0 0 0 0 0\n", f);
@@ -613,8 +630,7 @@ void exercise(StreamSource& src, const std::function<void(const igtl::MessageBas
   // The map: 40 kPa over 2 mm cells = 0.16 N; centroid x = 0.5 pitch, y = 0.25 pitch from the centre.
   send(map_message(4));
   ASSERT_TRUE(eventually([&] { return src.latest(TimePoint{}, out) && std::abs(out.force_N - 0.16) < 1e-9; }))
-      << "malformed " << src.stats().malformed << " unsupported " << src.stats().unsupported << " oversized "
-      << src.stats().oversized << " force " << out.force_N;
+      << "dropped " << src.stats().dropped() << " (" << src.last_warning() << ") force " << out.force_N;
   EXPECT_NEAR(out.contact_x_m, 0.004 + 0.5 * 2e-3, 1e-9);
   EXPECT_NEAR(out.contact_y_m, 0.003 + 0.25 * 2e-3, 1e-9);
   // Dropped and counted: wrong unit, unknown device, a duplicate, an older stamp, a bad CRC,
@@ -634,12 +650,22 @@ void exercise(StreamSource& src, const std::function<void(const igtl::MessageBas
   send(force_message(0.9, 8));
   ASSERT_TRUE(wait_for_force(src, 0.9, out));
   const SourceStats st = src.stats();
-  EXPECT_EQ(st.unsupported - before.unsupported, 2U);
-  EXPECT_EQ(st.duplicate - before.duplicate, 1U);
-  EXPECT_EQ(st.out_of_order - before.out_of_order, 1U);
-  EXPECT_EQ(st.out_of_range - before.out_of_range, 1U);
-  EXPECT_EQ(st.malformed - before.malformed, 1U);
+  const auto delta = [&](DropReason r) { return st.of(r) - before.of(r); };
+  EXPECT_EQ(delta(DropReason::unit), 1U);
+  EXPECT_EQ(delta(DropReason::device), 1U);
+  EXPECT_EQ(delta(DropReason::duplicate), 1U);
+  EXPECT_EQ(delta(DropReason::out_of_order), 1U);
+  EXPECT_EQ(delta(DropReason::out_of_range), 1U);
+  EXPECT_EQ(delta(DropReason::crc), 1U);
   EXPECT_EQ(st.accepted, 5U);
+  EXPECT_EQ(st.poses, 2U);
+  // The unknown device is named with the key that takes it.
+  bool named = false;
+  for (const SourceEvent& e : src.events_after(0)) {
+    named = named || (e.text.find("SENSOR from device 'SomethingElse' ignored") != std::string::npos &&
+                      e.text.find("set force_device=SomethingElse") != std::string::npos);
+  }
+  EXPECT_TRUE(named);
 }
 
 // A loopback TCP server for the igtl:// client (the library's ServerSocket binds every address).
@@ -718,8 +744,8 @@ TEST_P(IgtlFamilies, ClientReadsSensorTransformPositionAndNdarrayAndReconnects) 
   std::memcpy(header.data() + 2, "SENSOR", 6);
   header[42] = 0x7F;  // 2^63-ish bytes
   (void)::send(conn, header.data(), header.size(), MSG_NOSIGNAL);
-  ASSERT_TRUE(
-      eventually([&] { return stream->stats().oversized == 1U && stream->stats().disconnects == 2U; }));
+  ASSERT_TRUE(eventually(
+      [&] { return stream->stats().of(DropReason::oversized) == 1U && stream->stats().disconnects == 2U; }));
   ::close(conn);
 }
 INSTANTIATE_TEST_SUITE_P(Loopback, IgtlFamilies, ::testing::Values(false, true),
@@ -744,6 +770,209 @@ TEST(IgtlListen, ServerTakesARobotConnectingWithTheLibrarysClientSocket) {
   ASSERT_TRUE(wait_for_force(*stream, 1.5, out));
   client->CloseSocket();
   second->CloseSocket();
+}
+
+// ---- OpenIGTLink as senders in the field send it -----------------------------------------------
+
+// A SENSOR of n values in the unit prefix given (igtl::Unit::SI_PREFIX_*), from device.
+igtl::MessageBase::Pointer sensor_message(const char* device, std::vector<double> values, std::uint32_t ms,
+                                          int prefix = igtl::Unit::SI_PREFIX_NONE, bool newton = true) {
+  auto m = igtl::SensorMessage::New();
+  m->SetDeviceName(device);
+  m->SetLength(static_cast<unsigned int>(values.size()));
+  auto unit = igtl::Unit::New();
+  unit->Init();
+  if (newton) {
+    unit->SetPrefix(prefix);
+    unit->Append(igtl::Unit::SI_DERIVED_NEWTON, 1);
+  }
+  m->SetUnit(unit);
+  for (std::size_t i = 0; i < values.size(); ++i) {
+    m->SetValue(static_cast<unsigned int>(i), values[i]);
+  }
+  auto ts = stamp_at(ms);
+  m->SetTimeStamp(ts);
+  m->Pack();
+  return igtl::MessageBase::Pointer(m.GetPointer());
+}
+
+// A robot on the library's ClientSocket, connected to an igtl-listen:// source.
+class Robot {
+ public:
+  explicit Robot(const StreamSource& src) : socket_(igtl::ClientSocket::New()) {
+    connected_ = socket_->ConnectToServer("127.0.0.1", src.local_port()) == 0;
+  }
+  Robot(const Robot&) = delete;
+  Robot& operator=(const Robot&) = delete;
+  ~Robot() { socket_->CloseSocket(); }
+  [[nodiscard]] bool connected() const { return connected_; }
+  void send(const igtl::MessageBase::Pointer& m) {
+    (void)socket_->Send(m->GetPackPointer(), m->GetPackSize());
+  }
+
+ private:
+  igtl::ClientSocket::Pointer socket_;
+  bool connected_ = false;
+};
+
+// Within rounding of force_N (a unit or a frame converted it).
+bool wait_for_force_near(SlaveSource& src, double force_N, SlaveSample& out) {
+  return eventually([&] { return src.latest(TimePoint{}, out) && std::abs(out.force_N - force_N) < 1e-12; });
+}
+
+bool has_event(const StreamSource& src, std::string_view a, std::string_view b = {}) {
+  const std::vector<SourceEvent> events = src.events_after(0);
+  return std::any_of(events.begin(), events.end(), [&](const SourceEvent& e) {
+    return e.text.find(a) != std::string::npos && e.text.find(b) != std::string::npos;
+  });
+}
+
+TEST(IgtlField, DeviceNamesComeFromTheUriAndStarTakesAny) {
+  auto src = open_stream("igtl-listen://127.0.0.1:0?force_device=FTSensor&pose_device=Tracker");
+  Robot robot(*src);
+  ASSERT_TRUE(robot.connected());
+  SlaveSample out;
+  robot.send(sensor_message("ContactForce", {0.4}, 1));  // today's default name: not configured here
+  robot.send(sensor_message("FTSensor", {0.5}, 2));
+  ASSERT_TRUE(wait_for_force(*src, 0.5, out));
+  EXPECT_EQ(src->stats().of(DropReason::device), 1U);
+  EXPECT_TRUE(has_event(*src, "SENSOR from device 'ContactForce' ignored", "set force_device=ContactForce"));
+  EXPECT_NE(src->last_warning().find("force_device=ContactForce"), std::string::npos) << src->last_warning();
+
+  auto any = open_stream("igtl-listen://127.0.0.1:0?force_device=*");
+  Robot second(*any);
+  ASSERT_TRUE(second.connected());
+  second.send(sensor_message("WhateverItIsCalled", {0.6}, 1));
+  ASSERT_TRUE(wait_for_force(*any, 0.6, out));
+  EXPECT_EQ(any->stats().dropped(), 0U);
+
+  EXPECT_THROW((void)open_stream("igtl-listen://127.0.0.1:0?force_device="), InvalidArgument);
+  EXPECT_THROW((void)open_stream("igtl-listen://127.0.0.1:0?force_device=ThisNameIsLongerThan20"),
+               InvalidArgument);
+  EXPECT_THROW((void)open_stream("udp://127.0.0.1:0?force_device=X"), InvalidArgument);
+  EXPECT_THROW((void)open_stream("igtl-listen://127.0.0.1:0?rpy_deg=1,2"), InvalidArgument);
+  EXPECT_THROW((void)open_stream("igtl-listen://127.0.0.1:0?rpy_deg=1,2,nan"), InvalidArgument);
+}
+
+TEST(IgtlField, ForceVectorsAndWrenchesGiveTheNormalComponentInTheTissueFrame) {
+  // The robot's frame is the tissue frame rolled by 90 degrees about x: the robot's +y is the
+  // tissue's outward normal (+z), its +z the tissue's -y.
+  auto src = open_stream("igtl-listen://127.0.0.1:0?force_device=FT&rpy_deg=90,0,0");
+  Robot robot(*src);
+  ASSERT_TRUE(robot.connected());
+  SlaveSample out;
+  robot.send(sensor_message("FT", {0.2, 0.75, 0.3}, 1));  // force: 0.75 N along the normal
+  ASSERT_TRUE(wait_for_force_near(*src, 0.75, out)) << out.force_N << " " << src->last_warning();
+  robot.send(
+      sensor_message("FT", {0.0, 0.5, 0.0, 0.01, 0.02, 0.03}, 2));  // a wrench: the torque is not force
+  ASSERT_TRUE(wait_for_force_near(*src, 0.5, out));
+  robot.send(sensor_message("FT", {0.0, -0.4, 0.0}, 3));  // pulling: no contact, not a drop
+  ASSERT_TRUE(eventually([&] { return src->latest(TimePoint{}, out) && out.force_N == 0.0; }));
+  EXPECT_EQ(src->stats().accepted, 3U);
+  EXPECT_EQ(src->stats().dropped(), 0U);
+  // Two values are neither a force nor a vector nor a wrench.
+  robot.send(sensor_message("FT", {0.1, 0.2}, 4));
+  ASSERT_TRUE(eventually([&] { return src->stats().of(DropReason::length) == 1U; }));
+  EXPECT_TRUE(has_event(*src, "SENSOR from 'FT' with 2 values dropped", "send 1 (the normal force), 3"));
+}
+
+TEST(IgtlField, UnitPrefixesAreConvertedAndOtherUnitsRefusedWithTheFix) {
+  auto src = open_stream("igtl-listen://127.0.0.1:0");
+  Robot robot(*src);
+  ASSERT_TRUE(robot.connected());
+  SlaveSample out;
+  robot.send(sensor_message("ContactForce", {750.0}, 1, igtl::Unit::SI_PREFIX_MILLI));
+  ASSERT_TRUE(wait_for_force_near(*src, 0.75, out));
+  robot.send(sensor_message("ContactForce", {0.0005}, 2, igtl::Unit::SI_PREFIX_KILO));
+  ASSERT_TRUE(wait_for_force_near(*src, 0.5, out));
+  robot.send(sensor_message("ContactForce", {0.3}, 3, igtl::Unit::SI_PREFIX_NONE, false));  // no unit
+  ASSERT_TRUE(eventually([&] { return src->stats().of(DropReason::unit) == 1U; }));
+  EXPECT_TRUE(has_event(*src, "its unit is not a force", "send newtons"));
+}
+
+// TDATA and QTDATA: the tool taken by name, every element's name listed when it is missing.
+TEST(IgtlField, TrackingDataGivesThePoseOfTheNamedTool) {
+  auto src = open_stream("igtl-listen://127.0.0.1:0?pose_device=Tracker&pose_tool=Probe");
+  Robot robot(*src);
+  ASSERT_TRUE(robot.connected());
+  const auto tdata = [](const char* second, float z_mm, std::uint32_t ms) {
+    auto m = igtl::TrackingDataMessage::New();
+    m->SetDeviceName("Tracker");
+    auto reference = igtl::TrackingDataElement::New();
+    reference->SetName("Reference");
+    reference->SetPosition(100.0F, 100.0F, 100.0F);
+    m->AddTrackingDataElement(reference);
+    auto probe = igtl::TrackingDataElement::New();
+    probe->SetName(second);
+    probe->SetPosition(4.0F, -3.0F, z_mm);
+    m->AddTrackingDataElement(probe);
+    auto ts = stamp_at(ms);
+    m->SetTimeStamp(ts);
+    m->Pack();
+    return igtl::MessageBase::Pointer(m.GetPointer());
+  };
+  SlaveSample out;
+  robot.send(tdata("Probe", -2.0F, 1));
+  robot.send(sensor_message("ContactForce", {0.6}, 1));
+  ASSERT_TRUE(wait_for_force(*src, 0.6, out));
+  EXPECT_NEAR(out.contact_x_m, 0.004, 1e-7);
+  EXPECT_NEAR(out.contact_y_m, -0.003, 1e-7);
+  EXPECT_NEAR(out.indentation_m, 0.002, 1e-7);
+  // QTDATA from the same tracker.
+  auto q = igtl::QuaternionTrackingDataMessage::New();
+  q->SetDeviceName("Tracker");
+  auto probe = igtl::QuaternionTrackingDataElement::New();
+  probe->SetName("Probe");
+  probe->SetPosition(-1.0F, 2.0F, -3.0F);
+  probe->SetQuaternion(0.0F, 0.0F, 0.0F, 1.0F);
+  q->AddQuaternionTrackingDataElement(probe);
+  auto ts = stamp_at(2);
+  q->SetTimeStamp(ts);
+  q->Pack();
+  robot.send(igtl::MessageBase::Pointer(q.GetPointer()));
+  robot.send(sensor_message("ContactForce", {0.7}, 2));
+  ASSERT_TRUE(wait_for_force(*src, 0.7, out));
+  EXPECT_NEAR(out.contact_x_m, -0.001, 1e-7);
+  EXPECT_NEAR(out.indentation_m, 0.003, 1e-7);
+  EXPECT_EQ(src->stats().poses, 2U);
+  // A tracker that does not carry the tool.
+  robot.send(tdata("Needle", -1.0F, 3));
+  ASSERT_TRUE(eventually([&] { return src->stats().of(DropReason::device) == 1U; }));
+  EXPECT_TRUE(has_event(*src, "TDATA from 'Tracker' has no tool 'Probe'", "'Reference', 'Needle'"));
+}
+
+// A pose in the robot's frame: rotated, then offset by the robot's origin in the tissue frame.
+TEST(IgtlField, PosesAreMappedFromTheRobotsFrame) {
+  SourceOptions o;
+  o.robot_to_tissue = rotation_from_rpy_deg(0.0, 0.0, 90.0);  // robot +x is tissue +y
+  o.robot_origin_m = {0.001, 0.0, 0.005};                     // the robot's origin 5 mm above the surface
+  auto src = open_stream("igtl-listen://127.0.0.1:0", o);
+  Robot robot(*src);
+  ASSERT_TRUE(robot.connected());
+  robot.send(transform_message(3.0F, 0.0F, -7.0F, 1));
+  robot.send(force_message(0.3, 1));
+  SlaveSample out;
+  ASSERT_TRUE(wait_for_force(*src, 0.3, out));
+  EXPECT_NEAR(out.contact_x_m, 0.001, 1e-7);
+  EXPECT_NEAR(out.contact_y_m, 0.003, 1e-7);
+  EXPECT_NEAR(out.indentation_m, 0.002, 1e-7);  // 7 mm below the robot's origin, 2 mm below the surface
+}
+
+// igtl:// to a port where nothing listens: reported at once with the OS's reason, retried.
+TEST(IgtlField, ARefusedConnectionIsReportedAtOnceAndRetried) {
+  std::uint16_t port = 0;
+  {
+    LoopbackServer closed(false);  // a free port, closed again before the source connects
+    port = closed.port();
+  }
+  SourceOptions o;
+  o.reconnect_min_s = 0.01;
+  o.reconnect_max_s = 0.02;
+  auto src = open_stream("igtl://127.0.0.1:" + std::to_string(port), o);
+  ASSERT_TRUE(eventually([&] { return src->stats().connect_failures >= 3U; }));
+  EXPECT_TRUE(has_event(*src, "cannot connect: Connection refused", "retrying"));
+  EXPECT_EQ(src->event_count(), 1U);  // once, not once per attempt
+  EXPECT_NE(src->last_warning().find("Connection refused"), std::string::npos);
 }
 
 // The local address of a socket bound to port, from /proc/net/{tcp,udp}: "0100007F" is 127.0.0.1.

@@ -4,6 +4,7 @@
 #include <toml++/toml.h>
 #include <unistd.h>
 
+#include <algorithm>
 #include <cmath>
 #include <cstdlib>
 #include <initializer_list>
@@ -74,6 +75,33 @@ class Reader {
       out = v->get();
     }
   }
+  void get(const toml::table& t, std::string_view section, std::string_view key,
+           std::array<double, 3>& out) const {
+    if (const toml::node* n = t.get(key)) {
+      const auto* a = n->as_array();
+      if (a == nullptr || a->size() != 3) {
+        fail(*n, full(section, key), "expected an array of 3 numbers");
+      }
+      for (std::size_t i = 0; i < 3; ++i) {
+        const std::optional<double> v = a->get(i)->is_number() ? a->get(i)->value<double>() : std::nullopt;
+        if (!v || !std::isfinite(*v)) {
+          fail(*n, full(section, key), "expected an array of 3 finite numbers");
+        }
+        out.at(i) = *v;
+      }
+    }
+  }
+  // An OpenIGTLink device or tool name: 1 to 20 printable characters, or * for any.
+  void get_name(const toml::table& t, std::string_view section, std::string_view key,
+                std::string& out) const {
+    get(t, section, key, out);
+    const toml::node* n = t.get(key);
+    const bool printable = std::all_of(out.begin(), out.end(), [](char c) { return c >= 0x20 && c < 0x7F; });
+    if (n != nullptr && (out.empty() || out.size() > 20 || !printable)) {
+      fail(*n, full(section, key),
+           "expected an OpenIGTLink device name (1 to 20 printable characters, or *)");
+    }
+  }
   // A number that must satisfy ok(), else the error names the range.
   template <class T, class Ok>
   void get_checked(const toml::table& t, std::string_view section, std::string_view key, T& out, Ok ok,
@@ -120,7 +148,7 @@ Settings load_settings(const std::string& path) {
   const Reader r(path);
   r.check_keys(root, "",
                {"device", "source", "rate_hz", "duration_s", "stats_json", "record", "quiet", "device_lost_s",
-                "mapping", "bridge", "control"});
+                "mapping", "stream", "bridge", "control"});
   r.get(root, "", "device", s.device);
   r.get(root, "", "source", s.source);
   r.get_checked(
@@ -141,6 +169,27 @@ Settings load_settings(const std::string& path) {
     s.mapping.rotation_rad = rotation_deg * std::numbers::pi / 180.0;
     r.get(*m, "mapping", "mirror_x", s.mapping.mirror_x);
     r.get(*m, "mapping", "mirror_y", s.mapping.mirror_y);
+  }
+  if (const toml::table* src = r.section(root, "stream")) {
+    r.check_keys(
+        *src, "stream",
+        {"force_device", "pose_device", "map_device", "pose_tool", "robot_rpy_deg", "robot_origin_m"});
+    r.get_name(*src, "stream", "force_device", s.force_device);
+    r.get_name(*src, "stream", "pose_device", s.pose_device);
+    r.get_name(*src, "stream", "map_device", s.map_device);
+    r.get_name(*src, "stream", "pose_tool", s.pose_tool);
+    r.get(*src, "stream", "robot_rpy_deg", s.robot_rpy_deg);
+    r.get(*src, "stream", "robot_origin_m", s.robot_origin_m);
+    for (const double a : s.robot_rpy_deg) {
+      if (std::abs(a) > 360.0) {
+        r.fail(*src->get("robot_rpy_deg"), "stream.robot_rpy_deg", "each angle within +-360 degrees");
+      }
+    }
+    for (const double x : s.robot_origin_m) {
+      if (std::abs(x) > 10.0) {
+        r.fail(*src->get("robot_origin_m"), "stream.robot_origin_m", "each coordinate within +-10 m");
+      }
+    }
   }
   if (const toml::table* b = r.section(root, "bridge")) {
     r.check_keys(*b, "bridge",
@@ -208,6 +257,24 @@ bridge::BridgeOptions bridge_options(const Settings& s) {
   o.estimator.hold_s = s.stale_hold_s;
   o.estimator.fade_s = s.stale_fade_s;
   return o;
+}
+
+bridge::SourceOptions source_options(const Settings& s) {
+  bridge::SourceOptions o;
+  o.igtl_force_device = s.force_device;
+  o.igtl_pose_device = s.pose_device;
+  o.igtl_map_device = s.map_device;
+  o.igtl_pose_tool = s.pose_tool;
+  o.robot_to_tissue =
+      bridge::rotation_from_rpy_deg(s.robot_rpy_deg[0], s.robot_rpy_deg[1], s.robot_rpy_deg[2]);
+  o.robot_origin_m = s.robot_origin_m;
+  return o;
+}
+
+bool same_source_options(const Settings& a, const Settings& b) noexcept {
+  return a.force_device == b.force_device && a.pose_device == b.pose_device && a.map_device == b.map_device &&
+         a.pose_tool == b.pose_tool && a.robot_rpy_deg == b.robot_rpy_deg &&
+         a.robot_origin_m == b.robot_origin_m;
 }
 
 }  // namespace mrskin::bridged

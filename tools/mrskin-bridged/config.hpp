@@ -2,10 +2,12 @@
 // command-line flags. docs/daemon.md lists every key.
 #pragma once
 
+#include <array>
 #include <optional>
 #include <string>
 
 #include "mrskin/bridge/bridge.hpp"
+#include "mrskin/bridge/sources.hpp"
 #include "mrskin/driver/errors.hpp"
 #include "socket_path.hpp"  // default_socket_path()
 
@@ -26,6 +28,14 @@ struct Settings {
   std::string record;       // "" : none; else the input stream is recorded here (replay:// format)
   bool quiet = false;
   bridge::WorkspaceMapping mapping{};  // [mapping]; rotation given in degrees in the file
+  // [stream]: which OpenIGTLink devices the stream is read from and the robot's frame in the
+  // tissue frame; the source URI's keys (force_device=...) override these.
+  std::string force_device = "ContactForce";
+  std::string pose_device = "InstrumentTip";
+  std::string map_device = "TactileArray";
+  std::string pose_tool = "*";
+  std::array<double, 3> robot_rpy_deg{0.0, 0.0, 0.0};
+  std::array<double, 3> robot_origin_m{0.0, 0.0, 0.0};
   // [bridge]
   double feedback_gain_per_s = 30.0;
   double footprint_cells = 1.5;
@@ -60,5 +70,9 @@ Settings load_settings(const std::string& path);
 void validate(const Settings& s, const std::string& origin);
 void apply(const Overrides& o, Settings& s);
 bridge::BridgeOptions bridge_options(const Settings& s);
+// The stream source's options from [stream] (before the URI's own keys).
+bridge::SourceOptions source_options(const Settings& s);
+// True when the [stream] keys differ (a reload then reopens the source).
+bool same_source_options(const Settings& a, const Settings& b) noexcept;
 
 }  // namespace mrskin::bridged

@@ -29,7 +29,7 @@ OpenedSource open_source(const Settings& s, Clock& clock, bridge::Waiter* wake) 
     return o;
   }
   // udp://, replay://, igtl://, igtl-listen:// (docs/sources.md); InvalidArgument names the rest.
-  std::unique_ptr<bridge::StreamSource> stream = bridge::open_stream(s.source, {}, &clock);
+  std::unique_ptr<bridge::StreamSource> stream = bridge::open_stream(s.source, source_options(s), &clock);
   if (wake != nullptr) {
     stream->set_arrival_hook(&wake_loop, wake);
   }
@@ -56,7 +56,8 @@ Daemon::Daemon(Settings settings, MonotonicClock& clock)
       clock_(clock),
       waiter_(std::make_unique<bridge::MonotonicWaiter>()),
       shown_(settings_) {
-  // A bad source URI fails before the device opens.
+  // A bad source URI, or a bad finger scene, fails before the device opens.
+  finger_scene_ = open_finger_scene(settings_);
   source_ = open_source(settings_, clock_, waiter_.get());
   if (!settings_.record.empty()) {
     recorder_ = std::make_unique<bridge::SampleRecorder>(settings_.record);
@@ -79,6 +80,9 @@ Daemon::Daemon(Settings settings, MonotonicClock& clock)
   last_thermal_ = t0_;
   if (source_.scene != nullptr) {
     source_.scene->set_start(t0_);
+  }
+  if (finger_scene_) {
+    finger_scene_->set_start(t0_);
   }
   build_bridge(settings_);
   (void)bridge_->enable();
@@ -276,6 +280,10 @@ std::string Daemon::stream_state(std::int64_t now_ns) const {
   return age_s <= hold_s + fade_s ? "stale, fading" : "stale, released";
 }
 
+std::string Daemon::stream_warning() const {
+  return source_.stream != nullptr ? source_.stream->last_warning() : std::string{};
+}
+
 std::string Daemon::status_members() {
   Settings shown;
   {
@@ -290,7 +298,8 @@ std::string Daemon::status_members() {
       R"(",)"
       R"("valves_released":{},"connected":{},"stream":"{}","ticks":{},"rms_error_n":{},)"
       R"("stiffness_n_per_m":{},"peak_target_n":{},"peak_current_a":{},"rate_hz":{},"device":"{}",)"
-      R"("source":"{}","uptime_s":{},"link_sent":{},"link_received":{},"reloads":{},"pid":{},"leased":{})",
+      R"("source":"{}","uptime_s":{},"link_sent":{},"link_received":{},"reloads":{},"pid":{},"leased":{},)"
+      R"("stream_warning":"{}")",
       to_string(state), fault_name(fault_code_.load(std::memory_order_relaxed)),
       fault_name(last_fault_code_.load(std::memory_order_relaxed)), faults_.load(std::memory_order_relaxed),
       halted_.load(std::memory_order_relaxed),
@@ -305,7 +314,8 @@ std::string Daemon::status_members() {
       json_number(peak_current_A_.load(std::memory_order_relaxed)), json_number(shown.rate_hz),
       json_escape(shown.device), json_escape(shown.source),
       json_number(static_cast<double>(now_ns - t0_.count()) * 1e-9), sent_.load(std::memory_order_relaxed),
-      received_.load(std::memory_order_relaxed), reloads_.load(), ::getpid(), leased_.load());
+      received_.load(std::memory_order_relaxed), reloads_.load(), ::getpid(), leased_.load(),
+      json_escape(stream_warning()));
 }
 
 std::string Daemon::telemetry_members() {
@@ -406,11 +416,31 @@ std::string Daemon::fault_members() {
   return out + "]";
 }
 
+std::unique_ptr<bridge::Scene> open_finger_scene(const Settings& s) {
+  if (!s.device.starts_with("mock://")) {
+    return nullptr;
+  }
+  const std::string name = parse_mock_uri(s.device).options.finger_scene;
+  return name.empty() ? nullptr : bridge::make_scene(name, s.mapping);
+}
+
 void Daemon::drive_finger() {
-  if (dev_.mock && source_.scene != nullptr) {
-    source_.scene->finger(to_seconds(clock_.now() - t0_), dev_.mock->layout(), finger_);
+  bridge::Scene* script = finger_scene_ ? finger_scene_.get() : source_.scene;
+  if (dev_.mock && script != nullptr) {
+    script->finger(to_seconds(clock_.now() - t0_), dev_.mock->layout(), finger_);
     dev_.mock->set_finger_indentation(finger_);
   }
+}
+
+std::vector<bridge::SourceEvent> Daemon::take_source_events() {
+  if (source_.stream == nullptr || source_.stream->event_count() == events_seen_) {
+    return {};
+  }
+  std::vector<bridge::SourceEvent> events = source_.stream->events_after(events_seen_);
+  if (!events.empty()) {
+    events_seen_ = events.back().seq;
+  }
+  return events;
 }
 
 std::string Daemon::status_line() const {
@@ -429,6 +459,9 @@ std::string Daemon::status_line() const {
   }
   if (const std::string stream = stream_state(now_ns); stream != "live") {
     line += "  stream " + stream;
+    if (const std::string why = stream_warning(); !why.empty()) {
+      line += " (" + why + ")";
+    }
   }
   if (!connected_.load()) {
     line += "  device disconnected";
@@ -463,6 +496,7 @@ bridge::BridgeStats Daemon::final_stats() const {
     const bridge::SourceStats in = source_.stream->stats();
     stats.samples_accepted = in.accepted;
     stats.samples_dropped = in.dropped();
+    stats.samples_dropped_by_reason = in.drops;
   } else {
     stats.samples_accepted = stats.slave_samples;  // a scene's samples are all well-formed
   }
@@ -487,7 +521,8 @@ std::vector<std::string> Daemon::reload(Settings next) {
   const bool mapping_changed = m0.origin_x_m != m1.origin_x_m || m0.origin_y_m != m1.origin_y_m ||
                                m0.cells_per_m != m1.cells_per_m || m0.rotation_rad != m1.rotation_rad ||
                                m0.mirror_x != m1.mirror_x || m0.mirror_y != m1.mirror_y;
-  const bool source_changed = next.source != old.source || (mapping_changed && source_.scene != nullptr);
+  const bool source_changed = next.source != old.source || !same_source_options(next, old) ||
+                              (mapping_changed && source_.scene != nullptr);
   const bool loop_changed =
       next.rate_hz != old.rate_hz || next.realtime != old.realtime || next.rt_priority != old.rt_priority;
   const bool bridge_changed = loop_changed || mapping_changed || source_changed ||
@@ -500,10 +535,15 @@ std::vector<std::string> Daemon::reload(Settings next) {
     // identity and profile, fixed since the handshake), so the device misses a tick or two at the
     // swap, far below its heartbeat watchdog.
     OpenedSource fresh;
+    std::unique_ptr<bridge::Scene> finger;
     std::unique_ptr<WatchedSource> watched;
     std::unique_ptr<Bridge> b;
     std::unique_ptr<bridge::RealtimeLoop> new_loop;
     try {
+      if (mapping_changed && finger_scene_) {
+        finger = open_finger_scene(next);
+        finger->set_start(t0_);  // the finger carries on where it is, mapped anew
+      }
       if (source_changed) {
         fresh = open_source(next, clock_, waiter_.get());
         if (fresh.scene != nullptr) {
@@ -533,6 +573,10 @@ std::vector<std::string> Daemon::reload(Settings next) {
     watched_ = std::move(watched);
     if (fresh.source) {
       source_ = std::move(fresh);
+      events_seen_ = 0;
+    }
+    if (finger) {
+      finger_scene_ = std::move(finger);
     }
     if (new_loop) {
       loop_ = std::move(new_loop);

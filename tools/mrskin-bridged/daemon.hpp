@@ -36,6 +36,10 @@ struct OpenedSource {
 // wake (optional): a stream source's arrival hook notifies it (from the source's I/O thread), so
 // it must outlive the source.
 OpenedSource open_source(const Settings& s, Clock& clock, bridge::Waiter* wake = nullptr);
+// mock://...?finger=SCENE: the scene whose script moves the mock's finger while the stream comes
+// from elsewhere (a network run scored like a scene run); nullptr without one. Throws
+// InvalidArgument for an unknown scene.
+std::unique_ptr<bridge::Scene> open_finger_scene(const Settings& s);
 bridge::LoopOptions loop_options(const Settings& s, bridge::Waiter* waiter = nullptr);
 
 // Wraps the source to time-stamp fresh samples (the stream watchdog in status).
@@ -76,6 +80,10 @@ class Daemon final : public bridge::Tickable, public ControlBackend {
   [[nodiscard]] const Settings& settings() const noexcept { return settings_; }
   [[nodiscard]] const DeviceInfo& info() const noexcept { return dev_.session->info(); }
   void drive_finger();  // the mock's simulated finger follows a scene's script
+  // The stream source's events not taken yet (connections, the first drop of each reason).
+  std::vector<bridge::SourceEvent> take_source_events();
+  // The stream source's latest warning ("" when none): why no sample may be arriving.
+  [[nodiscard]] std::string stream_warning() const;
   [[nodiscard]] std::string status_line() const;
   [[nodiscard]] bool device_lost(double for_s) const noexcept;
   // Device in FAULT other than an e-stop the operator asked for.
@@ -120,6 +128,8 @@ class Daemon final : public bridge::Tickable, public ControlBackend {
   // outlives their I/O threads, and never destroyed with a loop on a reload.
   std::unique_ptr<bridge::MonotonicWaiter> waiter_;
   OpenedSource source_;
+  std::uint64_t events_seen_ = 0;                     // main thread: source_'s events logged
+  std::unique_ptr<bridge::Scene> finger_scene_;       // mock://?finger=SCENE
   std::unique_ptr<bridge::SampleRecorder> recorder_;  // --record: the input, off the tick thread
   std::unique_ptr<WatchedSource> watched_;
   std::unique_ptr<bridge::Bridge> bridge_;

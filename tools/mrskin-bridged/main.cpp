@@ -38,6 +38,22 @@ constexpr const char* kExitCodes =
     "  4  the device speaks another protocol version\n"
     "  5  the device is owned by another process, or another daemon answers on the control socket\n";
 
+// What the stream carried and what was dropped, by reason.
+void print_stream_summary(const mrskin::bridge::BridgeStats& s) {
+  std::string reasons;
+  for (std::size_t i = 0; i < mrskin::bridge::kDropReasonCount; ++i) {
+    if (const std::uint64_t n = s.samples_dropped_by_reason.at(i); n != 0) {
+      reasons += fmt::format("{}{} {}", reasons.empty() ? " (" : ", ",
+                             mrskin::bridge::drop_reason_name(static_cast<mrskin::bridge::DropReason>(i)), n);
+    }
+  }
+  fmt::print(
+      "stream     {} samples accepted, {} dropped{}; contact force received p50 {:.3f} N, p99 {:.3f} N, "
+      "max {:.3f} N\n",
+      s.samples_accepted, s.samples_dropped, reasons.empty() ? "" : reasons + ")",
+      s.slave_force.percentile_N(0.5), s.slave_force.percentile_N(0.99), s.slave_force.max_N());
+}
+
 void print_summary(const mrskin::bridge::BridgeStats& s, double rate_hz) {
   fmt::print(
       "summary: {} ticks at {:.0f} Hz, {} overruns, {} skipped periods, tick p50 {:.2f} us p99 {:.2f} us "
@@ -149,6 +165,16 @@ int run(Settings cfg, const std::string& config_path, const mrskin::bridged::Ove
       p.revents = 0;  // one signal read per wake is enough; the next poll returns at once if more
     }
     daemon.drive_finger();
+    if (std::vector<mrskin::bridge::SourceEvent> events = daemon.take_source_events(); !events.empty()) {
+      console.clear();  // each reason once, connections as they happen: no spam to rate-limit
+      for (const mrskin::bridge::SourceEvent& e : events) {
+        if (e.warning) {
+          spdlog::warn("source: {}", e.text);
+        } else {
+          spdlog::info("source: {}", e.text);
+        }
+      }
+    }
     if (clock.now() >= next_status) {
       next_status += std::chrono::milliseconds(console.tty() ? 500 : 1000);
       if (std::vector<std::string> events = server.take_events(); !events.empty()) {
@@ -178,6 +204,7 @@ int run(Settings cfg, const std::string& config_path, const mrskin::bridged::Ove
   const Settings& final_cfg = daemon.settings();
   const bridge::BridgeStats stats = daemon.final_stats();
   print_summary(stats, final_cfg.rate_hz);
+  print_stream_summary(stats);
   const double run_s = std::max(1e-9, daemon.uptime_s());
   const SessionCounters& link = daemon.link_counters();
   fmt::print(

@@ -1,6 +1,7 @@
 #include "core.hpp"
 
 #include <arpa/inet.h>
+#include <fmt/format.h>
 #include <netdb.h>
 #include <netinet/in.h>
 #include <sys/eventfd.h>
@@ -23,30 +24,69 @@ SourceStats AtomicStats::snapshot() const noexcept {
   constexpr auto r = std::memory_order_relaxed;
   SourceStats s;
   s.accepted = accepted.load(r);
-  s.malformed = count_of(Drop::malformed);
-  s.oversized = count_of(Drop::oversized);
-  s.non_finite = count_of(Drop::non_finite);
-  s.out_of_range = count_of(Drop::out_of_range);
-  s.out_of_order = count_of(Drop::out_of_order);
-  s.duplicate = count_of(Drop::duplicate);
-  s.queue_full = count_of(Drop::queue_full);
-  s.unsupported = count_of(Drop::unsupported);
+  for (std::size_t i = 0; i < kDropReasonCount; ++i) {
+    s.drops.at(i) = drops.at(i).load(r);
+  }
+  s.poses = poses.load(r);
   s.restarts = restarts.load(r);
   s.connections = connections.load(r);
   s.disconnects = disconnects.load(r);
+  s.connect_failures = connect_failures.load(r);
   return s;
 }
 
-bool values_ok(const SlaveSample& s, const SourceOptions& o, AtomicStats& stats) noexcept {
+void SourceEvents::add(bool warning, std::string_view text) noexcept {
+  try {
+    const std::lock_guard<std::mutex> lock(mutex_);
+    const std::uint64_t seq = count_.load(std::memory_order_relaxed) + 1;
+    events_.push_back(SourceEvent{seq, warning, std::string(text)});
+    if (events_.size() > kKept) {
+      events_.pop_front();
+    }
+    if (warning) {
+      last_warning_ = text;
+    }
+    count_.store(seq, std::memory_order_release);
+  } catch (...) {  // NOLINT(bugprone-empty-catch): an event lost to a full heap
+  }
+}
+
+std::vector<SourceEvent> SourceEvents::after(std::uint64_t seq) const {
+  const std::lock_guard<std::mutex> lock(mutex_);
+  std::vector<SourceEvent> out;
+  for (const SourceEvent& e : events_) {
+    if (e.seq > seq) {
+      out.push_back(e);
+    }
+  }
+  return out;
+}
+
+std::string SourceEvents::last_warning() const {
+  const std::lock_guard<std::mutex> lock(mutex_);
+  return last_warning_;
+}
+
+bool values_ok(const SlaveSample& s, const SourceOptions& o, AtomicStats& stats,
+               SourceEvents& events) noexcept {
   if (!std::isfinite(s.force_N) || !std::isfinite(s.indentation_m) || !std::isfinite(s.contact_x_m) ||
       !std::isfinite(s.contact_y_m) || !std::isfinite(s.tip_radius_m)) {
-    stats.count(Drop::non_finite);
+    drop(stats, events, DropReason::non_finite,
+         [] { return std::string("a sample with NaN or Inf dropped: the sender's values are not numbers"); });
     return false;
   }
   if (s.force_N < 0.0 || s.force_N > o.max_force_N || std::abs(s.indentation_m) > o.max_abs_indentation_m ||
       std::abs(s.contact_x_m) > o.max_abs_contact_m || std::abs(s.contact_y_m) > o.max_abs_contact_m ||
       s.tip_radius_m < 0.0 || s.tip_radius_m > o.max_tip_radius_m) {
-    stats.count(Drop::out_of_range);
+    drop(stats, events, DropReason::out_of_range, [&] {
+      return fmt::format(
+          "a sample out of range dropped (force {} N, indentation {} m, contact ({}, {}) m, tip radius {} "
+          "m): "
+          "allowed force 0..{} N, |indentation| <= {} m, |contact| <= {} m, tip radius 0..{} m; check the "
+          "sender's units and frame",
+          s.force_N, s.indentation_m, s.contact_x_m, s.contact_y_m, s.tip_radius_m, o.max_force_N,
+          o.max_abs_indentation_m, o.max_abs_contact_m, o.max_tip_radius_m);
+    });
     return false;
   }
   return true;
@@ -109,7 +149,7 @@ void QueuedSource::notify() noexcept {
 void QueuedSource::publish(const SlaveSample& s) noexcept {
   stats_.accepted.fetch_add(1, std::memory_order_relaxed);
   if (pending_valid_ && !queue_.try_push(pending_)) {
-    stats_.count(Drop::queue_full);  // the held one is superseded
+    stats_.count(DropReason::superseded);  // the held one: the tick did not take it in time
     pending_ = s;
     return;
   }

@@ -5,39 +5,74 @@
 #include <array>
 #include <atomic>
 #include <cstdint>
+#include <deque>
 #include <memory>
+#include <mutex>
 #include <string>
 #include <string_view>
+#include <utility>
+#include <vector>
 
 #include "mrskin/bridge/sources.hpp"
 
 namespace mrskin::bridge::sources {
 
-enum class Drop : unsigned char {
-  malformed,
-  oversized,
-  non_finite,
-  out_of_range,
-  out_of_order,
-  duplicate,
-  queue_full,
-  unsupported,
-};
-
+// The counters, written by an I/O thread (or a loader) and read from any thread.
 struct AtomicStats {
   std::atomic<std::uint64_t> accepted{0};
-  std::array<std::atomic<std::uint64_t>, 8> drops{};  // by Drop
+  std::array<std::atomic<std::uint64_t>, kDropReasonCount> drops{};  // by DropReason
+  std::atomic<std::uint64_t> poses{0};
   std::atomic<std::uint64_t> restarts{0};
   std::atomic<std::uint64_t> connections{0};
   std::atomic<std::uint64_t> disconnects{0};
-  void count(Drop reason) noexcept {
-    drops[static_cast<std::size_t>(reason)].fetch_add(1, std::memory_order_relaxed);
+  std::atomic<std::uint64_t> connect_failures{0};
+  // Counts a drop; true for the first of its reason (the caller then says why, once).
+  bool count(DropReason reason) noexcept {
+    return drops.at(static_cast<std::size_t>(reason)).fetch_add(1, std::memory_order_relaxed) == 0;
   }
-  [[nodiscard]] std::uint64_t count_of(Drop reason) const noexcept {
-    return drops[static_cast<std::size_t>(reason)].load(std::memory_order_relaxed);
+  [[nodiscard]] std::uint64_t count_of(DropReason reason) const noexcept {
+    return drops.at(static_cast<std::size_t>(reason)).load(std::memory_order_relaxed);
   }
   [[nodiscard]] SourceStats snapshot() const noexcept;
 };
+
+// The operator's side of a source: events for the log, the latest warning for the status line.
+// Written off the tick (I/O thread, loader); a mutex guards the text, a counter says when to look.
+class SourceEvents {
+ public:
+  // Out of memory, the event is lost, never the I/O thread: both are noexcept.
+  void add(bool warning, std::string_view text) noexcept;
+  // make_text() is called, and its text added, only the first time key (< 64) is given: one line
+  // per reason, not per message.
+  template <class MakeText>
+  void once(unsigned key, bool warning, MakeText&& make_text) noexcept {
+    const std::uint64_t bit = std::uint64_t{1} << key;
+    if ((seen_.fetch_or(bit, std::memory_order_relaxed) & bit) != 0) {
+      return;
+    }
+    try {
+      add(warning, make_text());
+    } catch (...) {  // NOLINT(bugprone-empty-catch): an event lost to a full heap
+    }
+  }
+  [[nodiscard]] bool seen(unsigned key) const noexcept {
+    return (seen_.load(std::memory_order_relaxed) & (std::uint64_t{1} << key)) != 0;
+  }
+  [[nodiscard]] std::vector<SourceEvent> after(std::uint64_t seq) const;
+  [[nodiscard]] std::uint64_t count() const noexcept { return count_.load(std::memory_order_acquire); }
+  [[nodiscard]] std::string last_warning() const;
+
+ private:
+  static constexpr std::size_t kKept = 64;
+  mutable std::mutex mutex_;
+  std::deque<SourceEvent> events_;
+  std::string last_warning_;
+  std::atomic<std::uint64_t> count_{0};
+  std::atomic<std::uint64_t> seen_{0};
+};
+
+// Keys for SourceEvents::once beyond the drop reasons (0..kDropReasonCount-1).
+enum class EventKey : unsigned { device_force = 32, device_pose, device_map, pose_tool };
 
 // Robot stamps (ns) outside 0..2^62 (146 years) are out of range: the clock arithmetic stays far
 // from overflow whatever a peer sends.
@@ -45,7 +80,15 @@ inline constexpr std::int64_t kMaxStampNs = std::int64_t{1} << 62;
 [[nodiscard]] inline bool stamp_ok(std::int64_t ns) noexcept { return ns >= 0 && ns <= kMaxStampNs; }
 
 // Checks a sample's fields against the options: non_finite, out_of_range, or nothing.
-[[nodiscard]] bool values_ok(const SlaveSample& s, const SourceOptions& o, AtomicStats& stats) noexcept;
+// The drop is counted, and the first of its reason explained in events.
+[[nodiscard]] bool values_ok(const SlaveSample& s, const SourceOptions& o, AtomicStats& stats,
+                             SourceEvents& events) noexcept;
+// Counts a drop and, the first time for its reason, adds make_text() (why, and the fix).
+template <class MakeText>
+void drop(AtomicStats& stats, SourceEvents& events, DropReason reason, MakeText&& make_text) noexcept {
+  stats.count(reason);
+  events.once(static_cast<unsigned>(reason), true, std::forward<MakeText>(make_text));
+}
 
 // Per-channel ordering on robot stamps: equal is a duplicate, older is out of order; a run of
 // options.restart_after_out_of_order older stamps means the robot restarted.
@@ -86,6 +129,11 @@ class QueuedSource : public StreamSource {
   bool latest(TimePoint now, SlaveSample& out) noexcept override;
   [[nodiscard]] SourceStats stats() const noexcept override { return stats_.snapshot(); }
   void set_arrival_hook(ArrivalHook hook, void* context) noexcept override;
+  [[nodiscard]] std::vector<SourceEvent> events_after(std::uint64_t seq) const override {
+    return events_.after(seq);
+  }
+  [[nodiscard]] std::uint64_t event_count() const noexcept override { return events_.count(); }
+  [[nodiscard]] std::string last_warning() const override { return events_.last_warning(); }
 
  protected:
   // I/O thread. Queues s; when the queue is full it is held and replaces any sample held before
@@ -98,6 +146,7 @@ class QueuedSource : public StreamSource {
 
   SourceOptions options_;
   AtomicStats stats_;
+  SourceEvents events_;
 
  private:
   void notify() noexcept;

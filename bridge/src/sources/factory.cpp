@@ -1,6 +1,8 @@
 // make_source(): URI -> source.
+#include <algorithm>
 #include <array>
 #include <charconv>
+#include <cmath>
 #include <string>
 
 #include "core.hpp"
@@ -36,8 +38,40 @@ bool parse_flag(std::string_view uri, std::string_view key, std::string_view val
   bad(uri, "bad value '" + std::string(value) + "' for " + std::string(key) + " (0 or 1)");
 }
 
+// An OpenIGTLink device or tool name: 1 to 20 printable characters (the header's field), or *.
+std::string device_name(std::string_view uri, std::string_view key, std::string_view value) {
+  const bool printable =
+      std::all_of(value.begin(), value.end(), [](char c) { return c >= 0x20 && c < 0x7F && c != '&'; });
+  if (value.empty() || value.size() > 20 || !printable) {
+    bad(uri, "bad " + std::string(key) + " '" + std::string(value) +
+                 "' (an OpenIGTLink device name: 1 to 20 printable characters, or * for any)");
+  }
+  return std::string(value);
+}
+
+// ROLL,PITCH,YAW in degrees.
+std::array<double, 9> rpy(std::string_view uri, std::string_view value) {
+  std::array<double, 3> a{};
+  std::string_view rest = value;
+  for (std::size_t i = 0; i < 3; ++i) {
+    const auto comma = rest.find(',');
+    const std::string_view item = rest.substr(0, comma);
+    const auto [end, ec] = std::from_chars(item.data(), item.data() + item.size(), a.at(i));
+    if (ec != std::errc{} || end != item.data() + item.size() || !std::isfinite(a.at(i)) ||
+        std::abs(a.at(i)) > 360.0 || (i < 2) == (comma == std::string_view::npos)) {
+      bad(uri, "bad rpy_deg '" + std::string(value) + "' (ROLL,PITCH,YAW in degrees, each within +-360)");
+    }
+    rest = comma == std::string_view::npos ? std::string_view{} : rest.substr(comma + 1);
+  }
+  return rotation_from_rpy_deg(a[0], a[1], a[2]);
+}
+
+enum class Scheme : unsigned char { udp, replay, igtl };
+
 // Applies ?k=v&k=v to options; keys depend on the scheme.
-void apply_query(std::string_view uri, std::string_view query, bool replay, SourceOptions& o) {
+void apply_query(std::string_view uri, std::string_view query, Scheme scheme, SourceOptions& o) {
+  const bool replay = scheme == Scheme::replay;
+  const bool igtl = scheme == Scheme::igtl;
   while (!query.empty()) {
     const auto amp = query.find('&');
     const std::string_view item = query.substr(0, amp);
@@ -62,9 +96,23 @@ void apply_query(std::string_view uri, std::string_view query, bool replay, Sour
         bad(uri, "bad queue '" + std::string(value) + "' (samples, > 0)");
       }
       o.queue_capacity = n;
+    } else if (igtl && key == "force_device") {
+      o.igtl_force_device = device_name(uri, key, value);
+    } else if (igtl && key == "pose_device") {
+      o.igtl_pose_device = device_name(uri, key, value);
+    } else if (igtl && key == "map_device") {
+      o.igtl_map_device = device_name(uri, key, value);
+    } else if (igtl && key == "pose_tool") {
+      o.igtl_pose_tool = device_name(uri, key, value);
+    } else if (igtl && key == "rpy_deg") {
+      o.robot_to_tissue = rpy(uri, value);
     } else {
       bad(uri, "unknown option '" + std::string(key) + "' (" +
-                   (replay ? "replay takes speed=max|1 and loop=0|1" : "queue=N") + ")");
+                   (replay ? "replay takes speed=max|1 and loop=0|1"
+                    : igtl ? "igtl takes queue=N, force_device, pose_device, map_device, pose_tool and "
+                             "rpy_deg=ROLL,PITCH,YAW"
+                           : "udp takes queue=N") +
+                   ")");
     }
   }
 }
@@ -72,6 +120,29 @@ void apply_query(std::string_view uri, std::string_view query, bool replay, Sour
 }  // namespace
 
 std::span<const std::string_view> source_schemes() noexcept { return kSchemes; }
+
+std::array<double, 9> rotation_from_rpy_deg(double roll_deg, double pitch_deg, double yaw_deg) {
+  if (!std::isfinite(roll_deg) || !std::isfinite(pitch_deg) || !std::isfinite(yaw_deg)) {
+    throw InvalidArgument("robot frame: roll, pitch and yaw must be finite (degrees)");
+  }
+  constexpr double kRadPerDeg = 3.14159265358979323846 / 180.0;
+  const double cr = std::cos(roll_deg * kRadPerDeg);
+  const double sr = std::sin(roll_deg * kRadPerDeg);
+  const double cp = std::cos(pitch_deg * kRadPerDeg);
+  const double sp = std::sin(pitch_deg * kRadPerDeg);
+  const double cy = std::cos(yaw_deg * kRadPerDeg);
+  const double sy = std::sin(yaw_deg * kRadPerDeg);
+  // Rz(yaw) Ry(pitch) Rx(roll), row-major.
+  return {cy * cp,
+          cy * sp * sr - sy * cr,
+          cy * sp * cr + sy * sr,  //
+          sy * cp,
+          sy * sp * sr + cy * cr,
+          sy * sp * cr - cy * sr,  //
+          -sp,
+          cp * sr,
+          cp * cr};
+}
 
 std::unique_ptr<StreamSource> open_stream(std::string_view uri, const SourceOptions& options, Clock* clock) {
   const auto sep = uri.find("://");
@@ -93,11 +164,11 @@ std::unique_ptr<StreamSource> open_stream(std::string_view uri, const SourceOpti
     if (rest.empty()) {
       bad(uri, "missing file (replay://FILE)");
     }
-    apply_query(uri, query, true, o);
+    apply_query(uri, query, Scheme::replay, o);
     return sources::open_replay(std::string(rest), o);
   }
   if (scheme == "udp" || scheme == "igtl" || scheme == "igtl-listen") {
-    apply_query(uri, query, false, o);
+    apply_query(uri, query, scheme == "udp" ? Scheme::udp : Scheme::igtl, o);
     const bool client = scheme == "igtl";
     const sources::Endpoint where = sources::parse_endpoint(rest, uri, client, !client);
     if (scheme == "udp") {

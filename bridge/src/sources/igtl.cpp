@@ -1,6 +1,7 @@
 // igtl://HOST:PORT (client) and igtl-listen://HOST:PORT (server): OpenIGTLink v1 headers; SENSOR,
 // TRANSFORM, POSITION and NDARRAY bodies (docs/sources.md). The library checks the CRC and decodes
 // units; the framing and the bodies are read here, bounds-checked, before anything is trusted.
+#include <fmt/format.h>
 #include <igtl_ndarray.h>
 #include <igtl_unit.h>
 #include <igtl_util.h>
@@ -15,6 +16,7 @@
 #include <cerrno>
 #include <cmath>
 #include <cstring>
+#include <optional>
 #include <string>
 #include <thread>
 #include <vector>
@@ -72,16 +74,52 @@ std::int64_t timestamp_ns(std::uint64_t ts) noexcept {
   return static_cast<std::int64_t>(seconds * 1'000'000'000ULL + ((fraction * 1'000'000'000ULL) >> 32U));
 }
 
-bool is_newton(std::uint64_t unit) noexcept {
+// The factor to newtons of a SENSOR unit: newton with any SI prefix (mN, kN, ...); 0 otherwise.
+double newton_scale(std::uint64_t unit) noexcept {
   igtl_unit_data d{};
-  if (igtl_unit_unpack(unit, &d) == 0) {
-    return false;
+  if (igtl_unit_unpack(unit, &d) == 0 || d.unit[0] != IGTL_UNIT_SI_DERIVED_NEWTON || d.exp[0] != 1 ||
+      !std::all_of(d.unit + 1, d.unit + 6, [](igtl_uint8 u) { return u == 0; })) {
+    return 0.0;
   }
-  if (d.prefix != IGTL_UNIT_PREFIX_NONE || d.unit[0] != IGTL_UNIT_SI_DERIVED_NEWTON || d.exp[0] != 1) {
-    return false;
+  switch (d.prefix) {
+    case IGTL_UNIT_PREFIX_NONE:
+      return 1.0;
+    case IGTL_UNIT_PREFIX_DEKA:
+      return 1e1;
+    case IGTL_UNIT_PREFIX_HECTO:
+      return 1e2;
+    case IGTL_UNIT_PREFIX_KILO:
+      return 1e3;
+    case IGTL_UNIT_PREFIX_MEGA:
+      return 1e6;
+    case IGTL_UNIT_PREFIX_DECI:
+      return 1e-1;
+    case IGTL_UNIT_PREFIX_CENTI:
+      return 1e-2;
+    case IGTL_UNIT_PREFIX_MILLI:
+      return 1e-3;
+    case IGTL_UNIT_PREFIX_MICRO:
+      return 1e-6;
+    case IGTL_UNIT_PREFIX_NANO:
+      return 1e-9;
+    default:
+      return 0.0;  // giga and beyond, pico and below: no contact force is written that way
   }
-  return std::all_of(d.unit + 1, d.unit + 6, [](igtl_uint8 u) { return u == 0; });
 }
+
+bool matches(const std::string& wanted, std::string_view name) noexcept {
+  return wanted == "*" || wanted == name;
+}
+
+// R v for a row-major 3 x 3 R.
+std::array<double, 3> rotate(const std::array<double, 9>& r, double x, double y, double z) noexcept {
+  return {r[0] * x + r[1] * y + r[2] * z, r[3] * x + r[4] * y + r[5] * z, r[6] * x + r[7] * y + r[8] * z};
+}
+
+// QTDATA and TDATA: elements of a 20-byte name, type, reserved, then the pose.
+constexpr std::size_t kTrackNameBytes = 20;
+constexpr std::size_t kQtdataElementBytes = 50;  // name, type, reserved, position[3], quaternion[4]
+constexpr std::size_t kTdataElementBytes = 70;   // name, type, reserved, transform[12]
 
 // Bytes per element of an NDARRAY scalar type we read, else 0.
 std::size_t scalar_bytes(std::uint8_t type) noexcept {
@@ -162,18 +200,48 @@ class IgtlSource final : public QueuedSource {
     return ::poll(&p, 1, timeout_ms) > 0;
   }
 
-  // The client: connect, read until the peer goes, back off, again.
+  // The client: connect, read until the peer goes, back off, again. A failure is reported at
+  // once, and again only when its reason changes.
   void connect_loop() noexcept {
     double backoff_s = options_.reconnect_min_s;
+    std::string reported;
+    std::uint64_t failed = 0;
     while (!stopped(0)) {
-      Fd conn = try_connect();
+      std::string why;
+      Fd conn;
+      try {
+        conn = try_connect(why);
+      } catch (...) {  // out of memory for the reason's text: a failed attempt all the same
+        conn.reset();
+      }
       if (conn.valid()) {
         backoff_s = options_.reconnect_min_s;
         stats_.connections.fetch_add(1, std::memory_order_relaxed);
+        note(false, [&] {
+          return failed == 0
+                     ? fmt::format("{}: connected to the robot", name())
+                     : fmt::format("{}: connected to the robot after {} failed attempts", name(), failed);
+        });
+        reported.clear();
+        failed = 0;
         if (session(conn.get(), false) == End::stop) {
           return;
         }
         stats_.disconnects.fetch_add(1, std::memory_order_relaxed);
+        note(true, [&] { return fmt::format("{}: the robot closed the connection; reconnecting", name()); });
+      } else {
+        stats_.connect_failures.fetch_add(1, std::memory_order_relaxed);
+        ++failed;
+        if (why != reported) {
+          note(true, [&] {
+            return fmt::format("{}: cannot connect: {}; retrying after {} s, backing off to every {} s",
+                               name(), why, options_.reconnect_min_s, options_.reconnect_max_s);
+          });
+          try {
+            reported = why;
+          } catch (...) {  // NOLINT(bugprone-empty-catch): reported again next time
+          }
+        }
       }
       if (stopped(static_cast<int>(backoff_s * 1000.0))) {
         return;
@@ -182,30 +250,50 @@ class IgtlSource final : public QueuedSource {
     }
   }
 
-  Fd try_connect() noexcept {
+  // Adds make_text()'s event; out of memory it is lost, never the I/O thread.
+  template <class MakeText>
+  void note(bool warning, MakeText&& make_text) noexcept {
+    try {
+      events_.add(warning, make_text());
+    } catch (...) {  // NOLINT(bugprone-empty-catch): an event lost to a full heap
+    }
+  }
+
+  [[nodiscard]] std::string name() const {
+    const bool v6 = where_.host.find(':') != std::string::npos;
+    return fmt::format("{}://{}{}{}:{}", listener_.valid() ? "igtl-listen" : "igtl", v6 ? "[" : "",
+                       where_.host, v6 ? "]" : "", listener_.valid() ? port_ : where_.port);
+  }
+
+  Fd try_connect(std::string& why) {
     addrinfo hints{};
     hints.ai_family = AF_UNSPEC;
     hints.ai_socktype = SOCK_STREAM;
     hints.ai_flags = AI_NUMERICSERV;
     addrinfo* found = nullptr;
     const std::string port = std::to_string(where_.port);
-    if (::getaddrinfo(where_.host.c_str(), port.c_str(), &hints, &found) != 0) {
+    if (const int rc = ::getaddrinfo(where_.host.c_str(), port.c_str(), &hints, &found); rc != 0) {
+      why = fmt::format("cannot resolve '{}': {}", where_.host, ::gai_strerror(rc));
       return {};
     }
     std::unique_ptr<addrinfo, decltype(&::freeaddrinfo)> list(found, &::freeaddrinfo);
+    why = "no address to try";
     for (const addrinfo* a = found; a != nullptr; a = a->ai_next) {
       Fd fd(::socket(a->ai_family, a->ai_socktype | SOCK_NONBLOCK | SOCK_CLOEXEC, a->ai_protocol));
       if (!fd.valid()) {
+        why = std::strerror(errno);
         continue;
       }
       if (::connect(fd.get(), a->ai_addr, a->ai_addrlen) == 0) {
         return fd;
       }
       if (errno != EINPROGRESS) {
+        why = std::strerror(errno);
         continue;
       }
       std::array<pollfd, 2> p{{{fd.get(), POLLOUT, 0}, {stop_.fd(), POLLIN, 0}}};
       if (::poll(p.data(), p.size(), 1000) <= 0 || (p[1].revents & POLLIN) != 0) {
+        why = "no answer within 1 s";
         continue;
       }
       int err = 0;
@@ -213,8 +301,26 @@ class IgtlSource final : public QueuedSource {
       if (::getsockopt(fd.get(), SOL_SOCKET, SO_ERROR, &err, &len) == 0 && err == 0) {
         return fd;
       }
+      why = std::strerror(err);
     }
     return {};
+  }
+
+  // The peer's numeric address of an accepted connection.
+  static std::string peer_of(int fd) {
+    sockaddr_storage a{};
+    socklen_t len = sizeof a;
+    std::array<char, NI_MAXHOST> host{};
+    std::array<char, NI_MAXSERV> serv{};
+    // NOLINTNEXTLINE(cppcoreguidelines-pro-type-reinterpret-cast): the socket API's own cast
+    auto* sa = reinterpret_cast<sockaddr*>(&a);
+    if (::getpeername(fd, sa, &len) != 0 ||
+        ::getnameinfo(sa, len, host.data(), host.size(), serv.data(), serv.size(),
+                      NI_NUMERICHOST | NI_NUMERICSERV) != 0) {
+      return "an unknown address";
+    }
+    return a.ss_family == AF_INET6 ? fmt::format("[{}]:{}", host.data(), serv.data())
+                                   : fmt::format("{}:{}", host.data(), serv.data());
   }
 
   // The server: one robot at a time; a new connection replaces the current one (a robot that
@@ -235,6 +341,8 @@ class IgtlSource final : public QueuedSource {
           continue;
         }
         stats_.connections.fetch_add(1, std::memory_order_relaxed);
+        note(false,
+             [&] { return fmt::format("{}: a robot connected from {}", name(), peer_of(conn.get())); });
       }
       const End end = session(conn.get(), true);
       if (end == End::stop) {
@@ -245,6 +353,12 @@ class IgtlSource final : public QueuedSource {
       if (end == End::replaced) {
         conn = std::move(next_);
         stats_.connections.fetch_add(1, std::memory_order_relaxed);
+        note(true, [&] {
+          return fmt::format("{}: a robot connected from {} and replaces the current one", name(),
+                             peer_of(conn.get()));
+        });
+      } else {
+        note(true, [&] { return fmt::format("{}: the robot disconnected; waiting for it", name()); });
       }
     }
   }
@@ -296,7 +410,12 @@ class IgtlSource final : public QueuedSource {
         const Header h = parse_header(buffer_.data() + used);
         if (h.body_bytes > options_.max_message_bytes) {
           // The framing cannot be trusted past this header: drop the connection.
-          stats_.count(Drop::oversized);
+          drop(stats_, events_, DropReason::oversized, [&] {
+            return fmt::format(
+                "OpenIGTLink {} from '{}' announces a body of {} bytes (at most {}): connection "
+                "closed, its framing cannot be trusted",
+                h.type, h.device, h.body_bytes, options_.max_message_bytes);
+          });
           return End::closed;
         }
         const std::size_t total = kHeaderBytes + h.body_bytes;
@@ -312,85 +431,245 @@ class IgtlSource final : public QueuedSource {
   }
 
   void handle(const Header& h, std::span<std::uint8_t> body) noexcept {
-    if (h.version != 1 || crc64(body.data(), body.size(), 0) != h.crc) {
-      stats_.count(Drop::malformed);
+    if (h.version != 1 && h.version != 2) {
+      drop(stats_, events_, DropReason::format, [&] {
+        return fmt::format(
+            "OpenIGTLink message with header version {} dropped: this source reads versions 1 "
+            "and 2 (protocols 1 to 3)",
+            h.version);
+      });
+      return;
+    }
+    if (crc64(body.data(), body.size(), 0) != h.crc) {
+      drop(stats_, events_, DropReason::crc, [&] {
+        return fmt::format("OpenIGTLink {} from '{}' dropped: its body does not match its CRC-64", h.type,
+                           h.device);
+      });
+      return;
+    }
+    std::span<const std::uint8_t> content = body;
+    if (h.version == 2 && !version2_content(h, content)) {
       return;
     }
     const TimePoint arrival = now();
     const std::int64_t robot_ns = h.timestamp != 0 ? timestamp_ns(h.timestamp) : arrival.count();
-    if (h.type == "SENSOR" && h.device == options_.igtl_force_device) {
-      sensor(body, robot_ns, arrival);
-    } else if ((h.type == "TRANSFORM" || h.type == "POSITION") && h.device == options_.igtl_pose_device) {
-      pose(h.type == "TRANSFORM", body, robot_ns);
-    } else if (h.type == "NDARRAY" && h.device == options_.igtl_map_device) {
-      pressure_map(body, robot_ns, arrival);
+    const bool pose_type =
+        h.type == "TRANSFORM" || h.type == "POSITION" || h.type == "QTDATA" || h.type == "TDATA";
+    if (h.type == "SENSOR") {
+      if (wanted(options_.igtl_force_device, h, EventKey::device_force, "force_device")) {
+        sensor(h.device, content, robot_ns, arrival);
+      }
+    } else if (pose_type) {
+      if (wanted(options_.igtl_pose_device, h, EventKey::device_pose, "pose_device")) {
+        pose(h.type, h.device, content, robot_ns);
+      }
+    } else if (h.type == "NDARRAY") {
+      if (wanted(options_.igtl_map_device, h, EventKey::device_map, "map_device")) {
+        pressure_map(content, robot_ns, arrival);
+      }
     } else {
-      stats_.count(Drop::unsupported);
+      drop(stats_, events_, DropReason::type, [&] {
+        return fmt::format(
+            "OpenIGTLink {} from '{}' ignored: this source reads SENSOR (force), TRANSFORM, "
+            "POSITION, QTDATA, TDATA (pose) and NDARRAY (pressure map)",
+            h.type, h.device);
+      });
     }
   }
 
-  // SENSOR: larray u8, status u8, unit u64, larray x float64; value 0 is the normal force.
-  void sensor(std::span<const std::uint8_t> body, std::int64_t robot_ns, TimePoint arrival) noexcept {
+  // Protocol 3 (header version 2): an extended header, the content, then metadata; the content
+  // is what a version 1 body holds.
+  bool version2_content(const Header& h, std::span<const std::uint8_t>& content) noexcept {
+    constexpr std::size_t kExtendedHeaderBytes = 12;
+    if (content.size() >= kExtendedHeaderBytes) {
+      const std::size_t ext = get_be(content.data(), 2);
+      const std::size_t meta_header = get_be(content.data() + 2, 2);
+      const std::size_t meta = get_be(content.data() + 4, 4);
+      if (ext >= kExtendedHeaderBytes && ext + meta_header + meta <= content.size()) {
+        content = content.subspan(ext, content.size() - ext - meta_header - meta);
+        return true;
+      }
+    }
+    drop(stats_, events_, DropReason::length, [&] {
+      return fmt::format(
+          "OpenIGTLink {} from '{}' dropped: its version 2 extended header does not fit its body", h.type,
+          h.device);
+    });
+    return false;
+  }
+
+  // True when the message's device name is the one configured for its kind; else counted and,
+  // once per kind, explained with the key that takes it.
+  bool wanted(const std::string& name, const Header& h, EventKey key, std::string_view option) noexcept {
+    if (matches(name, h.device)) {
+      return true;
+    }
+    stats_.count(DropReason::device);
+    events_.once(static_cast<unsigned>(key), true, [&] {
+      return fmt::format(
+          "OpenIGTLink {} from device '{}' ignored: this source takes {} from '{}'; set "
+          "{}={} (in the source URI or the daemon's [stream] table; * takes any name)",
+          h.type, h.device,
+          option == "force_device"  ? "forces"
+          : option == "pose_device" ? "poses"
+                                    : "pressure maps",
+          name, option, h.device);
+    });
+    return false;
+  }
+
+  // SENSOR: larray u8, status u8, unit u64, larray x float64. 1 value: the normal force; 3: a
+  // force vector in the robot's frame; 6: a wrench (force, then torque). The contact force is
+  // the force's component along the tissue's outward normal; pulling (< 0) is no contact.
+  void sensor(std::string_view device, std::span<const std::uint8_t> body, std::int64_t robot_ns,
+              TimePoint arrival) noexcept {
     if (body.size() < 10 || body[0] == 0 || body.size() != 10 + 8 * std::size_t{body[0]}) {
-      stats_.count(Drop::malformed);
+      drop(stats_, events_, DropReason::length, [&] {
+        return fmt::format("SENSOR from '{}' dropped: a body of {} bytes does not hold its values", device,
+                           body.size());
+      });
       return;
     }
-    if (!is_newton(get_be(body.data() + 2, 8))) {
-      stats_.count(Drop::unsupported);
+    const std::size_t n = body[0];
+    if (n != 1 && n != 3 && n != 6) {
+      drop(stats_, events_, DropReason::length, [&] {
+        return fmt::format(
+            "SENSOR from '{}' with {} values dropped: send 1 (the normal force), 3 (a force "
+            "vector) or 6 (a wrench: force, then torque)",
+            device, n);
+      });
       return;
     }
-    emit(get_f64(body.data() + 10), 0.0, 0.0, robot_ns, arrival, force_gate_);
+    const double scale = newton_scale(get_be(body.data() + 2, 8));
+    if (scale == 0.0) {
+      drop(stats_, events_, DropReason::unit, [&] {
+        return fmt::format(
+            "SENSOR from '{}' dropped: its unit is not a force; send newtons (N, or with a "
+            "prefix: mN, kN, ...)",
+            device);
+      });
+      return;
+    }
+    std::array<double, 6> v{};
+    for (std::size_t i = 0; i < n; ++i) {
+      v.at(i) = get_f64(body.data() + 10 + 8 * i) * scale;
+      if (!std::isfinite(v.at(i))) {
+        drop(stats_, events_, DropReason::non_finite,
+             [&] { return fmt::format("SENSOR from '{}' dropped: a value is NaN or Inf", device); });
+        return;
+      }
+    }
+    const double normal_N = n == 1 ? v[0] : rotate(options_.robot_to_tissue, v[0], v[1], v[2])[2];
+    emit(std::max(normal_N, 0.0), 0.0, 0.0, robot_ns, arrival, force_gate_);
   }
 
-  // TRANSFORM: 12 float32, the translation last; POSITION: 3 float32 then an optional quaternion.
-  // Millimetres in the tissue frame, z along the outward normal with the surface at 0.
-  void pose(bool transform, std::span<const std::uint8_t> body, std::int64_t robot_ns) noexcept {
-    const std::size_t at = transform ? 36 : 0;
-    if (transform ? body.size() != 48 : (body.size() != 12 && body.size() != 24 && body.size() != 28)) {
-      stats_.count(Drop::malformed);
+  // TRANSFORM: 12 float32, the translation last; POSITION: 3 float32 then an optional
+  // quaternion; QTDATA, TDATA: one element per tool, taken by name. Millimetres in the robot's
+  // frame, mapped into the tissue frame (z along the outward normal, the surface at 0).
+  void pose(std::string_view type, std::string_view device, std::span<const std::uint8_t> body,
+            std::int64_t robot_ns) noexcept {
+    std::size_t at = 0;
+    bool ok = true;
+    if (type == "TRANSFORM") {
+      at = 36;
+      ok = body.size() == 48;
+    } else if (type == "POSITION") {
+      ok = body.size() == 12 || body.size() == 24 || body.size() == 28;
+    } else {
+      const bool tdata = type == "TDATA";
+      const std::size_t element = tdata ? kTdataElementBytes : kQtdataElementBytes;
+      ok = !body.empty() && body.size() % element == 0;
+      if (ok) {
+        const std::optional<std::size_t> found = find_tool(type, device, body, element);
+        if (!found) {
+          return;
+        }
+        at = *found + kTrackNameBytes + 2 + (tdata ? 36 : 0);
+      }
+    }
+    if (!ok) {
+      drop(stats_, events_, DropReason::length, [&] {
+        return fmt::format("OpenIGTLink {} from '{}' dropped: a body of {} bytes does not fit its type", type,
+                           device, body.size());
+      });
       return;
     }
+    const double x = get_f32(body.data() + at);
+    const double y = get_f32(body.data() + at + 4);
+    const double z = get_f32(body.data() + at + 8);
+    const std::array<double, 3> p = rotate(options_.robot_to_tissue, 1e-3 * x, 1e-3 * y, 1e-3 * z);
     Pose next;
-    next.x_m = 1e-3 * get_f32(body.data() + at);
-    next.y_m = 1e-3 * get_f32(body.data() + at + 4);
-    next.indentation_m = -1e-3 * get_f32(body.data() + at + 8);
+    next.x_m = p[0] + options_.robot_origin_m[0];
+    next.y_m = p[1] + options_.robot_origin_m[1];
+    next.indentation_m = -(p[2] + options_.robot_origin_m[2]);
     SlaveSample check;
     check.contact_x_m = next.x_m;
     check.contact_y_m = next.y_m;
     check.indentation_m = next.indentation_m;
-    if (!values_ok(check, options_, stats_) || !ordered(pose_gate_, robot_ns)) {
+    if (!values_ok(check, options_, stats_, events_) || !ordered(pose_gate_, robot_ns)) {
       return;
     }
     pose_ = next;
+    stats_.poses.fetch_add(1, std::memory_order_relaxed);
+  }
+
+  // The offset of the tool named pose_tool (the first with "*") in a QTDATA or TDATA body.
+  std::optional<std::size_t> find_tool(std::string_view type, std::string_view device,
+                                       std::span<const std::uint8_t> body, std::size_t element) noexcept {
+    for (std::size_t at = 0; at < body.size(); at += element) {
+      if (matches(options_.igtl_pose_tool, field(body.data() + at, kTrackNameBytes))) {
+        return at;
+      }
+    }
+    stats_.count(DropReason::device);
+    events_.once(static_cast<unsigned>(EventKey::pose_tool), true, [&] {
+      std::string tools;
+      for (std::size_t at = 0; at < body.size(); at += element) {
+        tools += (tools.empty() ? "'" : ", '") + std::string(field(body.data() + at, kTrackNameBytes)) + "'";
+      }
+      return fmt::format("{} from '{}' has no tool '{}' (it carries {}): set pose_tool=NAME (or *)", type,
+                         device, options_.igtl_pose_tool, tools);
+    });
+    return std::nullopt;
   }
 
   // NDARRAY: type u8, dim u8, dim x u16 sizes, then the elements, row-major. A rows x cols map of
   // pressures in Pa; force = sum(max(p, 0)) x pitch^2, contact = the pressure-weighted centroid
   // from the array's centre (column index along +x, row index along +y).
   void pressure_map(std::span<const std::uint8_t> body, std::int64_t robot_ns, TimePoint arrival) noexcept {
+    const auto bad_length = [&] {
+      return fmt::format("NDARRAY dropped: a body of {} bytes does not fit its sizes", body.size());
+    };
     if (body.size() < 2) {
-      stats_.count(Drop::malformed);
+      drop(stats_, events_, DropReason::length, bad_length);
       return;
     }
     const std::uint8_t type = body[0];
     const std::size_t dim = body[1];
     const std::size_t element = scalar_bytes(type);
     if (element == 0 || dim != 2) {
-      stats_.count(Drop::unsupported);
+      drop(stats_, events_, DropReason::type, [&] {
+        return fmt::format(
+            "NDARRAY of scalar type {} in {} dimensions dropped: send a 2-D map of real "
+            "numbers (int8..uint32, float32, float64)",
+            type, dim);
+      });
       return;
     }
     if (body.size() < 2 + 2 * dim) {
-      stats_.count(Drop::malformed);
+      drop(stats_, events_, DropReason::length, bad_length);
       return;
     }
     const std::size_t rows = get_be(body.data() + 2, 2);
     const std::size_t cols = get_be(body.data() + 4, 2);
     if (rows * cols > kMaxMapCells) {
-      stats_.count(Drop::oversized);
+      drop(stats_, events_, DropReason::oversized, [&] {
+        return fmt::format("NDARRAY of {} x {} dropped: at most {} cells", rows, cols, kMaxMapCells);
+      });
       return;
     }
     if (rows == 0 || cols == 0 || body.size() != 6 + rows * cols * element) {
-      stats_.count(Drop::malformed);
+      drop(stats_, events_, DropReason::length, bad_length);
       return;
     }
     double sum_Pa = 0.0;
@@ -401,7 +680,8 @@ class IgtlSource final : public QueuedSource {
       for (std::size_t c = 0; c < cols; ++c) {
         const double p_Pa = scalar(type, body.data() + 6 + (r * cols + c) * element);
         if (!std::isfinite(p_Pa)) {
-          stats_.count(Drop::non_finite);
+          drop(stats_, events_, DropReason::non_finite,
+               [] { return std::string("NDARRAY dropped: a cell is NaN or Inf"); });
           return;
         }
         const double w = std::max(p_Pa, 0.0);  // sensor offset noise below zero presses nothing
@@ -425,7 +705,7 @@ class IgtlSource final : public QueuedSource {
     s.contact_x_m = pose_.x_m + dx_m;
     s.contact_y_m = pose_.y_m + dy_m;
     s.tip_radius_m = options_.tip_radius_m;
-    if (!values_ok(s, options_, stats_) || !ordered(gate, robot_ns)) {
+    if (!values_ok(s, options_, stats_, events_) || !ordered(gate, robot_ns)) {
       return;
     }
     s.stamp = mapper_.map(robot_ns, arrival);
@@ -437,10 +717,15 @@ class IgtlSource final : public QueuedSource {
   bool ordered(OrderGate& gate, std::int64_t robot_ns) noexcept {
     switch (gate.check(robot_ns)) {
       case OrderGate::Verdict::duplicate:
-        stats_.count(Drop::duplicate);
+        drop(stats_, events_, DropReason::duplicate, [] {
+          return std::string("OpenIGTLink message dropped: its timestamp repeats the last one of its kind");
+        });
         return false;
       case OrderGate::Verdict::out_of_order:
-        stats_.count(Drop::out_of_order);
+        drop(stats_, events_, DropReason::out_of_order, [] {
+          return std::string(
+              "OpenIGTLink message dropped: its timestamp is older than the last one of its kind");
+        });
         return false;
       case OrderGate::Verdict::restart:
         stats_.restarts.fetch_add(1, std::memory_order_relaxed);

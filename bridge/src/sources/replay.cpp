@@ -66,11 +66,16 @@ class ReplaySource final : public StreamSource {
     }
     std::array<char, kMaxLine + 2> buffer{};
     bool first = true;
+    std::size_t line_number = 0;
     sources::OrderGate gate(std::numeric_limits<std::uint32_t>::max());
     while (std::fgets(buffer.data(), static_cast<int>(buffer.size()), file.get()) != nullptr) {
       std::string_view line(buffer.data());
+      ++line_number;
       if (!line.ends_with('\n') && std::feof(file.get()) == 0) {
-        stats_.oversized += 1;  // skip the rest of the overlong line
+        // Skip the rest of the overlong line.
+        sources::drop(stats_, events_, DropReason::oversized, [&] {
+          return fmt::format("replay '{}': a line over {} characters skipped", path, kMaxLine);
+        });
         int c = 0;
         while ((c = std::fgetc(file.get())) != EOF && c != '\n') {
         }
@@ -92,7 +97,7 @@ class ReplaySource final : public StreamSource {
       if (line.empty() || line.starts_with('#')) {
         continue;
       }
-      load_line(line, gate);
+      load_line(line, gate, line_number);
     }
     if (first) {
       throw Error("replay source: '" + path + "' is empty (expected '" + std::string(kFileMagic) + "')");
@@ -106,7 +111,12 @@ class ReplaySource final : public StreamSource {
     }
   }
 
-  [[nodiscard]] SourceStats stats() const noexcept override { return stats_; }
+  [[nodiscard]] SourceStats stats() const noexcept override { return stats_.snapshot(); }
+  [[nodiscard]] std::vector<SourceEvent> events_after(std::uint64_t seq) const override {
+    return events_.after(seq);
+  }
+  [[nodiscard]] std::uint64_t event_count() const noexcept override { return events_.count(); }
+  [[nodiscard]] std::string last_warning() const override { return events_.last_warning(); }
 
   bool latest(TimePoint now, SlaveSample& out) noexcept override {
     if (entries_.empty()) {
@@ -154,7 +164,8 @@ class ReplaySource final : public StreamSource {
     TimePoint due{};     // its arrival: received_ns, never before the previous entry's
   };
 
-  void load_line(std::string_view line, sources::OrderGate& gate) {
+  void load_line(std::string_view line, sources::OrderGate& gate, std::size_t number) {
+    using sources::drop;
     std::array<std::string_view, 7> f;
     std::int64_t stamp_ns = 0;
     std::int64_t received_ns = 0;
@@ -162,32 +173,45 @@ class ReplaySource final : public StreamSource {
     if (!split(line, f) || !parse(f[0], stamp_ns) || !parse(f[1], received_ns) || !parse(f[2], s.force_N) ||
         !parse(f[3], s.indentation_m) || !parse(f[4], s.contact_x_m) || !parse(f[5], s.contact_y_m) ||
         !parse(f[6], s.tip_radius_m)) {
-      stats_.malformed += 1;
+      drop(stats_, events_, DropReason::format, [&] {
+        return fmt::format(
+            "replay line {} skipped: not 7 numbers (stamp_ns received_ns force_N indentation_m "
+            "contact_x_m contact_y_m tip_radius_m)",
+            number);
+      });
       return;
     }
-    sources::AtomicStats counts;
-    if (!sources::values_ok(s, options_, counts)) {
-      stats_.non_finite += counts.count_of(sources::Drop::non_finite);
-      stats_.out_of_range += counts.count_of(sources::Drop::out_of_range);
+    if (!sources::values_ok(s, options_, stats_, events_)) {
       return;
     }
     if (!sources::stamp_ok(stamp_ns) || !sources::stamp_ok(received_ns)) {
-      stats_.out_of_range += 1;
+      drop(stats_, events_, DropReason::stamp,
+           [&] { return fmt::format("replay line {} skipped: a stamp outside 0..2^62 ns", number); });
       return;
     }
     switch (gate.check(stamp_ns)) {
       case sources::OrderGate::Verdict::duplicate:
-        stats_.duplicate += 1;
+        drop(stats_, events_, DropReason::duplicate, [&] {
+          return fmt::format("replay line {} skipped: its stamp repeats the line before", number);
+        });
         return;
       case sources::OrderGate::Verdict::out_of_order:
       case sources::OrderGate::Verdict::restart:
-        stats_.out_of_order += 1;
+        drop(stats_, events_, DropReason::out_of_order, [&] {
+          return fmt::format(
+              "replay line {} skipped: its stamp is older than the line before (stamps must "
+              "increase)",
+              number);
+        });
         return;
       case sources::OrderGate::Verdict::accept:
         break;
     }
     if (entries_.size() >= options_.max_replay_samples) {
-      stats_.oversized += 1;
+      drop(stats_, events_, DropReason::oversized, [&] {
+        return fmt::format("replay: samples past {} skipped (max_replay_samples)",
+                           options_.max_replay_samples);
+      });
       return;
     }
     s.stamp = TimePoint{stamp_ns};
@@ -197,7 +221,7 @@ class ReplaySource final : public StreamSource {
       due = std::max(due, entries_.back().due);
     }
     entries_.push_back(Entry{s, due});
-    stats_.accepted += 1;
+    stats_.accepted.fetch_add(1, std::memory_order_relaxed);
   }
 
   bool next_as_fast_as_possible(TimePoint now, SlaveSample& out) noexcept {
@@ -215,7 +239,8 @@ class ReplaySource final : public StreamSource {
   }
 
   SourceOptions options_;
-  SourceStats stats_{};
+  sources::AtomicStats stats_;
+  sources::SourceEvents events_;
   std::vector<Entry> entries_;
   TimePoint base_{};
   Duration cycle_{};

@@ -1,4 +1,5 @@
 // udp://HOST:PORT: one sample per datagram, format v1 (docs/sources.md).
+#include <fmt/format.h>
 #include <poll.h>
 #include <sys/socket.h>
 
@@ -86,13 +87,32 @@ UdpSource::~UdpSource() {
 
 void UdpSource::handle(std::span<const std::uint8_t> d, std::size_t length, TimePoint arrival) noexcept {
   if (length > kUdpDatagramBytes) {
-    stats_.count(Drop::oversized);
+    drop(stats_, events_, DropReason::oversized, [&] {
+      return fmt::format("UDP datagram of {} bytes dropped: a sample is {} bytes (docs/sources.md)", length,
+                         kUdpDatagramBytes);
+    });
     return;
   }
-  if (length < kUdpDatagramBytes || std::memcmp(d.data(), kMagic.data(), kMagic.size()) != 0 ||
-      get_le<std::uint16_t>(d.data() + 4) != kUdpVersion ||
-      get_le<std::uint32_t>(d.data() + kCrcOffset) != crc32c(d.first(kCrcOffset))) {
-    stats_.count(Drop::malformed);
+  if (length < kUdpDatagramBytes) {
+    drop(stats_, events_, DropReason::length, [&] {
+      return fmt::format("UDP datagram of {} bytes dropped: a sample is {} bytes (docs/sources.md)", length,
+                         kUdpDatagramBytes);
+    });
+    return;
+  }
+  if (std::memcmp(d.data(), kMagic.data(), kMagic.size()) != 0 ||
+      get_le<std::uint16_t>(d.data() + 4) != kUdpVersion) {
+    drop(stats_, events_, DropReason::format, [] {
+      return std::string(
+          "UDP datagram dropped: not an mrskin sample v1 (magic MRSS, version 1; docs/sources.md)");
+    });
+    return;
+  }
+  if (get_le<std::uint32_t>(d.data() + kCrcOffset) != crc32c(d.first(kCrcOffset))) {
+    drop(stats_, events_, DropReason::crc, [] {
+      return std::string(
+          "UDP datagram dropped: bad CRC-32C (over bytes 0..63, at offset 64; docs/sources.md)");
+    });
     return;
   }
   SlaveSample s;
@@ -102,19 +122,25 @@ void UdpSource::handle(std::span<const std::uint8_t> d, std::size_t length, Time
   s.contact_x_m = get_le<double>(d.data() + 40);
   s.contact_y_m = get_le<double>(d.data() + 48);
   s.tip_radius_m = get_le<double>(d.data() + 56);
-  if (!values_ok(s, options_, stats_)) {
+  if (!values_ok(s, options_, stats_, events_)) {
     return;
   }
   if (!stamp_ok(robot_ns)) {
-    stats_.count(Drop::out_of_range);
+    drop(stats_, events_, DropReason::stamp, [&] {
+      return fmt::format("UDP sample dropped: robot stamp {} ns is outside 0..2^62 ns", robot_ns);
+    });
     return;
   }
   switch (gate_.check(robot_ns)) {
     case OrderGate::Verdict::duplicate:
-      stats_.count(Drop::duplicate);
+      drop(stats_, events_, DropReason::duplicate, [] {
+        return std::string("UDP sample dropped: its robot stamp repeats the last one (a resend?)");
+      });
       return;
     case OrderGate::Verdict::out_of_order:
-      stats_.count(Drop::out_of_order);
+      drop(stats_, events_, DropReason::out_of_order, [] {
+        return std::string("UDP sample dropped: its robot stamp is older than the last one (reordered)");
+      });
       return;
     case OrderGate::Verdict::restart:
       stats_.restarts.fetch_add(1, std::memory_order_relaxed);

@@ -15,7 +15,9 @@
 #include <string>
 #include <string_view>
 #include <thread>
+#include <vector>
 
+#include "mrskin/bridge/drop_reason.hpp"
 #include "mrskin/bridge/scene.hpp"
 #include "mrskin/driver/clock.hpp"
 #include "mrskin/driver/spsc_queue.hpp"
@@ -37,13 +39,20 @@ struct SourceOptions {
   // A stream whose stamps go backwards this many times in a row restarted (a robot reboot):
   // ordering and the clock offset start over.
   std::uint32_t restart_after_out_of_order = 100;
-  // OpenIGTLink.
-  std::string igtl_force_device = "ContactForce";  // SENSOR, one value, unit N
-  std::string igtl_pose_device = "InstrumentTip";  // TRANSFORM or POSITION, mm, tissue frame
+  // OpenIGTLink: the device name each message kind is taken from ("*": any name). URI keys
+  // force_device, pose_device, map_device and pose_tool; the daemon's [stream] table.
+  std::string igtl_force_device = "ContactForce";  // SENSOR: 1 value (normal), 3 (force), 6 (wrench)
+  std::string igtl_pose_device = "InstrumentTip";  // TRANSFORM, POSITION, QTDATA, TDATA; mm
   std::string igtl_map_device = "TactileArray";    // NDARRAY rows x cols, Pa
-  double tactile_pitch_m = 2e-3;                   // NDARRAY cell pitch (square cells)
-  std::size_t max_message_bytes = 65536;           // larger bodies: oversized, connection closed
-  double reconnect_min_s = 0.05;                   // igtl:// backoff, doubling up to max
+  std::string igtl_pose_tool = "*";                // QTDATA/TDATA element name ("*": the first)
+  // The robot's frame in the tissue frame: a force vector f and a position p reported in the
+  // robot's frame are taken as R f and R p + origin. Row-major; identity: the robot reports in
+  // the tissue frame (z along the tissue's outward normal, the surface at z = 0).
+  std::array<double, 9> robot_to_tissue{1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0};
+  std::array<double, 3> robot_origin_m{0.0, 0.0, 0.0};
+  double tactile_pitch_m = 2e-3;          // NDARRAY cell pitch (square cells)
+  std::size_t max_message_bytes = 65536;  // larger bodies: oversized, connection closed
+  double reconnect_min_s = 0.05;          // igtl:// backoff, doubling up to max
   double reconnect_max_s = 2.0;
   // Replay.
   bool replay_loop = false;       // start over at the end instead of holding the last sample
@@ -54,21 +63,30 @@ struct SourceOptions {
 // A snapshot of a source's counters.
 struct SourceStats {
   std::uint64_t accepted = 0;
-  std::uint64_t malformed = 0;     // short, bad magic, version, CRC, or body not matching its type
-  std::uint64_t oversized = 0;     // longer than the format allows
-  std::uint64_t non_finite = 0;    // NaN or Inf in a field
-  std::uint64_t out_of_range = 0;  // outside SourceOptions' ranges
-  std::uint64_t out_of_order = 0;  // robot stamp older than the last accepted one
-  std::uint64_t duplicate = 0;     // robot stamp equal to the last accepted one
-  std::uint64_t queue_full = 0;    // superseded by a newer sample before the tick took it
-  std::uint64_t unsupported = 0;   // well-formed, but a message type, device or unit not used
-  std::uint64_t restarts = 0;      // stream restarts (see restart_after_out_of_order)
-  std::uint64_t connections = 0;   // OpenIGTLink connections made or accepted
+  DropCounts drops{};             // by DropReason (drop_reason.hpp)
+  std::uint64_t poses = 0;        // pose messages taken (OpenIGTLink; a pose alone makes no sample)
+  std::uint64_t restarts = 0;     // stream restarts (see restart_after_out_of_order)
+  std::uint64_t connections = 0;  // OpenIGTLink connections made or accepted
   std::uint64_t disconnects = 0;
-  [[nodiscard]] std::uint64_t dropped() const noexcept {
-    return malformed + oversized + non_finite + out_of_range + out_of_order + duplicate + queue_full +
-           unsupported;
+  std::uint64_t connect_failures = 0;  // igtl://: attempts that failed (resolve, refused, timeout)
+  [[nodiscard]] std::uint64_t of(DropReason r) const noexcept {
+    return drops.at(static_cast<std::size_t>(r));
   }
+  [[nodiscard]] std::uint64_t dropped() const noexcept {
+    std::uint64_t n = 0;
+    for (const std::uint64_t d : drops) {
+      n += d;
+    }
+    return n;
+  }
+};
+
+// What a source has to say to its operator: the first drop of each reason with its fix ("SENSOR
+// from device 'X' ignored: set force_device=X"), connections, failures to connect. Numbered from 1.
+struct SourceEvent {
+  std::uint64_t seq = 0;
+  bool warning = false;  // a drop or a failure; else information (a connection)
+  std::string text;
 };
 
 // Called from a source's I/O thread after it queued a sample (e.g. to wake the loop early).
@@ -82,17 +100,28 @@ class StreamSource : public SlaveSource {
   virtual void set_arrival_hook(ArrivalHook /*hook*/, void* /*context*/) noexcept {}
   // The port a listening source is bound to (useful with port 0), else 0.
   [[nodiscard]] virtual std::uint16_t local_port() const noexcept { return 0; }
+  // Off the tick (allocates, locks): the events numbered after seq, oldest first (the last 64
+  // are kept). event_count() is their count so far, wait-free: poll it, then fetch.
+  [[nodiscard]] virtual std::vector<SourceEvent> events_after(std::uint64_t seq) const = 0;
+  [[nodiscard]] virtual std::uint64_t event_count() const noexcept = 0;
+  // Off the tick: the latest warning ("" when none): why no sample may be arriving.
+  [[nodiscard]] virtual std::string last_warning() const = 0;
 };
 
 // Opens a source. Throws InvalidArgument for a bad URI (naming the bad part and listing the
 // schemes), and mrskin::Error when a socket cannot be bound or a replay file read. clock: the
 // loop's clock (arrival times, replay timing); nullptr: CLOCK_MONOTONIC.
-// Query options (after '?'): udp/igtl*: queue=N; replay: speed=max|1, loop=0|1.
+// Query options (after '?'): udp/igtl*: queue=N; igtl*: force_device, pose_device, map_device,
+// pose_tool (NAME or *), rpy_deg=ROLL,PITCH,YAW (the robot's frame, docs/sources.md); replay:
+// speed=max|1, loop=0|1.
 std::unique_ptr<SlaveSource> make_source(std::string_view uri, const SourceOptions& options = {},
                                          Clock* clock = nullptr);
 // The same for udp://, replay://, igtl:// and igtl-listen:// only, with the counters in reach.
 std::unique_ptr<StreamSource> open_stream(std::string_view uri, const SourceOptions& options = {},
                                           Clock* clock = nullptr);
+// The robot's frame from roll, pitch and yaw in degrees (R = Rz(yaw) Ry(pitch) Rx(roll)), for
+// SourceOptions::robot_to_tissue. Throws InvalidArgument for a value that is not finite.
+std::array<double, 9> rotation_from_rpy_deg(double roll_deg, double pitch_deg, double yaw_deg);
 // Every scheme make_source accepts, for messages and --help.
 std::span<const std::string_view> source_schemes() noexcept;
 

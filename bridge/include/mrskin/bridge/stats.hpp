@@ -5,6 +5,7 @@
 #include <cstdint>
 #include <string>
 
+#include "mrskin/bridge/drop_reason.hpp"
 #include "mrskin/driver/histogram.hpp"
 
 namespace mrskin::bridge {
@@ -27,6 +28,26 @@ class RelativeErrorHistogram {
   std::uint64_t count_ = 0;
 };
 
+// Forces from 1 mN to 100 N in bins 1 % wide (smaller forces in the first bin, larger in the
+// last), with the exact maximum: a fixed array, so the tick can fill it.
+class ForceHistogram {
+ public:
+  void add(double force_N) noexcept;
+  // Upper edge of the bin holding quantile q (0 for the first bin, the exact maximum for the
+  // last); 0 when empty.
+  [[nodiscard]] double percentile_N(double q) const noexcept;
+  [[nodiscard]] double max_N() const noexcept { return max_N_; }
+  [[nodiscard]] std::uint64_t count() const noexcept { return count_; }
+
+ private:
+  static constexpr double kLow_N = 1e-3;
+  static constexpr double kRatio = 1.01;
+  static constexpr std::size_t kBins = 1160;  // 1 mN * 1.01^1158 > 100 N
+  std::array<std::uint32_t, kBins> bins_{};
+  std::uint64_t count_ = 0;
+  double max_N_ = 0.0;
+};
+
 struct BridgeStats {
   std::uint64_t ticks = 0;
   std::uint64_t overruns = 0;         // ticks whose work exceeded the period
@@ -38,6 +59,9 @@ struct BridgeStats {
   // dropped (malformed, out of range, out of order, duplicate, ...; docs/sources.md).
   std::uint64_t samples_accepted = 0;
   std::uint64_t samples_dropped = 0;
+  DropCounts samples_dropped_by_reason{};  // by DropReason (drop_reason.hpp)
+  // The contact force the stream carried (each fresh sample, N): what the robot sent.
+  ForceHistogram slave_force;
   std::uint64_t stale_ticks = 0;  // ticks rendering without fresh slave data
   DurationHistogram tick_time;
   // Processing latency: from the tick that consumes a new robot sample to the frame carrying

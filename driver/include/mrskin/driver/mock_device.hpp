@@ -87,6 +87,9 @@ struct MockOptions {
   // The protocol major version the unit reports in its Identity (mock://?protocol_major=N): a
   // unit from another major release, which a host must refuse (ProtocolMismatch).
   std::uint8_t protocol_major = protocol::kVersionMajor;
+  // mock://?finger=SCENE: the scene whose script the simulated finger follows while the stream
+  // comes from elsewhere. The driver only carries the name; the bridge's tools run the script.
+  std::string finger_scene;
   double degauss_step_s = 0.02;  // each half-cycle's hold (about 4 coil time constants)
   double degauss_ratio = 0.85;   // amplitude ratio between half-cycles, from max_current_A
 };
