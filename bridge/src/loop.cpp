@@ -308,29 +308,53 @@ void RealtimeLoop::reset_run() noexcept {
   waiter_->clear();
 }
 
+bool RealtimeLoop::early_tick_allowed(TimePoint woke) const noexcept {
+  // At least half a period after the last tick, and never more than one tick ahead of the
+  // configured rate since the run began: early wakes never raise the tick rate.
+  const auto since_last = static_cast<double>((woke - last_tick_).count());
+  const auto elapsed = static_cast<double>((woke - run_start_).count());
+  return since_last >= 0.5 * period_ns_ &&
+         static_cast<double>(stats_.ticks + 1) <= std::floor(elapsed / period_ns_) + 2.0;
+}
+
 bool RealtimeLoop::run_once() noexcept {
   if (stop_requested_.load(std::memory_order_acquire)) {
     return false;
   }
   if (!grid_started_) {
     start_ = clock_.now();
+    run_start_ = start_;
     k_ = 0;
     next_ = start_;
     grid_started_ = true;
   }
-  const Waiter::Wake wake = waiter_->wait_until(next_);
-  if (stop_requested_.load(std::memory_order_acquire)) {
-    return false;
+  TimePoint woke{};
+  for (;;) {
+    const Waiter::Wake wake = waiter_->wait_until(next_);
+    if (stop_requested_.load(std::memory_order_acquire)) {
+      return false;
+    }
+    woke = clock_.now();
+    // A notification landing at or after the deadline is the periodic tick, not an early one.
+    if (wake == Waiter::Wake::deadline || woke >= next_) {
+      stats_.wake_latency.add(std::max<std::int64_t>(0, (woke - next_).count()));
+      ++k_;
+      next_ = deadline(k_);
+      break;
+    }
+    if (early_tick_allowed(woke)) {
+      // The tick moves forward to the sample and the grid follows it, so a stream at the loop's
+      // rate is served as it arrives, once per period.
+      ++stats_.early_wakes;
+      start_ = woke;
+      k_ = 1;
+      next_ = deadline(k_);
+      break;
+    }
+    // Too soon after the last tick, or ahead of the rate: the periodic tick takes the sample.
+    ++stats_.refused_wakes;
   }
-  const TimePoint woke = clock_.now();
-  // A notification landing at or after the deadline is the periodic tick, not an early one.
-  if (wake == Waiter::Wake::deadline || woke >= next_) {
-    stats_.wake_latency.add(std::max<std::int64_t>(0, (woke - next_).count()));
-    ++k_;
-    next_ = deadline(k_);
-  } else {
-    ++stats_.early_wakes;
-  }
+  last_tick_ = woke;
   const ResultCode rc = tick_(context_, woke);
   const TimePoint end = clock_.now();
   stats_.tick_time.add((end - woke).count());

@@ -228,24 +228,56 @@ TEST(Loop, TickEndingExactlyOnTheDeadlineIsNoOverrun) {
   EXPECT_EQ(loop.stats().skipped_periods, 0U);
 }
 
-TEST(Loop, NotifyWakesEarlyWithoutMovingTheGrid) {
+TEST(Loop, NotifyWakesEarlyAndTheGridFollowsTheTick) {
+  SimulatedClock clock;
+  Recorder rec;
+  RealtimeLoop loop(clock, rec);
+  ASSERT_TRUE(loop.run_once());  // tick at 0
+  clock.advance(microseconds(600));
+  loop.notify();
+  loop.notify();                 // coalesces with the first
+  ASSERT_TRUE(loop.run_once());  // early tick at 0.6 ms
+  ASSERT_TRUE(loop.run_once());  // periodic, one period after it: 1.6 ms
+  ASSERT_TRUE(loop.run_once());  // 2.6 ms
+  EXPECT_EQ(rec.at(1), TimePoint{microseconds(600)});
+  EXPECT_EQ(rec.at(2), TimePoint{microseconds(1600)});
+  EXPECT_EQ(rec.at(3), TimePoint{microseconds(2600)});
+  EXPECT_EQ(loop.stats().ticks, 4U);
+  EXPECT_EQ(loop.stats().early_wakes, 1U);
+  EXPECT_EQ(loop.stats().wake_latency.count(), 3U);  // periodic ticks only
+  EXPECT_EQ(loop.stats().overruns, 0U);
+}
+
+TEST(Loop, AWakeWithinHalfAPeriodOfATickWaitsForTheDeadline) {
   SimulatedClock clock;
   Recorder rec;
   RealtimeLoop loop(clock, rec);
   ASSERT_TRUE(loop.run_once());  // tick at 0
   clock.advance(microseconds(300));
   loop.notify();
-  loop.notify();                 // coalesces with the first
-  ASSERT_TRUE(loop.run_once());  // early tick at 0.3 ms
-  ASSERT_TRUE(loop.run_once());  // periodic tick at 1 ms: the grid did not move
-  ASSERT_TRUE(loop.run_once());  // 2 ms
-  EXPECT_EQ(rec.at(1), TimePoint{microseconds(300)});
-  EXPECT_EQ(rec.at(2), TimePoint{milliseconds(1)});
-  EXPECT_EQ(rec.at(3), TimePoint{milliseconds(2)});
-  EXPECT_EQ(loop.stats().ticks, 4U);
-  EXPECT_EQ(loop.stats().early_wakes, 1U);
-  EXPECT_EQ(loop.stats().wake_latency.count(), 3U);  // periodic ticks only
-  EXPECT_EQ(loop.stats().overruns, 0U);
+  ASSERT_TRUE(loop.run_once());  // not at 0.3 ms: the periodic tick at 1 ms reads the sample
+  EXPECT_EQ(rec.at(1), TimePoint{milliseconds(1)});
+  EXPECT_EQ(loop.stats().early_wakes, 0U);
+  EXPECT_EQ(loop.stats().refused_wakes, 1U);
+}
+
+// A stream twice as fast as the loop, notifying at every sample: the loop ticks at most once per
+// period over the run (one tick ahead at most), never at the stream's rate.
+TEST(Loop, NotificationsFasterThanTheRateNeverRaiseIt) {
+  SimulatedClock clock;
+  Recorder rec;
+  RealtimeLoop loop(clock, rec);
+  ASSERT_TRUE(loop.run_once());
+  const TimePoint start = clock.now();
+  for (int k = 0; k < 2000; ++k) {
+    clock.advance(microseconds(500));
+    loop.notify();
+    ASSERT_TRUE(loop.run_once());
+    const double periods = static_cast<double>((clock.now() - start).count()) / 1e6;
+    ASSERT_LE(static_cast<double>(loop.stats().ticks), std::floor(periods) + 2.0) << "at " << k;
+  }
+  EXPECT_GT(loop.stats().early_wakes, 0U);
+  EXPECT_GT(loop.stats().refused_wakes, 0U);
 }
 
 TEST(Loop, NotifyFromAnotherThreadWakesABlockedLoop) {
@@ -255,14 +287,14 @@ TEST(Loop, NotifyFromAnotherThreadWakesABlockedLoop) {
   RealtimeLoop loop(clock, rec, simulated_options(&waiter));
   EXPECT_EQ(loop.start(), "");
   wait_for_ticks(loop, 1);
-  waiter.advance(microseconds(250));
+  waiter.advance(microseconds(600));
   loop.notify();  // the clock never reaches 1 ms: only the notification can wake it
   wait_for_ticks(loop, 2);
-  waiter.advance(microseconds(750));
+  waiter.advance(microseconds(1000));
   wait_for_ticks(loop, 3);
   loop.stop();
-  EXPECT_EQ(rec.at(1), TimePoint{microseconds(250)});
-  EXPECT_EQ(rec.at(2), TimePoint{milliseconds(1)});
+  EXPECT_EQ(rec.at(1), TimePoint{microseconds(600)});
+  EXPECT_EQ(rec.at(2), TimePoint{microseconds(1600)});
   EXPECT_EQ(loop.stats().early_wakes, 1U);
   EXPECT_EQ(loop.stats().ticks, 3U);
 }
@@ -503,6 +535,7 @@ TEST(LoopAllocation, NoHeapAllocationPerTick) {
   const std::uint64_t before = test::allocation_count();
   for (int k = 0; k < 10'000; ++k) {
     if (k % 7 == 0) {
+      clock.advance(microseconds(600));
       loop.notify();  // the early-wake path
     }
     ASSERT_TRUE(loop.run_once());

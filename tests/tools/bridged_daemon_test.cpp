@@ -8,6 +8,7 @@
 #include <gtest/gtest.h>
 #include <igtlClientSocket.h>
 #include <igtlSensorMessage.h>
+#include <igtlTrackingDataMessage.h>
 #include <igtlUnit.h>
 #include <netinet/in.h>
 #include <sys/socket.h>
@@ -18,7 +19,9 @@
 
 #include <algorithm>
 #include <chrono>
+#include <cmath>
 #include <csignal>
+#include <cstdio>
 #include <cstdlib>
 #include <filesystem>
 #include <fstream>
@@ -416,6 +419,108 @@ TEST_F(BridgedDaemon, OpenIgtlinkSensorMessagesAreAccepted) {
   const std::string stats = slurp(stats_);
   ASSERT_TRUE(json_field(stats, "samples_accepted").has_value()) << stats << d.output();
   EXPECT_GT(std::stoull(*json_field(stats, "samples_accepted")), 0U) << stats;
+}
+
+// A robot as senders in the field send it, with Debian's OpenIGTLink library and none of our
+// encoders: its own device names (set in the configuration and the URI), its tool's pose as
+// TDATA, and the force as a 3-component vector in millinewtons, while the mock's finger follows
+// the demo scene's press (mock://?finger=demo). The tissue it palpates is the demo's
+// (Kelvin-Voigt, 300 N/m, 0.5 N s/m, the same depth profile), so the run is scored like a scene
+// run. A few messages the daemon must refuse come first: their reasons are in the statistics
+// and in the log.
+TEST_F(BridgedDaemon, AFieldRobotOverOpenIgtlinkIsRenderedWithinTheClosedLoopFigures) {
+  const std::uint16_t port = free_port(SOCK_STREAM);
+  ASSERT_NE(port, 0);
+  const std::string stream_table = "[stream]\nforce_device = \"FTSensor\"\n";
+  Daemon d(dir_, "field",
+           {"--config", config(stream_table).string(), "--device", "mock://?finger=demo", "--source",
+            "igtl-listen://127.0.0.1:" + std::to_string(port) + "?pose_device=Tracker&pose_tool=Stylus",
+            "--quiet"});
+  igtl::ClientSocket::Pointer robot;
+  ASSERT_TRUE(eventually([&] {
+    robot = igtl::ClientSocket::New();
+    return robot->ConnectToServer("127.0.0.1", port) == 0;
+  })) << d.output();
+  const auto stamped = [](igtl::MessageBase* m, std::uint32_t k) {
+    auto ts = igtl::TimeStamp::New();
+    ts->SetTime(1000U + k / 1000U, (k % 1000U) * 1'000'000U);
+    m->SetTimeStamp(ts);
+    m->Pack();
+  };
+  const auto sensor = [&](const char* device, double fx, double fy, double fz, bool newton, std::uint32_t k) {
+    auto m = igtl::SensorMessage::New();
+    m->SetDeviceName(device);
+    m->SetLength(3);
+    auto unit = igtl::Unit::New();
+    unit->Init();
+    if (newton) {
+      unit->SetPrefix(igtl::Unit::SI_PREFIX_MILLI);
+      unit->Append(igtl::Unit::SI_DERIVED_NEWTON, 1);
+    }
+    m->SetUnit(unit);
+    m->SetValue(0U, fx);
+    m->SetValue(1U, fy);
+    m->SetValue(2U, fz);
+    stamped(m.GetPointer(), k);
+    return robot->Send(m->GetPackPointer(), static_cast<int>(m->GetPackSize())) == 1;
+  };
+  const auto tool_at = [&](double depth_m, std::uint32_t k) {
+    auto m = igtl::TrackingDataMessage::New();
+    m->SetDeviceName("Tracker");
+    auto tool = igtl::TrackingDataElement::New();
+    tool->SetName("Stylus");
+    tool->SetPosition(0.0F, 0.0F, static_cast<float>(-1e3 * depth_m));  // mm, z out of the tissue
+    m->AddTrackingDataElement(tool);
+    stamped(m.GetPointer(), k);
+    return robot->Send(m->GetPackPointer(), static_cast<int>(m->GetPackSize())) == 1;
+  };
+  // Refused: the default device name, a force without a unit.
+  ASSERT_TRUE(sensor("ContactForce", 0.0, 0.0, 100.0, true, 1));
+  ASSERT_TRUE(sensor("FTSensor", 0.0, 0.0, 100.0, false, 1));
+  // 11 s at 1 kHz: the demo's depth (0 -> 4 mm in 1 s, hold 1 s, out in 1 s, rest 0.5 s).
+  constexpr std::uint32_t kTicks = 11'000;
+  auto next = std::chrono::steady_clock::now();
+  for (std::uint32_t k = 2; k < kTicks; ++k) {
+    const double t = std::fmod(1e-3 * k, 3.5);
+    const double depth_m = t < 1.0 ? 4e-3 * t : t < 2.0 ? 4e-3 : t < 3.0 ? 4e-3 * (3.0 - t) : 0.0;
+    const double rate_m_per_s = t < 1.0 ? 4e-3 : t >= 2.0 && t < 3.0 ? -4e-3 : 0.0;
+    const double force_mN = depth_m > 0.0 ? 1e3 * (300.0 * depth_m + 0.5 * rate_m_per_s) : 0.0;
+    // A shear the normal component must leave out; the tissue pushes the tool out along +z.
+    ASSERT_TRUE(tool_at(depth_m, k) && sensor("FTSensor", 40.0, -25.0, std::max(force_mN, 0.0), true, k))
+        << d.output();
+    next += std::chrono::milliseconds(1);
+    std::this_thread::sleep_until(next);
+  }
+  robot->CloseSocket();
+  d.signal(SIGTERM);
+  ASSERT_EQ(d.wait(60s), mrskin::tools::kOk) << d.output();
+  const std::string stats = slurp(stats_);
+  const std::string log = d.output();
+  const auto number = [&](const char* key) { return std::stod(json_field(stats, key).value_or("nan")); };
+  EXPECT_GE(number("force_samples"), 5000.0) << stats;
+  EXPECT_GE(number("samples_accepted"), 0.9 * (kTicks - 2)) << stats;
+  EXPECT_NE(stats.find(R"("device": 1,)"), std::string::npos) << stats;
+  EXPECT_NE(stats.find(R"("unit": 1,)"), std::string::npos) << stats;
+  EXPECT_NE(log.find("SENSOR from device 'ContactForce' ignored"), std::string::npos) << log;
+  EXPECT_NE(log.find("its unit is not a force"), std::string::npos) << log;
+  EXPECT_NE(log.find("a robot connected from 127.0.0.1:"), std::string::npos) << log;
+  // What the robot sent: 1.2 N at the deepest hold.
+  const std::size_t received = stats.find(R"("slave_force_n")");
+  ASSERT_NE(received, std::string::npos) << stats;
+  const std::vector<double> max_N = numbers(stats.substr(stats.find(R"("max": )", received) + 7, 12));
+  ASSERT_FALSE(max_N.empty()) << stats;
+  EXPECT_NEAR(max_N.front(), 1.202, 0.01) << stats;
+  std::printf("field robot: %s force samples, rms %s N, p95 %s (true state: %s), ticks %s\n",
+              json_field(stats, "force_samples").value_or("?").c_str(),
+              json_field(stats, "force_rms_error_n").value_or("?").c_str(),
+              json_field(stats, "relative_error_p95").value_or("?").c_str(),
+              stats.substr(stats.find(R"("true_state")"), 96).c_str(),
+              json_field(stats, "ticks").value_or("?").c_str());
+#if defined(NDEBUG) && !defined(MRSKIN_SANITIZED)
+  // The closed-loop figures (docs/bridge.md), in a real-time run on this shared machine.
+  EXPECT_LE(number("force_rms_error_n"), 0.04) << stats;
+  EXPECT_LE(number("relative_error_p95"), 0.07) << stats;
+#endif
 }
 
 // Exit 1: a device fault nobody asked for (the mock's bus-off at 1 s) latched at exit; the

@@ -215,11 +215,12 @@ int run(Settings cfg, const std::string& config_path, const mrskin::bridged::Ove
   if (const bridge::LoopStats* ls = daemon.loop_stats(); ls != nullptr) {
     fmt::print(
         "scheduler  {} priority {}, memory {}; wake latency p50 {:.1f} us, p99 {:.1f} us, p99.9 {:.1f} us; "
-        "early wakes {} (a stream sample woke the loop before its deadline)\n",
+        "early wakes {} (a stream sample woke the loop before its deadline), {} refused (too soon, or ahead "
+        "of the rate)\n",
         ls->scheduler.policy_name(), ls->scheduler.priority,
         ls->scheduler.memory_locked ? "locked" : "not locked", ls->wake_latency.percentile_ns(0.5) / 1e3,
         ls->wake_latency.percentile_ns(0.99) / 1e3, ls->wake_latency.percentile_ns(0.999) / 1e3,
-        ls->early_wakes);
+        ls->early_wakes, ls->refused_wakes);
   }
   if (const bridge::SampleRecorder* rec = daemon.recorder(); rec != nullptr) {
     fmt::print("recorded   {} samples to {} ({} dropped)\n", rec->written(), final_cfg.record,

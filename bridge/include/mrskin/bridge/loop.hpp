@@ -128,6 +128,7 @@ struct LoopOptions {
 struct LoopStats {
   std::uint64_t ticks = 0;            // every tick, periodic or early
   std::uint64_t early_wakes = 0;      // ticks run by notify() before their deadline
+  std::uint64_t refused_wakes = 0;    // notifications too soon after a tick or ahead of the rate (no tick)
   std::uint64_t overruns = 0;         // ticks that ended after their period's deadline
   std::uint64_t skipped_periods = 0;  // deadlines passed during an overrun: never ticked
   std::uint64_t tick_errors = 0;      // ticks that returned other than ok
@@ -183,6 +184,7 @@ class RealtimeLoop {
   [[nodiscard]] Duration period() const noexcept;
   // The k-th deadline of the current run's grid (k = 0 is the first tick).
   [[nodiscard]] TimePoint deadline(std::uint64_t k) const noexcept;
+  [[nodiscard]] bool early_tick_allowed(TimePoint woke) const noexcept;
 
  private:
   static ResultCode call_tickable(void* context, TimePoint now) noexcept;
@@ -199,9 +201,11 @@ class RealtimeLoop {
   RealtimeOs* os_;
   // Grid of the current run.
   bool grid_started_ = false;
-  TimePoint start_{};
+  TimePoint start_{};  // the grid's origin: the run's start, or the last early tick
   std::uint64_t k_ = 0;
   TimePoint next_{};
+  TimePoint run_start_{};  // the first tick: the tick budget counts from here
+  TimePoint last_tick_{};
   LoopStats stats_;
   std::atomic<std::uint64_t> live_ticks_{0};
   std::atomic<std::uint64_t> live_overruns_{0};
