@@ -55,6 +55,13 @@ cells_per_m = 50
 rotation_deg = 90
 mirror_x = true
 mirror_y = false
+[stream]
+force_device = "FTSensor"
+pose_device = "*"
+map_device = "Tactile"
+pose_tool = "Stylus"
+robot_rpy_deg = [0, 0, 90]
+robot_origin_m = [0.01, 0, 0.005]
 [bridge]
 feedback_gain_per_s = 20.0
 footprint_cells = 2
@@ -94,6 +101,15 @@ max_clients = 4
   EXPECT_DOUBLE_EQ(o.estimator.hold_s, 0.2);
   EXPECT_DOUBLE_EQ(o.estimator.fade_s, 0.4);
   EXPECT_DOUBLE_EQ(o.mapping.cells_per_m, 50.0);
+  const mrskin::bridge::SourceOptions so = mrskin::bridged::source_options(s);
+  EXPECT_EQ(so.igtl_force_device, "FTSensor");
+  EXPECT_EQ(so.igtl_pose_device, "*");
+  EXPECT_EQ(so.igtl_map_device, "Tactile");
+  EXPECT_EQ(so.igtl_pose_tool, "Stylus");
+  EXPECT_NEAR(so.robot_to_tissue[3], 1.0, 1e-12);  // yaw 90: the robot's x is the tissue's y
+  EXPECT_NEAR(so.robot_to_tissue[1], -1.0, 1e-12);
+  EXPECT_DOUBLE_EQ(so.robot_origin_m[0], 0.01);
+  EXPECT_DOUBLE_EQ(so.robot_origin_m[2], 0.005);
 }
 
 TEST_F(ConfigFile, AnEmptyFileKeepsTheDefaults) {
@@ -135,6 +151,12 @@ TEST_F(ConfigFile, ABadValueNamesFileLineAndKey) {
   EXPECT_NE(e.find(path_ + ":2: bridge.realtime"), std::string::npos) << e;
   e = error_of(write("mapping = 3\n"));
   EXPECT_NE(e.find(path_ + ":1: mapping"), std::string::npos) << e;
+  e = error_of(write("[stream]\nforce_device = \"\"\n"));
+  EXPECT_NE(e.find(path_ + ":2: stream.force_device"), std::string::npos) << e;
+  e = error_of(write("[stream]\nrobot_rpy_deg = [0, 0]\n"));
+  EXPECT_NE(e.find(path_ + ":2: stream.robot_rpy_deg"), std::string::npos) << e;
+  e = error_of(write("[stream]\nrobot_rpy_deg = [0, 0, 400]\n"));
+  EXPECT_NE(e.find("stream.robot_rpy_deg"), std::string::npos) << e;
   e = error_of(write("rate_hz = = 3\n"));
   EXPECT_NE(e.find(path_ + ":1:"), std::string::npos) << e;
 }

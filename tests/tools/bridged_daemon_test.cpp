@@ -474,8 +474,18 @@ TEST_F(BridgedDaemon, AFieldRobotOverOpenIgtlinkIsRenderedWithinTheClosedLoopFig
     stamped(m.GetPointer(), k);
     return robot->Send(m->GetPackPointer(), static_cast<int>(m->GetPackSize())) == 1;
   };
-  // Refused: the default device name, a force without a unit.
+  // Refused: the default device name, a force without a unit. Until a sample comes, the status
+  // says why none does.
+  LineClient c = connect();
+  ASSERT_TRUE(c.connected()) << d.output();
   ASSERT_TRUE(sensor("ContactForce", 0.0, 0.0, 100.0, true, 1));
+  std::string s;
+  EXPECT_TRUE(eventually([&] {
+    s = status(c);
+    return json_field(s, "stream_warning").value_or("").find("set force_device=ContactForce") !=
+           std::string::npos;
+  })) << s;
+  EXPECT_EQ(json_field(s, "stream"), "no sample yet") << s;
   ASSERT_TRUE(sensor("FTSensor", 0.0, 0.0, 100.0, false, 1));
   // 11 s at 1 kHz: the demo's depth (0 -> 4 mm in 1 s, hold 1 s, out in 1 s, rest 0.5 s).
   constexpr std::uint32_t kTicks = 11'000;
@@ -683,6 +693,12 @@ TEST_F(BridgedDaemon, BadConfigurationIsAUsageError) {
   EXPECT_EQ(flags.wait(30s), mrskin::tools::kUsage) << flags.output();
   Daemon both(dir_, "both", {"--scene", "demo", "--source", "scene://demo", "--socket", socket_});
   EXPECT_EQ(both.wait(30s), mrskin::tools::kUsage) << both.output();
+  Daemon finger(dir_, "finger", {"--device", "mock://?finger=nosuch", "--socket", socket_});
+  EXPECT_EQ(finger.wait(30s), mrskin::tools::kUsage) << finger.output();
+  EXPECT_NE(finger.output().find("nosuch"), std::string::npos) << finger.output();
+  Daemon name(dir_, "name", {"--source", "igtl-listen://127.0.0.1:0?force_device=", "--socket", socket_});
+  EXPECT_EQ(name.wait(30s), mrskin::tools::kUsage) << name.output();
+  EXPECT_NE(name.output().find("force_device"), std::string::npos) << name.output();
 }
 
 }  // namespace
