@@ -9,6 +9,7 @@
 #include <cctype>
 #include <cerrno>
 #include <charconv>
+#include <cmath>
 #include <cstdlib>
 #include <cstring>
 #include <fstream>
@@ -48,6 +49,24 @@ MockFaults parse_faults(std::string_view list) {
     }
     const std::string_view name = item.substr(0, colon);
     const std::string_view value = item.substr(colon + 1);
+    // An index of a sensor or valve: the unit's count is checked when the mock is built.
+    auto index = [&](std::string_view text) {
+      const int i = parse_number<int>(name, text);
+      if (i < 0 || i > 65535) {
+        throw InvalidArgument("mock:// fault '" + std::string(name) +
+                              "' names a sensor or valve index (0, 1, ...)");
+      }
+      return i;
+    };
+    // Seconds: finite, 0 to an hour.
+    auto seconds = [&](std::string_view text, bool zero_ok) {
+      const double t = parse_number<double>(name, text);
+      if (!(std::isfinite(t) && (zero_ok ? t >= 0.0 : t > 0.0) && t <= 3600.0)) {
+        throw InvalidArgument("mock:// fault '" + std::string(name) + "' takes seconds in " +
+                              (zero_ok ? "[0, 3600]" : "(0, 3600]") + ", not '" + std::string(text) + "'");
+      }
+      return t;
+    };
     auto probability = [&](double& out) {
       out = parse_number<double>(name, value);
       if (!(out >= 0.0 && out <= 1.0)) {
@@ -63,30 +82,30 @@ MockFaults parse_faults(std::string_view list) {
     } else if (name == "reorder") {
       probability(f.reorder_probability);
     } else if (name == "delay") {
-      f.delay_s = parse_number<double>(name, value);
+      f.delay_s = seconds(value, true);
     } else if (name == "disconnect") {
       const auto plus = value.find('+');
       if (plus == std::string_view::npos) {
         throw InvalidArgument("mock:// fault 'disconnect' is AT+FOR, in seconds (e.g. disconnect:2+0.5)");
       }
-      f.disconnect_at_s = parse_number<double>(name, value.substr(0, plus));
-      f.disconnect_for_s = parse_number<double>(name, value.substr(plus + 1));
+      f.disconnect_at_s = seconds(value.substr(0, plus), true);
+      f.disconnect_for_s = seconds(value.substr(plus + 1), false);
     } else if (name == "stuck") {
-      f.stuck_sensor = parse_number<int>(name, value);
+      f.stuck_sensor = index(value);
     } else if (name == "noisy") {
-      f.noisy_sensor = parse_number<int>(name, value);
+      f.noisy_sensor = index(value);
     } else if (name == "offset") {
-      f.offset_sensor = parse_number<int>(name, value);
+      f.offset_sensor = index(value);
     } else if (name == "overheat") {
       const auto plus = value.find('+');
-      f.overheat_valve = parse_number<int>(name, value.substr(0, plus));
+      f.overheat_valve = index(value.substr(0, plus));
       if (plus != std::string_view::npos) {
-        f.overheat_for_s = parse_number<double>(name, value.substr(plus + 1));
+        f.overheat_for_s = seconds(value.substr(plus + 1), false);
       }
     } else if (name == "busoff") {
-      f.bus_off_at_s = parse_number<double>(name, value);
+      f.bus_off_at_s = seconds(value, true);
     } else if (name == "leak") {
-      f.leak_valve = parse_number<int>(name, value);
+      f.leak_valve = index(value);
     } else {
       throw InvalidArgument("mock:// fault '" + std::string(name) +
                             "' is unknown: use drop, dup, corrupt, reorder, delay, disconnect, stuck, noisy, "

@@ -512,6 +512,12 @@ TEST(Replay, BadLinesAreDroppedAndCountedAndABadHeaderRefused) {
     (void)std::fclose(f);
   }
   EXPECT_THROW((void)open_stream("replay://" + path.string()), Error);
+  {
+    std::FILE* f = std::fopen(path.c_str(), "w");  // a first line too long to be the header
+    std::fputs(("# mrskin-stream 1" + std::string(600, ' ') + "\n0 0 0 0 0 0 0\n").c_str(), f);
+    (void)std::fclose(f);
+  }
+  EXPECT_THROW((void)open_stream("replay://" + path.string()), Error);
   std::filesystem::remove(path);
 }
 
@@ -851,6 +857,10 @@ TEST(IgtlField, DeviceNamesComeFromTheUriAndStarTakesAny) {
                InvalidArgument);
   EXPECT_THROW((void)open_stream("udp://127.0.0.1:0?force_device=X"), InvalidArgument);
   EXPECT_THROW((void)open_stream("igtl-listen://127.0.0.1:0?rpy_deg=1,2"), InvalidArgument);
+  // A queue is bounded: no unbounded allocation, and no endless rounding to a power of two.
+  EXPECT_THROW((void)open_stream("udp://127.0.0.1:0?queue=65537"), InvalidArgument);
+  EXPECT_THROW((void)open_stream("udp://127.0.0.1:0?queue=9223372036854775809"), InvalidArgument);
+  EXPECT_THROW((void)open_stream("igtl-listen://127.0.0.1:0?queue=1000000000000"), InvalidArgument);
   EXPECT_THROW((void)open_stream("igtl-listen://127.0.0.1:0?rpy_deg=1,2,nan"), InvalidArgument);
 }
 

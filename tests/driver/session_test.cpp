@@ -733,6 +733,15 @@ TEST(MockUri, BadParametersAreNamed) {
   EXPECT_THROW(parse_mock_uri("mock://?faults=melt:1"), InvalidArgument);
   EXPECT_THROW(parse_mock_uri("mock://?seed=abc"), InvalidArgument);
   EXPECT_THROW(parse_mock_uri("mock://?colour=red"), InvalidArgument);
+  // Indices are sensors or valves; times are finite seconds within an hour.
+  for (const char* bad :
+       {"stuck:-1", "noisy:-2", "offset:-1", "leak:-1", "overheat:-1", "overheat:1+0", "disconnect:nan+1",
+        "disconnect:1+inf", "disconnect:-1+1", "delay:1e9", "busoff:-0.5"}) {
+    EXPECT_THROW(parse_mock_uri(std::string("mock://?faults=") + bad), InvalidArgument) << bad;
+  }
+  EXPECT_THROW(parse_mock_uri("mock://?finger="), InvalidArgument);
+  EXPECT_THROW(parse_mock_uri("mock://?finger=Demo!"), InvalidArgument);
+  EXPECT_EQ(parse_mock_uri("mock://?finger=demo").options.finger_scene, "demo");
   const MockUri u =
       parse_mock_uri("mock://fingertip-16x16?seed=3&faults=drop:0.1,disconnect:2+0.5,overheat:4");
   EXPECT_EQ(u.profile, "fingertip-16x16");

@@ -157,6 +157,10 @@ TEST_F(ConfigFile, ABadValueNamesFileLineAndKey) {
   EXPECT_NE(e.find(path_ + ":2: stream.robot_rpy_deg"), std::string::npos) << e;
   e = error_of(write("[stream]\nrobot_rpy_deg = [0, 0, 400]\n"));
   EXPECT_NE(e.find("stream.robot_rpy_deg"), std::string::npos) << e;
+  e = error_of(write("duration_s = 1e10\n"));
+  EXPECT_NE(e.find(path_ + ":1: duration_s"), std::string::npos) << e;
+  e = error_of(write("[bridge]\nstale_hold_s = 1e300\n"));
+  EXPECT_NE(e.find(path_ + ":2: bridge.stale_hold_s"), std::string::npos) << e;
   e = error_of(write("rate_hz = = 3\n"));
   EXPECT_NE(e.find(path_ + ":1:"), std::string::npos) << e;
 }

@@ -693,6 +693,8 @@ TEST_F(BridgedDaemon, BadConfigurationIsAUsageError) {
   EXPECT_EQ(flags.wait(30s), mrskin::tools::kUsage) << flags.output();
   Daemon both(dir_, "both", {"--scene", "demo", "--source", "scene://demo", "--socket", socket_});
   EXPECT_EQ(both.wait(30s), mrskin::tools::kUsage) << both.output();
+  Daemon forever(dir_, "forever", {"--duration", "1e10", "--socket", socket_});
+  EXPECT_EQ(forever.wait(30s), mrskin::tools::kUsage) << forever.output();
   Daemon finger(dir_, "finger", {"--device", "mock://?finger=nosuch", "--socket", socket_});
   EXPECT_EQ(finger.wait(30s), mrskin::tools::kUsage) << finger.output();
   EXPECT_NE(finger.output().find("nosuch"), std::string::npos) << finger.output();

@@ -130,6 +130,8 @@ class Reader {
 };
 
 bool positive(double v) { return v > 0.0; }
+// Three years: far from the clock's int64 nanoseconds (292 years), which a larger value overflowed.
+constexpr double kMaxDuration_s = 1e8;
 bool non_negative(double v) { return v >= 0.0; }
 
 }  // namespace
@@ -153,7 +155,9 @@ Settings load_settings(const std::string& path) {
   r.get(root, "", "source", s.source);
   r.get_checked(
       root, "", "rate_hz", s.rate_hz, [](double v) { return v >= 1.0 && v <= 20000.0; }, "1 to 20000 Hz");
-  r.get_checked(root, "", "duration_s", s.duration_s, non_negative, ">= 0; 0 runs until a signal");
+  r.get_checked(
+      root, "", "duration_s", s.duration_s, [](double v) { return v >= 0.0 && v <= kMaxDuration_s; },
+      "0 to 1e8 s; 0 runs until a signal");
   r.get(root, "", "stats_json", s.stats_json);
   r.get(root, "", "record", s.record);
   r.get(root, "", "quiet", s.quiet);
@@ -201,8 +205,12 @@ Settings load_settings(const std::string& path) {
     r.get(*b, "bridge", "realtime", s.realtime);
     r.get_checked(
         *b, "bridge", "rt_priority", s.rt_priority, [](int v) { return v >= 1 && v <= 99; }, "1 to 99");
-    r.get_checked(*b, "bridge", "stale_hold_s", s.stale_hold_s, non_negative, ">= 0 s");
-    r.get_checked(*b, "bridge", "stale_fade_s", s.stale_fade_s, positive, "> 0 s");
+    r.get_checked(
+        *b, "bridge", "stale_hold_s", s.stale_hold_s, [](double v) { return v >= 0.0 && v <= 10.0; },
+        "0 to 10 s: the stream watchdog must act");
+    r.get_checked(
+        *b, "bridge", "stale_fade_s", s.stale_fade_s, [](double v) { return v > 0.0 && v <= 10.0; },
+        "above 0, at most 10 s");
   }
   if (const toml::table* c = r.section(root, "control")) {
     r.check_keys(*c, "control", {"socket", "max_clients"});
@@ -220,8 +228,8 @@ void validate(const Settings& s, const std::string& origin) {
   if (!(s.rate_hz >= 1.0 && s.rate_hz <= 20000.0)) {
     bad("rate", "out of range (1 to 20000 Hz)");
   }
-  if (!(s.duration_s >= 0.0) || !std::isfinite(s.duration_s)) {
-    bad("duration", "must be >= 0 (0 runs until a signal)");
+  if (!(s.duration_s >= 0.0 && s.duration_s <= kMaxDuration_s)) {
+    bad("duration", "must be 0 to 1e8 s (0 runs until a signal)");
   }
   if (s.device.empty()) {
     bad("device", "empty device URI");

@@ -68,6 +68,9 @@ std::array<double, 9> rpy(std::string_view uri, std::string_view value) {
 
 enum class Scheme : unsigned char { udp, replay, igtl };
 
+// 65 s of a 1 kHz stream: far more than the tick ever leaves queued, and a bounded allocation.
+constexpr std::size_t kMaxQueue = 65536;
+
 // Applies ?k=v&k=v to options; keys depend on the scheme.
 void apply_query(std::string_view uri, std::string_view query, Scheme scheme, SourceOptions& o) {
   const bool replay = scheme == Scheme::replay;
@@ -92,8 +95,8 @@ void apply_query(std::string_view uri, std::string_view query, Scheme scheme, So
     } else if (!replay && key == "queue") {
       std::size_t n = 0;
       const auto [end, ec] = std::from_chars(value.data(), value.data() + value.size(), n);
-      if (ec != std::errc{} || end != value.data() + value.size() || n == 0) {
-        bad(uri, "bad queue '" + std::string(value) + "' (samples, > 0)");
+      if (ec != std::errc{} || end != value.data() + value.size() || n == 0 || n > kMaxQueue) {
+        bad(uri, "bad queue '" + std::string(value) + "' (samples, 1 to " + std::to_string(kMaxQueue) + ")");
       }
       o.queue_capacity = n;
     } else if (igtl && key == "force_device") {

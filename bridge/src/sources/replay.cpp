@@ -72,6 +72,11 @@ class ReplaySource final : public StreamSource {
       std::string_view line(buffer.data());
       ++line_number;
       if (!line.ends_with('\n') && std::feof(file.get()) == 0) {
+        if (first) {
+          throw Error("replay source: '" + path +
+                      "' is not a mrskin stream file v1 (its first line must be '" + std::string(kFileMagic) +
+                      "')");
+        }
         // Skip the rest of the overlong line.
         sources::drop(stats_, events_, DropReason::oversized, [&] {
           return fmt::format("replay '{}': a line over {} characters skipped", path, kMaxLine);
