@@ -10,8 +10,12 @@ PACKAGES=(
   # libraries (BRIEF section 7)
   libhidapi-dev libusb-1.0-0-dev libeigen3-dev libspdlog-dev libcli11-dev
   libtomlplusplus-dev nlohmann-json3-dev libcap-dev libopenigtlink-dev
+  # ROS 2 topics over DDS: Cyclone's C API and its IDL compiler (idlc)
+  cyclonedds-dev cyclonedds-tools
   # tests, benchmarks and test peers
   libgtest-dev libgmock-dev librapidcheck-dev libbenchmark-dev valgrind can-utils
+  # the ROS 2 interop peer on Fast DDS (tests/interop)
+  libfastrtps-dev
   # kernel integration tests in a QEMU VM (tests/system, docs/vm-tests.md)
   qemu-system-x86 busybox-static cpio
   # lint

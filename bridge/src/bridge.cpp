@@ -136,6 +136,9 @@ void Bridge::update_tissue_model(TimePoint now) noexcept {
     // Out-of-order, duplicate and malformed samples are refused and counted by the estimator.
     (void)estimator_->push(
         TissueSample{to_seconds(sample.stamp - start_), sample.force_N, sample.indentation_m});
+    if (sample.ended) {
+      estimator_->end_stream(to_seconds(now - start_));
+    }
   }
   estimate_ = estimator_->estimate(to_seconds(now - start_));
   if (estimate_.freshness != TissueFreshness::fresh) {

@@ -405,6 +405,7 @@ void TissueEstimator::reset() noexcept {
   best_ = 0;
   stats_ = {};
   have_sample_ = false;
+  stream_ended_ = false;
   have_pair_ = false;
   filter_primed_ = false;
   confident_ = false;
@@ -512,6 +513,7 @@ bool TissueEstimator::push(const TissueSample& sample) noexcept {
   const double dt = sample.stamp_s - last_stamp_s_;
   const bool was_sample = have_sample_;
   have_sample_ = true;
+  stream_ended_ = false;
   last_stamp_s_ = sample.stamp_s;
   const double f_prev = last_force_N_;
   last_force_N_ = sample.force_N;
@@ -634,6 +636,13 @@ double TissueEstimator::confidence() const noexcept {
   return finite(c) ? c : 0.0;
 }
 
+void TissueEstimator::end_stream(double now_s) noexcept {
+  if (have_sample_ && !stream_ended_ && finite(now_s)) {
+    stream_ended_ = true;
+    ended_at_s_ = now_s;
+  }
+}
+
 TissueModel TissueEstimator::raw_fit() const noexcept { return to_model(bank_[best_]); }
 
 TissueEstimate TissueEstimator::estimate(double now_s) const noexcept {
@@ -646,10 +655,12 @@ TissueEstimate TissueEstimator::estimate(double now_s) const noexcept {
     out.model = last_good_.scaled(0.0);
     return out;
   }
-  out.valid_until_s = last_stamp_s_ + o.hold_s + o.fade_s;
-  // A non-finite clock reads as very old: safe.
-  const double age_s =
-      finite(now_s) ? std::max(0.0, now_s - last_stamp_s_) : std::numeric_limits<double>::max();
+  out.valid_until_s = stream_ended_ ? ended_at_s_ + o.fade_s : last_stamp_s_ + o.hold_s + o.fade_s;
+  // A non-finite clock reads as very old: safe. An ended stream is past its hold at once.
+  double age_s = finite(now_s) ? std::max(0.0, now_s - last_stamp_s_) : std::numeric_limits<double>::max();
+  if (stream_ended_) {
+    age_s = std::max(age_s, o.hold_s + std::max(0.0, now_s - ended_at_s_));
+  }
   if (age_s <= o.fresh_s) {
     out.freshness = TissueFreshness::fresh;
     out.scale = 1.0;

@@ -60,7 +60,7 @@ MockFaults parse_faults(std::string_view list) {
     };
     // Seconds: finite, 0 to an hour.
     auto seconds = [&](std::string_view text, bool zero_ok) {
-      const double t = parse_number<double>(name, text);
+      const auto t = parse_number<double>(name, text);
       if (!(std::isfinite(t) && (zero_ok ? t >= 0.0 : t > 0.0) && t <= 3600.0)) {
         throw InvalidArgument("mock:// fault '" + std::string(name) + "' takes seconds in " +
                               (zero_ok ? "[0, 3600]" : "(0, 3600]") + ", not '" + std::string(text) + "'");

@@ -165,6 +165,25 @@ TEST_F(ConfigFile, ABadValueNamesFileLineAndKey) {
   EXPECT_NE(e.find(path_ + ":1:"), std::string::npos) << e;
 }
 
+// [topics]: the skin as ROS 2 topics; every key bounded, a namespace ROS 2 accepts.
+TEST_F(ConfigFile, TopicsAreReadAndBounded) {
+  const Settings s =
+      load_settings(write("[topics]\nnamespace = \"/mrskin/left\"\nrate_hz = 50\ndomain = 7\n"));
+  EXPECT_EQ(s.topics_namespace, "/mrskin/left");
+  EXPECT_DOUBLE_EQ(s.topics_rate_hz, 50.0);
+  EXPECT_EQ(s.topics_domain, 7);
+  EXPECT_NO_THROW(mrskin::bridged::validate(s, "file"));
+  std::string e = error_of(write("[topics]\nrate_hz = 1000\n"));
+  EXPECT_NE(e.find(path_ + ":2: topics.rate_hz"), std::string::npos) << e;
+  e = error_of(write("[topics]\ndomain = 233\n"));
+  EXPECT_NE(e.find(path_ + ":2: topics.domain"), std::string::npos) << e;
+  e = error_of(write("[topics]\nnamspace = \"/x\"\n"));
+  EXPECT_NE(e.find("unknown key"), std::string::npos) << e;
+  Settings bad = s;
+  bad.topics_namespace = "/skin//left";  // --topics /skin//left
+  EXPECT_THROW(mrskin::bridged::validate(bad, "flags"), ConfigError);
+}
+
 TEST_F(ConfigFile, AMissingFileIsAUsageError) {
   const std::string e = error_of("/nonexistent/mrskin.toml");
   EXPECT_NE(e.find("/nonexistent/mrskin.toml"), std::string::npos) << e;

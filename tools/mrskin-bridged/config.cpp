@@ -11,6 +11,8 @@
 #include <numbers>
 #include <string_view>
 
+#include "mrskin/bridge/ros2_topics.hpp"
+
 namespace mrskin::bridged {
 namespace {
 
@@ -150,7 +152,7 @@ Settings load_settings(const std::string& path) {
   const Reader r(path);
   r.check_keys(root, "",
                {"device", "source", "rate_hz", "duration_s", "stats_json", "record", "quiet", "device_lost_s",
-                "mapping", "stream", "bridge", "control"});
+                "mapping", "stream", "bridge", "topics", "control"});
   r.get(root, "", "device", s.device);
   r.get(root, "", "source", s.source);
   r.get_checked(
@@ -212,6 +214,15 @@ Settings load_settings(const std::string& path) {
         *b, "bridge", "stale_fade_s", s.stale_fade_s, [](double v) { return v > 0.0 && v <= 10.0; },
         "above 0, at most 10 s");
   }
+  if (const toml::table* t = r.section(root, "topics")) {
+    r.check_keys(*t, "topics", {"namespace", "rate_hz", "domain"});
+    r.get(*t, "topics", "namespace", s.topics_namespace);
+    r.get_checked(
+        *t, "topics", "rate_hz", s.topics_rate_hz, [](double v) { return v >= 1.0 && v <= 100.0; },
+        "1 to 100 Hz (the tick hands its arrays over every 10 ms)");
+    r.get_checked(
+        *t, "topics", "domain", s.topics_domain, [](int v) { return v >= 0 && v <= 232; }, "0 to 232");
+  }
   if (const toml::table* c = r.section(root, "control")) {
     r.check_keys(*c, "control", {"socket", "max_clients"});
     r.get(*c, "control", "socket", s.socket);
@@ -240,6 +251,11 @@ void validate(const Settings& s, const std::string& origin) {
   if (!s.mapping.valid()) {
     bad("mapping", "origin, rotation and a positive cells_per_m must be finite");
   }
+  if (!s.topics_namespace.empty() && !bridge::valid_ros_name(s.topics_namespace)) {
+    bad("topics namespace", "'" + s.topics_namespace +
+                                "' is not a ROS 2 name (tokens of letters, digits and '_', not starting with "
+                                "a digit, joined by '/')");
+  }
 }
 
 void apply(const Overrides& o, Settings& s) {
@@ -251,6 +267,7 @@ void apply(const Overrides& o, Settings& s) {
   s.record = o.record.value_or(s.record);
   s.quiet = o.quiet.value_or(s.quiet);
   s.socket = o.socket.value_or(s.socket);
+  s.topics_namespace = o.topics_namespace.value_or(s.topics_namespace);
 }
 
 bridge::BridgeOptions bridge_options(const Settings& s) {

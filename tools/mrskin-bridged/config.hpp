@@ -44,6 +44,10 @@ struct Settings {
   int rt_priority = 80;
   double stale_hold_s = 0.1;  // stream watchdog: hold the last estimate this long...
   double stale_fade_s = 0.2;  // ...then fade to released over this
+  // [topics]: the skin as ROS 2 topics over DDS (bridge/ros2_topics.hpp); namespace "" : off.
+  std::string topics_namespace;
+  double topics_rate_hz = 100.0;
+  int topics_domain = 0;
   // [control]
   std::string socket;  // "" : default_socket_path()
   int max_clients = 8;
@@ -61,6 +65,7 @@ struct Overrides {
   std::optional<std::string> record;
   std::optional<bool> quiet;
   std::optional<std::string> socket;
+  std::optional<std::string> topics_namespace;
 };
 
 // Reads FILE over the defaults. Throws ConfigError naming FILE:LINE and the key for a syntax

@@ -1,10 +1,13 @@
 #include "daemon.hpp"
 
 #include <fmt/format.h>
+#include <spdlog/spdlog.h>
 
 #include <algorithm>
 #include <array>
+#include <chrono>
 #include <cmath>
+#include <mutex>
 #include <thread>
 
 #include "json_text.hpp"
@@ -66,6 +69,7 @@ Daemon::Daemon(Settings settings, MonotonicClock& clock)
   if (dev_.mock) {
     truth_.emplace(*dev_.mock);
     finger_.assign(dev_.mock->layout().fluid_cell_count(), 0.0);
+    true_N_.assign(dev_.mock->layout().fluid_cell_count(), 0.0);
   }
   const DeviceInfo& info = dev_.session->info();
   rows_ = info.rows;
@@ -83,6 +87,12 @@ Daemon::Daemon(Settings settings, MonotonicClock& clock)
   }
   if (finger_scene_) {
     finger_scene_->set_start(t0_);
+  }
+  if (!settings_.topics_namespace.empty()) {
+    bridge::SkinTopicsOptions to;
+    to.ns = settings_.topics_namespace;
+    to.domain = settings_.topics_domain;
+    topics_ = std::make_unique<bridge::SkinPublisher>(to);
   }
   build_bridge(settings_);
   (void)bridge_->enable();
@@ -121,6 +131,14 @@ std::string Daemon::start() {
     loop_ = std::make_unique<bridge::RealtimeLoop>(clock_, *this, loop_options(settings_, waiter_.get()));
   }
   std::string warning = loop_->start();
+  if (topics_ && !topics_thread_.joinable()) {
+    {
+      const std::lock_guard<std::mutex> lock(topics_mutex_);
+      topics_stop_ = false;
+    }
+    topics_on_.store(true, std::memory_order_relaxed);
+    topics_thread_ = std::thread([this] { publish_topics(); });
+  }
   if (warned_) {
     return {};  // a reload's new loop would repeat it
   }
@@ -129,6 +147,15 @@ std::string Daemon::start() {
 }
 
 void Daemon::stop() noexcept {
+  if (topics_thread_.joinable()) {
+    {
+      const std::lock_guard<std::mutex> lock(topics_mutex_);
+      topics_stop_ = true;
+    }
+    topics_wake_.notify_all();
+    topics_thread_.join();
+    topics_on_.store(false, std::memory_order_relaxed);
+  }
   if (loop_) {
     loop_->stop();
   }
@@ -198,7 +225,7 @@ void Daemon::publish_grid(TimePoint now) noexcept {
   const DeviceSession& s = *dev_.session;
   thermal_.step(s.commanded_currents(), s.valves_released(), to_seconds(now - last_thermal_));
   last_thermal_ = now;
-  if (grid_subscribers_.load(std::memory_order_relaxed) == 0) {
+  if (grid_subscribers_.load(std::memory_order_relaxed) == 0 && !topics_on_.load(std::memory_order_relaxed)) {
     return;
   }
   const model::CellObserver& observer = bridge_->observer();
@@ -209,7 +236,76 @@ void Daemon::publish_grid(TimePoint now) noexcept {
   grid_->write(GridSeqlock::current_a, s.commanded_currents());
   grid_->write(GridSeqlock::temperature_c, thermal_.temperature_C());
   grid_->write(GridSeqlock::sensor, s.sensors());
+  if (truth_) {
+    truth_->true_forces(true_N_);
+  }
+  grid_->write(GridSeqlock::true_n, truth_ ? std::span<const double>(true_N_) : std::span<const double>());
   grid_->end_write();
+}
+
+namespace {
+
+const char* crtk_state(std::uint8_t state) noexcept {
+  switch (static_cast<DeviceState>(state)) {
+    case DeviceState::enabled:
+      return "ENABLED";
+    case DeviceState::paused:
+      return "PAUSED";
+    case DeviceState::fault:
+      return "FAULT";
+    case DeviceState::disabled:
+      break;
+  }
+  return "DISABLED";
+}
+
+}  // namespace
+
+// The skin's ROS 2 topics at [topics] rate_hz, from what the tick published (never in the tick):
+// the fluid cells' arrays spread over the rows x cols grid, NaN where no fluid cell is.
+void Daemon::publish_topics() noexcept {
+  try {
+    const GridLayout layout(rows_, cols_);
+    const std::size_t n = static_cast<std::size_t>(rows_) * static_cast<std::size_t>(cols_);
+    std::array<std::vector<double>, 3> grid{std::vector<double>(n, NAN), std::vector<double>(n, NAN),
+                                            std::vector<double>(n, NAN)};
+    GridSeqlock::Copy copy;
+    const auto period = std::chrono::duration_cast<std::chrono::steady_clock::duration>(
+        std::chrono::duration<double>(1.0 / settings_.topics_rate_hz));
+    auto next = std::chrono::steady_clock::now();
+    std::unique_lock<std::mutex> lock(topics_mutex_);
+    while (!topics_wake_.wait_until(lock, next, [this] { return topics_stop_; })) {
+      next += period;
+      if (!grid_->read(copy)) {
+        continue;  // the tick has not published yet
+      }
+      constexpr std::array<GridSeqlock::Array, 3> kFrom{GridSeqlock::target_n, GridSeqlock::force_n,
+                                                        GridSeqlock::true_n};
+      for (std::size_t a = 0; a < grid.size(); ++a) {
+        const std::vector<double>& values = copy.arrays.at(kFrom.at(a));
+        for (std::size_t i = 0; i < layout.fluid_cells().size() && i < values.size(); ++i) {
+          const GridCell c = layout.fluid_cells()[i];
+          grid.at(a).at(static_cast<std::size_t>(c.row) * static_cast<std::size_t>(cols_) +
+                        static_cast<std::size_t>(c.col)) = values[i];
+        }
+      }
+      bridge::SkinFrame f;
+      f.stamp_ns = std::chrono::duration_cast<std::chrono::nanoseconds>(
+                       std::chrono::system_clock::now().time_since_epoch())
+                       .count();
+      f.state = crtk_state(state_.load(std::memory_order_relaxed));
+      f.rows = rows_;
+      f.cols = cols_;
+      f.target_N = grid[0];
+      f.estimated_N = grid[1];
+      if (truth_) {
+        f.true_N = grid[2];
+      }
+      (void)topics_->publish(f);
+    }
+  } catch (const std::exception& e) {
+    spdlog::error("skin topics stopped: {}", e.what());
+  }
 }
 
 void Daemon::grid_subscribers(std::size_t n) noexcept {
@@ -232,7 +328,7 @@ std::string Daemon::grid_members() {
   out += fmt::format(R"(,"grid_t_s":{})",
                      json_number(static_cast<double>(grid_copy_.t_ns - t0_.count()) * 1e-9));
   static constexpr std::array<const char*, GridSeqlock::kArrays> kNames = {
-      "force_n", "displacement_m", "target_n", "current_a", "temperature_c", "sensor"};
+      "force_n", "displacement_m", "target_n", "current_a", "temperature_c", "sensor", "true_force_n"};
   for (std::size_t a = 0; a < GridSeqlock::kArrays; ++a) {
     out += fmt::format(R"(,"{}":[)", kNames.at(a));
     const std::vector<double>& values = grid_copy_.arrays.at(a);
@@ -299,7 +395,7 @@ std::string Daemon::status_members() {
       R"("valves_released":{},"connected":{},"stream":"{}","ticks":{},"rms_error_n":{},)"
       R"("stiffness_n_per_m":{},"peak_target_n":{},"peak_current_a":{},"rate_hz":{},"device":"{}",)"
       R"("source":"{}","uptime_s":{},"link_sent":{},"link_received":{},"reloads":{},"pid":{},"leased":{},)"
-      R"("stream_warning":"{}")",
+      R"("stream_warning":"{}","topics":{})",
       to_string(state), fault_name(fault_code_.load(std::memory_order_relaxed)),
       fault_name(last_fault_code_.load(std::memory_order_relaxed)), faults_.load(std::memory_order_relaxed),
       halted_.load(std::memory_order_relaxed),
@@ -315,7 +411,16 @@ std::string Daemon::status_members() {
       json_escape(shown.device), json_escape(shown.source),
       json_number(static_cast<double>(now_ns - t0_.count()) * 1e-9), sent_.load(std::memory_order_relaxed),
       received_.load(std::memory_order_relaxed), reloads_.load(), ::getpid(), leased_.load(),
-      json_escape(stream_warning()));
+      json_escape(stream_warning()), topics_members());
+}
+
+std::string Daemon::topics_members() const {
+  if (!topics_) {
+    return "null";
+  }
+  return fmt::format(R"({{"namespace":"{}","subscribers":{},"published":{},"failures":{}}})",
+                     json_escape(topics_->ns()), topics_->subscribers(), topics_->published(),
+                     topics_->failures());
 }
 
 std::string Daemon::telemetry_members() {
@@ -515,6 +620,13 @@ std::vector<std::string> Daemon::reload(Settings next) {
     next.socket = settings_.socket;
     next.max_clients = settings_.max_clients;
   }
+  if (next.topics_namespace != settings_.topics_namespace || next.topics_domain != settings_.topics_domain ||
+      next.topics_rate_hz != settings_.topics_rate_hz) {
+    log.emplace_back("reload: [topics] changes need a restart; kept the current topics");
+    next.topics_namespace = settings_.topics_namespace;
+    next.topics_domain = settings_.topics_domain;
+    next.topics_rate_hz = settings_.topics_rate_hz;
+  }
   const Settings& old = settings_;
   const bridge::WorkspaceMapping& m0 = old.mapping;
   const bridge::WorkspaceMapping& m1 = next.mapping;
@@ -566,7 +678,9 @@ std::vector<std::string> Daemon::reload(Settings next) {
     if (const unsigned char halt = operator_halt_.load(); halt != 0) {
       b->request(static_cast<Bridge::Request>(halt));  // a reload never re-enables
     }
-    stop();
+    if (loop_) {
+      loop_->stop();  // only the loop: the recording and the skin's topics go on across a reload
+    }
     ticks_base_.fetch_add(bridge_->live_ticks());
     ticks_.store(0);
     bridge_ = std::move(b);  // old bridge first, then the wrapper and the source it read

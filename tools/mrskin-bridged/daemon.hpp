@@ -9,17 +9,21 @@
 #pragma once
 
 #include <atomic>
+#include <condition_variable>
 #include <cstdint>
 #include <memory>
 #include <mutex>
 #include <optional>
 #include <string>
+#include <thread>
+#include <vector>
 
 #include "config.hpp"
 #include "control_server.hpp"
 #include "grid_snapshot.hpp"
 #include "mrskin/bridge/bridge.hpp"
 #include "mrskin/bridge/loop.hpp"
+#include "mrskin/bridge/ros2_topics.hpp"
 #include "mrskin/bridge/scene.hpp"
 #include "mrskin/bridge/sources.hpp"
 #include "mrskin/driver/device.hpp"
@@ -98,6 +102,7 @@ class Daemon final : public bridge::Tickable, public ControlBackend {
   [[nodiscard]] std::uint64_t reloads() const noexcept { return reloads_.load(); }
   [[nodiscard]] const bridge::SampleRecorder* recorder() const noexcept { return recorder_.get(); }
   [[nodiscard]] const SessionCounters& link_counters() const noexcept { return dev_.session->counters(); }
+  [[nodiscard]] const bridge::SkinPublisher* topics() const noexcept { return topics_.get(); }
 
   // Tick thread.
   ResultCode tick(TimePoint now) noexcept override;
@@ -117,7 +122,9 @@ class Daemon final : public bridge::Tickable, public ControlBackend {
   void build_bridge(const Settings& s);  // setup, before the loop runs
   void publish(TimePoint now) noexcept;
   void publish_grid(TimePoint now) noexcept;
+  void publish_topics() noexcept;  // the skin topics' thread
   [[nodiscard]] std::string stream_state(std::int64_t now_ns) const;
+  [[nodiscard]] std::string topics_members() const;  // status: the skin's topics, or null
 
   Settings settings_;
   MonotonicClock& clock_;
@@ -183,6 +190,15 @@ class Daemon final : public bridge::Tickable, public ControlBackend {
   double force_range_N_ = 0.0;
   std::string sensor_unit_ = "m";
   GridSeqlock::Copy grid_copy_;  // control thread
+  std::vector<double> true_N_;   // tick thread: the mock's true forces
+
+  // [topics]: the skin as ROS 2 topics, published by their own thread from grid_.
+  std::unique_ptr<bridge::SkinPublisher> topics_;
+  std::thread topics_thread_;
+  std::mutex topics_mutex_;
+  std::condition_variable topics_wake_;
+  bool topics_stop_ = false;  // guarded by topics_mutex_
+  std::atomic<bool> topics_on_{false};
 };
 
 }  // namespace mrskin::bridged

@@ -59,7 +59,17 @@ class CoilThermalEstimate {
 class GridSeqlock {
  public:
   // sensor: the raw readings in the sensors' SI unit (what mrskinctl record --bridge writes).
-  enum Array : std::uint8_t { force_n, displacement_m, target_n, current_a, temperature_c, sensor, kArrays };
+  // true_n: the mock's true contact force per cell (NaN on hardware).
+  enum Array : std::uint8_t {
+    force_n,
+    displacement_m,
+    target_n,
+    current_a,
+    temperature_c,
+    sensor,
+    true_n,
+    kArrays
+  };
   GridSeqlock() = default;
   GridSeqlock(std::size_t cells, std::size_t valves, std::size_t sensors = 0) {
     for (std::size_t a = 0; a < kArrays; ++a) {

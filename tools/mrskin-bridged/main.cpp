@@ -226,6 +226,10 @@ int run(Settings cfg, const std::string& config_path, const mrskin::bridged::Ove
     fmt::print("recorded   {} samples to {} ({} dropped)\n", rec->written(), final_cfg.record,
                rec->dropped());
   }
+  if (const bridge::SkinPublisher* topics = daemon.topics(); topics != nullptr) {
+    fmt::print("topics     {} frames published under {} ({} failed), {} subscriber(s) at exit\n",
+               topics->published(), topics->ns(), topics->failures(), topics->subscribers());
+  }
   if (daemon.reloads() > 0) {
     fmt::print("reloads    {} (the statistics cover the run since the last bridge rebuild)\n",
                daemon.reloads());
@@ -296,6 +300,9 @@ int guarded_main(int argc, char** argv) {
   app.add_option("--socket", o.socket,
                  "control socket path (default $RUNTIME_DIRECTORY/bridged.sock, "
                  "$XDG_RUNTIME_DIR/mrskin/bridged.sock or /tmp/mrskin-UID/bridged.sock)");
+  app.add_option("--topics", o.topics_namespace,
+                 "publish the skin as ROS 2 topics over DDS under this namespace (e.g. /mrskin; "
+                 "[topics] in the config; docs/sources.md)");
   app.add_flag("--check-config", check, "check the configuration, print the socket path and exit");
   try {
     app.parse(argc, argv);

@@ -148,6 +148,10 @@ void QueuedSource::notify() noexcept {
 
 void QueuedSource::publish(const SlaveSample& s) noexcept {
   stats_.accepted.fetch_add(1, std::memory_order_relaxed);
+  enqueue(s);
+}
+
+void QueuedSource::enqueue(const SlaveSample& s) noexcept {
   if (pending_valid_ && !queue_.try_push(pending_)) {
     stats_.count(DropReason::superseded);  // the held one: the tick did not take it in time
     pending_ = s;
@@ -168,6 +172,28 @@ bool QueuedSource::flush_pending() noexcept {
     notify();
   }
   return !pending_valid_;
+}
+
+bool admit(OrderGate& gate, std::int64_t robot_ns, ClockMapper& mapper, AtomicStats& stats,
+           SourceEvents& events, std::string_view what) noexcept {
+  switch (gate.check(robot_ns)) {
+    case OrderGate::Verdict::duplicate:
+      drop(stats, events, DropReason::duplicate,
+           [&] { return fmt::format("{} dropped: its timestamp repeats the last one of its kind", what); });
+      return false;
+    case OrderGate::Verdict::out_of_order:
+      drop(stats, events, DropReason::out_of_order, [&] {
+        return fmt::format("{} dropped: its timestamp is older than the last one of its kind", what);
+      });
+      return false;
+    case OrderGate::Verdict::restart:
+      stats.restarts.fetch_add(1, std::memory_order_relaxed);
+      mapper.reset();
+      return true;
+    case OrderGate::Verdict::accept:
+      return true;
+  }
+  return false;
 }
 
 bool QueuedSource::latest(TimePoint /*now*/, SlaveSample& out) noexcept {

@@ -72,7 +72,7 @@ class SourceEvents {
 };
 
 // Keys for SourceEvents::once beyond the drop reasons (0..kDropReasonCount-1).
-enum class EventKey : unsigned { device_force = 32, device_pose, device_map, pose_tool };
+enum class EventKey : unsigned { device_force = 32, device_pose, device_map, pose_tool, dds_type };
 
 // Robot stamps (ns) outside 0..2^62 (146 years) are out of range: the clock arithmetic stays far
 // from overflow whatever a peer sends.
@@ -105,6 +105,13 @@ class OrderGate {
   std::int64_t last_ns_ = 0;
   bool have_ = false;
 };
+
+class ClockMapper;
+// Applies gate's verdict on robot_ns: a duplicate or an older stamp is dropped and counted (the
+// first of each explained by what, "a message" or so), a restart counted and the clock mapping
+// reset. True when the sample is taken.
+bool admit(OrderGate& gate, std::int64_t robot_ns, ClockMapper& mapper, AtomicStats& stats,
+           SourceEvents& events, std::string_view what) noexcept;
 
 // Robot stamp -> host clock: offset = min(arrival - stamp), rising at most drift s/s (follows a
 // robot clock that runs slow). The mapped stamp is never later than the arrival.
@@ -139,6 +146,8 @@ class QueuedSource : public StreamSource {
   // I/O thread. Queues s; when the queue is full it is held and replaces any sample held before
   // (counted queue_full), so the newest always gets through.
   void publish(const SlaveSample& s) noexcept;
+  // The same without counting it accepted (a stream-ended marker, SlaveSample::ended).
+  void enqueue(const SlaveSample& s) noexcept;
   // I/O thread: retries a held sample; true when nothing is held any more.
   bool flush_pending() noexcept;
   [[nodiscard]] bool has_pending() const noexcept { return pending_valid_; }
@@ -209,6 +218,14 @@ class StopSignal {
 
 // ---- the sources ---------------------------------------------------------------------------
 std::unique_ptr<StreamSource> open_replay(const std::string& path, const SourceOptions& options);
+// dds://: the ROS 2 topics (absolute ROS names) of the wrench and the pose.
+std::unique_ptr<StreamSource> open_dds(const std::string& wrench_topic, const std::string& pose_topic,
+                                       const SourceOptions& options, Clock* clock);
+// R v for a row-major 3 x 3 R.
+[[nodiscard]] inline std::array<double, 3> rotate(const std::array<double, 9>& r, double x, double y,
+                                                  double z) noexcept {
+  return {r[0] * x + r[1] * y + r[2] * z, r[3] * x + r[4] * y + r[5] * z, r[6] * x + r[7] * y + r[8] * z};
+}
 std::unique_ptr<StreamSource> open_igtl(const Endpoint& where, bool listen, const SourceOptions& options,
                                         Clock* clock);
 

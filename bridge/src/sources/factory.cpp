@@ -5,6 +5,7 @@
 #include <cmath>
 #include <string>
 
+#include "../dds/entities.hpp"
 #include "core.hpp"
 #include "mrskin/driver/errors.hpp"
 #include "udp_source.hpp"
@@ -12,8 +13,8 @@
 namespace mrskin::bridge {
 namespace {
 
-constexpr std::array<std::string_view, 5> kSchemes{"scene://", "udp://", "replay://", "igtl://",
-                                                   "igtl-listen://"};
+constexpr std::array<std::string_view, 6> kSchemes{"scene://", "udp://",         "replay://",
+                                                   "igtl://",  "igtl-listen://", "dds://"};
 
 std::string scheme_list() {
   std::string s;
@@ -66,7 +67,7 @@ std::array<double, 9> rpy(std::string_view uri, std::string_view value) {
   return rotation_from_rpy_deg(a[0], a[1], a[2]);
 }
 
-enum class Scheme : unsigned char { udp, replay, igtl };
+enum class Scheme : unsigned char { udp, replay, igtl, dds };
 
 // 65 s of a 1 kHz stream: far more than the tick ever leaves queued, and a bounded allocation.
 constexpr std::size_t kMaxQueue = 65536;
@@ -75,6 +76,7 @@ constexpr std::size_t kMaxQueue = 65536;
 void apply_query(std::string_view uri, std::string_view query, Scheme scheme, SourceOptions& o) {
   const bool replay = scheme == Scheme::replay;
   const bool igtl = scheme == Scheme::igtl;
+  const bool dds = scheme == Scheme::dds;
   while (!query.empty()) {
     const auto amp = query.find('&');
     const std::string_view item = query.substr(0, amp);
@@ -107,14 +109,27 @@ void apply_query(std::string_view uri, std::string_view query, Scheme scheme, So
       o.igtl_map_device = device_name(uri, key, value);
     } else if (igtl && key == "pose_tool") {
       o.igtl_pose_tool = device_name(uri, key, value);
-    } else if (igtl && key == "rpy_deg") {
+    } else if ((igtl || dds) && key == "rpy_deg") {
       o.robot_to_tissue = rpy(uri, value);
+    } else if (dds && key == "domain") {
+      int d = -1;
+      const auto [end, ec] = std::from_chars(value.data(), value.data() + value.size(), d);
+      if (ec != std::errc{} || end != value.data() + value.size() || d < 0 || d > dds::kMaxDomain) {
+        bad(uri, "bad domain '" + std::string(value) + "' (a DDS domain id, 0 to " +
+                     std::to_string(dds::kMaxDomain) + ")");
+      }
+      o.dds_domain = d;
+    } else if (dds && key == "wrench") {
+      o.dds_wrench_topic = dds::absolute_ros_name(value, "wrench topic");
+    } else if (dds && key == "pose") {
+      o.dds_pose_topic = dds::absolute_ros_name(value, "pose topic");
     } else {
       bad(uri, "unknown option '" + std::string(key) + "' (" +
                    (replay ? "replay takes speed=max|1 and loop=0|1"
                     : igtl ? "igtl takes queue=N, force_device, pose_device, map_device, pose_tool and "
                              "rpy_deg=ROLL,PITCH,YAW"
-                           : "udp takes queue=N") +
+                    : dds ? "dds takes queue=N, domain=N, wrench=TOPIC, pose=TOPIC and rpy_deg=ROLL,PITCH,YAW"
+                          : "udp takes queue=N") +
                    ")");
     }
   }
@@ -178,6 +193,18 @@ std::unique_ptr<StreamSource> open_stream(std::string_view uri, const SourceOpti
       return std::make_unique<sources::UdpSource>(where, o, clock);
     }
     return sources::open_igtl(where, !client, o, clock);
+  }
+  if (scheme == "dds") {
+    apply_query(uri, query, Scheme::dds, o);
+    // dds://ARM: a CRTK arm's namespace (PSM1, or dvrk/PSM1).
+    const std::string arm = rest.empty() ? std::string() : dds::absolute_ros_name(rest, "arm");
+    if (arm.empty() && (o.dds_wrench_topic.empty() || o.dds_pose_topic.empty())) {
+      bad(uri,
+          "missing arm (dds://ARM reads /ARM/measured_cf and /ARM/measured_cp; or give wrench= and pose=)");
+    }
+    const std::string wrench = o.dds_wrench_topic.empty() ? arm + "/measured_cf" : o.dds_wrench_topic;
+    const std::string pose = o.dds_pose_topic.empty() ? arm + "/measured_cp" : o.dds_pose_topic;
+    return sources::open_dds(wrench, pose, o, clock);
   }
   bad(uri, "unknown scheme '" + std::string(scheme) + "://'; sources are " + scheme_list());
 }

@@ -111,11 +111,6 @@ bool matches(const std::string& wanted, std::string_view name) noexcept {
   return wanted == "*" || wanted == name;
 }
 
-// R v for a row-major 3 x 3 R.
-std::array<double, 3> rotate(const std::array<double, 9>& r, double x, double y, double z) noexcept {
-  return {r[0] * x + r[1] * y + r[2] * z, r[3] * x + r[4] * y + r[5] * z, r[6] * x + r[7] * y + r[8] * z};
-}
-
 // QTDATA and TDATA: elements of a 20-byte name, type, reserved, then the pose.
 constexpr std::size_t kTrackNameBytes = 20;
 constexpr std::size_t kQtdataElementBytes = 50;  // name, type, reserved, position[3], quaternion[4]
@@ -715,26 +710,7 @@ class IgtlSource final : public QueuedSource {
   }
 
   bool ordered(OrderGate& gate, std::int64_t robot_ns) noexcept {
-    switch (gate.check(robot_ns)) {
-      case OrderGate::Verdict::duplicate:
-        drop(stats_, events_, DropReason::duplicate, [] {
-          return std::string("OpenIGTLink message dropped: its timestamp repeats the last one of its kind");
-        });
-        return false;
-      case OrderGate::Verdict::out_of_order:
-        drop(stats_, events_, DropReason::out_of_order, [] {
-          return std::string(
-              "OpenIGTLink message dropped: its timestamp is older than the last one of its kind");
-        });
-        return false;
-      case OrderGate::Verdict::restart:
-        stats_.restarts.fetch_add(1, std::memory_order_relaxed);
-        mapper_.reset();
-        return true;
-      case OrderGate::Verdict::accept:
-        return true;
-    }
-    return false;
+    return admit(gate, robot_ns, mapper_, stats_, events_, "OpenIGTLink message");
   }
 
   struct Pose {

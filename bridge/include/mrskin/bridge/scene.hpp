@@ -25,6 +25,9 @@ struct SlaveSample {
   double contact_y_m = 0.0;
   double tip_radius_m = 0.0;
   bool valid = false;
+  // The stream's publisher went away (a DDS writer lost): the bridge fades at once rather than
+  // after the stale policy's hold. The fields repeat the last sample.
+  bool ended = false;
 };
 
 // Produces the latest slave sample; called from the tick thread, never blocks.

@@ -50,6 +50,11 @@ struct SourceOptions {
   // the tissue frame (z along the tissue's outward normal, the surface at z = 0).
   std::array<double, 9> robot_to_tissue{1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0};
   std::array<double, 3> robot_origin_m{0.0, 0.0, 0.0};
+  // dds://ARM: the DDS domain (0..232) and the ROS 2 topics ("" : CRTK's /ARM/measured_cf and
+  // /ARM/measured_cp). URI keys domain, wrench, pose.
+  int dds_domain = 0;
+  std::string dds_wrench_topic;
+  std::string dds_pose_topic;
   double tactile_pitch_m = 2e-3;          // NDARRAY cell pitch (square cells)
   std::size_t max_message_bytes = 65536;  // larger bodies: oversized, connection closed
   double reconnect_min_s = 0.05;          // igtl:// backoff, doubling up to max
@@ -63,11 +68,11 @@ struct SourceOptions {
 // A snapshot of a source's counters.
 struct SourceStats {
   std::uint64_t accepted = 0;
-  DropCounts drops{};             // by DropReason (drop_reason.hpp)
-  std::uint64_t poses = 0;        // pose messages taken (OpenIGTLink; a pose alone makes no sample)
-  std::uint64_t restarts = 0;     // stream restarts (see restart_after_out_of_order)
-  std::uint64_t connections = 0;  // OpenIGTLink connections made or accepted
-  std::uint64_t disconnects = 0;
+  DropCounts drops{};                  // by DropReason (drop_reason.hpp)
+  std::uint64_t poses = 0;             // pose messages taken (OpenIGTLink; a pose alone makes no sample)
+  std::uint64_t restarts = 0;          // stream restarts (see restart_after_out_of_order)
+  std::uint64_t connections = 0;       // OpenIGTLink connections made or accepted; DDS writers matched
+  std::uint64_t disconnects = 0;       // and lost
   std::uint64_t connect_failures = 0;  // igtl://: attempts that failed (resolve, refused, timeout)
   [[nodiscard]] std::uint64_t of(DropReason r) const noexcept {
     return drops.at(static_cast<std::size_t>(r));

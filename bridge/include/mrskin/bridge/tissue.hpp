@@ -177,6 +177,9 @@ class TissueEstimator {
   // source that returns its newest sample every tick can push it every tick.
   bool push(const TissueSample& sample) noexcept;
   [[nodiscard]] TissueEstimate estimate(double now_s) const noexcept;
+  // The stream's publisher went away at now_s (a DDS writer lost): the stale policy skips its
+  // hold and fades from now_s. The next accepted sample ends it.
+  void end_stream(double now_s) noexcept;
   // The current fit without stale scaling or confidence gating.
   [[nodiscard]] TissueModel raw_fit() const noexcept;
   [[nodiscard]] double confidence() const noexcept;
@@ -196,6 +199,8 @@ class TissueEstimator {
     double err2 = 0.0;     // forgotten sum of squared prediction errors
   };
   void regressors(const Member& m, double xs, double& g1, double& g2) const noexcept;
+  bool stream_ended_ = false;
+  double ended_at_s_ = 0.0;
   // Every member's regressors at xs into g1_/g2_: the Hunt-Crossley bank's exponents are evenly
   // spaced, so x^n climbs by one factor x^dn per member (two pow calls, not one each).
   void bank_regressors(double xs) noexcept;
