@@ -73,7 +73,7 @@ std::string numbers(const std::vector<double>& v, double unit_scale = 1.0) {
 
 // What was measured and fitted; printed as text or JSON.
 struct Report {
-  std::string result;  // WRITTEN, DRY_RUN, REFUSED, FAILED
+  std::string result;  // WRITTEN, DRY_RUN, KEPT (the stored one fits better), REFUSED, FAILED
   std::string reason;
   long stored_version = 0;
   long new_version = 0;
@@ -497,13 +497,14 @@ int run_calibrate(const CalibrateOptions& o, const GlobalOptions& global) {
     return tools::kFailure;
   }
   if (r.rms_held_new_m > r.rms_held_stored_m) {
-    r.result = "REFUSED";
+    // Not a failure: the unit is calibrated, and better than this sweep would make it.
+    r.result = "KEPT";
     r.reason = fmt::format(
-        "the new yield_scale fits the held-out sweep worse than the stored calibration ({:.2f} "
-        "um against {:.2f} um rms); nothing written",
-        r.rms_held_new_m * 1e6, r.rms_held_stored_m * 1e6);
+        "the stored calibration fits the held-out sweep better than the new yield_scale ({:.2f} um "
+        "against {:.2f} um rms): kept it, nothing written",
+        r.rms_held_stored_m * 1e6, r.rms_held_new_m * 1e6);
     print_report(r, o, global);
-    return tools::kFailure;
+    return tools::kOk;
   }
   return write_and_read_back(r, next, o, global, rig, progress, step);
 }
@@ -517,7 +518,8 @@ void add_calibrate_command(CLI::App& app, const GlobalOptions& global, int& exit
       "zero the sensors, degauss the cores, sweep the valves' yield at low currents and fit the "
       "calibration's "
       "yield_scale to the profile's model; store it versioned and read it back (docs/cli.md). Exit 0 written "
-      "(or --dry-run), 1 refused or failed (nothing written)");
+      "(or --dry-run), or the stored calibration kept as the better fit; 1 refused or failed (nothing "
+      "written)");
   add_device_options(sub, options->uri, options->realtime);
   sub->add_flag("--dry-run", options->dry_run, "measure and fit, print the calibration, write nothing");
   sub->add_flag("--zero-only", options->zero_only,
