@@ -26,6 +26,7 @@
 #include <filesystem>
 #include <fstream>
 #include <functional>
+#include <optional>
 #include <sstream>
 #include <string>
 #include <thread>
@@ -662,6 +663,36 @@ TEST_F(BridgedDaemon, ASecondDaemonOnTheSameSocketIsBusy) {
   EXPECT_EQ(json_field(status(c), "ok"), "true");  // the first runs on
   first.signal(SIGTERM);
   EXPECT_EQ(first.wait(30s), mrskin::tools::kOk) << first.output();
+}
+
+// The control socket as documented (issue 25): a line over 4096 bytes, whole or not, is refused
+// and closed; a client silent for idle_timeout_s is closed; a subscribed one is served on.
+TEST_F(BridgedDaemon, ALongLineOrAnIdleClientIsClosed) {
+  const fs::path cfg = dir_ / "idle.toml";
+  std::ofstream(cfg) << config_text("[bridge]\nrealtime = false") << "idle_timeout_s = 1\n";
+  Daemon d(dir_, "idle", {"--config", cfg.string(), "--quiet"});
+  LineClient c = connect();
+  ASSERT_TRUE(c.connected()) << d.output();
+  ASSERT_TRUE(c.send_line(std::string(5000, 'x')));
+  const std::optional<std::string> reply = c.read_line(5s);
+  ASSERT_TRUE(reply.has_value()) << d.output();
+  EXPECT_NE(reply->find("request longer than 4096 bytes: closed"), std::string::npos) << *reply;
+  EXPECT_FALSE(c.read_line(5s).has_value());  // the connection ended
+  LineClient idle = connect();
+  LineClient subscribed = connect();
+  ASSERT_TRUE(subscribed.send_line(R"({"cmd":"telemetry","period_ms":200})"));
+  const std::optional<std::string> said = idle.read_line(10s);
+  ASSERT_TRUE(said.has_value()) << d.output();
+  EXPECT_NE(said->find("idle for 1 s: closed"), std::string::npos) << *said;
+  EXPECT_FALSE(idle.read_line(3s).has_value());
+  for (int k = 0; k < 3; ++k) {  // 1.5 s past the idle timeout: still served
+    (void)subscribed.read_line(1s);
+  }
+  EXPECT_TRUE(subscribed.read_line(2s).has_value());
+  d.signal(SIGTERM);
+  EXPECT_EQ(d.wait(30s), mrskin::tools::kOk) << d.output();
+  EXPECT_NE(d.output().find("a line longer than 4096 bytes and was closed"), std::string::npos) << d.output();
+  EXPECT_NE(d.output().find("a client idle for 1 s was closed"), std::string::npos) << d.output();
 }
 
 TEST_F(BridgedDaemon, AStaleSocketIsReplacedAndDurationEndsTheRun) {

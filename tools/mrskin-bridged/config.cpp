@@ -224,10 +224,13 @@ Settings load_settings(const std::string& path) {
         *t, "topics", "domain", s.topics_domain, [](int v) { return v >= 0 && v <= 232; }, "0 to 232");
   }
   if (const toml::table* c = r.section(root, "control")) {
-    r.check_keys(*c, "control", {"socket", "max_clients"});
+    r.check_keys(*c, "control", {"socket", "max_clients", "idle_timeout_s"});
     r.get(*c, "control", "socket", s.socket);
     r.get_checked(
         *c, "control", "max_clients", s.max_clients, [](int v) { return v >= 1 && v <= 64; }, "1 to 64");
+    r.get_checked(
+        *c, "control", "idle_timeout_s", s.idle_timeout_s, [](double v) { return v >= 1.0 && v <= 86400.0; },
+        "1 to 86400 s");
   }
   return s;
 }

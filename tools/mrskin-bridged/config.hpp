@@ -51,6 +51,7 @@ struct Settings {
   // [control]
   std::string socket;  // "" : default_socket_path()
   int max_clients = 8;
+  double idle_timeout_s = 300.0;  // a silent client without a subscription or lease is closed
   // [device]-independent: how long the link may stay down before the daemon gives up (exit 1).
   double device_lost_s = 10.0;
 };

@@ -210,8 +210,11 @@ bool parse_request(std::string_view line, ControlRequest& out, std::string& erro
   return true;
 }
 
-ControlServer::ControlServer(std::string path, int max_clients)
-    : path_(std::move(path)), max_clients_(static_cast<std::size_t>(std::max(1, max_clients))) {
+ControlServer::ControlServer(std::string path, int max_clients, double idle_timeout_s)
+    : path_(std::move(path)),
+      max_clients_(static_cast<std::size_t>(std::max(1, max_clients))),
+      idle_timeout_(std::chrono::duration_cast<SteadyClock::duration>(
+          std::chrono::duration<double>(std::clamp(idle_timeout_s, 0.1, 86400.0)))) {
   const sockaddr_un addr = unix_address(path_);
   if (const std::size_t slash = path_.rfind('/'); slash != std::string::npos && slash > 0) {
     make_private_directory(path_.substr(0, slash));
@@ -363,6 +366,7 @@ void ControlServer::run() noexcept {
         }
       }
     }
+    close_idle(t);
     for (Client& c : clients_) {
       if (c.closing && c.out.empty()) {
         c.dead = true;
@@ -414,10 +418,27 @@ void ControlServer::accept_clients() noexcept {
     try {
       Client c;
       c.fd = fd;
+      c.last_heard = SteadyClock::now();
       clients_.push_back(std::move(c));
     } catch (...) {
       ::close(fd);
     }
+  }
+}
+
+void ControlServer::close_idle(SteadyClock::time_point now) noexcept {
+  for (Client& c : clients_) {
+    if (c.dead || c.closing || c.leased || c.telemetry_ms > 0.0 || now - c.last_heard < idle_timeout_) {
+      continue;
+    }
+    const double idle_s = std::chrono::duration<double>(idle_timeout_).count();
+    try {
+      send(c, fmt::format(R"({{"ok":false,"error":"idle for {:g} s: closed, see [control] idle_timeout_s"}})",
+                          idle_s));
+      event(fmt::format("control socket: a client idle for {:g} s was closed", idle_s));
+    } catch (...) {  // NOLINT(bugprone-empty-catch): closed all the same
+    }
+    c.closing = true;
   }
 }
 
@@ -435,10 +456,14 @@ void ControlServer::read_client(Client& c) noexcept {
       }
       return;
     }
+    c.last_heard = SteadyClock::now();
     try {
       c.in.append(buf.data(), static_cast<std::size_t>(n));
       std::size_t nl = 0;
       while (!c.leased && !c.dead && !c.closing && (nl = c.in.find('\n')) != std::string::npos) {
+        if (nl > kMaxLine) {
+          break;  // too long, whole or not: refused below
+        }
         const std::string line = c.in.substr(0, nl);
         c.in.erase(0, nl + 1);
         handle_line(c, line);
@@ -447,8 +472,12 @@ void ControlServer::read_client(Client& c) noexcept {
         read_frames(c);
         continue;
       }
-      if (c.in.size() > kMaxLine) {
-        send(c, fmt::format(R"({{"ok":false,"error":"request longer than {} bytes"}})", kMaxLine));
+      // What is left is one partial line, or a whole one the loop stopped at for its length.
+      const std::size_t end = std::min(c.in.find('\n'), c.in.size());
+      if (!c.closing && !c.dead && end > kMaxLine) {
+        send(c, fmt::format(R"({{"ok":false,"error":"request longer than {} bytes: closed"}})", kMaxLine));
+        event(fmt::format("control socket: a client sent a line longer than {} bytes and was closed",
+                          kMaxLine));
         c.closing = true;
         c.in.clear();
       }

@@ -67,7 +67,10 @@ class ControlServer {
 
   // Creates the directory (0700) if missing, refuses a live socket (SocketBusy), removes a stale
   // one, binds with mode 0600 and listens. Throws mrskin::Error with the reason otherwise.
-  ControlServer(std::string path, int max_clients);
+  // idle_timeout_s: a client that sends nothing this long, with no telemetry subscription and no
+  // lease, is told so and closed.
+  ControlServer(std::string path, int max_clients, double idle_timeout_s = kDefaultIdleTimeout_s);
+  static constexpr double kDefaultIdleTimeout_s = 300.0;
   ControlServer(const ControlServer&) = delete;
   ControlServer& operator=(const ControlServer&) = delete;
   ControlServer(ControlServer&&) = delete;
@@ -92,7 +95,9 @@ class ControlServer {
     bool closing = false;  // close once out is flushed
     bool dead = false;
     bool leased = false;  // the device lease: `in` and `out` carry length-prefixed datagrams
+    std::chrono::steady_clock::time_point last_heard{};  // accepted, or the last bytes read
   };
+  void close_idle(std::chrono::steady_clock::time_point now) noexcept;
   void read_frames(Client& c) noexcept;
   void pump_lease(Client& c) noexcept;
   void run() noexcept;
@@ -105,6 +110,7 @@ class ControlServer {
 
   std::string path_;
   std::size_t max_clients_;
+  std::chrono::steady_clock::duration idle_timeout_;
   ControlBackend* backend_ = nullptr;
   int listen_fd_ = -1;
   int wake_fd_ = -1;  // eventfd: stop()

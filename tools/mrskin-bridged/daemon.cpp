@@ -615,10 +615,12 @@ std::vector<std::string> Daemon::reload(Settings next) {
                               settings_.device, next.device, settings_.device));
     next.device = settings_.device;
   }
-  if (next.socket != settings_.socket || next.max_clients != settings_.max_clients) {
+  if (next.socket != settings_.socket || next.max_clients != settings_.max_clients ||
+      next.idle_timeout_s != settings_.idle_timeout_s) {
     log.emplace_back("reload: [control] changes need a restart; kept the current socket");
     next.socket = settings_.socket;
     next.max_clients = settings_.max_clients;
+    next.idle_timeout_s = settings_.idle_timeout_s;
   }
   if (next.topics_namespace != settings_.topics_namespace || next.topics_domain != settings_.topics_domain ||
       next.topics_rate_hz != settings_.topics_rate_hz) {

@@ -112,7 +112,7 @@ int run(Settings cfg, const std::string& config_path, const mrskin::bridged::Ove
   using namespace mrskin;
   Console console(::isatty(STDOUT_FILENO) == 1);
   // The socket first: a second daemon stops here (kBusy) without touching the device.
-  bridged::ControlServer server(cfg.socket, cfg.max_clients);
+  bridged::ControlServer server(cfg.socket, cfg.max_clients, cfg.idle_timeout_s);
   MonotonicClock clock;
   bridged::Daemon daemon(cfg, clock);
   const DeviceInfo& info = daemon.info();
@@ -198,6 +198,9 @@ int run(Settings cfg, const std::string& config_path, const mrskin::bridged::Ove
   server.stop();
   daemon.stop();
   console.end_status();
+  for (const std::string& e : server.take_events()) {  // the last ones, not lost to the exit
+    spdlog::info("{}", e);
+  }
   if (stop_signal != 0) {
     fmt::print("stopped by signal {} ({})\n", stop_signal, stop_signal == SIGINT ? "SIGINT" : "SIGTERM");
   }
