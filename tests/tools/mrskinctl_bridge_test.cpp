@@ -194,6 +194,9 @@ TEST_F(MrskinctlBridge, MonitorGetsTheGridThenEstopFaultEnable) {
 
   d->signal(SIGTERM);
   EXPECT_EQ(d->wait(60s), mrskin::tools::kOk) << d->out() << d->err();
+  // The daemon's log says which client asked (issue 25): the peer's pid and command.
+  EXPECT_NE((d->out() + d->err()).find("estop requested by pid "), std::string::npos) << d->err();
+  EXPECT_NE((d->out() + d->err()).find("(mrskinctl)"), std::string::npos) << d->err();
 }
 
 // set, selftest and calibrate lease the daemon's device: the bridge is disabled, their own session

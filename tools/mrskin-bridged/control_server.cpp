@@ -14,6 +14,8 @@
 #include <cerrno>
 #include <cmath>
 #include <cstring>
+#include <fstream>
+#include <string>
 #include <system_error>
 
 #include "json_text.hpp"
@@ -401,6 +403,25 @@ void ControlServer::run() noexcept {
   }
 }
 
+namespace {
+
+// The peer of a UNIX socket, for the log: its pid, command name and user.
+std::string peer_of(int fd) {
+  ucred cred{};
+  socklen_t len = sizeof(cred);
+  if (::getsockopt(fd, SOL_SOCKET, SO_PEERCRED, &cred, &len) != 0) {
+    return "a client";
+  }
+  std::string comm;
+  if (std::ifstream in("/proc/" + std::to_string(cred.pid) + "/comm"); in) {
+    std::getline(in, comm);
+  }
+  return comm.empty() ? fmt::format("pid {}, uid {}", cred.pid, cred.uid)
+                      : fmt::format("pid {} ({}), uid {}", cred.pid, comm, cred.uid);
+}
+
+}  // namespace
+
 void ControlServer::accept_clients() noexcept {
   for (;;) {
     const int fd = ::accept4(listen_fd_, nullptr, nullptr, SOCK_NONBLOCK | SOCK_CLOEXEC);
@@ -419,6 +440,7 @@ void ControlServer::accept_clients() noexcept {
       Client c;
       c.fd = fd;
       c.last_heard = SteadyClock::now();
+      c.who = peer_of(fd);
       clients_.push_back(std::move(c));
     } catch (...) {
       ::close(fd);
@@ -435,7 +457,7 @@ void ControlServer::close_idle(SteadyClock::time_point now) noexcept {
     try {
       send(c, fmt::format(R"({{"ok":false,"error":"idle for {:g} s: closed, see [control] idle_timeout_s"}})",
                           idle_s));
-      event(fmt::format("control socket: a client idle for {:g} s was closed", idle_s));
+      event(fmt::format("control socket: a client idle for {:g} s was closed ({})", idle_s, c.who));
     } catch (...) {  // NOLINT(bugprone-empty-catch): closed all the same
     }
     c.closing = true;
@@ -506,7 +528,7 @@ void ControlServer::handle_line(Client& c, std::string_view line) {
     send(c, R"({"ok":true,"cmd":"status",)" + backend_->status_members() + "}");
   } else if (r.cmd == "enable" || r.cmd == "disable" || r.cmd == "estop") {
     backend_->request(r.cmd);
-    event(fmt::format("control socket: {} requested", r.cmd));
+    event(fmt::format("control socket: {} requested by {}", r.cmd, c.who));
     send(c, fmt::format(R"({{"ok":true,"cmd":"{}","note":"acted on at the next tick"}})", cmd));
   } else if (r.cmd == "fault") {
     send(c, R"({"ok":true,"cmd":"fault",)" + backend_->fault_members() + "}");
@@ -537,7 +559,7 @@ void ControlServer::handle_line(Client& c, std::string_view line) {
     c.grid = false;
     send(c, R"({"ok":true,"cmd":"lease","framing":"u8 length, then the datagram, both ways"})");
     c.leased = true;
-    event("control socket: the device is leased to a client (bridge halted)");
+    event(fmt::format("control socket: the device is leased to {} (bridge halted)", c.who));
   } else if (r.cmd == "stop") {
     c.telemetry_ms = 0.0;
     c.grid = false;

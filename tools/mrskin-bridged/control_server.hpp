@@ -96,6 +96,7 @@ class ControlServer {
     bool dead = false;
     bool leased = false;  // the device lease: `in` and `out` carry length-prefixed datagrams
     std::chrono::steady_clock::time_point last_heard{};  // accepted, or the last bytes read
+    std::string who;  // "pid 1234 (mrskinctl), uid 1000": the peer, from SO_PEERCRED, for the log
   };
   void close_idle(std::chrono::steady_clock::time_point now) noexcept;
   void read_frames(Client& c) noexcept;
