@@ -553,7 +553,37 @@ TEST_F(BridgedDaemon, AFaultLatchedAtExitIsExit1) {
   d.signal(SIGTERM);
   EXPECT_EQ(d.wait(30s), mrskin::tools::kFailure) << d.output();
   EXPECT_NE(d.output().find("in FAULT at exit"), std::string::npos) << d.output();
+  // Logged as it happened, under --quiet too (issue 25).
+  EXPECT_NE(d.output().find("device FAULT: bus off"), std::string::npos) << d.output();
   EXPECT_TRUE(fs::exists(stats_));
+}
+
+// Link faults are counted by kind in the status and logged at most once a second, under --quiet
+// too; a disconnect is logged going and coming back (issue 25). At the real time scale: the
+// harness's MRSKIN_TIME_SCALE=10 also stretches the mock's fault clock.
+TEST_F(BridgedDaemon, LinkFaultsAreCountedAndLogged) {
+  ::setenv("MRSKIN_TIME_SCALE", "1", 1);
+  Daemon d(dir_, "d",
+           {"--config", config("[bridge]\nrealtime = false").string(), "--device",
+            "mock://?faults=drop:0.05,dup:0.01,corrupt:0.01,disconnect:0.5+0.5", "--quiet"});
+  ::unsetenv("MRSKIN_TIME_SCALE");
+  LineClient c = connect();
+  ASSERT_TRUE(c.connected()) << d.output();
+  std::string s;
+  EXPECT_TRUE(eventually([&] {
+    s = status(c);
+    const auto n = [&](const char* key) { return std::stod(json_field(s, key).value_or("0")); };
+    return n("sequence_gaps") > 0 && n("duplicates") > 0 && n("crc") > 0 && n("reconnects") > 0;
+  })) << s;
+  std::this_thread::sleep_for(1500ms);  // a status period: the log catches up
+  d.signal(SIGTERM);
+  EXPECT_EQ(d.wait(30s), mrskin::tools::kOk) << d.output();
+  const std::string log = d.output();
+  EXPECT_NE(log.find("sequence gaps (telemetry lost or reordered)"), std::string::npos) << log;
+  EXPECT_NE(log.find("failed the CRC"), std::string::npos) << log;
+  EXPECT_NE(log.find("duplicate packets"), std::string::npos) << log;
+  EXPECT_NE(log.find("link: the device disconnected"), std::string::npos) << log;
+  EXPECT_NE(log.find("link: the device reconnected"), std::string::npos) << log;
 }
 
 // --record: the input stream to a file in the replay:// format, which a second run plays back.

@@ -209,6 +209,13 @@ void Daemon::publish(TimePoint now) noexcept {
   sent_.store(c.sent, std::memory_order_relaxed);
   received_.store(c.received, std::memory_order_relaxed);
   identity_changes_.store(c.identity_changes, std::memory_order_relaxed);
+  crc_errors_.store(c.crc_errors, std::memory_order_relaxed);
+  decode_errors_.store(c.decode_errors, std::memory_order_relaxed);
+  sequence_gaps_.store(c.sequence_gaps, std::memory_order_relaxed);
+  link_duplicates_.store(c.duplicates, std::memory_order_relaxed);
+  telemetry_timeouts_.store(c.telemetry_timeouts, std::memory_order_relaxed);
+  disconnects_.store(c.disconnects, std::memory_order_relaxed);
+  reconnects_.store(c.reconnects, std::memory_order_relaxed);
   last_fresh_ns_.store(watched_->last_fresh().count(), std::memory_order_relaxed);
   if (s.connected()) {
     disconnected_since_ns_.store(0, std::memory_order_relaxed);
@@ -395,7 +402,8 @@ std::string Daemon::status_members() {
       R"("valves_released":{},"connected":{},"stream":"{}","ticks":{},"rms_error_n":{},)"
       R"("stiffness_n_per_m":{},"peak_target_n":{},"peak_current_a":{},"rate_hz":{},"device":"{}",)"
       R"("source":"{}","uptime_s":{},"link_sent":{},"link_received":{},"reloads":{},"pid":{},"leased":{},)"
-      R"("stream_warning":"{}","topics":{})",
+      R"("stream_warning":"{}","topics":{},"link_errors":{{"sequence_gaps":{},"duplicates":{},)"
+      R"("undecodable":{},"crc":{},"telemetry_timeouts":{},"disconnects":{},"reconnects":{}}})",
       to_string(state), fault_name(fault_code_.load(std::memory_order_relaxed)),
       fault_name(last_fault_code_.load(std::memory_order_relaxed)), faults_.load(std::memory_order_relaxed),
       halted_.load(std::memory_order_relaxed),
@@ -411,7 +419,9 @@ std::string Daemon::status_members() {
       json_escape(shown.device), json_escape(shown.source),
       json_number(static_cast<double>(now_ns - t0_.count()) * 1e-9), sent_.load(std::memory_order_relaxed),
       received_.load(std::memory_order_relaxed), reloads_.load(), ::getpid(), leased_.load(),
-      json_escape(stream_warning()), topics_members());
+      json_escape(stream_warning()), topics_members(), sequence_gaps_.load(), link_duplicates_.load(),
+      decode_errors_.load(), crc_errors_.load(), telemetry_timeouts_.load(), disconnects_.load(),
+      reconnects_.load());
 }
 
 std::string Daemon::topics_members() const {
@@ -546,6 +556,72 @@ std::vector<bridge::SourceEvent> Daemon::take_source_events() {
     events_seen_ = events.back().seq;
   }
   return events;
+}
+
+std::vector<Daemon::HealthEvent> Daemon::take_health_events() {
+  std::vector<HealthEvent> out;
+  const TimePoint now = clock_.now();
+  const std::array<std::uint64_t, 7> link{
+      crc_errors_.load(),         decode_errors_.load(), sequence_gaps_.load(), link_duplicates_.load(),
+      telemetry_timeouts_.load(), disconnects_.load(),   reconnects_.load()};
+  const double period_s = seen_.at.count() == 0 ? to_seconds(now - t0_) : to_seconds(now - seen_.at);
+  std::array<std::uint64_t, 7> d{};
+  for (std::size_t k = 0; k < d.size(); ++k) {
+    d.at(k) = link.at(k) - seen_.link.at(k);
+  }
+  // decode_errors counts every undecodable packet, CRC failures included.
+  std::string errors;
+  const auto add = [&](std::uint64_t n, std::string_view what) {
+    if (n != 0) {
+      errors += fmt::format("{}{} {}", errors.empty() ? "" : ", ", n, what);
+    }
+  };
+  add(d[2], "sequence gaps (telemetry lost or reordered)");
+  add(d[3], "duplicate packets");
+  add(d[1], d[0] != 0 ? fmt::format("undecodable packets ({} failed the CRC)", d[0]) : "undecodable packets");
+  add(d[4], "telemetry timeouts (nothing heard in time)");
+  if (!errors.empty()) {
+    out.push_back({true, fmt::format("link: in the last {:.1f} s: {} (totals: {} gaps, {} duplicates, {} "
+                                     "undecodable, {} timeouts)",
+                                     period_s, errors, link[2], link[3], link[1], link[4])});
+  }
+  if (d[5] != 0) {
+    out.push_back(
+        {true, fmt::format("link: the device disconnected (disconnects so far: {}); the session reconnects",
+                           link[5])});
+  }
+  if (d[6] != 0) {
+    out.push_back({false, fmt::format("link: the device reconnected (reconnects so far: {})", link[6])});
+  }
+  const std::uint8_t state = state_.load(std::memory_order_relaxed);
+  const std::uint8_t fault = fault_code_.load(std::memory_order_relaxed);
+  const auto fault_state = static_cast<std::uint8_t>(DeviceState::fault);
+  if (state == fault_state && (seen_.state != fault_state || fault != seen_.fault)) {
+    const bool asked = operator_halt_.load(std::memory_order_relaxed) == 3;
+    out.push_back({!asked, fmt::format("device FAULT: {}{} (faults so far: {})", fault_name(fault),
+                                       asked ? ", as the operator asked" : "", faults_.load())});
+  } else if (state != fault_state && seen_.state == fault_state) {
+    out.push_back({false, fmt::format("device left FAULT: {}", to_string(static_cast<DeviceState>(state)))});
+  }
+  const std::int64_t last = last_fresh_ns_.load(std::memory_order_relaxed);
+  if (last != 0 && !halted_.load(std::memory_order_relaxed)) {
+    const std::string stream = stream_state(now.count());
+    const bool stale = stream != "live";
+    if (stale && !seen_.stale) {
+      out.push_back(
+          {true, fmt::format("stream: no fresh sample for {:.2f} s ({}): the bridge holds, then fades "
+                             "to released",
+                             static_cast<double>(now.count() - last) * 1e-9, stream)});
+    } else if (!stale && seen_.stale) {
+      out.push_back({false, "stream: live again"});
+    }
+    seen_.stale = stale;
+  }
+  seen_.link = link;
+  seen_.state = state;
+  seen_.fault = fault;
+  seen_.at = now;
+  return out;
 }
 
 std::string Daemon::status_line() const {

@@ -8,6 +8,7 @@
 // inside SessionGate (fault dump), which makes the tick skip its step meanwhile.
 #pragma once
 
+#include <array>
 #include <atomic>
 #include <condition_variable>
 #include <cstdint>
@@ -89,6 +90,15 @@ class Daemon final : public bridge::Tickable, public ControlBackend {
   // The stream source's latest warning ("" when none): why no sample may be arriving.
   [[nodiscard]] std::string stream_warning() const;
   [[nodiscard]] std::string status_line() const;
+  // Main thread, once per status period: what changed since the last call, for the log, each
+  // with whether it is a warning: link errors by kind (counted over the period: at most one
+  // line per period), disconnects and reconnects, FAULT and its cause, the stream going stale
+  // and live again.
+  struct HealthEvent {
+    bool warning = false;
+    std::string text;
+  };
+  std::vector<HealthEvent> take_health_events();
   [[nodiscard]] bool device_lost(double for_s) const noexcept;
   // Device in FAULT other than an e-stop the operator asked for.
   [[nodiscard]] bool unrequested_fault() const noexcept;
@@ -171,6 +181,23 @@ class Daemon final : public bridge::Tickable, public ControlBackend {
   std::atomic<std::uint64_t> sent_{0};
   std::atomic<std::uint64_t> received_{0};
   std::atomic<std::uint64_t> identity_changes_{0};
+  // Link errors by kind (SessionCounters), for the log and the status.
+  std::atomic<std::uint64_t> crc_errors_{0};
+  std::atomic<std::uint64_t> decode_errors_{0};
+  std::atomic<std::uint64_t> sequence_gaps_{0};
+  std::atomic<std::uint64_t> link_duplicates_{0};
+  std::atomic<std::uint64_t> telemetry_timeouts_{0};
+  std::atomic<std::uint64_t> disconnects_{0};
+  std::atomic<std::uint64_t> reconnects_{0};
+  // Main thread: what take_health_events() last reported.
+  struct HealthSeen {
+    std::array<std::uint64_t, 7> link{};  // the counters above, in order
+    std::uint8_t state = 0;
+    std::uint8_t fault = 0;
+    bool stale = false;
+    bool any_sample = false;
+    TimePoint at{};
+  } seen_;
   std::atomic<std::int64_t> last_fresh_ns_{0};  // 0: no sample yet
   std::atomic<std::int64_t> disconnected_since_ns_{0};
   std::atomic<std::uint64_t> reloads_{0};

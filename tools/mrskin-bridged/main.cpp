@@ -177,6 +177,16 @@ int run(Settings cfg, const std::string& config_path, const mrskin::bridged::Ove
     }
     if (clock.now() >= next_status) {
       next_status += std::chrono::milliseconds(console.tty() ? 500 : 1000);
+      if (std::vector<bridged::Daemon::HealthEvent> health = daemon.take_health_events(); !health.empty()) {
+        console.clear();  // link errors at most once a period, transitions as they happen
+        for (const bridged::Daemon::HealthEvent& e : health) {
+          if (e.warning) {
+            spdlog::warn("{}", e.text);
+          } else {
+            spdlog::info("{}", e.text);
+          }
+        }
+      }
       if (std::vector<std::string> events = server.take_events(); !events.empty()) {
         console.clear();
         for (const std::string& e : events) {
@@ -200,6 +210,13 @@ int run(Settings cfg, const std::string& config_path, const mrskin::bridged::Ove
   console.end_status();
   for (const std::string& e : server.take_events()) {  // the last ones, not lost to the exit
     spdlog::info("{}", e);
+  }
+  for (const bridged::Daemon::HealthEvent& e : daemon.take_health_events()) {
+    if (e.warning) {
+      spdlog::warn("{}", e.text);
+    } else {
+      spdlog::info("{}", e.text);
+    }
   }
   if (stop_signal != 0) {
     fmt::print("stopped by signal {} ({})\n", stop_signal, stop_signal == SIGINT ? "SIGINT" : "SIGTERM");
