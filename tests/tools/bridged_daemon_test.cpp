@@ -695,6 +695,23 @@ TEST_F(BridgedDaemon, ASecondDaemonOnTheSameSocketIsBusy) {
   EXPECT_EQ(first.wait(30s), mrskin::tools::kOk) << first.output();
 }
 
+// SIGTERM and SIGINT end the start-up too (issue 25): here it waits on a replay FIFO that nobody
+// writes, which used to hang with the signals blocked.
+TEST_F(BridgedDaemon, ASignalDuringStartUpEndsItAtOnce) {
+  for (const int sig : {SIGTERM, SIGINT}) {
+    const fs::path fifo = dir_ / "stream.fifo";
+    fs::remove(fifo);
+    ASSERT_EQ(::mkfifo(fifo.c_str(), 0600), 0);
+    Daemon d(dir_, "startup",
+             {"--config", config("[bridge]\nrealtime = false").string(), "--source",
+              "replay://" + fifo.string(), "--quiet"});
+    std::this_thread::sleep_for(300ms);  // into the replay's open
+    d.signal(sig);
+    EXPECT_EQ(d.wait(10s), mrskin::tools::kOk) << d.output();
+    EXPECT_NE(d.output().find("during start-up"), std::string::npos) << d.output();
+  }
+}
+
 // The control socket as documented (issue 25): a line over 4096 bytes, whole or not, is refused
 // and closed; a client silent for idle_timeout_s is closed; a subscribed one is served on.
 TEST_F(BridgedDaemon, ALongLineOrAnIdleClientIsClosed) {

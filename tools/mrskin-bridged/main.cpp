@@ -5,15 +5,19 @@
 #include <pthread.h>
 #include <spdlog/sinks/stdout_color_sinks.h>
 #include <spdlog/spdlog.h>
+#include <sys/eventfd.h>
 #include <sys/signalfd.h>
 #include <unistd.h>
 
 #include <CLI/CLI.hpp>
 #include <algorithm>
+#include <array>
+#include <cerrno>
 #include <csignal>
 #include <cstdio>
 #include <fstream>
 #include <memory>
+#include <thread>
 
 #include "config.hpp"
 #include "control_server.hpp"
@@ -29,7 +33,8 @@ using mrskin::bridged::Settings;
 
 constexpr const char* kExitCodes =
     "Exit codes:\n"
-    "  0  the duration was reached, or SIGINT/SIGTERM stopped it (statistics written)\n"
+    "  0  the duration was reached, or SIGINT/SIGTERM stopped it (statistics written; during\n"
+    "     start-up it stops at once, with nothing to write)\n"
     "  1  the device was lost for good (disconnected longer than device_lost_s, or another unit\n"
     "     answered), a device fault other than an operator's e-stop was latched at exit, or the\n"
     "     statistics file could not be written\n"
@@ -37,6 +42,68 @@ constexpr const char* kExitCodes =
     "  3  device not found, or permission denied\n"
     "  4  the device speaks another protocol version\n"
     "  5  the device is owned by another process, or another daemon answers on the control socket\n";
+
+// SIGINT and SIGTERM while the daemon starts (a device or a profile that takes long to open, a
+// replay from a FIFO nobody writes): the main loop does not read signals yet, so a thread of its
+// own does, and ends the process at once with exit 0. It reads a signalfd of its own for these two
+// only; a SIGHUP stays pending for the main loop.
+class StartupSignalGuard {
+ public:
+  StartupSignalGuard() : sfd_(stop_signals_fd()), stop_(::eventfd(0, EFD_CLOEXEC | EFD_NONBLOCK)) {
+    if (sfd_ >= 0 && stop_ >= 0) {
+      thread_ = std::thread([this] { watch(); });
+    }
+  }
+  StartupSignalGuard(const StartupSignalGuard&) = delete;
+  StartupSignalGuard& operator=(const StartupSignalGuard&) = delete;
+  StartupSignalGuard(StartupSignalGuard&&) = delete;
+  StartupSignalGuard& operator=(StartupSignalGuard&&) = delete;
+  ~StartupSignalGuard() { done(); }
+  // Start-up is over: the main loop reads the signals from here on.
+  void done() noexcept {
+    if (thread_.joinable()) {
+      const std::uint64_t one = 1;
+      [[maybe_unused]] const ssize_t n = ::write(stop_, &one, sizeof(one));
+      thread_.join();
+    }
+    for (int* fd : {&sfd_, &stop_}) {
+      if (*fd >= 0) {
+        ::close(*fd);
+        *fd = -1;
+      }
+    }
+  }
+
+ private:
+  static int stop_signals_fd() noexcept {
+    sigset_t mask;
+    sigemptyset(&mask);
+    sigaddset(&mask, SIGINT);
+    sigaddset(&mask, SIGTERM);
+    return ::signalfd(-1, &mask, SFD_CLOEXEC | SFD_NONBLOCK);
+  }
+  void watch() const noexcept {
+    std::array<pollfd, 2> p{pollfd{sfd_, POLLIN, 0}, pollfd{stop_, POLLIN, 0}};
+    while (::poll(p.data(), p.size(), -1) >= 0 || errno == EINTR) {
+      if ((p[1].revents & POLLIN) != 0) {
+        return;
+      }
+      signalfd_siginfo si{};
+      if ((p[0].revents & POLLIN) != 0 && ::read(sfd_, &si, sizeof(si)) == static_cast<ssize_t>(sizeof(si))) {
+        // Nothing to flush yet: no statistics, the device not driven (its watchdog releases the
+        // valves). The control socket file, if made, is replaced as stale by the next start.
+        const char* text = si.ssi_signo == SIGINT
+                               ? "mrskin-bridged: stopped by signal 2 (SIGINT) during start-up\n"
+                               : "mrskin-bridged: stopped by signal 15 (SIGTERM) during start-up\n";
+        std::fputs(text, stderr);
+        std::_Exit(kOk);
+      }
+    }
+  }
+  int sfd_ = -1;
+  int stop_ = -1;
+  std::thread thread_;
+};
 
 // What the stream carried and what was dropped, by reason.
 void print_stream_summary(const mrskin::bridge::BridgeStats& s) {
@@ -111,6 +178,7 @@ Settings load(const std::string& config_path, const mrskin::bridged::Overrides& 
 int run(Settings cfg, const std::string& config_path, const mrskin::bridged::Overrides& overrides, int sfd) {
   using namespace mrskin;
   Console console(::isatty(STDOUT_FILENO) == 1);
+  StartupSignalGuard startup;  // SIGINT/SIGTERM end the start-up within a poll
   // The socket first: a second daemon stops here (kBusy) without touching the device.
   bridged::ControlServer server(cfg.socket, cfg.max_clients, cfg.idle_timeout_s);
   MonotonicClock clock;
@@ -131,6 +199,7 @@ int run(Settings cfg, const std::string& config_path, const mrskin::bridged::Ove
       &server, [](bridged::ControlServer* s) { s->stop(); });
   spdlog::info("control socket {}", server.path());
 
+  startup.done();  // a signal that came meanwhile is still pending for the loop below
   const TimePoint t0 = clock.now();
   TimePoint next_status = t0 + std::chrono::milliseconds(500);
   int stop_signal = 0;
