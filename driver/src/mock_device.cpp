@@ -227,6 +227,19 @@ MockDevice::MockDevice(const model::DeviceProfile& profile, std::string_view pro
     throw InvalidArgument(fmt::format("profile {} declares {} sensors but the plant has {}", name,
                                       profile.sensors.size(), plant_->sensor_count()));
   }
+  // A fault on a sensor or valve the unit does not have would silently do nothing.
+  const MockFaults& faults = options.faults;
+  const auto unit_has = [&](int index, std::size_t count, const char* fault, const char* what) {
+    if (index >= 0 && static_cast<std::size_t>(index) >= count) {
+      throw InvalidArgument(fmt::format("mock:// fault '{}:{}': profile {} has {} {}s (0 to {})", fault,
+                                        index, name, count, what, count == 0 ? 0 : count - 1));
+    }
+  };
+  unit_has(faults.stuck_sensor, profile.sensors.size(), "stuck", "sensor");
+  unit_has(faults.noisy_sensor, profile.sensors.size(), "noisy", "sensor");
+  unit_has(faults.offset_sensor, profile.sensors.size(), "offset", "sensor");
+  unit_has(faults.overheat_valve, layout_.valve_count(), "overheat", "valve");
+  unit_has(faults.leak_valve, layout_.valve_count(), "leak", "valve");
   const double counts = max_current_A_ / current_lsb_A_;
   if (!(current_lsb_A_ >= 1e-9) || !(counts >= 1.0) || counts > proto::kCurrentCountMax + 0.5) {
     throw InvalidArgument(fmt::format(

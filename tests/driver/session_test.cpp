@@ -481,6 +481,22 @@ TEST(MockProfiles, GridCurrentRangeAndSensorsComeFromTheProfile) {
   }
 }
 
+// A fault on a sensor or valve the unit does not have is refused, naming the range (issue 25):
+// the 5 x 5 has 12 sensors and 12 valves.
+TEST(MockProfiles, AFaultOutsideTheUnitIsRefused) {
+  SimulatedClock clock;
+  for (const char* bad : {"stuck:12", "noisy:99", "offset:12", "leak:12", "overheat:1000"}) {
+    try {
+      (void)open_device(std::string("mock://?faults=") + bad, clock);
+      ADD_FAILURE() << bad << " was accepted";
+    } catch (const InvalidArgument& e) {
+      EXPECT_NE(std::string(e.what()).find("(0 to 11)"), std::string::npos) << e.what();
+    }
+  }
+  MonotonicClock real;  // the last of each opens (and identifies in real time)
+  EXPECT_NO_THROW((void)open_device("mock://?faults=stuck:11,leak:11", real));
+}
+
 TEST(MockProfiles, UnknownProfileListsTheSearchPathAndTheNames) {
   SimulatedClock clock;
   try {
