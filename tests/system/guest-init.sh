@@ -2,7 +2,8 @@
 # shellcheck shell=dash
 # /init of the VM's initramfs (busybox only). Mounts the host's root filesystem read-only
 # over 9p (tag hostroot) and the work folder read-write (tag work) at the path the kernel
-# command line names (mrskin.work=PATH), chroots into the host root and runs
+# command line names (mrskin.work=PATH), puts fresh tmpfs on /tmp, /var/tmp and /run and binds
+# back from the host the paths mrskin.keep=A:B names, chroots into the host root and runs
 # PATH/.vm-command with /bin/sh. Its exit code goes to PATH/.vm-exit-code; then power off.
 # Before that it loads the modules PATH/.vm-modules names, from the unpacked kernel under
 # mrskin.modroot=DIR (busybox modprobe; the host root has no modules for this kernel).
@@ -18,6 +19,9 @@ if ! $B mount -t 9p -o trans=virtio,version=9p2000.L,ro,msize=262144,cache=loose
   say "cannot mount the host root"
   off
 fi
+# A second view of the host root, for the paths bound back below once tmpfs covers their folder.
+$B mkdir -p /hostro
+$B mount -o bind $R /hostro
 $B mount -t proc proc $R/proc
 $B mount -t sysfs sys $R/sys
 $B mount -t devtmpfs dev $R/dev
@@ -28,6 +32,15 @@ $B mount -t tmpfs tmp $R/tmp
 $B mount -t tmpfs run $R/run
 $B mount -t tmpfs vartmp $R/var/tmp
 $B mount -t configfs none $R/sys/kernel/config 2>/dev/null
+# The checkout and the command's folders, when they lie under one of the tmpfs (mrskin.keep=A:B).
+KEEP=$($B sed -n 's/.*mrskin\.keep=\([^ ]*\).*/\1/p' /proc/cmdline)
+OLDIFS=$IFS
+IFS=:
+for k in $KEEP; do
+  [ "$k" = none ] && continue
+  $B mkdir -p "$R$k" && $B mount -o bind "/hostro$k" "$R$k" || say "cannot bind $k back"
+done
+IFS=$OLDIFS
 WORK=$($B sed -n 's/.*mrskin\.work=\([^ ]*\).*/\1/p' /proc/cmdline)
 $B mkdir -p "$R$WORK" 2>/dev/null # under one of the tmpfs above
 if ! $B mount -t 9p -o trans=virtio,version=9p2000.L,msize=262144 work "$R$WORK"; then

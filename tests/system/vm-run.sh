@@ -3,7 +3,8 @@
 #
 # Boots Debian's own kernel under QEMU (TCG, no network) with the host's root filesystem
 # read-only over 9p and DIR read-write at the same path, runs COMMAND ARGS inside (a chroot
-# into the host root; COMMAND must live outside /tmp, which is a fresh tmpfs in the guest),
+# into the host root, where /tmp, /var/tmp and /run are fresh tmpfs; the checkout and the
+# folders of COMMAND and its arguments are bound back into them when they lie there),
 # and exits with COMMAND's exit code. DIR defaults to CACHE/work.
 #
 # The kernel comes from the Debian archive: `apt-get download` of linux-image-amd64 and of
@@ -155,13 +156,29 @@ echo "$modules" >"$work/.vm-modules"
   printf '\n'
 } >"$work/.vm-command"
 
+# The guest covers /tmp, /var/tmp and /run with fresh tmpfs: a checkout there (its scripts, the
+# command's binaries) would vanish. The guest binds these paths back from the host's root.
+keep=()
+for p in "$here/../.." "$@"; do
+  [ -e "$p" ] || continue
+  p=$(realpath "$p")
+  [ -d "$p" ] || p=$(dirname "$p")
+  case $p/ in
+    /tmp/* | /var/tmp/* | /run/*)
+      case $p in *' '* | *:*) echo "vm-run: a path the guest needs has a space or a colon: $p" >&2; exit 2 ;; esac
+      keep+=("$p")
+      ;;
+  esac
+done
+keep_arg=$(IFS=:; echo "${keep[*]:-none}")
+
 echo "vm-run: kernel $kv, work $work, timeout ${timeout_s}s" >&2
 start=$(date +%s%N)
 set +e
 timeout --kill-after=10 "$timeout_s" "$qemu" -accel tcg -m "${MRSKIN_VM_MEM:-1024}" \
   -smp "${MRSKIN_VM_SMP:-2}" -nographic -no-reboot -nic none \
   -kernel "$kernel" -initrd "$initrd" \
-  -append "console=ttyS0 quiet panic=-1 mrskin.work=$work mrskin.modroot=$root" \
+  -append "console=ttyS0 quiet panic=-1 mrskin.work=$work mrskin.modroot=$root mrskin.keep=$keep_arg" \
   -virtfs local,path=/,mount_tag=hostroot,security_model=none,readonly=on,multidevs=remap \
   -virtfs "local,path=$work,mount_tag=work,security_model=none" </dev/null |
   sed -u -e 's/\x1bc//g; s/\x1b\[[0-9;?]*[a-zA-Z]//g; s/\r//g; /SeaBIOS/d; /^Booting from ROM/d; /^$/d'
