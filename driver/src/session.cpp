@@ -573,6 +573,7 @@ void DeviceSession::handle(const Datagram& d, TimePoint now) noexcept {
     const TimePoint sent = heartbeat_sent_[h->counter % heartbeat_sent_.size()];
     if (sent.count() != 0 && now >= sent) {
       counters_.round_trip.add((now - sent).count());
+      counters_.last_round_trip_ns = (now - sent).count();
     }
   } else if (const auto* cd = std::get_if<proto::ConfigData>(&p.message)) {
     ConfigTransfer& c = config_;

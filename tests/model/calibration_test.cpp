@@ -52,6 +52,13 @@ TEST(ModelCalibration, RefusesWhatCannotBeAUnit) {
   EXPECT_THROW(parse_calibration("valve_yield_gain = 1.0\n", "t"), mrskin::InvalidArgument);  // no version
   EXPECT_THROW(parse_calibration("version = 1\nyield_scale = 3.0\n", "t"), mrskin::InvalidArgument);
   EXPECT_THROW(parse_calibration("version = 1\nyield_scale = nan\n", "t"), mrskin::InvalidArgument);
+  // Integers only, in range (the calibration fuzzer: a float version of 2.4e75 was cast to an
+  // integer, undefined behaviour; a serial beyond 32 bits wrapped).
+  EXPECT_THROW(parse_calibration("version = 2.4e75\n", "t"), mrskin::InvalidArgument);
+  EXPECT_THROW(parse_calibration("version = 2.0\n", "t"), mrskin::InvalidArgument);
+  EXPECT_THROW(parse_calibration("version = 1\nserial = 4294967296\n", "t"), mrskin::InvalidArgument);
+  EXPECT_THROW(parse_calibration("version = 1\nserial = -1\n", "t"), mrskin::InvalidArgument);
+  EXPECT_EQ(parse_calibration("version = 1\nserial = 4294967295\n", "t").serial, 4294967295U);
   EXPECT_THROW(parse_calibration("version = 1\nvalve_yield_gain = [1.0, 1.0]\n", "t", 12),
                mrskin::InvalidArgument);
   EXPECT_THROW(parse_calibration("version = [\n", "t"), mrskin::InvalidArgument);

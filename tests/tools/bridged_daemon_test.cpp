@@ -695,6 +695,17 @@ TEST_F(BridgedDaemon, ASecondDaemonOnTheSameSocketIsBusy) {
   EXPECT_EQ(first.wait(30s), mrskin::tools::kOk) << first.output();
 }
 
+// Late data (every packet arrives, 100 ms late) is logged from the heartbeat's round trip.
+TEST_F(BridgedDaemon, LateDataIsLogged) {
+  ::setenv("MRSKIN_TIME_SCALE", "1", 1);
+  Daemon d(dir_, "d",
+           {"--config", config("[bridge]\nrealtime = false").string(), "--device", "mock://?faults=delay:0.1",
+            "--duration", "2.5", "--quiet"});
+  ::unsetenv("MRSKIN_TIME_SCALE");
+  EXPECT_EQ(d.wait(30s), mrskin::tools::kOk) << d.output();
+  EXPECT_NE(d.output().find("link: heartbeat round trip up to 10"), std::string::npos) << d.output();
+}
+
 // SIGTERM and SIGINT end the start-up too (issue 25): here it waits on a replay FIFO that nobody
 // writes, which used to hang with the signals blocked.
 TEST_F(BridgedDaemon, ASignalDuringStartUpEndsItAtOnce) {

@@ -216,6 +216,9 @@ void Daemon::publish(TimePoint now) noexcept {
   telemetry_timeouts_.store(c.telemetry_timeouts, std::memory_order_relaxed);
   disconnects_.store(c.disconnects, std::memory_order_relaxed);
   reconnects_.store(c.reconnects, std::memory_order_relaxed);
+  if (c.last_round_trip_ns > max_round_trip_ns_.load(std::memory_order_relaxed)) {
+    max_round_trip_ns_.store(c.last_round_trip_ns, std::memory_order_relaxed);  // one writer: the tick
+  }
   last_fresh_ns_.store(watched_->last_fresh().count(), std::memory_order_relaxed);
   if (s.connected()) {
     disconnected_since_ns_.store(0, std::memory_order_relaxed);
@@ -584,6 +587,15 @@ std::vector<Daemon::HealthEvent> Daemon::take_health_events() {
     out.push_back({true, fmt::format("link: in the last {:.1f} s: {} (totals: {} gaps, {} duplicates, {} "
                                      "undecodable, {} timeouts)",
                                      period_s, errors, link[2], link[3], link[1], link[4])});
+  }
+  // Late data: every packet arrives, but late (a loaded bus or host); the sensors the loop closes
+  // on are that old. Full-speed USB and CAN answer within a few ms.
+  constexpr std::int64_t kLateRoundTrip_ns = 20'000'000;
+  if (const std::int64_t rtt_ns = max_round_trip_ns_.exchange(0); rtt_ns > kLateRoundTrip_ns) {
+    out.push_back(
+        {true, fmt::format("link: heartbeat round trip up to {:.0f} ms in the last {:.1f} s (over {} ms): "
+                           "the device's data arrives that late",
+                           static_cast<double>(rtt_ns) * 1e-6, period_s, kLateRoundTrip_ns / 1'000'000)});
   }
   if (d[5] != 0) {
     out.push_back(

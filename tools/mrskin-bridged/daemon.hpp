@@ -189,6 +189,8 @@ class Daemon final : public bridge::Tickable, public ControlBackend {
   std::atomic<std::uint64_t> telemetry_timeouts_{0};
   std::atomic<std::uint64_t> disconnects_{0};
   std::atomic<std::uint64_t> reconnects_{0};
+  // The longest heartbeat round trip since the main thread last looked (it exchanges 0 in), ns.
+  std::atomic<std::int64_t> max_round_trip_ns_{0};
   // Main thread: what take_health_events() last reported.
   struct HealthSeen {
     std::array<std::uint64_t, 7> link{};  // the counters above, in order

@@ -3,6 +3,8 @@
 #include <toml++/toml.h>
 
 #include <cmath>
+#include <limits>
+#include <optional>
 #include <random>
 #include <sstream>
 
@@ -53,11 +55,25 @@ Calibration parse_calibration(std::string_view text, const std::string& origin, 
     throw InvalidArgument(s.str());
   }
   Calibration c;
-  c.version = root["version"].value_or<std::int64_t>(0);
+  // Integers only: toml++ converts a float to an integer without a range check (undefined for
+  // 1e75, found by the calibration fuzzer), and a serial out of 32 bits would wrap.
+  const auto integer = [&](const char* key, std::int64_t lo, std::int64_t hi, std::int64_t missing) {
+    const toml::node* n = root.get(key);
+    if (n == nullptr) {
+      return missing;
+    }
+    const std::optional<std::int64_t> v = n->is_integer() ? n->value<std::int64_t>() : std::nullopt;
+    if (!v || *v < lo || *v > hi) {
+      throw InvalidArgument(origin + ": " + key + " must be an integer from " + std::to_string(lo) + " to " +
+                            std::to_string(hi));
+    }
+    return *v;
+  };
+  c.version = integer("version", 1, std::numeric_limits<std::int32_t>::max(), 0);
   if (c.version <= 0) {
     throw InvalidArgument(origin + ": a calibration needs a \"version = N\" line with N >= 1");
   }
-  c.serial = static_cast<std::uint32_t>(root["serial"].value_or<std::int64_t>(0));
+  c.serial = static_cast<std::uint32_t>(integer("serial", 0, std::numeric_limits<std::uint32_t>::max(), 0));
   c.profile = root["profile"].value_or<std::string>("");
   for (const ScaleKey& k : kScales) {
     if (const toml::node* n = root.get(k.key)) {

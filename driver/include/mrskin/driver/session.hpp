@@ -82,10 +82,11 @@ struct SessionCounters {
   std::uint64_t disconnects = 0;
   std::uint64_t reconnects = 0;
   std::uint64_t faults = 0;
-  std::uint64_t reseeds = 0;           // explicit enables that re-seeded the command state
-  std::uint64_t state_retries = 0;     // state requests sent again: no status confirmed them
-  std::uint64_t identity_changes = 0;  // another unit answered a reconnect: refused
-  DurationHistogram round_trip;        // heartbeat sent -> its echo received
+  std::uint64_t reseeds = 0;            // explicit enables that re-seeded the command state
+  std::uint64_t state_retries = 0;      // state requests sent again: no status confirmed them
+  std::uint64_t identity_changes = 0;   // another unit answered a reconnect: refused
+  DurationHistogram round_trip;         // heartbeat sent -> its echo received
+  std::int64_t last_round_trip_ns = 0;  // the latest of those, ns
 };
 
 // One packet in the ring log, as it crossed the link.
