@@ -706,6 +706,18 @@ TEST_F(BridgedDaemon, LateDataIsLogged) {
   EXPECT_NE(d.output().find("link: heartbeat round trip up to 10"), std::string::npos) << d.output();
 }
 
+// A file or folder the daemon cannot open or make is exit 1, as the exit-code table says, with
+// the path and the OS's reason (issue 25).
+TEST_F(BridgedDaemon, AFileItCannotOpenIsExit1) {
+  const std::string missing = (dir_ / "no-such-dir").string();
+  expect_exit("[bridge]\nrealtime = false", {"--source", "replay://" + missing + "/x.stream"},
+              mrskin::tools::kFailure, "cannot open");
+  expect_exit("[bridge]\nrealtime = false", {"--record", missing + "/rec.stream", "--duration", "0.2"},
+              mrskin::tools::kFailure, "cannot create");
+  expect_exit("[bridge]\nrealtime = false", {"--socket", missing + "/a/b.sock", "--duration", "0.2"},
+              mrskin::tools::kFailure, "cannot create the control socket directory");
+}
+
 // SIGTERM and SIGINT end the start-up too (issue 25): here it waits on a replay FIFO that nobody
 // writes, which used to hang with the signals blocked.
 TEST_F(BridgedDaemon, ASignalDuringStartUpEndsItAtOnce) {
