@@ -303,6 +303,25 @@ TEST(Ros2Cdr, AFastCdrEncoderWritesTheSameBytesAndCycloneDecodesThem) {
   EXPECT_STREQ(array.layout.dim._buffer[1].label, "col");
   dds_sample_free(&array, &std_msgs_msg_dds__Float64MultiArray__desc, DDS_FREE_CONTENTS);
 }
+
+// Malformed samples from a peer (a WrenchStamped whose frame_id claims 1000 bytes that never
+// come): Cyclone refuses them before any reader; the source counts them from Cyclone's report.
+TEST(DdsSource, MalformedSamplesFromAPeerAreCounted) {
+  std::unique_ptr<StreamSource> src = open_stream("dds://test/arm5?domain=47");
+  std::thread peer([] {
+    (void)std::system(MRSKIN_FASTDDS_PEER
+                      " publish-malformed --arm test/arm5 --domain 47 --rate 200 --duration 2 --wait-match 10"
+                      " > /dev/null 2>&1");  // NOLINT(cert-env33-c): the test's own peer
+  });
+  EXPECT_TRUE(eventually([&] { return src->stats().of(DropReason::format) > 0; }, 10000ms));
+  peer.join();
+  EXPECT_EQ(src->stats().accepted, 0U);
+  bool said = false;
+  for (const SourceEvent& e : src->events_after(0)) {
+    said = said || e.text.find("not valid CDR for geometry_msgs/msg/WrenchStamped") != std::string::npos;
+  }
+  EXPECT_TRUE(said);
+}
 #endif
 
 // ---- the dds:// source --------------------------------------------------------------------------

@@ -77,6 +77,13 @@ struct WrenchStamped {
   Header header;
   Wrench wrench;
 };
+// Malformed on purpose (publish-malformed): a WrenchStamped by name, but its frame_id claims
+// 1000 bytes that never come. A conforming reader must refuse it.
+struct TruncatedWrench {
+  static constexpr const char* kTypeName = "geometry_msgs::msg::dds_::WrenchStamped_";
+  Time stamp;
+  uint32_t frame_id_length = 1000;
+};
 struct Point {
   double x = 0, y = 0, z = 0;
 };
@@ -131,6 +138,10 @@ void visit(A& a, Vector3& m) {
 template <class A>
 void visit(A& a, Wrench& m) {
   a(m.force), a(m.torque);
+}
+template <class A>
+void visit(A& a, TruncatedWrench& m) {
+  a(m.stamp), a(m.frame_id_length);
 }
 template <class A>
 void visit(A& a, WrenchStamped& m) {
@@ -579,6 +590,27 @@ Contact contact_at(double t) {
   return {0, 0};
 }
 
+// publish-malformed: --duration seconds of truncated wrenches at --rate on ARM/measured_cf.
+int run_publish_malformed(const Options& o) {
+  Participant participant(o.domain);
+  auto* cf = participant.writer<TruncatedWrench>("rt/" + o.name + "/measured_cf", ros_default_writer_qos());
+  const auto deadline = Clock::now() + std::chrono::duration<double>(o.wait_match_s);
+  dds::PublicationMatchedStatus matched;
+  while (cf->get_publication_matched_status(matched) == ReturnCode_t::RETCODE_OK &&
+         matched.current_count == 0 && Clock::now() < deadline && sleep_for_s(0.01)) {
+  }
+  const auto periods = static_cast<uint64_t>(std::llround(o.duration_s * o.rate_hz));
+  uint64_t sent = 0;
+  TruncatedWrench m;
+  for (uint64_t k = 0; k < periods && !g_stop; ++k) {
+    m.stamp.sec = 1000 + static_cast<int32_t>(k);
+    sent += cf->write(&m) ? 1 : 0;
+    sleep_for_s(1.0 / o.rate_hz);
+  }
+  std::cout << "published " << sent << " malformed wrenches\n";
+  return 0;
+}
+
 int run_publish(const Options& o) {
   Participant participant(o.domain);
   const std::string prefix = "rt/" + o.name + "/";
@@ -751,6 +783,7 @@ constexpr const char* kUsage = R"(usage:
   mrskin_fastdds_peer publish --arm NAME [--domain N=0] [--rate HZ=1000] [--duration S=10] [--wait-match S=10] [--subscribers N=1]
       A ROS 2 (rmw_fastrtps) CRTK follower: publishes rt/NAME/measured_cp (PoseStamped) and
       rt/NAME/measured_cf (WrenchStamped), reliable keep-last 10, a press/hold/release cycle of 3.5 s.
+  mrskin_fastdds_peer publish-malformed --arm NAME [--domain N=0] [--rate HZ=1000] [--duration S=10] [--wait-match S=10]
   mrskin_fastdds_peer subscribe --ns NAME [--domain N=0] [--duration S=10] [--min N=1]
       Reads rt/NAME/operating_state and rt/NAME/cell_force/{target,estimated,true}; exit 0 when the
       first three each received at least N samples, else 1.
@@ -815,6 +848,9 @@ Options parse(int argc, char** argv) {
   if (o.mode == "publish") {
     name_option = "--arm";
     accepted = {"--arm", "--domain", "--rate", "--duration", "--wait-match", "--subscribers"};
+  } else if (o.mode == "publish-malformed") {
+    name_option = "--arm";
+    accepted = {"--arm", "--domain", "--rate", "--duration", "--wait-match"};
   } else if (o.mode == "subscribe") {
     name_option = "--ns";
     accepted = {"--ns", "--domain", "--duration", "--min"};
@@ -894,6 +930,9 @@ int main(int argc, char** argv) {
   try {
     if (options.mode == "publish") {
       return run_publish(options);
+    }
+    if (options.mode == "publish-malformed") {
+      return run_publish_malformed(options);
     }
     if (options.mode == "subscribe") {
       return run_subscribe(options);

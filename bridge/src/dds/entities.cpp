@@ -1,7 +1,12 @@
 #include "entities.hpp"
 
+#include <algorithm>
 #include <cctype>
+#include <cstdio>
 #include <cstdlib>
+#include <mutex>
+#include <utility>
+#include <vector>
 
 #include "mrskin/driver/errors.hpp"
 
@@ -112,6 +117,66 @@ std::string dds_topic(std::string_view ros_name) {
   std::string out = ros_name.starts_with('/') ? std::string("rt") : std::string("rt/");
   out.append(ros_name);
   return out;
+}
+
+namespace {
+
+struct Watchers {
+  std::mutex sink;   // serialises watch/unwatch, so the sink is set and cleared in their order
+  std::mutex mutex;  // the list; the only lock the sink's callers take
+  std::vector<std::pair<void*, MalformedHook>> list;  // guarded by mutex
+};
+Watchers& watchers() {
+  static Watchers w;
+  return w;
+}
+
+void log_sink(void* /*userdata*/, const dds_log_data_t* data) {
+  const std::string_view message(data->message, data->size);
+  constexpr std::string_view kBegin = "deserialization ";
+  const std::size_t begin = message.find(kBegin);
+  const std::size_t end = message.find(" failed", begin == std::string_view::npos ? 0 : begin);
+  if (begin != std::string_view::npos && end != std::string_view::npos) {
+    const std::string_view topic_type = message.substr(begin + kBegin.size(), end - begin - kBegin.size());
+    const std::string_view topic = topic_type.substr(0, topic_type.rfind('/'));
+    Watchers& w = watchers();
+    const std::lock_guard<std::mutex> lock(w.mutex);
+    for (const auto& [context, hook] : w.list) {
+      hook(context, topic);
+    }
+    return;
+  }
+  (void)std::fwrite(data->message, 1, data->size, stderr);
+}
+
+}  // namespace
+
+void watch_malformed(void* context, MalformedHook hook) {
+  Watchers& w = watchers();
+  const std::lock_guard<std::mutex> order(w.sink);
+  bool first = false;
+  {
+    const std::lock_guard<std::mutex> lock(w.mutex);
+    first = w.list.empty();
+    w.list.emplace_back(context, hook);
+  }
+  if (first) {
+    dds_set_log_sink(&log_sink, nullptr);  // without w.mutex: it waits for the sink's callers
+  }
+}
+
+void unwatch_malformed(void* context) noexcept {
+  Watchers& w = watchers();
+  const std::lock_guard<std::mutex> order(w.sink);
+  bool last = false;
+  {
+    const std::lock_guard<std::mutex> lock(w.mutex);
+    std::erase_if(w.list, [&](const auto& entry) { return entry.first == context; });
+    last = w.list.empty();
+  }
+  if (last) {
+    dds_set_log_sink(nullptr, nullptr);  // Cyclone's own sink again
+  }
 }
 
 }  // namespace mrskin::bridge::dds

@@ -57,6 +57,14 @@ std::string absolute_ros_name(std::string_view name, std::string_view what);
 // The DDS topic of a ROS 2 topic (a DDS-based RMW's mapping): "/a/b" -> "rt/a/b".
 std::string dds_topic(std::string_view ros_name);
 
+// Cyclone refuses a sample that is not valid CDR for its type before any reader sees it, and says
+// so only in its log ("deserialization TOPIC/TYPE failed"). While a watcher is registered, a log
+// sink passes each such topic to every watcher (from Cyclone's receive threads) and writes every
+// other message to stderr as Cyclone's default sink does.
+using MalformedHook = void (*)(void* context, std::string_view dds_topic) noexcept;
+void watch_malformed(void* context, MalformedHook hook);
+void unwatch_malformed(void* context) noexcept;  // no call for context once it returns
+
 // The largest domain id of the RTPS port mapping (7400 + 250 d + 11 < 65536).
 inline constexpr int kMaxDomain = 232;
 

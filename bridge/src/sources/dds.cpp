@@ -66,6 +66,9 @@ class DdsSource final : public QueuedSource {
     }
     events_.add(false, fmt::format("dds: listening on {} and {} (domain {})", wrench_.topic, pose_.topic,
                                    options.dds_domain));
+    dds::watch_malformed(this, [](void* self, std::string_view topic) noexcept {
+      static_cast<DdsSource*>(self)->malformed(topic);
+    });
     thread_ = std::thread([this] { run(); });
   }
   DdsSource(const DdsSource&) = delete;
@@ -73,6 +76,7 @@ class DdsSource final : public QueuedSource {
   DdsSource(DdsSource&&) = delete;
   DdsSource& operator=(DdsSource&&) = delete;
   ~DdsSource() override {
+    dds::unwatch_malformed(this);
     (void)dds_set_guardcondition(stop_, true);
     thread_.join();
   }  // participant_ deletes every entity under it
@@ -186,6 +190,22 @@ class DdsSource final : public QueuedSource {
       }
     }
     (void)dds_return_loan(publications_, samples.data(), n);
+  }
+
+  // A sample on one of our topics that the DDS stack could not deserialize (Cyclone's receive
+  // thread): counted, and the first explained.
+  void malformed(std::string_view topic) noexcept {
+    for (const Channel* c : {&wrench_, &pose_}) {
+      if (c->topic == topic) {
+        drop(stats_, events_, DropReason::format, [&] {
+          return fmt::format(
+              "dds: a sample on {} that is not valid CDR for {} was refused by the DDS stack (the "
+              "publisher's "
+              "type differs from ROS 2's definition?)",
+              c->topic, c->ros_type);
+        });
+      }
+    }
   }
 
   [[nodiscard]] const char* expected_type(const Channel& c) const noexcept {
