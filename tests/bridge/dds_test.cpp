@@ -5,6 +5,7 @@
 #include <dds/dds.h>
 #include <dds/ddsi/ddsi_serdata.h>
 #include <gtest/gtest.h>
+#include <unistd.h>
 
 #include <algorithm>
 #include <array>
@@ -28,6 +29,11 @@ namespace {
 using namespace mrskin;
 using namespace mrskin::bridge;
 using namespace std::chrono_literals;
+
+// Topics unique to this process: another run of these tests on the machine (same loopback, same
+// domains) must not cross-talk.
+const std::string kRun = "t" + std::to_string(::getpid());
+std::string rt(const std::string& rest) { return "rt/" + kRun + "/" + rest; }
 
 const bool kLoopback = [] {
   (void)::setenv("CYCLONEDDS_URI", MRSKIN_CYCLONEDDS_LOOPBACK_URI, 1);
@@ -92,10 +98,10 @@ TEST(DdsSourceUri, BadPartsAreNamed) {
 // Writes sample on a loopback topic and takes the serialized form back: the bytes a ROS 2 node
 // receives (encapsulation header first). type_out: the sertype, to decode bytes with.
 std::vector<std::uint8_t> wire_bytes(int domain, const dds_topic_descriptor_t* desc, const void* sample,
-                                     const char* topic_name) {
+                                     const std::string& topic_name) {
   const dds_entity_t p = dds_create_participant(domain, nullptr, nullptr);
   EXPECT_GT(p, 0);
-  const dds_entity_t t = dds_create_topic(p, desc, topic_name, nullptr, nullptr);
+  const dds_entity_t t = dds_create_topic(p, desc, topic_name.c_str(), nullptr, nullptr);
   dds_qos_t* q = dds_create_qos();
   dds_qset_reliability(q, DDS_RELIABILITY_RELIABLE, DDS_SECS(1));
   const dds_entity_t r = dds_create_reader(p, t, q, nullptr);
@@ -116,10 +122,10 @@ std::vector<std::uint8_t> wire_bytes(int domain, const dds_topic_descriptor_t* d
 }
 
 // Decodes bytes (encapsulation header first) as desc's type, through Cyclone's own deserializer.
-bool decode(int domain, const dds_topic_descriptor_t* desc, const char* topic_name,
+bool decode(int domain, const dds_topic_descriptor_t* desc, const std::string& topic_name,
             const std::vector<std::uint8_t>& bytes, void* sample) {
   const dds_entity_t p = dds_create_participant(domain, nullptr, nullptr);
-  const dds_entity_t t = dds_create_topic(p, desc, topic_name, nullptr, nullptr);
+  const dds_entity_t t = dds_create_topic(p, desc, topic_name.c_str(), nullptr, nullptr);
   const dds_entity_t r = dds_create_reader(p, t, nullptr, nullptr);
   const dds_entity_t w = dds_create_writer(p, t, nullptr, nullptr);
   // The sertype of the topic: from a sample written and taken in serialized form.
@@ -171,14 +177,14 @@ TEST(Ros2Cdr, WrenchStampedEncodesAsDerivedByHand) {
   const geometry_msgs_msg_dds__WrenchStamped_ w = example_wrench();
   EXPECT_STREQ(geometry_msgs_msg_dds__WrenchStamped__desc.m_typename,
                "geometry_msgs::msg::dds_::WrenchStamped_");
-  EXPECT_EQ(wire_bytes(40, &geometry_msgs_msg_dds__WrenchStamped__desc, &w, "rt/cdr/wrench"),
+  EXPECT_EQ(wire_bytes(40, &geometry_msgs_msg_dds__WrenchStamped__desc, &w, rt("cdr/wrench")),
             hex(kWrenchBytes));
 }
 
 TEST(Ros2Cdr, WrenchStampedDecodesFromBytesDerivedByHand) {
   geometry_msgs_msg_dds__WrenchStamped_ w{};
   ASSERT_TRUE(
-      decode(40, &geometry_msgs_msg_dds__WrenchStamped__desc, "rt/cdr/wrench_in", hex(kWrenchBytes), &w));
+      decode(40, &geometry_msgs_msg_dds__WrenchStamped__desc, rt("cdr/wrench_in"), hex(kWrenchBytes), &w));
   EXPECT_EQ(w.header.stamp.sec, 1);
   EXPECT_EQ(w.header.stamp.nanosec, 2U);
   EXPECT_STREQ(w.header.frame_id, "psm1");
@@ -209,10 +215,11 @@ TEST(Ros2Cdr, PoseStampedEncodesAndDecodesAsDerivedByHand) {
   pose.header.frame_id = empty;
   pose.pose.position = {0.001, -0.002, -0.004};
   pose.pose.orientation = {0.0, 0.0, 0.0, 1.0};
-  EXPECT_EQ(wire_bytes(41, &geometry_msgs_msg_dds__PoseStamped__desc, &pose, "rt/cdr/pose"), hex(kPoseBytes));
+  EXPECT_EQ(wire_bytes(41, &geometry_msgs_msg_dds__PoseStamped__desc, &pose, rt("cdr/pose")),
+            hex(kPoseBytes));
   geometry_msgs_msg_dds__PoseStamped_ back{};
   ASSERT_TRUE(
-      decode(41, &geometry_msgs_msg_dds__PoseStamped__desc, "rt/cdr/pose_in", hex(kPoseBytes), &back));
+      decode(41, &geometry_msgs_msg_dds__PoseStamped__desc, rt("cdr/pose_in"), hex(kPoseBytes), &back));
   EXPECT_EQ(back.header.stamp.nanosec, 500'000'000U);
   EXPECT_EQ(back.pose.position.y, -0.002);
   EXPECT_EQ(back.pose.orientation.w, 1.0);
@@ -241,7 +248,7 @@ TEST(Ros2Cdr, Float64MultiArrayEncodesAsDerivedByHand) {
       " 00 00 00 00"                                       // 44: pad
       " 00 00 00 00 00 00 00 00  00 00 00 00 00 00 f0 3f  00 00 00 00 00 00 04 40"
       " 00 00 00 00 00 00 f8 7f";  // NaN (the quiet NaN's bits)
-  EXPECT_EQ(wire_bytes(42, &std_msgs_msg_dds__Float64MultiArray__desc, &m, "rt/cdr/array"), hex(bytes));
+  EXPECT_EQ(wire_bytes(42, &std_msgs_msg_dds__Float64MultiArray__desc, &m, rt("cdr/array")), hex(bytes));
 }
 
 #ifdef MRSKIN_FASTDDS_PEER
@@ -275,7 +282,7 @@ TEST(Ros2Cdr, AFastCdrEncoderWritesTheSameBytesAndCycloneDecodesThem) {
   static char enabled[] = "ENABLED";
   geometry_msgs_msg_dds__WrenchStamped_ w = example_wrench();
   w.header.frame_id = arm;
-  EXPECT_EQ(unpadded(wire_bytes(46, &geometry_msgs_msg_dds__WrenchStamped__desc, &w, "rt/peer/wrench")),
+  EXPECT_EQ(unpadded(wire_bytes(46, &geometry_msgs_msg_dds__WrenchStamped__desc, &w, rt("peer/wrench"))),
             unpadded(peer_bytes("wrench")));
   EXPECT_EQ(unpadded(peer_bytes("pose")), unpadded(hex(kPoseBytes)));
   crtk_msgs_msg_dds__OperatingState_ st{};
@@ -285,16 +292,16 @@ TEST(Ros2Cdr, AFastCdrEncoderWritesTheSameBytesAndCycloneDecodesThem) {
   st.is_homed = true;
   st.is_busy = false;
   const std::vector<std::uint8_t> peer_state = peer_bytes("state");
-  EXPECT_EQ(unpadded(wire_bytes(46, &crtk_msgs_msg_dds__OperatingState__desc, &st, "rt/peer/state")),
+  EXPECT_EQ(unpadded(wire_bytes(46, &crtk_msgs_msg_dds__OperatingState__desc, &st, rt("peer/state"))),
             unpadded(peer_state));
   crtk_msgs_msg_dds__OperatingState_ back{};
-  ASSERT_TRUE(decode(46, &crtk_msgs_msg_dds__OperatingState__desc, "rt/peer/state_in", peer_state, &back));
+  ASSERT_TRUE(decode(46, &crtk_msgs_msg_dds__OperatingState__desc, rt("peer/state_in"), peer_state, &back));
   EXPECT_STREQ(back.state, "ENABLED");
   EXPECT_TRUE(back.is_homed);
   EXPECT_EQ(back.header.stamp.nanosec, 4U);
   dds_sample_free(&back, &crtk_msgs_msg_dds__OperatingState__desc, DDS_FREE_CONTENTS);
   std_msgs_msg_dds__Float64MultiArray_ array{};
-  ASSERT_TRUE(decode(46, &std_msgs_msg_dds__Float64MultiArray__desc, "rt/peer/array_in", peer_bytes("array"),
+  ASSERT_TRUE(decode(46, &std_msgs_msg_dds__Float64MultiArray__desc, rt("peer/array_in"), peer_bytes("array"),
                      &array));
   ASSERT_EQ(array.data._length, 4U);
   EXPECT_EQ(array.data._buffer[2], 2.5);
@@ -307,11 +314,11 @@ TEST(Ros2Cdr, AFastCdrEncoderWritesTheSameBytesAndCycloneDecodesThem) {
 // Malformed samples from a peer (a WrenchStamped whose frame_id claims 1000 bytes that never
 // come): Cyclone refuses them before any reader; the source counts them from Cyclone's report.
 TEST(DdsSource, MalformedSamplesFromAPeerAreCounted) {
-  std::unique_ptr<StreamSource> src = open_stream("dds://test/arm5?domain=47");
+  std::unique_ptr<StreamSource> src = open_stream("dds://" + kRun + "/arm5?domain=47");
   std::thread peer([] {
-    (void)std::system(MRSKIN_FASTDDS_PEER
-                      " publish-malformed --arm test/arm5 --domain 47 --rate 200 --duration 2 --wait-match 10"
-                      " > /dev/null 2>&1");  // NOLINT(cert-env33-c): the test's own peer
+    const std::string command = std::string(MRSKIN_FASTDDS_PEER) + " publish-malformed --arm " + kRun +
+                                "/arm5 --domain 47 --rate 200 --duration 2 --wait-match 10 > /dev/null 2>&1";
+    (void)std::system(command.c_str());  // NOLINT(cert-env33-c): the test's own peer
   });
   EXPECT_TRUE(eventually([&] { return src->stats().of(DropReason::format) > 0; }, 10000ms));
   peer.join();
@@ -351,8 +358,8 @@ struct RawWriter {
 
 TEST(DdsSource, ReadsACrtkArmInTheRobotsFrameAndFadesWhenItGoes) {
   // The robot's frame turned over (roll 180): its -z is the tissue's outward normal.
-  std::unique_ptr<StreamSource> src = open_stream("dds://test/arm1?domain=43&rpy_deg=180,0,0");
-  auto follower = std::make_unique<FollowerPublisher>("/test/arm1", 43);
+  std::unique_ptr<StreamSource> src = open_stream("dds://" + kRun + "/arm1?domain=43&rpy_deg=180,0,0");
+  auto follower = std::make_unique<FollowerPublisher>("/" + kRun + "/arm1", 43);
   ASSERT_TRUE(eventually([&] { return follower->subscribers() == 1 && src->stats().connections == 2; }))
       << src->stats().connections;
   SlaveSample s;
@@ -377,7 +384,7 @@ TEST(DdsSource, ReadsACrtkArmInTheRobotsFrameAndFadesWhenItGoes) {
   ASSERT_TRUE(
       eventually([&] { return send(NAN, -1.0, 0.004) && src->stats().of(DropReason::non_finite) > 0; }));
   // A malformed stamp, an older one: dropped by reason.
-  RawWriter raw(43, "rt/test/arm1/measured_cf");
+  RawWriter raw(43, rt("arm1/measured_cf").c_str());
   ASSERT_TRUE(eventually(
       [&] { return raw.write(1, 1'000'000'000U, 1.0) && src->stats().of(DropReason::stamp) > 0; }));
   ASSERT_TRUE(
@@ -397,10 +404,10 @@ TEST(DdsSource, ReadsACrtkArmInTheRobotsFrameAndFadesWhenItGoes) {
 }
 
 TEST(DdsSource, AWriterOfAnotherTypeIsCountedAndNamed) {
-  std::unique_ptr<StreamSource> src = open_stream("dds://test/arm2?domain=44");
+  std::unique_ptr<StreamSource> src = open_stream("dds://" + kRun + "/arm2?domain=44");
   const dds_entity_t p = dds_create_participant(44, nullptr, nullptr);
   const dds_entity_t t = dds_create_topic(p, &std_msgs_msg_dds__Float64MultiArray__desc,
-                                          "rt/test/arm2/measured_cf", nullptr, nullptr);
+                                          rt("arm2/measured_cf").c_str(), nullptr, nullptr);
   ASSERT_GT(t, 0) << dds_strretcode(t);
   const dds_entity_t w = dds_create_writer(p, t, nullptr, nullptr);
   ASSERT_GT(w, 0);
@@ -431,7 +438,7 @@ TEST(TissueEstimatorEnd, AnEndedStreamFadesWithoutItsHold) {
 
 TEST(SkinPublisher, PublishesStateAndGridsThatACycloneReaderDecodes) {
   SkinTopicsOptions o;
-  o.ns = "/test/skin";
+  o.ns = "/" + kRun + "/skin";
   o.domain = 45;
   SkinPublisher pub(o);
   const dds_entity_t p = dds_create_participant(45, nullptr, nullptr);
@@ -440,12 +447,12 @@ TEST(SkinPublisher, PublishesStateAndGridsThatACycloneReaderDecodes) {
   const dds_entity_t state_reader =
       dds_create_reader(p,
                         dds_create_topic(p, &crtk_msgs_msg_dds__OperatingState__desc,
-                                         "rt/test/skin/operating_state", nullptr, nullptr),
+                                         rt("skin/operating_state").c_str(), nullptr, nullptr),
                         q, nullptr);
   const dds_entity_t target_reader =
       dds_create_reader(p,
                         dds_create_topic(p, &std_msgs_msg_dds__Float64MultiArray__desc,
-                                         "rt/test/skin/cell_force/target", nullptr, nullptr),
+                                         rt("skin/cell_force/target").c_str(), nullptr, nullptr),
                         q, nullptr);
   dds_delete_qos(q);
   ASSERT_TRUE(eventually([&] { return pub.subscribers() == 1; }));

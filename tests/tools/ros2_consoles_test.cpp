@@ -33,6 +33,9 @@ using mrskin::test::slurp;
 using namespace std::chrono_literals;
 
 constexpr int kDomain = 151;  // away from 0, where other DDS programs on a shared machine live
+// Names unique to this process: another run on the machine (same loopback) must not cross-talk.
+const std::string kSuffix = std::string("_").append(std::to_string(::getpid()));
+const std::string kArm = "psm_it" + kSuffix;
 
 class Ros2Consoles : public ::testing::Test {
  protected:
@@ -49,7 +52,7 @@ class Ros2Consoles : public ::testing::Test {
   std::unique_ptr<ChildProcess> console(const std::string& name) const {
     const fs::path cfg = dir_ / (name + ".toml");
     std::ofstream(cfg) << "device = \"mock://?finger=demo\"\n"
-                       << "source = \"dds://psm_it?domain=" << kDomain << "\"\n"
+                       << "source = \"dds://" << kArm << "?domain=" << kDomain << "\"\n"
                        << "stats_json = \"" << (dir_ / (name + ".json")).string() << "\"\n"
                        << "[bridge]\nrealtime = false\n"
                        << "[topics]\nnamespace = \"/" << name << "\"\ndomain = " << kDomain << "\n"
@@ -73,7 +76,7 @@ class Ros2Consoles : public ::testing::Test {
 };
 
 TEST_F(Ros2Consoles, TwoConsolesRenderOneFollowerPublishedByAFastDdsPeer) {
-  const std::array<std::string, 2> names{"console_a", "console_b"};
+  const std::array<std::string, 2> names{"console_a" + kSuffix, "console_b" + kSuffix};
   std::array<std::unique_ptr<ChildProcess>, 2> consoles{console(names[0]), console(names[1])};
   std::array<LineClient, 2> controls{control(names[0]), control(names[1])};
   ASSERT_TRUE(controls[0].connected() && controls[1].connected()) << out(names[0]) << out(names[1]);
@@ -84,7 +87,7 @@ TEST_F(Ros2Consoles, TwoConsolesRenderOneFollowerPublishedByAFastDdsPeer) {
       peer("skin_b", {"subscribe", "--ns", names[1], "--domain", std::to_string(kDomain), "--duration", "30",
                       "--min", "200"})};
   std::unique_ptr<ChildProcess> follower =
-      peer("follower", {"publish", "--arm", "psm_it", "--domain", std::to_string(kDomain), "--rate", "1000",
+      peer("follower", {"publish", "--arm", kArm, "--domain", std::to_string(kDomain), "--rate", "1000",
                         "--duration", "11", "--wait-match", "20", "--subscribers", "2"});
   EXPECT_EQ(follower->wait(60s), 0) << out("follower");
   // The figure while the follower streamed: the live RMS error as it stops. After it, the finger
@@ -115,7 +118,7 @@ TEST_F(Ros2Consoles, TwoConsolesRenderOneFollowerPublishedByAFastDdsPeer) {
     consoles.at(i)->signal(SIGTERM);
     ASSERT_EQ(consoles.at(i)->wait(60s), mrskin::tools::kOk) << out(names.at(i));
     const std::string log = out(names.at(i));
-    EXPECT_NE(log.find("dds: a publisher matched on rt/psm_it/measured_cf"), std::string::npos) << log;
+    EXPECT_NE(log.find("dds: a publisher matched on rt/" + kArm + "/measured_cf"), std::string::npos) << log;
     EXPECT_NE(log.find("fading to released"), std::string::npos) << log;
     const std::string stats = slurp(dir_ / (names.at(i) + ".json"));
     const auto number = [&](const char* key) { return std::stod(json_field(stats, key).value_or("nan")); };
