@@ -69,7 +69,12 @@ class DdsSource final : public QueuedSource {
     dds::watch_malformed(this, [](void* self, std::string_view topic) noexcept {
       static_cast<DdsSource*>(self)->malformed(topic);
     });
-    thread_ = std::thread([this] { run(); });
+    try {
+      thread_ = std::thread([this] { run(); });
+    } catch (...) {
+      dds::unwatch_malformed(this);  // no destructor runs: leave no hook to this object behind
+      throw;
+    }
   }
   DdsSource(const DdsSource&) = delete;
   DdsSource& operator=(const DdsSource&) = delete;
