@@ -16,19 +16,16 @@
 #include <cerrno>
 #include <cmath>
 #include <cstring>
-#include <optional>
 #include <string>
 #include <thread>
 #include <vector>
 
 #include "core.hpp"
+#include "igtl_parse.hpp"
 #include "mrskin/driver/errors.hpp"
 
 namespace mrskin::bridge::sources {
 namespace {
-
-constexpr std::size_t kHeaderBytes = 58;
-constexpr std::size_t kMaxMapCells = 4096;  // 64 x 64
 
 std::uint64_t get_be(const std::uint8_t* p, std::size_t n) noexcept {
   std::uint64_t v = 0;
@@ -40,38 +37,6 @@ std::uint64_t get_be(const std::uint8_t* p, std::size_t n) noexcept {
 double get_f64(const std::uint8_t* p) noexcept { return std::bit_cast<double>(get_be(p, 8)); }
 float get_f32(const std::uint8_t* p) noexcept {
   return std::bit_cast<float>(static_cast<std::uint32_t>(get_be(p, 4)));
-}
-
-// A fixed-width, NUL-padded header field.
-std::string_view field(const std::uint8_t* p, std::size_t n) noexcept {
-  const auto* c = reinterpret_cast<const char*>(p);  // NOLINT(cppcoreguidelines-pro-type-reinterpret-cast)
-  return {c, strnlen(c, n)};
-}
-
-struct Header {
-  std::uint16_t version = 0;
-  std::string_view type;
-  std::string_view device;
-  std::uint64_t timestamp = 0;  // 32.32 fixed point seconds; 0: none
-  std::uint64_t body_bytes = 0;
-  std::uint64_t crc = 0;
-};
-
-Header parse_header(const std::uint8_t* p) noexcept {
-  Header h;
-  h.version = static_cast<std::uint16_t>(get_be(p, 2));
-  h.type = field(p + 2, 12);
-  h.device = field(p + 14, 20);
-  h.timestamp = get_be(p + 34, 8);
-  h.body_bytes = get_be(p + 42, 8);
-  h.crc = get_be(p + 50, 8);
-  return h;
-}
-
-std::int64_t timestamp_ns(std::uint64_t ts) noexcept {
-  const std::uint64_t seconds = ts >> 32U;
-  const std::uint64_t fraction = ts & 0xFFFFFFFFULL;
-  return static_cast<std::int64_t>(seconds * 1'000'000'000ULL + ((fraction * 1'000'000'000ULL) >> 32U));
 }
 
 // The factor to newtons of a SENSOR unit: newton with any SI prefix (mN, kN, ...); 0 otherwise.
@@ -107,14 +72,9 @@ double newton_scale(std::uint64_t unit) noexcept {
   }
 }
 
-bool matches(const std::string& wanted, std::string_view name) noexcept {
+bool matches(std::string_view wanted, std::string_view name) noexcept {
   return wanted == "*" || wanted == name;
 }
-
-// QTDATA and TDATA: elements of a 20-byte name, type, reserved, then the pose.
-constexpr std::size_t kTrackNameBytes = 20;
-constexpr std::size_t kQtdataElementBytes = 50;  // name, type, reserved, position[3], quaternion[4]
-constexpr std::size_t kTdataElementBytes = 70;   // name, type, reserved, transform[12]
 
 // Bytes per element of an NDARRAY scalar type we read, else 0.
 std::size_t scalar_bytes(std::uint8_t type) noexcept {
@@ -157,6 +117,218 @@ double scalar(std::uint8_t type, const std::uint8_t* p) noexcept {
   }
 }
 
+// Protocol 3 (header version 2): an extended header, the content, then metadata; the content is
+// what a version 1 body holds. False when the extended header does not fit the body.
+bool version2_content(std::span<const std::uint8_t>& content) noexcept {
+  constexpr std::size_t kExtendedHeaderBytes = 12;
+  if (content.size() < kExtendedHeaderBytes) {
+    return false;
+  }
+  const std::size_t ext = get_be(content.data(), 2);
+  const std::size_t meta_header = get_be(content.data() + 2, 2);
+  const std::size_t meta = get_be(content.data() + 4, 4);
+  if (ext < kExtendedHeaderBytes || ext + meta_header + meta > content.size()) {
+    return false;
+  }
+  content = content.subspan(ext, content.size() - ext - meta_header - meta);
+  return true;
+}
+
+}  // namespace
+
+// ---- parsing, without I/O (igtl_parse.hpp) ------------------------------------------------------
+
+std::string_view igtl_field(const std::uint8_t* p, std::size_t n) noexcept {
+  const auto* c = reinterpret_cast<const char*>(p);  // NOLINT(cppcoreguidelines-pro-type-reinterpret-cast)
+  return {c, strnlen(c, n)};
+}
+
+IgtlHeader parse_igtl_header(const std::uint8_t* p) noexcept {
+  IgtlHeader h;
+  h.version = static_cast<std::uint16_t>(get_be(p, 2));
+  h.type = igtl_field(p + 2, 12);
+  h.device = igtl_field(p + 14, 20);
+  h.timestamp = get_be(p + 34, 8);
+  h.body_bytes = get_be(p + 42, 8);
+  h.crc = get_be(p + 50, 8);
+  return h;
+}
+
+std::int64_t igtl_timestamp_ns(std::uint64_t timestamp) noexcept {
+  const std::uint64_t seconds = timestamp >> 32U;
+  const std::uint64_t fraction = timestamp & 0xFFFFFFFFULL;
+  return static_cast<std::int64_t>(seconds * 1'000'000'000ULL + ((fraction * 1'000'000'000ULL) >> 32U));
+}
+
+IgtlFrame next_igtl_frame(std::span<const std::uint8_t> stream, std::size_t max_body_bytes) noexcept {
+  IgtlFrame f;
+  if (stream.size() < kIgtlHeaderBytes) {
+    return f;
+  }
+  f.header = parse_igtl_header(stream.data());
+  if (f.header.body_bytes > max_body_bytes) {
+    f.status = IgtlFrame::Status::oversized;
+    return f;
+  }
+  const std::size_t total = kIgtlHeaderBytes + f.header.body_bytes;
+  if (stream.size() >= total) {
+    f.status = IgtlFrame::Status::complete;
+    f.bytes = total;
+  }
+  return f;
+}
+
+IgtlMessage open_igtl_message(const IgtlHeader& h, std::span<const std::uint8_t> body) noexcept {
+  IgtlMessage m;
+  m.content = body;
+  if (h.version != 1 && h.version != 2) {
+    m.fault = IgtlFault::version;
+    return m;
+  }
+  // The C API takes a non-const pointer; crc64 only reads.
+  // NOLINTNEXTLINE(cppcoreguidelines-pro-type-const-cast)
+  if (crc64(const_cast<std::uint8_t*>(body.data()), body.size(), 0) != h.crc) {
+    m.fault = IgtlFault::crc;
+    return m;
+  }
+  if (h.version == 2 && !version2_content(m.content)) {
+    m.fault = IgtlFault::extended_header;
+    return m;
+  }
+  if (h.type == "SENSOR") {
+    m.kind = IgtlKind::force;
+  } else if (h.type == "TRANSFORM" || h.type == "POSITION" || h.type == "QTDATA" || h.type == "TDATA") {
+    m.kind = IgtlKind::pose;
+  } else if (h.type == "NDARRAY") {
+    m.kind = IgtlKind::map;
+  } else {
+    m.fault = IgtlFault::type;
+  }
+  return m;
+}
+
+IgtlForce parse_igtl_sensor(std::span<const std::uint8_t> content,
+                            const std::array<double, 9>& robot_to_tissue) noexcept {
+  IgtlForce f;
+  if (content.size() < 10 || content[0] == 0 || content.size() != 10 + 8 * std::size_t{content[0]}) {
+    f.fault = IgtlFault::sensor_length;
+    return f;
+  }
+  const std::size_t n = content[0];
+  f.values = n;
+  if (n != 1 && n != 3 && n != 6) {
+    f.fault = IgtlFault::sensor_count;
+    return f;
+  }
+  const double scale = newton_scale(get_be(content.data() + 2, 8));
+  if (scale == 0.0) {
+    f.fault = IgtlFault::sensor_unit;
+    return f;
+  }
+  std::array<double, 6> v{};
+  for (std::size_t i = 0; i < n; ++i) {
+    v.at(i) = get_f64(content.data() + 10 + 8 * i) * scale;
+    if (!std::isfinite(v.at(i))) {
+      f.fault = IgtlFault::non_finite;
+      return f;
+    }
+  }
+  // The contact force is the force's component along the tissue's outward normal.
+  f.normal_N = n == 1 ? v[0] : rotate(robot_to_tissue, v[0], v[1], v[2])[2];
+  return f;
+}
+
+IgtlPosition parse_igtl_pose(std::string_view type, std::span<const std::uint8_t> content,
+                             std::string_view tool) noexcept {
+  IgtlPosition p;
+  std::size_t at = 0;
+  bool ok = true;
+  if (type == "TRANSFORM") {
+    at = 36;
+    ok = content.size() == 48;
+  } else if (type == "POSITION") {
+    ok = content.size() == 12 || content.size() == 24 || content.size() == 28;
+  } else {
+    const bool tdata = type == "TDATA";
+    const std::size_t element = tdata ? kIgtlTdataElementBytes : kIgtlQtdataElementBytes;
+    ok = !content.empty() && content.size() % element == 0;
+    if (ok) {
+      bool found = false;
+      for (std::size_t e = 0; e < content.size() && !found; e += element) {
+        if (matches(tool, igtl_field(content.data() + e, kIgtlTrackNameBytes))) {
+          at = e + kIgtlTrackNameBytes + 2 + (tdata ? 36 : 0);
+          found = true;
+        }
+      }
+      if (!found) {
+        p.fault = IgtlFault::no_tool;
+        return p;
+      }
+    }
+  }
+  if (!ok) {
+    p.fault = IgtlFault::pose_length;
+    return p;
+  }
+  p.x_mm = get_f32(content.data() + at);
+  p.y_mm = get_f32(content.data() + at + 4);
+  p.z_mm = get_f32(content.data() + at + 8);
+  return p;
+}
+
+IgtlPressureMap parse_igtl_pressure_map(std::span<const std::uint8_t> content, double pitch_m) noexcept {
+  IgtlPressureMap m;
+  if (content.size() < 2) {
+    m.fault = IgtlFault::map_length;
+    return m;
+  }
+  m.scalar_type = content[0];
+  m.dims = content[1];
+  const std::size_t element = scalar_bytes(m.scalar_type);
+  if (element == 0 || m.dims != 2) {
+    m.fault = IgtlFault::map_type;
+    return m;
+  }
+  if (content.size() < 2 + 2 * m.dims) {
+    m.fault = IgtlFault::map_length;
+    return m;
+  }
+  const std::size_t rows = get_be(content.data() + 2, 2);
+  const std::size_t cols = get_be(content.data() + 4, 2);
+  m.rows = rows;
+  m.cols = cols;
+  if (rows * cols > kIgtlMaxMapCells) {
+    m.fault = IgtlFault::map_oversized;
+    return m;
+  }
+  if (rows == 0 || cols == 0 || content.size() != 6 + rows * cols * element) {
+    m.fault = IgtlFault::map_length;
+    return m;
+  }
+  double sum_Pa = 0.0;
+  double mx = 0.0;
+  double my = 0.0;
+  for (std::size_t r = 0; r < rows; ++r) {
+    for (std::size_t c = 0; c < cols; ++c) {
+      const double p_Pa = scalar(m.scalar_type, content.data() + 6 + (r * cols + c) * element);
+      if (!std::isfinite(p_Pa)) {
+        m.fault = IgtlFault::non_finite;
+        return m;
+      }
+      const double w = std::max(p_Pa, 0.0);  // sensor offset noise below zero presses nothing
+      sum_Pa += w;
+      mx += w * (static_cast<double>(c) - 0.5 * static_cast<double>(cols - 1)) * pitch_m;
+      my += w * (static_cast<double>(r) - 0.5 * static_cast<double>(rows - 1)) * pitch_m;
+    }
+  }
+  m.force_N = sum_Pa * pitch_m * pitch_m;
+  m.dx_m = sum_Pa > 0.0 ? mx / sum_Pa : 0.0;
+  m.dy_m = sum_Pa > 0.0 ? my / sum_Pa : 0.0;
+  return m;
+}
+
+namespace {
+
 class IgtlSource final : public QueuedSource {
  public:
   IgtlSource(const Endpoint& where, bool listen, const SourceOptions& options, Clock* clock)
@@ -166,7 +338,7 @@ class IgtlSource final : public QueuedSource {
         pose_gate_(options.restart_after_out_of_order),
         map_gate_(options.restart_after_out_of_order),
         mapper_(options.offset_drift_s_per_s),
-        buffer_(kHeaderBytes + options.max_message_bytes) {
+        buffer_(kIgtlHeaderBytes + options.max_message_bytes) {
     if (listen) {
       listener_ = bind_socket(where, SOCK_STREAM, "igtl-listen source");
       port_ = bound_port(listener_.get());
@@ -401,9 +573,11 @@ class IgtlSource final : public QueuedSource {
       have += static_cast<std::size_t>(n);
       // Every complete message in the buffer.
       std::size_t used = 0;
-      while (have - used >= kHeaderBytes) {
-        const Header h = parse_header(buffer_.data() + used);
-        if (h.body_bytes > options_.max_message_bytes) {
+      for (;;) {
+        const IgtlFrame f =
+            next_igtl_frame(std::span(buffer_.data() + used, have - used), options_.max_message_bytes);
+        const IgtlHeader& h = f.header;
+        if (f.status == IgtlFrame::Status::oversized) {
           // The framing cannot be trusted past this header: drop the connection.
           drop(stats_, events_, DropReason::oversized, [&] {
             return fmt::format(
@@ -413,89 +587,76 @@ class IgtlSource final : public QueuedSource {
           });
           return End::closed;
         }
-        const std::size_t total = kHeaderBytes + h.body_bytes;
-        if (have - used < total) {
+        if (f.status == IgtlFrame::Status::incomplete) {
           break;
         }
-        handle(h, std::span(buffer_.data() + used + kHeaderBytes, h.body_bytes));
-        used += total;
+        handle(h, std::span<const std::uint8_t>(buffer_.data() + used + kIgtlHeaderBytes, h.body_bytes));
+        used += f.bytes;
       }
       std::memmove(buffer_.data(), buffer_.data() + used, have - used);
       have -= used;
     }
   }
 
-  void handle(const Header& h, std::span<std::uint8_t> body) noexcept {
-    if (h.version != 1 && h.version != 2) {
-      drop(stats_, events_, DropReason::format, [&] {
-        return fmt::format(
-            "OpenIGTLink message with header version {} dropped: this source reads versions 1 "
-            "and 2 (protocols 1 to 3)",
-            h.version);
-      });
-      return;
-    }
-    if (crc64(body.data(), body.size(), 0) != h.crc) {
-      drop(stats_, events_, DropReason::crc, [&] {
-        return fmt::format("OpenIGTLink {} from '{}' dropped: its body does not match its CRC-64", h.type,
-                           h.device);
-      });
-      return;
-    }
-    std::span<const std::uint8_t> content = body;
-    if (h.version == 2 && !version2_content(h, content)) {
-      return;
+  void handle(const IgtlHeader& h, std::span<const std::uint8_t> body) noexcept {
+    const IgtlMessage m = open_igtl_message(h, body);
+    switch (m.fault) {
+      case IgtlFault::none:
+        break;
+      case IgtlFault::version:
+        drop(stats_, events_, DropReason::format, [&] {
+          return fmt::format(
+              "OpenIGTLink message with header version {} dropped: this source reads versions 1 "
+              "and 2 (protocols 1 to 3)",
+              h.version);
+        });
+        return;
+      case IgtlFault::crc:
+        drop(stats_, events_, DropReason::crc, [&] {
+          return fmt::format("OpenIGTLink {} from '{}' dropped: its body does not match its CRC-64", h.type,
+                             h.device);
+        });
+        return;
+      case IgtlFault::extended_header:
+        drop(stats_, events_, DropReason::length, [&] {
+          return fmt::format(
+              "OpenIGTLink {} from '{}' dropped: its version 2 extended header does not fit its body", h.type,
+              h.device);
+        });
+        return;
+      default:  // IgtlFault::type: open_igtl_message() gives no other
+        drop(stats_, events_, DropReason::type, [&] {
+          return fmt::format(
+              "OpenIGTLink {} from '{}' ignored: this source reads SENSOR (force), TRANSFORM, "
+              "POSITION, QTDATA, TDATA (pose) and NDARRAY (pressure map)",
+              h.type, h.device);
+        });
+        return;
     }
     const TimePoint arrival = now();
-    const std::int64_t robot_ns = h.timestamp != 0 ? timestamp_ns(h.timestamp) : arrival.count();
-    const bool pose_type =
-        h.type == "TRANSFORM" || h.type == "POSITION" || h.type == "QTDATA" || h.type == "TDATA";
-    if (h.type == "SENSOR") {
-      if (wanted(options_.igtl_force_device, h, EventKey::device_force, "force_device")) {
-        sensor(h.device, content, robot_ns, arrival);
-      }
-    } else if (pose_type) {
-      if (wanted(options_.igtl_pose_device, h, EventKey::device_pose, "pose_device")) {
-        pose(h.type, h.device, content, robot_ns);
-      }
-    } else if (h.type == "NDARRAY") {
-      if (wanted(options_.igtl_map_device, h, EventKey::device_map, "map_device")) {
-        pressure_map(content, robot_ns, arrival);
-      }
-    } else {
-      drop(stats_, events_, DropReason::type, [&] {
-        return fmt::format(
-            "OpenIGTLink {} from '{}' ignored: this source reads SENSOR (force), TRANSFORM, "
-            "POSITION, QTDATA, TDATA (pose) and NDARRAY (pressure map)",
-            h.type, h.device);
-      });
+    const std::int64_t robot_ns = h.timestamp != 0 ? igtl_timestamp_ns(h.timestamp) : arrival.count();
+    switch (m.kind) {
+      case IgtlKind::force:
+        if (wanted(options_.igtl_force_device, h, EventKey::device_force, "force_device")) {
+          sensor(h.device, m.content, robot_ns, arrival);
+        }
+        break;
+      case IgtlKind::pose:
+        if (wanted(options_.igtl_pose_device, h, EventKey::device_pose, "pose_device")) {
+          pose(h.type, h.device, m.content, robot_ns);
+        }
+        break;
+      case IgtlKind::map:
+        if (wanted(options_.igtl_map_device, h, EventKey::device_map, "map_device")) {
+          pressure_map(m.content, robot_ns, arrival);
+        }
+        break;
     }
-  }
-
-  // Protocol 3 (header version 2): an extended header, the content, then metadata; the content
-  // is what a version 1 body holds.
-  bool version2_content(const Header& h, std::span<const std::uint8_t>& content) noexcept {
-    constexpr std::size_t kExtendedHeaderBytes = 12;
-    if (content.size() >= kExtendedHeaderBytes) {
-      const std::size_t ext = get_be(content.data(), 2);
-      const std::size_t meta_header = get_be(content.data() + 2, 2);
-      const std::size_t meta = get_be(content.data() + 4, 4);
-      if (ext >= kExtendedHeaderBytes && ext + meta_header + meta <= content.size()) {
-        content = content.subspan(ext, content.size() - ext - meta_header - meta);
-        return true;
-      }
-    }
-    drop(stats_, events_, DropReason::length, [&] {
-      return fmt::format(
-          "OpenIGTLink {} from '{}' dropped: its version 2 extended header does not fit its body", h.type,
-          h.device);
-    });
-    return false;
   }
 
   // True when the message's device name is the one configured for its kind; else counted and,
   // once per kind, explained with the key that takes it.
-  bool wanted(const std::string& name, const Header& h, EventKey key, std::string_view option) noexcept {
+  bool wanted(const std::string& name, const IgtlHeader& h, EventKey key, std::string_view option) noexcept {
     if (matches(name, h.device)) {
       return true;
     }
@@ -513,86 +674,61 @@ class IgtlSource final : public QueuedSource {
     return false;
   }
 
-  // SENSOR: larray u8, status u8, unit u64, larray x float64. 1 value: the normal force; 3: a
-  // force vector in the robot's frame; 6: a wrench (force, then torque). The contact force is
-  // the force's component along the tissue's outward normal; pulling (< 0) is no contact.
+  // SENSOR: a pulling force (< 0) is no contact.
   void sensor(std::string_view device, std::span<const std::uint8_t> body, std::int64_t robot_ns,
               TimePoint arrival) noexcept {
-    if (body.size() < 10 || body[0] == 0 || body.size() != 10 + 8 * std::size_t{body[0]}) {
-      drop(stats_, events_, DropReason::length, [&] {
-        return fmt::format("SENSOR from '{}' dropped: a body of {} bytes does not hold its values", device,
-                           body.size());
-      });
-      return;
-    }
-    const std::size_t n = body[0];
-    if (n != 1 && n != 3 && n != 6) {
-      drop(stats_, events_, DropReason::length, [&] {
-        return fmt::format(
-            "SENSOR from '{}' with {} values dropped: send 1 (the normal force), 3 (a force "
-            "vector) or 6 (a wrench: force, then torque)",
-            device, n);
-      });
-      return;
-    }
-    const double scale = newton_scale(get_be(body.data() + 2, 8));
-    if (scale == 0.0) {
-      drop(stats_, events_, DropReason::unit, [&] {
-        return fmt::format(
-            "SENSOR from '{}' dropped: its unit is not a force; send newtons (N, or with a "
-            "prefix: mN, kN, ...)",
-            device);
-      });
-      return;
-    }
-    std::array<double, 6> v{};
-    for (std::size_t i = 0; i < n; ++i) {
-      v.at(i) = get_f64(body.data() + 10 + 8 * i) * scale;
-      if (!std::isfinite(v.at(i))) {
+    const IgtlForce f = parse_igtl_sensor(body, options_.robot_to_tissue);
+    switch (f.fault) {
+      case IgtlFault::none:
+        emit(std::max(f.normal_N, 0.0), 0.0, 0.0, robot_ns, arrival, force_gate_);
+        return;
+      case IgtlFault::sensor_length:
+        drop(stats_, events_, DropReason::length, [&] {
+          return fmt::format("SENSOR from '{}' dropped: a body of {} bytes does not hold its values", device,
+                             body.size());
+        });
+        return;
+      case IgtlFault::sensor_count:
+        drop(stats_, events_, DropReason::length, [&] {
+          return fmt::format(
+              "SENSOR from '{}' with {} values dropped: send 1 (the normal force), 3 (a force "
+              "vector) or 6 (a wrench: force, then torque)",
+              device, f.values);
+        });
+        return;
+      case IgtlFault::sensor_unit:
+        drop(stats_, events_, DropReason::unit, [&] {
+          return fmt::format(
+              "SENSOR from '{}' dropped: its unit is not a force; send newtons (N, or with a "
+              "prefix: mN, kN, ...)",
+              device);
+        });
+        return;
+      default:  // IgtlFault::non_finite
         drop(stats_, events_, DropReason::non_finite,
              [&] { return fmt::format("SENSOR from '{}' dropped: a value is NaN or Inf", device); });
         return;
-      }
     }
-    const double normal_N = n == 1 ? v[0] : rotate(options_.robot_to_tissue, v[0], v[1], v[2])[2];
-    emit(std::max(normal_N, 0.0), 0.0, 0.0, robot_ns, arrival, force_gate_);
   }
 
-  // TRANSFORM: 12 float32, the translation last; POSITION: 3 float32 then an optional
-  // quaternion; QTDATA, TDATA: one element per tool, taken by name. Millimetres in the robot's
-  // frame, mapped into the tissue frame (z along the outward normal, the surface at 0).
+  // A pose: millimetres in the robot's frame, mapped into the tissue frame (z along the outward
+  // normal, the surface at 0).
   void pose(std::string_view type, std::string_view device, std::span<const std::uint8_t> body,
             std::int64_t robot_ns) noexcept {
-    std::size_t at = 0;
-    bool ok = true;
-    if (type == "TRANSFORM") {
-      at = 36;
-      ok = body.size() == 48;
-    } else if (type == "POSITION") {
-      ok = body.size() == 12 || body.size() == 24 || body.size() == 28;
-    } else {
-      const bool tdata = type == "TDATA";
-      const std::size_t element = tdata ? kTdataElementBytes : kQtdataElementBytes;
-      ok = !body.empty() && body.size() % element == 0;
-      if (ok) {
-        const std::optional<std::size_t> found = find_tool(type, device, body, element);
-        if (!found) {
-          return;
-        }
-        at = *found + kTrackNameBytes + 2 + (tdata ? 36 : 0);
-      }
+    const IgtlPosition at = parse_igtl_pose(type, body, options_.igtl_pose_tool);
+    if (at.fault == IgtlFault::no_tool) {
+      no_tool(type, device, body);
+      return;
     }
-    if (!ok) {
+    if (at.fault != IgtlFault::none) {
       drop(stats_, events_, DropReason::length, [&] {
         return fmt::format("OpenIGTLink {} from '{}' dropped: a body of {} bytes does not fit its type", type,
                            device, body.size());
       });
       return;
     }
-    const double x = get_f32(body.data() + at);
-    const double y = get_f32(body.data() + at + 4);
-    const double z = get_f32(body.data() + at + 8);
-    const std::array<double, 3> p = rotate(options_.robot_to_tissue, 1e-3 * x, 1e-3 * y, 1e-3 * z);
+    const std::array<double, 3> p =
+        rotate(options_.robot_to_tissue, 1e-3 * at.x_mm, 1e-3 * at.y_mm, 1e-3 * at.z_mm);
     Pose next;
     next.x_m = p[0] + options_.robot_origin_m[0];
     next.y_m = p[1] + options_.robot_origin_m[1];
@@ -608,87 +744,53 @@ class IgtlSource final : public QueuedSource {
     stats_.poses.fetch_add(1, std::memory_order_relaxed);
   }
 
-  // The offset of the tool named pose_tool (the first with "*") in a QTDATA or TDATA body.
-  std::optional<std::size_t> find_tool(std::string_view type, std::string_view device,
-                                       std::span<const std::uint8_t> body, std::size_t element) noexcept {
-    for (std::size_t at = 0; at < body.size(); at += element) {
-      if (matches(options_.igtl_pose_tool, field(body.data() + at, kTrackNameBytes))) {
-        return at;
-      }
-    }
+  // A QTDATA or TDATA body without the tool pose_tool names: counted, explained once.
+  void no_tool(std::string_view type, std::string_view device, std::span<const std::uint8_t> body) noexcept {
+    const std::size_t element = type == "TDATA" ? kIgtlTdataElementBytes : kIgtlQtdataElementBytes;
     stats_.count(DropReason::device);
     events_.once(static_cast<unsigned>(EventKey::pose_tool), true, [&] {
       std::string tools;
       for (std::size_t at = 0; at < body.size(); at += element) {
-        tools += (tools.empty() ? "'" : ", '") + std::string(field(body.data() + at, kTrackNameBytes)) + "'";
+        tools += (tools.empty() ? "'" : ", '") +
+                 std::string(igtl_field(body.data() + at, kIgtlTrackNameBytes)) + "'";
       }
       return fmt::format("{} from '{}' has no tool '{}' (it carries {}): set pose_tool=NAME (or *)", type,
                          device, options_.igtl_pose_tool, tools);
     });
-    return std::nullopt;
   }
 
-  // NDARRAY: type u8, dim u8, dim x u16 sizes, then the elements, row-major. A rows x cols map of
-  // pressures in Pa; force = sum(max(p, 0)) x pitch^2, contact = the pressure-weighted centroid
-  // from the array's centre (column index along +x, row index along +y).
+  // NDARRAY: a rows x cols map of pressures; the force and the contact's shift from the array's
+  // centre (column index along +x, row index along +y).
   void pressure_map(std::span<const std::uint8_t> body, std::int64_t robot_ns, TimePoint arrival) noexcept {
-    const auto bad_length = [&] {
-      return fmt::format("NDARRAY dropped: a body of {} bytes does not fit its sizes", body.size());
-    };
-    if (body.size() < 2) {
-      drop(stats_, events_, DropReason::length, bad_length);
-      return;
+    const IgtlPressureMap m = parse_igtl_pressure_map(body, options_.tactile_pitch_m);
+    switch (m.fault) {
+      case IgtlFault::none:
+        emit(m.force_N, m.dx_m, m.dy_m, robot_ns, arrival, map_gate_);
+        return;
+      case IgtlFault::map_type:
+        drop(stats_, events_, DropReason::type, [&] {
+          return fmt::format(
+              "NDARRAY of scalar type {} in {} dimensions dropped: send a 2-D map of real "
+              "numbers (int8..uint32, float32, float64)",
+              m.scalar_type, m.dims);
+        });
+        return;
+      case IgtlFault::map_oversized:
+        drop(stats_, events_, DropReason::oversized, [&] {
+          return fmt::format("NDARRAY of {} x {} dropped: at most {} cells", m.rows, m.cols,
+                             kIgtlMaxMapCells);
+        });
+        return;
+      case IgtlFault::non_finite:
+        drop(stats_, events_, DropReason::non_finite,
+             [] { return std::string("NDARRAY dropped: a cell is NaN or Inf"); });
+        return;
+      default:  // IgtlFault::map_length
+        drop(stats_, events_, DropReason::length, [&] {
+          return fmt::format("NDARRAY dropped: a body of {} bytes does not fit its sizes", body.size());
+        });
+        return;
     }
-    const std::uint8_t type = body[0];
-    const std::size_t dim = body[1];
-    const std::size_t element = scalar_bytes(type);
-    if (element == 0 || dim != 2) {
-      drop(stats_, events_, DropReason::type, [&] {
-        return fmt::format(
-            "NDARRAY of scalar type {} in {} dimensions dropped: send a 2-D map of real "
-            "numbers (int8..uint32, float32, float64)",
-            type, dim);
-      });
-      return;
-    }
-    if (body.size() < 2 + 2 * dim) {
-      drop(stats_, events_, DropReason::length, bad_length);
-      return;
-    }
-    const std::size_t rows = get_be(body.data() + 2, 2);
-    const std::size_t cols = get_be(body.data() + 4, 2);
-    if (rows * cols > kMaxMapCells) {
-      drop(stats_, events_, DropReason::oversized, [&] {
-        return fmt::format("NDARRAY of {} x {} dropped: at most {} cells", rows, cols, kMaxMapCells);
-      });
-      return;
-    }
-    if (rows == 0 || cols == 0 || body.size() != 6 + rows * cols * element) {
-      drop(stats_, events_, DropReason::length, bad_length);
-      return;
-    }
-    double sum_Pa = 0.0;
-    double mx = 0.0;
-    double my = 0.0;
-    const double pitch_m = options_.tactile_pitch_m;
-    for (std::size_t r = 0; r < rows; ++r) {
-      for (std::size_t c = 0; c < cols; ++c) {
-        const double p_Pa = scalar(type, body.data() + 6 + (r * cols + c) * element);
-        if (!std::isfinite(p_Pa)) {
-          drop(stats_, events_, DropReason::non_finite,
-               [] { return std::string("NDARRAY dropped: a cell is NaN or Inf"); });
-          return;
-        }
-        const double w = std::max(p_Pa, 0.0);  // sensor offset noise below zero presses nothing
-        sum_Pa += w;
-        mx += w * (static_cast<double>(c) - 0.5 * static_cast<double>(cols - 1)) * pitch_m;
-        my += w * (static_cast<double>(r) - 0.5 * static_cast<double>(rows - 1)) * pitch_m;
-      }
-    }
-    const double force_N = sum_Pa * pitch_m * pitch_m;
-    const double dx_m = sum_Pa > 0.0 ? mx / sum_Pa : 0.0;
-    const double dy_m = sum_Pa > 0.0 ? my / sum_Pa : 0.0;
-    emit(force_N, dx_m, dy_m, robot_ns, arrival, map_gate_);
   }
 
   // A force sample with the latest pose (contact shifted by dx, dy).

@@ -85,43 +85,68 @@ UdpSource::~UdpSource() {
   thread_.join();
 }
 
-void UdpSource::handle(std::span<const std::uint8_t> d, std::size_t length, TimePoint arrival) noexcept {
+UdpParsed parse_udp_datagram(std::span<const std::uint8_t> d, std::size_t length) noexcept {
+  UdpParsed p;
   if (length > kUdpDatagramBytes) {
-    drop(stats_, events_, DropReason::oversized, [&] {
-      return fmt::format("UDP datagram of {} bytes dropped: a sample is {} bytes (docs/sources.md)", length,
-                         kUdpDatagramBytes);
-    });
-    return;
+    p.reason = DropReason::oversized;
+    return p;
   }
-  if (length < kUdpDatagramBytes) {
-    drop(stats_, events_, DropReason::length, [&] {
-      return fmt::format("UDP datagram of {} bytes dropped: a sample is {} bytes (docs/sources.md)", length,
-                         kUdpDatagramBytes);
-    });
-    return;
+  if (length < kUdpDatagramBytes || d.size() < kUdpDatagramBytes) {
+    p.reason = DropReason::length;
+    return p;
   }
   if (std::memcmp(d.data(), kMagic.data(), kMagic.size()) != 0 ||
       get_le<std::uint16_t>(d.data() + 4) != kUdpVersion) {
-    drop(stats_, events_, DropReason::format, [] {
-      return std::string(
-          "UDP datagram dropped: not an mrskin sample v1 (magic MRSS, version 1; docs/sources.md)");
-    });
-    return;
+    p.reason = DropReason::format;
+    return p;
   }
   if (get_le<std::uint32_t>(d.data() + kCrcOffset) != crc32c(d.first(kCrcOffset))) {
-    drop(stats_, events_, DropReason::crc, [] {
-      return std::string(
-          "UDP datagram dropped: bad CRC-32C (over bytes 0..63, at offset 64; docs/sources.md)");
-    });
-    return;
+    p.reason = DropReason::crc;
+    return p;
+  }
+  p.ok = true;
+  p.sample.sequence = get_le<std::uint32_t>(d.data() + 8);
+  p.sample.stamp_ns = get_le<std::int64_t>(d.data() + 16);
+  p.sample.force_N = get_le<double>(d.data() + 24);
+  p.sample.indentation_m = get_le<double>(d.data() + 32);
+  p.sample.contact_x_m = get_le<double>(d.data() + 40);
+  p.sample.contact_y_m = get_le<double>(d.data() + 48);
+  p.sample.tip_radius_m = get_le<double>(d.data() + 56);
+  return p;
+}
+
+void UdpSource::handle(std::span<const std::uint8_t> d, std::size_t length, TimePoint arrival) noexcept {
+  const UdpParsed p = parse_udp_datagram(d, length);
+  if (!p.ok) {
+    switch (p.reason) {
+      case DropReason::oversized:
+      case DropReason::length:
+        drop(stats_, events_, p.reason, [&] {
+          return fmt::format("UDP datagram of {} bytes dropped: a sample is {} bytes (docs/sources.md)",
+                             length, kUdpDatagramBytes);
+        });
+        return;
+      case DropReason::format:
+        drop(stats_, events_, p.reason, [] {
+          return std::string(
+              "UDP datagram dropped: not an mrskin sample v1 (magic MRSS, version 1; docs/sources.md)");
+        });
+        return;
+      default:  // DropReason::crc
+        drop(stats_, events_, p.reason, [] {
+          return std::string(
+              "UDP datagram dropped: bad CRC-32C (over bytes 0..63, at offset 64; docs/sources.md)");
+        });
+        return;
+    }
   }
   SlaveSample s;
-  const auto robot_ns = get_le<std::int64_t>(d.data() + 16);
-  s.force_N = get_le<double>(d.data() + 24);
-  s.indentation_m = get_le<double>(d.data() + 32);
-  s.contact_x_m = get_le<double>(d.data() + 40);
-  s.contact_y_m = get_le<double>(d.data() + 48);
-  s.tip_radius_m = get_le<double>(d.data() + 56);
+  const std::int64_t robot_ns = p.sample.stamp_ns;
+  s.force_N = p.sample.force_N;
+  s.indentation_m = p.sample.indentation_m;
+  s.contact_x_m = p.sample.contact_x_m;
+  s.contact_y_m = p.sample.contact_y_m;
+  s.tip_radius_m = p.sample.tip_radius_m;
   if (!values_ok(s, options_, stats_, events_)) {
     return;
   }

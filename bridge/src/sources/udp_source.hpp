@@ -8,6 +8,16 @@
 
 namespace mrskin::bridge::sources {
 
+// A datagram's sample, or why it is dropped (oversized, length, format or crc). Without I/O: used
+// by UdpSource and by the fuzzer (tests/fuzz/fuzz_udp.cpp).
+struct UdpParsed {
+  bool ok = false;
+  DropReason reason = DropReason::format;  // when not ok
+  UdpSample sample;                        // when ok
+};
+// d: the bytes received; length: the datagram's real length (it may exceed d's, MSG_TRUNC).
+[[nodiscard]] UdpParsed parse_udp_datagram(std::span<const std::uint8_t> d, std::size_t length) noexcept;
+
 class UdpSource final : public QueuedSource {
  public:
   UdpSource(const Endpoint& where, const SourceOptions& options, Clock* clock);
