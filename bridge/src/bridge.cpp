@@ -53,6 +53,7 @@ Bridge::Bridge(DeviceSession& session, SlaveSource& source, BridgeOptions option
   sensor_reading_.assign(profile->sensors.size(), 0.0);
   model_ = std::make_unique<model::DeviceModel>(model::apply_calibration(*profile, calibration));
   observer_ = std::make_unique<model::CellObserver>(*model_, options_.observer);
+  sensor_faults_ = std::make_unique<SensorFaultMonitor>(*profile, layout_, options_.sensor_faults);
   inverse_ = std::make_unique<model::CellInverse>(*model_, options_.inverse);
   valve_gain_.assign(layout_.valve_count(), 1.0);
   for (std::size_t v = 0; v < valve_gain_.size(); ++v) {
@@ -104,20 +105,59 @@ void Bridge::request(Request r) noexcept {
   }
 }
 
+void Bridge::release(Request r) noexcept {
+  std::fill(current_A_.begin(), current_A_.end(), 0.0);
+  (void)session_.send_valve_currents(current_A_);  // released in this tick, whatever the state
+  std::copy(current_A_.begin(), current_A_.end(), sent_A_.begin());
+  (void)(r == Request::estop ? session_.request_estop() : session_.request_disable());
+  std::fill(feedback_N_.begin(), feedback_N_.end(), 0.0);
+  halted_.store(true, std::memory_order_release);
+}
+
 bool Bridge::apply_request() noexcept {
   const auto r = static_cast<Request>(pending_request_.exchange(0, std::memory_order_acq_rel));
   if (r == Request::estop || r == Request::disable) {
-    std::fill(current_A_.begin(), current_A_.end(), 0.0);
-    (void)session_.send_valve_currents(current_A_);  // released in this tick, whatever the state
-    std::copy(current_A_.begin(), current_A_.end(), sent_A_.begin());
-    (void)(r == Request::estop ? session_.request_estop() : session_.request_disable());
-    std::fill(feedback_N_.begin(), feedback_N_.end(), 0.0);
-    halted_.store(true, std::memory_order_release);
-  } else if (r == Request::enable) {
+    release(r);
+  } else if (r == Request::enable && !sensor_halt_) {  // a cell nobody reads stays released
     (void)session_.request_enable();
     halted_.store(false, std::memory_order_release);
   }
   return halted_.load(std::memory_order_relaxed);
+}
+
+// Fresh telemetry only: a tick that read nothing new must not count as a repeated reading.
+void Bridge::watch_sensors(TimePoint now) noexcept {
+  const SessionCounters& link = session_.counters();
+  const std::uint64_t gaps = link.telemetry_timeouts + link.reconnects;
+  if (!watched_last_tick_ || gaps != link_gaps_seen_) {
+    sensor_faults_->restart_history();  // readings from before a gap are no history for these tests
+    link_gaps_seen_ = gaps;
+  }
+  watched_last_tick_ = true;
+  if (link.telemetry == telemetry_seen_) {
+    return;
+  }
+  telemetry_seen_ = link.telemetry;
+  const std::size_t k = sensor_faults_->update(sensor_reading_, observer_->sensor_residual_sigma());
+  if (k == SensorFaultMonitor::npos) {
+    return;
+  }
+  (void)observer_->set_sensor_excluded(k, true);
+  ++stats_.sensor_faults;
+  SensorFaultEvent e;
+  e.sensor = k;
+  e.fault = sensor_faults_->fault(k);
+  e.evidence = sensor_faults_->evidence(k);
+  e.unobservable_cell = sensor_faults_->unobservable_cell();
+  e.at_s = to_seconds(now - start_);
+  e.healthy_left = sensor_faults_->healthy_count();
+  (void)sensor_fault_events_.try_push(e);
+  live_sensor_faults_.store(stats_.sensor_faults, std::memory_order_relaxed);
+  if (e.unobservable_cell != SensorFaultMonitor::npos && !sensor_halt_) {
+    sensor_halt_ = true;
+    ++stats_.sensor_fault_halts;
+    release(Request::disable);
+  }
 }
 
 void Bridge::update_tissue_model(TimePoint now) noexcept {
@@ -452,6 +492,7 @@ ResultCode Bridge::step(TimePoint now) noexcept {
     started_ = true;
   }
   if (apply_request()) {
+    watched_last_tick_ = false;
     ++stats_.ticks;  // halted: polled, nothing rendered
     live_ticks_.store(stats_.ticks, std::memory_order_relaxed);
     return rc;
@@ -463,6 +504,14 @@ ResultCode Bridge::step(TimePoint now) noexcept {
   }
   if (observer_->update(sensor_reading_, current_A_, dt) != model::Status::ok) {
     ++stats_.observer_errors;  // the estimate of the last good tick stands
+    watched_last_tick_ = false;
+  } else {
+    watch_sensors(now);
+    if (sensor_halt_) {
+      ++stats_.ticks;
+      live_ticks_.store(stats_.ticks, std::memory_order_relaxed);
+      return rc;
+    }
   }
   update_tissue_model(now);
   compute_targets();
@@ -525,6 +574,59 @@ ResultCode Bridge::step(TimePoint now) noexcept {
     ++stats_.overruns;
   }
   return rc;
+}
+
+void apply_tuning(const BridgeTuning& t, BridgeOptions& o) noexcept {
+  o.rate_hz = t.rate_hz;
+  o.feedback_gain_per_s = t.feedback_gain_per_s;
+  o.footprint_cells = t.footprint_cells;
+  o.resend_period_s = t.resend_period_s;
+  o.mapping = t.mapping;
+  o.estimator.hold_s = t.stale_hold_s;
+  o.estimator.fade_s = t.stale_fade_s;
+  o.realtime = t.realtime;
+  o.rt_priority = t.rt_priority;
+}
+
+BridgeTuning Bridge::tuning() const noexcept {
+  BridgeTuning t;
+  t.rate_hz = options_.rate_hz;
+  t.feedback_gain_per_s = options_.feedback_gain_per_s;
+  t.footprint_cells = options_.footprint_cells;
+  t.resend_period_s = options_.resend_period_s;
+  t.mapping = options_.mapping;
+  t.stale_hold_s = estimator_->options().hold_s;
+  t.stale_fade_s = estimator_->options().fade_s;
+  t.realtime = options_.realtime;
+  t.rt_priority = options_.rt_priority;
+  return t;
+}
+
+void Bridge::retune(const BridgeTuning& t) {
+  if (running()) {
+    throw InvalidArgument("retune the bridge between ticks: stop() its loop first");
+  }
+  if (!(t.rate_hz >= 1.0 && t.rate_hz <= 20000.0)) {
+    throw InvalidArgument("bridge rate " + std::to_string(t.rate_hz) + " Hz is outside 1..20000 Hz");
+  }
+  if (!(t.feedback_gain_per_s >= 0.0 && std::isfinite(t.feedback_gain_per_s)) ||
+      !(t.footprint_cells > 0.0 && std::isfinite(t.footprint_cells)) ||
+      !(t.resend_period_s > 0.0 && std::isfinite(t.resend_period_s))) {
+    throw InvalidArgument(
+        "retune: feedback_gain_per_s >= 0, footprint_cells > 0 and resend_period_s > 0 (finite)");
+  }
+  if (!t.mapping.valid()) {
+    throw InvalidArgument("the workspace mapping needs finite numbers and cells_per_m > 0");
+  }
+  estimator_->set_stale_policy(t.stale_hold_s, t.stale_fade_s);  // throws before anything changed
+  if (t.rate_hz != options_.rate_hz || t.realtime != options_.realtime ||
+      t.rt_priority != options_.rt_priority) {
+    loop_.reset();  // the library's loop is made again at start() with the new rate
+    loop_clock_ = nullptr;
+  }
+  apply_tuning(t, options_);
+  // What the rate sets: the unloading latch's smoothing (the observer's filters take dt per tick).
+  unload_filter_alpha_ = 1.0 - std::exp(-1.0 / (options_.rate_hz * std::max(options_.unload_filter_s, 1e-9)));
 }
 
 std::string Bridge::start(Clock& clock) {

@@ -373,6 +373,14 @@ TissueEstimator::TissueEstimator(const TissueEstimatorOptions& options) : option
   reset();
 }
 
+void TissueEstimator::set_stale_policy(double hold_s, double fade_s) {
+  if (!(hold_s >= options_.fresh_s && std::isfinite(hold_s) && fade_s > 0.0 && std::isfinite(fade_s))) {
+    throw InvalidArgument("stale policy needs fresh_s <= hold_s and fade_s > 0 (finite, seconds)");
+  }
+  options_.hold_s = hold_s;
+  options_.fade_s = fade_s;
+}
+
 void TissueEstimator::reset() noexcept {
   const TissueEstimatorOptions& o = options_;
   const double xr = o.reference_depth_m;

@@ -91,6 +91,7 @@ TEST_P(ClosedLoop, RendersTheSceneWithinItsBound) {
   }
   EXPECT_EQ(r.stats.active_ticks, 0U) << "the rendering gave energy";
   EXPECT_EQ(r.stats.observer_errors, 0U);
+  EXPECT_EQ(r.stats.sensor_faults, 0U) << "a false alarm (sensor_faults_test sweeps seeds 1-8)";
   EXPECT_EQ(r.stats.inverse_errors, 0U);
   EXPECT_EQ(r.stats.send_failures, 0U);
   EXPECT_LE(r.stats.max_current_A, 0.1 + 1e-12);

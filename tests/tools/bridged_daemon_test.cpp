@@ -303,6 +303,12 @@ TEST_F(BridgedDaemon, SighupReloadsOnTheOpenDeviceAndSigintFlushesStatistics) {
   EXPECT_EQ(json_field(s, "faults"), "0") << "the swap outlasted the device's heartbeat watchdog: " << s;
   EXPECT_TRUE(eventually([&] { return d.output().find("needs a restart") != std::string::npos; }))
       << d.output();
+  // Rate and gain only: the bridge was retuned, not rebuilt (bumpless, reload_test.cpp).
+  EXPECT_TRUE(eventually([&] {
+    return d.output().find(
+               "reload: bridge retuned in place, every state kept (rate 500 Hz, feedback gain 20") !=
+           std::string::npos;
+  })) << d.output();
 
   // A broken file on SIGHUP: logged, the daemon runs on.
   std::ofstream(cfg) << "rate_hz = \"fast\"\n";
@@ -587,6 +593,30 @@ TEST_F(BridgedDaemon, LinkFaultsAreCountedAndLogged) {
   EXPECT_NE(log.find("duplicate packets"), std::string::npos) << log;
   EXPECT_NE(log.find("link: the device disconnected"), std::string::npos) << log;
   EXPECT_NE(log.find("link: the device reconnected"), std::string::npos) << log;
+}
+
+// A stuck sensor: logged as it is found (naming the sensor, its cells and what the bridge does),
+// listed in the status, counted in the statistics; rendering goes on (docs/reliability.md).
+TEST_F(BridgedDaemon, ASensorFaultIsLoggedShownAndCounted) {
+  Daemon d(dir_, "d",
+           {"--config", config("[bridge]\nrealtime = false").string(), "--device", "mock://?faults=stuck:3",
+            "--quiet"});
+  LineClient c = connect();
+  ASSERT_TRUE(c.connected()) << d.output();
+  std::string s;
+  EXPECT_TRUE(eventually([&] {
+    s = status(c);
+    return s.find(R"("sensor_faults":[{"sensor":3,"fault":"stuck"}])") != std::string::npos;
+  })) << s;
+  EXPECT_EQ(json_field(s, "state").value_or(""), "ENABLED") << s;
+  d.signal(SIGTERM);
+  EXPECT_EQ(d.wait(30s), mrskin::tools::kOk) << d.output();
+  const std::string log = d.output();
+  EXPECT_NE(log.find("sensor 3 (under valve 3, reads fluid cells"), std::string::npos) << log;
+  EXPECT_NE(log.find("stuck: the same reading"), std::string::npos) << log;
+  EXPECT_NE(log.find("rendering goes on"), std::string::npos) << log;
+  const std::string stats = slurp(stats_);
+  EXPECT_NE(stats.find(R"("sensor_faults": {"found": 1, "halts": 0})"), std::string::npos) << stats;
 }
 
 // --record: the input stream to a file in the replay:// format, which a second run plays back.

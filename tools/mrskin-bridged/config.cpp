@@ -275,16 +275,22 @@ void apply(const Overrides& o, Settings& s) {
 
 bridge::BridgeOptions bridge_options(const Settings& s) {
   bridge::BridgeOptions o;
-  o.rate_hz = s.rate_hz;
-  o.mapping = s.mapping;
-  o.feedback_gain_per_s = s.feedback_gain_per_s;
-  o.footprint_cells = s.footprint_cells;
-  o.resend_period_s = s.resend_period_s;
-  o.realtime = s.realtime;
-  o.rt_priority = s.rt_priority;
-  o.estimator.hold_s = s.stale_hold_s;
-  o.estimator.fade_s = s.stale_fade_s;
+  bridge::apply_tuning(bridge_tuning(s), o);
   return o;
+}
+
+bridge::BridgeTuning bridge_tuning(const Settings& s) {
+  bridge::BridgeTuning t;
+  t.rate_hz = s.rate_hz;
+  t.feedback_gain_per_s = s.feedback_gain_per_s;
+  t.footprint_cells = s.footprint_cells;
+  t.resend_period_s = s.resend_period_s;
+  t.mapping = s.mapping;
+  t.stale_hold_s = s.stale_hold_s;
+  t.stale_fade_s = s.stale_fade_s;
+  t.realtime = s.realtime;
+  t.rt_priority = s.rt_priority;
+  return t;
 }
 
 bridge::SourceOptions source_options(const Settings& s) {

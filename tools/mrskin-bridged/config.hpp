@@ -76,6 +76,8 @@ Settings load_settings(const std::string& path);
 void validate(const Settings& s, const std::string& origin);
 void apply(const Overrides& o, Settings& s);
 bridge::BridgeOptions bridge_options(const Settings& s);
+// The part of the settings a running bridge takes without a new one (Bridge::retune).
+bridge::BridgeTuning bridge_tuning(const Settings& s);
 // The stream source's options from [stream] (before the URI's own keys).
 bridge::SourceOptions source_options(const Settings& s);
 // True when the [stream] keys differ (a reload then reopens the source).

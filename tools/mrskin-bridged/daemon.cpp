@@ -1,6 +1,7 @@
 #include "daemon.hpp"
 
 #include <fmt/format.h>
+#include <fmt/ranges.h>
 #include <spdlog/spdlog.h>
 
 #include <algorithm>
@@ -178,6 +179,10 @@ ResultCode Daemon::tick(TimePoint now) noexcept {
                          std::memory_order_relaxed);
   }
   const ResultCode rc = bridge_->step(now);
+  bridge::SensorFaultEvent fault;
+  while (bridge_->take_sensor_fault(fault)) {
+    (void)sensor_faults_.try_push(fault);  // 64 behind: the bridge's count still has it
+  }
   publish(now);
   in_tick_.store(false, std::memory_order_seq_cst);
   return rc;
@@ -392,9 +397,14 @@ std::string Daemon::stream_warning() const {
 
 std::string Daemon::status_members() {
   Settings shown;
+  std::string faulty;
   {
     const std::lock_guard<std::mutex> lock(shown_mutex_);
     shown = shown_;
+    for (const auto& [sensor, fault] : faulty_sensors_) {
+      faulty += fmt::format(R"({}{{"sensor":{},"fault":"{}"}})", faulty.empty() ? "" : ",", sensor,
+                            bridge::to_string(fault));
+    }
   }
   const std::int64_t now_ns = clock_.now().count();
   const auto state = static_cast<DeviceState>(state_.load(std::memory_order_relaxed));
@@ -406,7 +416,8 @@ std::string Daemon::status_members() {
       R"("stiffness_n_per_m":{},"peak_target_n":{},"peak_current_a":{},"rate_hz":{},"device":"{}",)"
       R"("source":"{}","uptime_s":{},"link_sent":{},"link_received":{},"reloads":{},"pid":{},"leased":{},)"
       R"("stream_warning":"{}","topics":{},"link_errors":{{"sequence_gaps":{},"duplicates":{},)"
-      R"("undecodable":{},"crc":{},"telemetry_timeouts":{},"disconnects":{},"reconnects":{}}})",
+      R"("undecodable":{},"crc":{},"telemetry_timeouts":{},"disconnects":{},"reconnects":{}}},)"
+      R"("sensor_faults":[{}])",
       to_string(state), fault_name(fault_code_.load(std::memory_order_relaxed)),
       fault_name(last_fault_code_.load(std::memory_order_relaxed)), faults_.load(std::memory_order_relaxed),
       halted_.load(std::memory_order_relaxed),
@@ -424,7 +435,7 @@ std::string Daemon::status_members() {
       received_.load(std::memory_order_relaxed), reloads_.load(), ::getpid(), leased_.load(),
       json_escape(stream_warning()), topics_members(), sequence_gaps_.load(), link_duplicates_.load(),
       decode_errors_.load(), crc_errors_.load(), telemetry_timeouts_.load(), disconnects_.load(),
-      reconnects_.load());
+      reconnects_.load(), faulty);
 }
 
 std::string Daemon::topics_members() const {
@@ -629,11 +640,56 @@ std::vector<Daemon::HealthEvent> Daemon::take_health_events() {
     }
     seen_.stale = stale;
   }
+  bridge::SensorFaultEvent e;
+  while (sensor_faults_.try_pop(e)) {
+    out.push_back({true, sensor_fault_text(e)});
+    const std::lock_guard<std::mutex> lock(shown_mutex_);
+    faulty_sensors_.emplace_back(e.sensor, e.fault);
+  }
   seen_.link = link;
   seen_.state = state;
   seen_.fault = fault;
   seen_.at = now;
   return out;
+}
+
+std::string Daemon::sensor_fault_text(const bridge::SensorFaultEvent& e) const {
+  const model::DeviceProfile* profile = dev_.session->profile();
+  std::string where;
+  if (profile != nullptr && e.sensor < profile->sensors.size()) {
+    const model::SensorSpec& spec = profile->sensors[e.sensor];
+    where = fmt::format(" (under {} {}", spec.place == model::PlaceKind::valve ? "valve" : "fluid cell",
+                        spec.index);
+    const std::span<const std::size_t> cells = bridge_->sensor_fault_monitor().cells_of_sensor(e.sensor);
+    where += fmt::format(", reads fluid cell{} {})", cells.size() == 1 ? "" : "s", fmt::join(cells, ", "));
+  }
+  std::string what;
+  switch (e.fault) {
+    case bridge::SensorFault::stuck:
+      what = fmt::format("stuck: the same reading ({:.1f} um) over and over", e.evidence * 1e6);
+      break;
+    case bridge::SensorFault::noisy:
+      what = fmt::format("noisy: {:.1f} times the profile's noise", std::sqrt(std::max(e.evidence, 0.0)));
+      break;
+    case bridge::SensorFault::offset:
+      what = fmt::format("offset: reads {:.0f} standard deviations {} what the other sensors explain",
+                         std::abs(e.evidence), e.evidence > 0.0 ? "above" : "below");
+      break;
+    case bridge::SensorFault::none:
+      what = "faulty";
+      break;
+  }
+  std::string then;
+  if (e.unobservable_cell != bridge::SensorFaultMonitor::npos) {
+    then = fmt::format(
+        "fluid cell {} is read by no healthy sensor now: valves released and the device disabled; enable "
+        "is refused until the sensor is repaired and mrskin-bridged restarted",
+        e.unobservable_cell);
+  } else {
+    then = fmt::format("left out of the observer; the {} sensors left read every cell, rendering goes on",
+                       e.healthy_left);
+  }
+  return fmt::format("sensor {}{} {} at t={:.3f} s: {}", e.sensor, where, what, e.at_s, then);
 }
 
 std::string Daemon::status_line() const {
@@ -658,6 +714,10 @@ std::string Daemon::status_line() const {
   }
   if (!connected_.load()) {
     line += "  device disconnected";
+  }
+  const std::lock_guard<std::mutex> lock(shown_mutex_);
+  for (const auto& [sensor, fault] : faulty_sensors_) {
+    line += fmt::format("  sensor {} {}", sensor, bridge::to_string(fault));
   }
   return line;
 }
@@ -733,9 +793,11 @@ std::vector<std::string> Daemon::reload(Settings next) {
                               next.resend_period_s != old.resend_period_s ||
                               next.stale_hold_s != old.stale_hold_s || next.stale_fade_s != old.stale_fade_s;
   if (bridge_changed) {
-    // Everything is built while the old loop runs (the Bridge constructor reads only the session's
-    // identity and profile, fixed since the handshake), so the device misses a tick or two at the
-    // swap, far below its heartbeat watchdog.
+    // Without a new source the bridge keeps every state (observer, tissue fit, feedback, latches)
+    // and takes the new tuning between two ticks: bumpless. A new source needs a new bridge, whose
+    // tissue fit and observer start afresh. Everything new is built while the old loop runs (the
+    // Bridge constructor reads only the session's identity and profile, fixed since the
+    // handshake), so the device misses a tick or two at the swap, far below its watchdog.
     OpenedSource fresh;
     std::unique_ptr<bridge::Scene> finger;
     std::unique_ptr<WatchedSource> watched;
@@ -751,10 +813,9 @@ std::vector<std::string> Daemon::reload(Settings next) {
         if (fresh.scene != nullptr) {
           fresh.scene->set_start(t0_);  // the script carries on where it is
         }
+        watched = std::make_unique<WatchedSource>(*fresh.source, recorder_.get());
+        b = std::make_unique<Bridge>(*dev_.session, *watched, bridge_options(next));
       }
-      watched =
-          std::make_unique<WatchedSource>(fresh.source ? *fresh.source : *source_.source, recorder_.get());
-      b = std::make_unique<Bridge>(*dev_.session, *watched, bridge_options(next));
       if (loop_changed) {
         new_loop = std::make_unique<bridge::RealtimeLoop>(clock_, *this, loop_options(next, waiter_.get()));
       }
@@ -762,22 +823,30 @@ std::vector<std::string> Daemon::reload(Settings next) {
       log.push_back(fmt::format("reload refused, running on as before: {}", e.what()));
       return log;
     }
-    if (truth_) {
-      b->set_force_truth(&*truth_);
-    }
-    if (const unsigned char halt = operator_halt_.load(); halt != 0) {
-      b->request(static_cast<Bridge::Request>(halt));  // a reload never re-enables
-    }
     if (loop_) {
       loop_->stop();  // only the loop: the recording and the skin's topics go on across a reload
     }
-    ticks_base_.fetch_add(bridge_->live_ticks());
-    ticks_.store(0);
-    bridge_ = std::move(b);  // old bridge first, then the wrapper and the source it read
-    watched_ = std::move(watched);
-    if (fresh.source) {
+    if (b) {
+      if (truth_) {
+        b->set_force_truth(&*truth_);
+      }
+      if (const unsigned char halt = operator_halt_.load(); halt != 0) {
+        b->request(static_cast<Bridge::Request>(halt));  // a reload never re-enables
+      }
+      ticks_base_.fetch_add(bridge_->live_ticks());
+      ticks_.store(0);
+      bridge_ = std::move(b);  // old bridge first, then the wrapper and the source it read
+      watched_ = std::move(watched);
       source_ = std::move(fresh);
       events_seen_ = 0;
+    } else {
+      try {
+        bridge_->retune(bridge_tuning(next));
+      } catch (const std::exception& e) {
+        log.push_back(fmt::format("reload refused, running on as before: {}", e.what()));
+        (void)start();
+        return log;
+      }
     }
     if (finger) {
       finger_scene_ = std::move(finger);
@@ -790,10 +859,13 @@ std::vector<std::string> Daemon::reload(Settings next) {
       log.push_back("warning: " + warning);
     }
     log.push_back(fmt::format(
-        "reload: new bridge on the open device (rate {} Hz, feedback gain {} /s, footprint {} cells, mapping "
-        "origin ({}, {}) m, {} cells/m, source {})",
+        "reload: {} (rate {} Hz, feedback gain {} /s, footprint {} cells, mapping origin ({}, {}) m, {} "
+        "cells/m, stale hold {} s, fade {} s, source {})",
+        source_changed ? "new bridge on the open device for the new source, starting afresh"
+                       : "bridge retuned in place, every state kept",
         next.rate_hz, next.feedback_gain_per_s, next.footprint_cells, next.mapping.origin_x_m,
-        next.mapping.origin_y_m, next.mapping.cells_per_m, next.source));
+        next.mapping.origin_y_m, next.mapping.cells_per_m, next.stale_hold_s, next.stale_fade_s,
+        next.source));
   } else {
     log.emplace_back("reload: no bridge change; the loop runs on");
   }

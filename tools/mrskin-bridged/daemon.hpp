@@ -17,6 +17,7 @@
 #include <optional>
 #include <string>
 #include <thread>
+#include <utility>
 #include <vector>
 
 #include "config.hpp"
@@ -90,6 +91,8 @@ class Daemon final : public bridge::Tickable, public ControlBackend {
   // The stream source's latest warning ("" when none): why no sample may be arriving.
   [[nodiscard]] std::string stream_warning() const;
   [[nodiscard]] std::string status_line() const;
+  // The log line for a sensor fault: which sensor, where, what was seen, what the bridge did.
+  [[nodiscard]] std::string sensor_fault_text(const bridge::SensorFaultEvent& e) const;
   // Main thread, once per status period: what changed since the last call, for the log, each
   // with whether it is a warning: link errors by kind (counted over the period: at most one
   // line per period), disconnects and reconnects, FAULT and its cause, the stream going stale
@@ -203,6 +206,10 @@ class Daemon final : public bridge::Tickable, public ControlBackend {
   std::atomic<std::int64_t> last_fresh_ns_{0};  // 0: no sample yet
   std::atomic<std::int64_t> disconnected_since_ns_{0};
   std::atomic<std::uint64_t> reloads_{0};
+  // Sensor faults: the tick forwards the bridge's reports here (the queue outlives a reload's
+  // bridge); the main thread logs them and keeps the list the status shows.
+  SpscQueue<bridge::SensorFaultEvent> sensor_faults_{64};
+  std::vector<std::pair<std::size_t, bridge::SensorFault>> faulty_sensors_;  // guarded by shown_mutex_
   // Settings the control thread shows (rate, device, source): main writes on reload.
   mutable std::mutex shown_mutex_;
   Settings shown_;

@@ -84,6 +84,15 @@ struct CellObserver::Impl {
       col_begin.push_back(col_entries.size());
       column_norm2.push_back(diag);
     }
+    base_row_entries = row_entries;
+    base_col_entries = col_entries;
+    base_column_norm2 = column_norm2;
+    row_of_sensor.assign(p.sensors.size(), kNoRow);
+    for (std::size_t r = 0; r < sensor_of_row.size(); ++r) {
+      row_of_sensor[sensor_of_row[r]] = r;
+    }
+    row_excluded.assign(rows.size(), 0);
+    sensor_residual.assign(p.sensors.size(), 0.0);
     prior_weight = 1.0 / (o.prior_spread_m * o.prior_spread_m);
     // One sensor sigma of misfit (cost 1) per sparsity_scale_m of summed depth.
     l1_weight = 1.0 / o.sparsity_scale_m;
@@ -206,6 +215,7 @@ struct CellObserver::Impl {
   }
 
   void fit(std::span<const double> readings) noexcept;
+  void compute_sensor_residuals(std::span<const double> readings) noexcept;
   bool update_coils(std::span<const double> valve_current_A, double dt_s) noexcept;
   Status network_force(double dt_s, bool yields_changed) noexcept;
   void local_force() noexcept;
@@ -221,8 +231,15 @@ struct CellObserver::Impl {
   std::vector<std::size_t> col_begin;
   std::vector<Entry> col_entries;
   std::vector<double> column_norm2;
-  std::vector<double> residual;      // scaled: (H d - y) / sigma
-  std::vector<double> used_reading;  // y / sigma last used per row (large grids: deadband)
+  std::vector<Entry> base_row_entries;  // the weights with every sensor in the fit
+  std::vector<Entry> base_col_entries;
+  std::vector<double> base_column_norm2;
+  static constexpr std::size_t kNoRow = static_cast<std::size_t>(-1);
+  std::vector<std::size_t> row_of_sensor;   // sensor -> row (kNoRow: not in the fit)
+  std::vector<unsigned char> row_excluded;  // a faulty sensor: its weights are zero
+  std::vector<double> sensor_residual;      // per sensor: (y - H d) / sigma, base weights
+  std::vector<double> residual;             // scaled: (H d - y) / sigma
+  std::vector<double> used_reading;         // y / sigma last used per row (large grids: deadband)
   std::vector<unsigned char> row_changed;
   std::vector<double> depth_m;
   std::vector<double> contact_depth_m;  // depth_m with sub-threshold depths as no contact
@@ -360,6 +377,18 @@ void CellObserver::Impl::fit(std::span<const double> readings) noexcept {
     for (const std::size_t c : visit) {
       relax(c);
     }
+  }
+}
+
+// Every displacement sensor's misfit against the fitted depths with its full weights, so an
+// excluded sensor stays watched (a fault that clears shows).
+void CellObserver::Impl::compute_sensor_residuals(std::span<const double> readings) noexcept {
+  for (std::size_t r = 0; r < sensor_of_row.size(); ++r) {
+    double h_d = 0.0;
+    for (std::size_t e = row_begin[r]; e < row_begin[r + 1]; ++e) {
+      h_d += base_row_entries[e].weight * depth_m[base_row_entries[e].index];
+    }
+    sensor_residual[sensor_of_row[r]] = readings[sensor_of_row[r]] * sensor_scale[r] - h_d;
   }
 }
 
@@ -520,12 +549,17 @@ Status CellObserver::update(std::span<const double> sensor_readings, std::span<c
     m.depth_m[c] = m.predicted_m[c];
   }
   m.fit(sensor_readings);
+  m.compute_sensor_residuals(sensor_readings);
   double misfit2 = 0.0;
+  std::size_t used = 0;
   for (std::size_t r = 0; r < m.residual.size(); ++r) {
-    const double unscaled = m.residual[r] / m.sensor_scale[r];
-    misfit2 += unscaled * unscaled;
+    if (m.row_excluded[r] == 0) {
+      const double unscaled = m.residual[r] / m.sensor_scale[r];
+      misfit2 += unscaled * unscaled;
+      ++used;
+    }
   }
-  m.misfit_m = std::sqrt(misfit2 / static_cast<double>(m.residual.size()));
+  m.misfit_m = used > 0 ? std::sqrt(misfit2 / static_cast<double>(used)) : 0.0;
   // Rate: first-order filter on the difference (exact discretisation of the lag).
   if (dt_s != m.alpha_dt_s) {
     const double tau = m.options.rate_filter_time_constant_s;
@@ -575,6 +609,36 @@ double CellObserver::hysteresis_compensated_current_A(std::size_t valve, double 
 }
 ObserverForceModel CellObserver::force_model() const noexcept { return impl_->force_model; }
 double CellObserver::sensor_misfit_m() const noexcept { return impl_->misfit_m; }
+std::span<const double> CellObserver::sensor_residual_sigma() const noexcept {
+  return impl_->sensor_residual;
+}
+
+Status CellObserver::set_sensor_excluded(std::size_t sensor, bool excluded) noexcept {
+  Impl& m = *impl_;
+  if (sensor >= m.row_of_sensor.size() || m.row_of_sensor[sensor] == Impl::kNoRow) {
+    return Status::out_of_range;
+  }
+  const std::size_t r = m.row_of_sensor[sensor];
+  m.row_excluded[r] = excluded ? 1 : 0;
+  const double keep = excluded ? 0.0 : 1.0;
+  for (std::size_t e = m.row_begin[r]; e < m.row_begin[r + 1]; ++e) {
+    m.row_entries[e].weight = keep * m.base_row_entries[e].weight;
+  }
+  // The columns hold the same weights by cell: zero this row's and sum the norms again.
+  for (std::size_t c = 0; c + 1 < m.col_begin.size(); ++c) {
+    double norm2 = 0.0;
+    for (std::size_t e = m.col_begin[c]; e < m.col_begin[c + 1]; ++e) {
+      if (m.col_entries[e].index == r) {
+        m.col_entries[e].weight = keep * m.base_col_entries[e].weight;
+      }
+      norm2 += m.col_entries[e].weight * m.col_entries[e].weight;
+    }
+    m.column_norm2[c] = norm2;
+  }
+  // Its residual must not pull on the depths any more: rebuilt by the next fit.
+  m.residual[r] = 0.0;
+  return Status::ok;
+}
 std::size_t CellObserver::fluid_cell_count() const noexcept { return impl_->depth_m.size(); }
 
 }  // namespace mrskin::model

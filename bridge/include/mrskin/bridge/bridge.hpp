@@ -15,6 +15,7 @@
 #include "mrskin/bridge/loop.hpp"
 #include "mrskin/bridge/mapping.hpp"
 #include "mrskin/bridge/scene.hpp"
+#include "mrskin/bridge/sensor_faults.hpp"
 #include "mrskin/bridge/stats.hpp"
 #include "mrskin/bridge/tissue.hpp"
 #include "mrskin/driver/clock.hpp"
@@ -24,6 +25,7 @@
 #include "mrskin/driver/model/inverse.hpp"
 #include "mrskin/driver/model/observer.hpp"
 #include "mrskin/driver/session.hpp"
+#include "mrskin/driver/spsc_queue.hpp"
 
 namespace mrskin::bridge {
 
@@ -78,6 +80,37 @@ struct BridgeOptions {
   double feedback_limit_N = 0.5;
   model::ObserverOptions observer{};
   model::InverseOptions inverse{};
+  // Stuck, noisy and offset sensors (sensor_faults.hpp): a faulty sensor leaves the observer's
+  // fit; when a fluid cell is left with no healthy sensor the bridge releases the valves and
+  // disables the device, and refuses enable until it is rebuilt.
+  SensorFaultOptions sensor_faults{};
+};
+
+// What a running bridge can change without losing its state (Bridge::retune): a reload of these
+// is bumpless.
+struct BridgeTuning {
+  double rate_hz = 1000.0;
+  double feedback_gain_per_s = 30.0;
+  double footprint_cells = 1.5;
+  double resend_period_s = 0.05;
+  WorkspaceMapping mapping{};
+  double stale_hold_s = 0.1;
+  double stale_fade_s = 0.2;
+  bool realtime = true;
+  int rt_priority = 80;
+};
+
+// Writes the tuning into options (the rest of options unchanged).
+void apply_tuning(const BridgeTuning& tuning, BridgeOptions& options) noexcept;
+
+// A sensor found faulty, as the tick reports it (Bridge::take_sensor_fault).
+struct SensorFaultEvent {
+  std::size_t sensor = 0;
+  SensorFault fault = SensorFault::none;
+  double evidence = 0.0;                                     // SensorFaultMonitor::evidence()
+  std::size_t healthy_left = 0;                              // displacement sensors still in the fit
+  std::size_t unobservable_cell = SensorFaultMonitor::npos;  // npos: every cell still read
+  double at_s = 0.0;                                         // since the bridge's first tick
 };
 
 // Ground truth for scoring (the mock's true contact forces); optional.
@@ -133,6 +166,13 @@ class Bridge {
   // True after an estop or disable until the next enable.
   [[nodiscard]] bool halted() const noexcept { return halted_.load(std::memory_order_acquire); }
 
+  // Between ticks, with the library's loop stopped: takes new tuning and keeps every state (the
+  // observer's depths and fluid, the tissue fit, the feedback integrals, the cells' latches), so
+  // a rate or gain change in the middle of a press renders on without a bump. Throws
+  // InvalidArgument for a value out of range (nothing changed then) or while start()ed. Setup.
+  void retune(const BridgeTuning& tuning);
+  [[nodiscard]] BridgeTuning tuning() const noexcept;
+
   // One tick at time now. Real-time safe.
   ResultCode step(TimePoint now) noexcept;
 
@@ -166,6 +206,14 @@ class Bridge {
   [[nodiscard]] std::span<const double> currents_A() const noexcept { return current_A_; }
   [[nodiscard]] const model::CellObserver& observer() const noexcept { return *observer_; }
   [[nodiscard]] const model::CellInverse& inverse() const noexcept { return *inverse_; }
+  // Sensor faults: the monitor (setup data: cells_of_sensor, stuck_run_readings; its live state
+  // from the tick thread only), and the faults found, from one other thread (never blocks; a
+  // reader that falls 64 faults behind loses the oldest, the count stays in stats()).
+  [[nodiscard]] const SensorFaultMonitor& sensor_fault_monitor() const noexcept { return *sensor_faults_; }
+  bool take_sensor_fault(SensorFaultEvent& out) noexcept { return sensor_fault_events_.try_pop(out); }
+  [[nodiscard]] std::uint64_t live_sensor_faults() const noexcept {
+    return live_sensor_faults_.load(std::memory_order_relaxed);
+  }
   [[nodiscard]] double tick_period_s() const noexcept { return 1.0 / options_.rate_hz; }
   void set_perf_clock(const Clock* clock) noexcept { perf_clock_ = clock; }
 
@@ -177,6 +225,8 @@ class Bridge {
   void clamp_targets_into_envelope() noexcept;
   [[nodiscard]] bool valves_open(std::size_t cell) const noexcept;  // every valve of the cell at ~0 A
   bool apply_request() noexcept;                                    // true while halted
+  void release(Request r) noexcept;                                 // zero currents, disable or estop
+  void watch_sensors(TimePoint now) noexcept;
   void score() noexcept;
 
   DeviceSession& session_;
@@ -205,6 +255,13 @@ class Bridge {
   std::vector<double> sensor_offset_;   // calibrated zero per sensor, the sensors' SI unit
   std::vector<double> sensor_reading_;  // this tick's readings less their zero
   std::vector<double> sent_A_;          // currents last sent
+  std::unique_ptr<SensorFaultMonitor> sensor_faults_;
+  SpscQueue<SensorFaultEvent> sensor_fault_events_{64};
+  std::atomic<std::uint64_t> live_sensor_faults_{0};
+  std::uint64_t telemetry_seen_ = 0;  // the session's telemetry count at the last tick
+  std::uint64_t link_gaps_seen_ = 0;  // ...and its timeouts and reconnects
+  bool watched_last_tick_ = false;    // false: a gap (halted, observer error) before this tick
+  bool sensor_halt_ = false;          // a cell has no healthy sensor: no enable
   TimePoint last_send_{};
   bool ever_sent_ = false;
   std::atomic<unsigned char> pending_request_{0};

@@ -90,6 +90,8 @@ struct BridgeStats {
   std::uint64_t observer_errors = 0;     // ticks whose observer update failed (estimate held)
   std::uint64_t inverse_errors = 0;      // ticks whose allocation failed (currents held)
   std::uint64_t inverse_cached = 0;      // ticks on which nothing was dirty: no allocation work
+  std::uint64_t sensor_faults = 0;       // sensors found stuck, noisy or offset (left out of the fit)
+  std::uint64_t sensor_fault_halts = 0;  // ...leaving a cell unread: valves released, device disabled
   double max_current_A = 0.0;            // largest valve current commanded
   double inverse_residual_sum_N = 0.0;   // per tick: the allocation's residual norm (fast model)
   // Passivity observer at the rendered ports (sum over cells of the integral of F v dt, with F

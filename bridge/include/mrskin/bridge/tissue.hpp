@@ -185,6 +185,9 @@ class TissueEstimator {
   [[nodiscard]] double confidence() const noexcept;
   [[nodiscard]] const TissueEstimatorStats& stats() const noexcept { return stats_; }
   [[nodiscard]] const TissueEstimatorOptions& options() const noexcept { return options_; }
+  // A new stale policy (hold, then fade) keeping the fit: setup only (between ticks). Throws
+  // InvalidArgument unless fresh_s <= hold_s and fade_s > 0.
+  void set_stale_policy(double hold_s, double fade_s);
   void reset() noexcept;
 
  private:

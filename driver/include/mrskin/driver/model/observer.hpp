@@ -111,8 +111,15 @@ class CellObserver {
   // this observer models the steel's play: the band's upper edge when that moves the play up,
   // its lower edge (at least 0 A) when down. current_A itself without hysteresis or at 0 A.
   [[nodiscard]] double hysteresis_compensated_current_A(std::size_t valve, double current_A) const noexcept;
-  // Root-mean-square misfit of the displacement sensors after the last update, m.
+  // Root-mean-square misfit of the displacement sensors the fit uses after the last update, m.
   [[nodiscard]] double sensor_misfit_m() const noexcept;
+  // Per sensor of the profile (its order): the last reading less what the fitted depths predict,
+  // in that sensor's standard deviations (its noise, at least its quantisation step). Computed
+  // for excluded sensors too; 0 for sensors that are not displacement sensors.
+  [[nodiscard]] std::span<const double> sensor_residual_sigma() const noexcept;
+  // Takes a displacement sensor out of the fit (a fault) or back in. Real-time safe (no
+  // allocation). out_of_range for an index that is not a displacement sensor of the fit.
+  Status set_sensor_excluded(std::size_t sensor, bool excluded) noexcept;
   [[nodiscard]] std::size_t fluid_cell_count() const noexcept;
   // The force model in use (automatic resolved at construction).
   [[nodiscard]] ObserverForceModel force_model() const noexcept;

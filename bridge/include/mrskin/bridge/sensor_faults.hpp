@@ -1,0 +1,116 @@
+// Sensor faults from the readings and the observer's residuals (issue 25). Each displacement
+// sensor is tested on every fresh reading:
+//   - stuck: the same reading over and over. A live sensor's noise moves its quantised reading:
+//     the run length is set so that a healthy sensor repeats that long with probability
+//     false_alarm_probability (from the profile's noise and resolution). A profile whose noise is
+//     far below its resolution cannot tell a stuck sensor at rest: stuck_run_readings() says how
+//     long it takes.
+//   - noisy: the mean square of the reading's second difference (6 sigma^2 for white noise, and
+//     next to nothing from a finger's motion at 1 kHz) over noise_ratio_limit times its expected
+//     value.
+//   - offset: the observer's residual for this sensor (its reading less what the fitted depths
+//     predict), averaged, beyond offset_limit_sigma. Depths are never negative and every cell is
+//     read by more than one sensor on the built-in profiles, so one sensor's shifted zero is left
+//     as a residual on that sensor, mostly (docs/reliability.md: where it is not).
+// A fault latches until reset(): a sensor that comes and goes must not slip back into the fit.
+// A fluid leak cannot be seen here: with the pads pressed by a finger, the sensors read the
+// finger's shape whatever the valves hold (docs/reliability.md).
+#pragma once
+
+#include <cstddef>
+#include <cstdint>
+#include <limits>
+#include <span>
+#include <vector>
+
+#include "mrskin/driver/layout.hpp"
+#include "mrskin/driver/model/profile.hpp"
+
+namespace mrskin::bridge {
+
+enum class SensorFault : std::uint8_t { none = 0, stuck = 1, noisy = 2, offset = 3 };
+const char* to_string(SensorFault fault) noexcept;
+
+struct SensorFaultOptions {
+  bool enabled = true;
+  // A healthy sensor repeats its reading for the stuck run with at most this probability.
+  double false_alarm_probability = 1e-12;
+  // Noisy: mean square second difference over 6 sigma^2, averaged over noise_window_readings.
+  double noise_ratio_limit = 25.0;  // the noise 5 times the profile's
+  double noise_window_readings = 16.0;
+  // Offset: the residual's mean, in the sensor's sigmas, averaged over offset_window_readings.
+  double offset_limit_sigma = 15.0;
+  double offset_window_readings = 40.0;
+};
+
+class SensorFaultMonitor {
+ public:
+  static constexpr std::size_t npos = std::numeric_limits<std::size_t>::max();
+
+  // Setup: throws InvalidArgument on options out of range.
+  SensorFaultMonitor(const model::DeviceProfile& profile, const GridLayout& layout,
+                     const SensorFaultOptions& options);
+
+  // One fresh set of readings (SI, the profile's order) and the observer's residuals for them
+  // (CellObserver::sensor_residual_sigma()). Returns the sensor that became faulty on this
+  // reading, or npos. At most one sensor per call (the others are judged again next time, once
+  // the observer has left the faulty one out). Real-time safe.
+  std::size_t update(std::span<const double> readings, std::span<const double> residual_sigma) noexcept;
+  void reset() noexcept;
+  // After a gap in the readings (the bridge halted, the link down): the tests start again from
+  // the next reading, the latched faults stay.
+  void restart_history() noexcept;
+
+  [[nodiscard]] SensorFault fault(std::size_t sensor) const noexcept {
+    return sensor < fault_.size() ? fault_[sensor] : SensorFault::none;
+  }
+  [[nodiscard]] std::size_t faulty_count() const noexcept { return faulty_; }
+  // Displacement sensors watched and not faulty (those the observer's fit still uses).
+  [[nodiscard]] std::size_t healthy_count() const noexcept { return healthy_; }
+  // The first fluid cell whose last healthy displacement sensor failed, or npos: while every cell
+  // the profile reads is read by one, the bridge goes on without the faulty sensors.
+  [[nodiscard]] std::size_t unobservable_cell() const noexcept { return unobservable_; }
+  // The fluid cells a sensor reads (its valve's cells, or its own cell).
+  [[nodiscard]] std::span<const std::size_t> cells_of_sensor(std::size_t sensor) const noexcept;
+  // The stuck test's run, in readings (npos for a sensor the tests do not watch).
+  [[nodiscard]] std::size_t stuck_run_readings(std::size_t sensor) const noexcept {
+    return sensor < stuck_run_.size() ? stuck_run_[sensor] : npos;
+  }
+  // The tests' running figures (tick thread): the noise ratio and the mean residual, in sigmas.
+  [[nodiscard]] double noise_ratio(std::size_t sensor) const noexcept {
+    return sensor < noise_ratio_.size() ? noise_ratio_[sensor] : 0.0;
+  }
+  [[nodiscard]] double mean_residual_sigma(std::size_t sensor) const noexcept {
+    return sensor < mean_residual_.size() ? mean_residual_[sensor] : 0.0;
+  }
+  // What the last fault's test measured (for the log): the repeated reading (stuck), the noise
+  // ratio (noisy) or the mean residual in sigmas (offset).
+  [[nodiscard]] double evidence(std::size_t sensor) const noexcept {
+    return sensor < evidence_.size() ? evidence_[sensor] : 0.0;
+  }
+
+ private:
+  void latch(std::size_t sensor, SensorFault fault, double evidence) noexcept;
+
+  SensorFaultOptions options_;
+  std::vector<unsigned char> watched_;  // displacement sensors
+  std::vector<double> sigma_;           // noise and quantisation, in the reading's unit
+  std::vector<std::size_t> stuck_run_;
+  std::vector<std::size_t> cells_begin_;
+  std::vector<std::size_t> cells_;
+  std::vector<std::size_t> readers_of_cell_;  // healthy displacement sensors reading each cell
+  std::vector<SensorFault> fault_;
+  std::vector<double> evidence_;
+  // Per sensor: the reading's history and the tests' running figures.
+  std::vector<double> last_;
+  std::vector<double> before_last_;
+  std::vector<std::size_t> seen_;  // readings so far (up to 2: the second difference needs 3)
+  std::vector<std::size_t> run_;
+  std::vector<double> noise_ratio_;
+  std::vector<double> mean_residual_;
+  std::size_t faulty_ = 0;
+  std::size_t healthy_ = 0;
+  std::size_t unobservable_ = npos;
+};
+
+}  // namespace mrskin::bridge

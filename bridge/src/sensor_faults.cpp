@@ -1,0 +1,211 @@
+#include "mrskin/bridge/sensor_faults.hpp"
+
+#include <algorithm>
+#include <cmath>
+
+#include "mrskin/driver/errors.hpp"
+
+namespace mrskin::bridge {
+
+const char* to_string(SensorFault fault) noexcept {
+  switch (fault) {
+    case SensorFault::none:
+      return "none";
+    case SensorFault::stuck:
+      return "stuck";
+    case SensorFault::noisy:
+      return "noisy";
+    case SensorFault::offset:
+      return "offset";
+  }
+  return "unknown";
+}
+
+namespace {
+
+constexpr double kOutlierCap = 4.0;
+
+// The run of equal readings a healthy sensor reaches with probability p: with the true value at
+// a quantisation step's centre (the likeliest place to repeat), each reading stays in that step
+// with probability erf(resolution / (2 sqrt(2) sigma)).
+std::size_t stuck_run_for(double noise_std, double resolution, double p) {
+  if (!(noise_std > 0.0)) {
+    return SensorFaultMonitor::npos;  // no noise: a constant reading is what a healthy one gives
+  }
+  const double step = resolution > 0.0 ? resolution : noise_std * 1e-6;  // unquantised: never equal
+  const double stay = std::erf(step / (2.0 * std::sqrt(2.0) * noise_std));
+  if (!(stay > 0.0)) {
+    return 2;
+  }
+  const double run = std::ceil(std::log(p) / std::log(stay)) + 1.0;
+  return run > 1e6 ? SensorFaultMonitor::npos : static_cast<std::size_t>(std::max(run, 2.0));
+}
+
+}  // namespace
+
+SensorFaultMonitor::SensorFaultMonitor(const model::DeviceProfile& profile, const GridLayout& layout,
+                                       const SensorFaultOptions& options)
+    : options_(options) {
+  if (!(options.false_alarm_probability > 0.0 && options.false_alarm_probability < 1.0) ||
+      !(options.noise_ratio_limit > 1.0) || !(options.noise_window_readings >= 1.0) ||
+      !(options.offset_limit_sigma > 0.0) || !(options.offset_window_readings >= 1.0)) {
+    throw InvalidArgument(
+        "sensor fault options: false_alarm_probability in (0, 1), noise_ratio_limit > 1, "
+        "offset_limit_sigma > 0, and both windows >= 1 reading");
+  }
+  const std::size_t n = profile.sensors.size();
+  const std::size_t cells = layout.fluid_cell_count();
+  watched_.assign(n, 0);
+  sigma_.assign(n, 0.0);
+  stuck_run_.assign(n, npos);
+  readers_of_cell_.assign(cells, 0);
+  cells_begin_.push_back(0);
+  for (std::size_t k = 0; k < n; ++k) {
+    const model::SensorSpec& s = profile.sensors[k];
+    if (s.quantity == model::SensorQuantity::displacement && s.place != model::PlaceKind::reservoir) {
+      watched_[k] = 1;
+      sigma_[k] = std::sqrt(s.noise_std * s.noise_std + s.resolution * s.resolution / 12.0);
+      stuck_run_[k] = stuck_run_for(s.noise_std, s.resolution, options.false_alarm_probability);
+      if (s.place == model::PlaceKind::fluid_cell) {
+        cells_.push_back(s.index);
+      } else {
+        for (const std::size_t c : layout.cells_of_valve(s.index)) {
+          cells_.push_back(c);
+        }
+      }
+    }
+    std::sort(cells_.begin() + static_cast<std::ptrdiff_t>(cells_begin_[k]), cells_.end());
+    cells_begin_.push_back(cells_.size());
+    for (std::size_t e = cells_begin_[k]; e < cells_begin_[k + 1]; ++e) {
+      ++readers_of_cell_[cells_[e]];
+    }
+  }
+  fault_.assign(n, SensorFault::none);
+  evidence_.assign(n, 0.0);
+  last_.assign(n, 0.0);
+  before_last_.assign(n, 0.0);
+  seen_.assign(n, 0);
+  run_.assign(n, 0);
+  noise_ratio_.assign(n, 0.0);
+  mean_residual_.assign(n, 0.0);
+  healthy_ = static_cast<std::size_t>(std::count(watched_.begin(), watched_.end(), 1));
+}
+
+std::span<const std::size_t> SensorFaultMonitor::cells_of_sensor(std::size_t sensor) const noexcept {
+  if (sensor + 1 >= cells_begin_.size()) {
+    return {};
+  }
+  return {cells_.data() + cells_begin_[sensor], cells_begin_[sensor + 1] - cells_begin_[sensor]};
+}
+
+void SensorFaultMonitor::reset() noexcept {
+  for (std::size_t k = 0; k < fault_.size(); ++k) {
+    if (fault_[k] != SensorFault::none) {
+      for (std::size_t e = cells_begin_[k]; e < cells_begin_[k + 1]; ++e) {
+        ++readers_of_cell_[cells_[e]];
+      }
+    }
+  }
+  std::fill(fault_.begin(), fault_.end(), SensorFault::none);
+  std::fill(evidence_.begin(), evidence_.end(), 0.0);
+  std::fill(seen_.begin(), seen_.end(), 0);
+  std::fill(run_.begin(), run_.end(), 0);
+  std::fill(noise_ratio_.begin(), noise_ratio_.end(), 0.0);
+  std::fill(mean_residual_.begin(), mean_residual_.end(), 0.0);
+  healthy_ += faulty_;
+  faulty_ = 0;
+  unobservable_ = npos;
+}
+
+void SensorFaultMonitor::restart_history() noexcept {
+  std::fill(seen_.begin(), seen_.end(), 0);
+  std::fill(run_.begin(), run_.end(), 0);
+  std::fill(noise_ratio_.begin(), noise_ratio_.end(), 0.0);
+  std::fill(mean_residual_.begin(), mean_residual_.end(), 0.0);
+}
+
+void SensorFaultMonitor::latch(std::size_t sensor, SensorFault fault, double evidence) noexcept {
+  fault_[sensor] = fault;
+  evidence_[sensor] = evidence;
+  ++faulty_;
+  --healthy_;
+  for (std::size_t e = cells_begin_[sensor]; e < cells_begin_[sensor + 1]; ++e) {
+    const std::size_t c = cells_[e];
+    // A cell the profile never read is no news; one whose last reader failed is.
+    if (readers_of_cell_[c] > 0 && --readers_of_cell_[c] == 0 && unobservable_ == npos) {
+      unobservable_ = c;
+    }
+  }
+  // The fit moves once the sensor is out: the others' residual means start again.
+  std::fill(mean_residual_.begin(), mean_residual_.end(), 0.0);
+}
+
+std::size_t SensorFaultMonitor::update(std::span<const double> readings,
+                                       std::span<const double> residual_sigma) noexcept {
+  if (!options_.enabled || readings.size() != fault_.size() || residual_sigma.size() != fault_.size()) {
+    return npos;
+  }
+  const double noise_alpha = 1.0 / options_.noise_window_readings;
+  const double offset_alpha = 1.0 / options_.offset_window_readings;
+  std::size_t found = npos;
+  SensorFault found_kind = SensorFault::none;
+  double found_evidence = 0.0;
+  double worst_offset = 0.0;
+  std::size_t worst_offset_sensor = npos;
+  for (std::size_t k = 0; k < fault_.size(); ++k) {
+    if (watched_[k] == 0 || fault_[k] != SensorFault::none) {
+      continue;
+    }
+    const double y = readings[k];
+    if (!std::isfinite(y)) {
+      continue;  // the observer refuses the tick; nothing to judge
+    }
+    run_[k] = seen_[k] > 0 && y == last_[k] ? run_[k] + 1 : 1;
+    if (seen_[k] >= 2) {
+      const double d2 = y - 2.0 * last_[k] + before_last_[k];
+      // One jump (a finger's tap, a gap in the readings) must not pass for noise: each reading
+      // counts for at most kOutlierCap limits, so it takes several to cross one.
+      const double ratio =
+          std::min(d2 * d2 / (6.0 * sigma_[k] * sigma_[k]), kOutlierCap * options_.noise_ratio_limit);
+      noise_ratio_[k] += noise_alpha * (ratio - noise_ratio_[k]);
+    }
+    before_last_[k] = last_[k];
+    last_[k] = y;
+    seen_[k] = std::min<std::size_t>(seen_[k] + 1, 2);
+    if (const double r = residual_sigma[k]; std::isfinite(r)) {
+      const double cap = kOutlierCap * options_.offset_limit_sigma;
+      mean_residual_[k] += offset_alpha * (std::clamp(r, -cap, cap) - mean_residual_[k]);
+    }
+    if (found != npos) {
+      continue;
+    }
+    if (stuck_run_[k] != npos && run_[k] >= stuck_run_[k]) {
+      found = k;
+      found_kind = SensorFault::stuck;
+      found_evidence = y;
+    } else if (noise_ratio_[k] > options_.noise_ratio_limit) {
+      found = k;
+      found_kind = SensorFault::noisy;
+      found_evidence = noise_ratio_[k];
+    } else if (std::abs(mean_residual_[k]) > std::abs(worst_offset)) {
+      worst_offset = mean_residual_[k];
+      worst_offset_sensor = k;
+    }
+  }
+  // One shifted zero spreads a little onto its neighbours through the fit: blame the largest.
+  if (found == npos && worst_offset_sensor != npos && std::abs(worst_offset) > options_.offset_limit_sigma) {
+    found = worst_offset_sensor;
+    // A stuck sensor under a moving finger leaves a residual before its run is long enough; a
+    // healthy one with a shifted zero still moves: this many repeats is stuck (p < 1e-3 here).
+    constexpr std::size_t kStuckHint = 8;
+    const bool stuck = run_[found] >= std::min(kStuckHint, stuck_run_[found]);
+    found_kind = stuck ? SensorFault::stuck : SensorFault::offset;
+    found_evidence = stuck ? last_[found] : worst_offset;
+  }
+  if (found != npos) {
+    latch(found, found_kind, found_evidence);
+  }
+  return found;
+}
+
+}  // namespace mrskin::bridge

@@ -1,0 +1,419 @@
+// Sensor faults (issue 25): stuck, noisy and offset sensors found from the readings and the
+// observer's residuals, within 200 ms, reported with the sensor and its cells; no false alarm on
+// the built-in scenes over seeds 1-8; the faulty sensor leaves the fit, and a cell left with no
+// sensor releases the valves. Closed loop on the simulated clock against the perturbed mock.
+#include "mrskin/bridge/sensor_faults.hpp"
+
+#include <gtest/gtest.h>
+
+#include <algorithm>
+#include <cmath>
+#include <cstdio>
+#include <cstdlib>
+#include <random>
+#include <string>
+#include <vector>
+
+#include "mrskin/bridge/bridge.hpp"
+#include "mrskin/driver/device.hpp"
+#include "mrskin/driver/layout.hpp"
+#include "mrskin/driver/model/profile.hpp"
+
+namespace mrskin::bridge {
+namespace {
+
+struct FaultRun {
+  BridgeStats stats;
+  std::vector<SensorFaultEvent> events;
+  double max_noise_ratio = 0.0;    // over healthy sensors and readings
+  double max_mean_residual = 0.0;  // |mean residual|, sigmas, healthy sensors
+  bool halted = false;
+  DeviceState state = DeviceState::disabled;
+  std::vector<double> currents_A;
+};
+
+FaultRun run(const std::string& scene_name, double seconds, const std::string& uri,
+             const BridgeOptions& options = {}) {
+  SimulatedClock clock;
+  OpenOptions open;
+  open.synchronous_mock = true;
+  OpenedDevice dev = open_device(uri, clock, open);
+  auto scene = make_scene(scene_name);
+  Bridge loop(*dev.session, *scene, options);
+  MockDeviceTruth truth(*dev.mock);
+  loop.set_force_truth(&truth);
+  loop.set_perf_clock(&clock);
+  scene->set_start(clock.now());
+  EXPECT_EQ(loop.enable(), ResultCode::ok);
+  std::vector<double> finger(dev.mock->layout().fluid_cell_count());
+  FaultRun r;
+  const SensorFaultMonitor& monitor = loop.sensor_fault_monitor();
+  const auto ticks = static_cast<int>(seconds * 1000.0);
+  for (int k = 0; k < ticks; ++k) {
+    scene->finger(to_seconds(clock.now() - scene->start()), dev.mock->layout(), finger);
+    dev.mock->set_finger_indentation(finger);
+    dev.mock->step(clock.now());
+    (void)loop.step(clock.now());
+    clock.advance(std::chrono::milliseconds(1));
+    for (std::size_t s = 0; s < dev.session->sensors().size(); ++s) {
+      if (monitor.fault(s) == SensorFault::none) {
+        r.max_noise_ratio = std::max(r.max_noise_ratio, monitor.noise_ratio(s));
+        r.max_mean_residual = std::max(r.max_mean_residual, std::abs(monitor.mean_residual_sigma(s)));
+      }
+    }
+    SensorFaultEvent e;
+    while (loop.take_sensor_fault(e)) {
+      r.events.push_back(e);
+    }
+  }
+  r.stats = loop.stats();
+  r.halted = loop.halted();
+  r.state = dev.session->state();
+  r.currents_A.resize(dev.mock->layout().valve_count());
+  dev.mock->applied_currents(r.currents_A);
+  return r;
+}
+
+// ---- the monitor alone, on synthetic readings --------------------------------------------------
+
+class Monitor : public ::testing::Test {
+ protected:
+  model::DeviceProfile profile = model::load_profile("mr-skin-5x5");
+  GridLayout layout{profile.rows, profile.cols};
+  std::mt19937_64 rng{7};
+  std::normal_distribution<double> normal{0.0, 1.0};
+
+  // Healthy readings at depth_m for every sensor: the profile's noise, quantised.
+  std::vector<double> readings(double depth_m) {
+    std::vector<double> y(profile.sensors.size());
+    for (std::size_t k = 0; k < y.size(); ++k) {
+      const model::SensorSpec& s = profile.sensors[k];
+      y[k] = std::nearbyint((depth_m + s.noise_std * normal(rng)) / s.resolution) * s.resolution;
+    }
+    return y;
+  }
+};
+
+TEST_F(Monitor, HealthySensorsRaiseNothingInAMillionReadings) {
+  SensorFaultMonitor m(profile, layout, {});
+  const std::vector<double> residual(profile.sensors.size(), 0.0);
+  for (int k = 0; k < 1'000'000; ++k) {
+    ASSERT_EQ(m.update(readings(0.0), residual), SensorFaultMonitor::npos) << "reading " << k;
+  }
+  EXPECT_EQ(m.faulty_count(), 0U);
+}
+
+TEST_F(Monitor, AStuckSensorIsFoundWithinItsRun) {
+  SensorFaultMonitor m(profile, layout, {});
+  // 2 um of noise on a 2.5 um step: a healthy reading repeats with p <= 0.47 each time.
+  const std::size_t run = m.stuck_run_readings(3);
+  EXPECT_GE(run, 30U);
+  EXPECT_LE(run, 45U);
+  const std::vector<double> residual(profile.sensors.size(), 0.0);
+  std::size_t found = SensorFaultMonitor::npos;
+  std::size_t at = 0;
+  for (std::size_t k = 0; k < 200 && found == SensorFaultMonitor::npos; ++k) {
+    std::vector<double> y = readings(0.0);
+    y[3] = 5e-6;
+    found = m.update(y, residual);
+    at = k + 1;
+  }
+  EXPECT_EQ(found, 3U);
+  EXPECT_EQ(m.fault(3), SensorFault::stuck);
+  EXPECT_EQ(at, run);
+  EXPECT_DOUBLE_EQ(m.evidence(3), 5e-6);
+  // Sensor 3 sits under a valve and reads its cells: they keep other readers.
+  EXPECT_FALSE(m.cells_of_sensor(3).empty());
+  EXPECT_EQ(m.unobservable_cell(), SensorFaultMonitor::npos);
+  EXPECT_EQ(m.healthy_count(), profile.sensors.size() - 1);
+}
+
+TEST_F(Monitor, ANoisySensorIsFound) {
+  SensorFaultMonitor m(profile, layout, {});
+  const std::vector<double> residual(profile.sensors.size(), 0.0);
+  std::size_t found = SensorFaultMonitor::npos;
+  int at = 0;
+  for (int k = 0; k < 200 && found == SensorFaultMonitor::npos; ++k) {
+    std::vector<double> y = readings(0.0);
+    y[4] += 50e-6 * normal(rng);  // the mock's noisy fault: 20 steps of 2.5 um
+    found = m.update(y, residual);
+    at = k + 1;
+  }
+  EXPECT_EQ(found, 4U);
+  EXPECT_EQ(m.fault(4), SensorFault::noisy);
+  EXPECT_LE(at, 20);
+}
+
+TEST_F(Monitor, AnOffsetResidualIsFoundAndTheLargestIsBlamed) {
+  SensorFaultMonitor m(profile, layout, {});
+  std::vector<double> residual(profile.sensors.size(), 0.0);
+  residual[2] = -40.0;  // the fit spreads one shifted zero a little onto the neighbours
+  residual[5] = 12.0;
+  std::size_t found = SensorFaultMonitor::npos;
+  for (int k = 0; k < 200 && found == SensorFaultMonitor::npos; ++k) {
+    found = m.update(readings(0.0), residual);
+  }
+  EXPECT_EQ(found, 2U);
+  EXPECT_EQ(m.fault(2), SensorFault::offset);
+  EXPECT_LT(m.evidence(2), -15.0);
+}
+
+TEST_F(Monitor, ACellWithNoHealthySensorLeftIsNamed) {
+  SensorFaultMonitor m(profile, layout, {});
+  // The corner cell is read by two valve sensors: stick both.
+  const std::size_t corner = 0;
+  const std::vector<std::size_t>& valves = layout.valves_of_cell(corner);
+  ASSERT_EQ(valves.size(), 2U);
+  const std::vector<double> residual(profile.sensors.size(), 0.0);
+  std::vector<std::size_t> found;
+  for (int k = 0; k < 300; ++k) {
+    std::vector<double> y = readings(0.0);
+    y[valves[0]] = 0.0;  // sensors are generated under the valves, in valve order
+    y[valves[1]] = 0.0;
+    if (const std::size_t s = m.update(y, residual); s != SensorFaultMonitor::npos) {
+      found.push_back(s);
+    }
+  }
+  ASSERT_EQ(found.size(), 2U);
+  EXPECT_EQ(m.unobservable_cell(), corner);
+  m.reset();
+  EXPECT_EQ(m.faulty_count(), 0U);
+  EXPECT_EQ(m.unobservable_cell(), SensorFaultMonitor::npos);
+}
+
+// Any one sensor may fail on a built-in unit: every fluid cell is read by at least two.
+TEST(SensorCoverage, EveryCellOfTheBuiltInProfilesHasTwoSensors) {
+  for (const char* name : {"mr-skin-5x5", "fingertip-16x16", "palm-64x64", "paper-table4"}) {
+    const model::DeviceProfile profile = model::load_profile(name);
+    const GridLayout layout(profile.rows, profile.cols);
+    const SensorFaultMonitor m(profile, layout, {});
+    std::vector<int> readers(layout.fluid_cell_count(), 0);
+    for (std::size_t k = 0; k < profile.sensors.size(); ++k) {
+      for (const std::size_t c : m.cells_of_sensor(k)) {
+        ++readers.at(c);
+      }
+    }
+    EXPECT_GE(*std::min_element(readers.begin(), readers.end()), 2) << name;
+  }
+}
+
+TEST_F(Monitor, BadOptionsAreRefused) {
+  SensorFaultOptions o;
+  o.noise_ratio_limit = 0.5;
+  EXPECT_THROW(SensorFaultMonitor(profile, layout, o), InvalidArgument);
+  o = {};
+  o.false_alarm_probability = 0.0;
+  EXPECT_THROW(SensorFaultMonitor(profile, layout, o), InvalidArgument);
+}
+
+// ---- closed loop on the mock ----------------------------------------------------------------------
+
+#ifdef MRSKIN_SANITIZED
+constexpr bool kFull = false;  // sanitizer builds look for memory errors: one seed, 2 s
+#else
+constexpr bool kFull = true;
+#endif
+
+struct SensorCase {
+  const char* fault;
+  std::size_t sensor;
+  SensorFault kind;
+};
+
+class OneFaultySensor : public ::testing::TestWithParam<SensorCase> {};
+
+// Found within 200 ms of its start (t = 0), named, left out of the fit: the rendering holds the
+// product's figure on the 11 sensors left (stuck:3 rendered 0.11 N RMS before it was detected).
+TEST_P(OneFaultySensor, IsFoundNamedAndLeftOut) {
+  const SensorCase c = GetParam();
+  const FaultRun r = run("demo", kFull ? 4.0 : 1.0, std::string("mock://?seed=7&faults=") + c.fault);
+  std::printf("%-9s", c.fault);
+  for (const SensorFaultEvent& e : r.events) {
+    std::printf("  sensor %zu %s at %.3f s (evidence %.3g, %zu sensors left)", e.sensor, to_string(e.fault),
+                e.at_s, e.evidence, e.healthy_left);
+  }
+  std::printf("  rms %.4f N (true state %.4f N)", r.stats.force_rms_error_N(),
+              r.stats.true_state_rms_error_N());
+  if (kFull) {  // the same run with the sensor left in the fit
+    BridgeOptions blind;
+    blind.sensor_faults.enabled = false;
+    const FaultRun b = run("demo", 4.0, std::string("mock://?seed=7&faults=") + c.fault, blind);
+    std::printf("; undetected: rms %.4f N (true state %.4f N)", b.stats.force_rms_error_N(),
+                b.stats.true_state_rms_error_N());
+  }
+  std::printf("\n");
+  ASSERT_EQ(r.events.size(), 1U);
+  EXPECT_EQ(r.events[0].sensor, c.sensor);
+  EXPECT_EQ(r.events[0].fault, c.kind);
+  EXPECT_LE(r.events[0].at_s, 0.2);
+  EXPECT_EQ(r.events[0].healthy_left, 11U);
+  EXPECT_EQ(r.events[0].unobservable_cell, SensorFaultMonitor::npos);
+  EXPECT_EQ(r.stats.sensor_faults, 1U);
+  EXPECT_EQ(r.stats.sensor_fault_halts, 0U);
+  EXPECT_FALSE(r.halted);
+  EXPECT_EQ(r.state, DeviceState::enabled);
+  if (kFull) {
+    EXPECT_LE(r.stats.force_rms_error_N(), 0.04);
+    EXPECT_LE(r.stats.true_state_rms_error_N(), 0.04);
+  }
+}
+
+INSTANTIATE_TEST_SUITE_P(MockFaults, OneFaultySensor,
+                         ::testing::Values(SensorCase{"stuck:3", 3, SensorFault::stuck},
+                                           SensorCase{"noisy:4", 4, SensorFault::noisy},
+                                           SensorCase{"offset:3", 3, SensorFault::offset},
+                                           SensorCase{"offset:0", 0, SensorFault::offset},
+                                           SensorCase{"stuck:11", 11, SensorFault::stuck}),
+                         [](const ::testing::TestParamInfo<SensorCase>& p) {
+                           std::string name = p.param.fault;
+                           std::replace(name.begin(), name.end(), ':', '_');
+                           return name;
+                         });
+
+// Both sensors of the corner cell fail: that cell is read by none, so the bridge releases the
+// valves, disables the device and refuses enable.
+TEST(SensorFaults, ACellLeftUnreadReleasesTheValves) {
+  const model::DeviceProfile profile = model::load_profile("mr-skin-5x5");
+  const GridLayout layout(profile.rows, profile.cols);
+  const std::vector<std::size_t>& valves = layout.valves_of_cell(0);
+  ASSERT_EQ(valves.size(), 2U);
+  SimulatedClock clock;
+  OpenOptions open;
+  open.synchronous_mock = true;
+  OpenedDevice dev = open_device(
+      "mock://?seed=7&faults=stuck:" + std::to_string(valves[0]) + ",noisy:" + std::to_string(valves[1]),
+      clock, open);
+  auto scene = make_scene("demo");
+  Bridge loop(*dev.session, *scene);
+  scene->set_start(clock.now());
+  ASSERT_EQ(loop.enable(), ResultCode::ok);
+  std::vector<double> finger(layout.fluid_cell_count());
+  std::vector<SensorFaultEvent> events;
+  auto tick = [&] {
+    scene->finger(to_seconds(clock.now() - scene->start()), layout, finger);
+    dev.mock->set_finger_indentation(finger);
+    dev.mock->step(clock.now());
+    (void)loop.step(clock.now());
+    clock.advance(std::chrono::milliseconds(1));
+    SensorFaultEvent e;
+    while (loop.take_sensor_fault(e)) {
+      events.push_back(e);
+    }
+  };
+  for (int k = 0; k < 300; ++k) {
+    tick();
+  }
+  ASSERT_EQ(events.size(), 2U);
+  EXPECT_EQ(events[0].unobservable_cell, SensorFaultMonitor::npos);
+  EXPECT_EQ(events[1].unobservable_cell, 0U);
+  EXPECT_LE(events[1].at_s, 0.2);
+  EXPECT_TRUE(loop.halted());
+  EXPECT_EQ(loop.stats().sensor_fault_halts, 1U);
+  EXPECT_EQ(dev.session->state(), DeviceState::disabled);
+  loop.request(Bridge::Request::enable);
+  for (int k = 0; k < 100; ++k) {
+    tick();
+  }
+  EXPECT_TRUE(loop.halted()) << "enable must not bring back a cell no sensor reads";
+  std::vector<double> applied(layout.valve_count());
+  dev.mock->applied_currents(applied);
+  for (const double a : applied) {
+    EXPECT_EQ(a, 0.0);
+  }
+}
+
+// Readings from before a gap are no history: a halt of 2 s while the finger moves on, then
+// enable, once raised four "noisy" sensors and released the valves (mrskinctl's e-stop test).
+TEST(SensorFaults, AHaltOrALinkGapIsNoFault) {
+  struct Gap {
+    const char* uri;
+    int halt_ms;  // -1: no halt
+    int enable_ms;
+  };
+  // Halted in the middle of the first press, enabled in a later one or at rest; a link gap of
+  // 0.3 s in the middle of a press.
+  for (const Gap g :
+       {Gap{"mock://?seed=7", 550, 1500}, Gap{"mock://?seed=7", 550, 2500}, Gap{"mock://?seed=7", 1200, 1900},
+        Gap{"mock://?seed=7&faults=disconnect:0.55+0.3", -1, -1}}) {
+    const char* uri = g.uri;
+    SimulatedClock clock;
+    OpenOptions open;
+    open.synchronous_mock = true;
+    OpenedDevice dev = open_device(uri, clock, open);
+    auto scene = make_scene("demo");
+    Bridge loop(*dev.session, *scene);
+    scene->set_start(clock.now());
+    ASSERT_EQ(loop.enable(), ResultCode::ok);
+    std::vector<double> finger(dev.mock->layout().fluid_cell_count());
+    for (int k = 0; k < 5000; ++k) {
+      if (k == g.halt_ms) {
+        loop.request(Bridge::Request::estop);
+      } else if (k == g.enable_ms) {
+        loop.request(Bridge::Request::enable);
+      }
+      scene->finger(to_seconds(clock.now() - scene->start()), dev.mock->layout(), finger);
+      dev.mock->set_finger_indentation(finger);
+      dev.mock->step(clock.now());
+      (void)loop.step(clock.now());
+      clock.advance(std::chrono::milliseconds(1));
+    }
+    EXPECT_EQ(loop.stats().sensor_faults, 0U)
+        << uri << " halted " << g.halt_ms << "-" << g.enable_ms << " ms";
+    EXPECT_FALSE(loop.halted()) << uri;
+  }
+}
+
+// No false alarm: every built-in scene over seeds 1-8 (sanitizer builds: seed 7, 2 s).
+TEST(SensorFaults, NoFalseAlarmOnTheScenes) {
+  for (const std::string_view name : scene_names()) {
+    double noise = 0.0;
+    double residual = 0.0;
+    for (int seed = kFull ? 1 : 7; seed <= (kFull ? 8 : 7); ++seed) {
+      const FaultRun r = run(std::string(name), kFull ? 6.0 : 2.0, "mock://?seed=" + std::to_string(seed));
+      EXPECT_EQ(r.stats.sensor_faults, 0U) << name << " seed " << seed;
+      for (const SensorFaultEvent& e : r.events) {
+        ADD_FAILURE() << name << " seed " << seed << ": sensor " << e.sensor << " " << to_string(e.fault)
+                      << " at " << e.at_s << " s";
+      }
+      noise = std::max(noise, r.max_noise_ratio);
+      residual = std::max(residual, r.max_mean_residual);
+    }
+    // The margins: the noise ratio's limit is 25, the offset's 15 sigmas.
+    std::printf("%-8s max noise ratio %.2f  max |mean residual| %.2f sigma\n", std::string(name).c_str(),
+                noise, residual);
+  }
+}
+
+// The leak is not seen (docs/reliability.md): the pads follow the finger whatever the valves
+// hold, so the displacement readings do not change. Kept so that a detector that claims it
+// (or a false alarm it causes) shows here.
+TEST(SensorFaults, ALeakIsNotASensorFault) {
+  const FaultRun r = run("demo", kFull ? 3.0 : 1.0, "mock://?seed=7&faults=leak:5");
+  EXPECT_EQ(r.stats.sensor_faults, 0U);
+  std::printf("leak:5  rms %.4f N, no sensor fault (the leak is not observable from displacement)\n",
+              r.stats.force_rms_error_N());
+}
+
+// MRSKIN_SENSOR_FAULT_TICKS=1000000: that many fault-free closed-loop ticks, the scenes in turn
+// (docs/reliability.md; not in CI: about two minutes).
+TEST(SensorFaults, FaultFreeTicksRaiseNothing) {
+  const char* env = std::getenv("MRSKIN_SENSOR_FAULT_TICKS");
+  if (env == nullptr) {
+    GTEST_SKIP() << "set MRSKIN_SENSOR_FAULT_TICKS";
+  }
+  const double ticks = std::strtod(env, nullptr);
+  double done = 0.0;
+  int seed = 1;
+  while (done < ticks) {
+    for (const std::string_view name : scene_names()) {
+      const FaultRun r = run(std::string(name), 10.0, "mock://?seed=" + std::to_string(seed));
+      EXPECT_EQ(r.stats.sensor_faults, 0U) << name << " seed " << seed;
+      done += static_cast<double>(r.stats.ticks);
+    }
+    ++seed;
+  }
+  std::printf("%.0f fault-free closed-loop ticks (seeds 1-%d): no sensor fault\n", done, seed - 1);
+}
+
+}  // namespace
+}  // namespace mrskin::bridge
