@@ -108,6 +108,7 @@ std::string drops_by_reason(const DropCounts& drops) {
 std::string to_json(const BridgeStats& s, double tick_period_s) {
   return fmt::format(
       "{{\n"
+      "  \"format_version\": {},\n"
       "  \"tick_period_s\": {:.9g},\n"
       "  \"ticks\": {},\n"
       "  \"overruns\": {},\n"
@@ -138,15 +139,16 @@ std::string to_json(const BridgeStats& s, double tick_period_s) {
       "  \"sensor_faults\": {{\"found\": {}, \"halts\": {}}},\n"
       "  \"inverse\": {{\"errors\": {}, \"cached_ticks\": {}, \"mean_residual_n\": {:.6g}}}\n"
       "}}\n",
-      tick_period_s, s.ticks, s.overruns, s.skipped_periods, s.send_failures, s.unchanged_sends_skipped,
-      s.slave_samples, s.samples_accepted, s.samples_dropped, drops_by_reason(s.samples_dropped_by_reason),
-      s.slave_force.count(), s.slave_force.percentile_N(0.5), s.slave_force.percentile_N(0.99),
-      s.slave_force.max_N(), s.stale_ticks, percentiles_us(s.tick_time), percentiles_us(s.processing_latency),
-      percentiles_us(s.end_to_end_latency), s.force_samples, s.force_rms_error_N(), s.force_max_abs_error_N,
-      s.relative_error.percentile(0.95), s.relative_error.count(), s.true_state_rms_error_N(),
-      s.true_state_relative_error.percentile(0.95), s.release_rms_error_N(), s.clamped_fraction(),
-      s.max_current_A, s.bus_load, s.passivity_energy_J, s.passivity_min_energy_J, s.active_ticks,
-      s.observer_errors, s.sensor_faults, s.sensor_fault_halts, s.inverse_errors, s.inverse_cached,
+      kStatisticsFormatVersion, tick_period_s, s.ticks, s.overruns, s.skipped_periods, s.send_failures,
+      s.unchanged_sends_skipped, s.slave_samples, s.samples_accepted, s.samples_dropped,
+      drops_by_reason(s.samples_dropped_by_reason), s.slave_force.count(), s.slave_force.percentile_N(0.5),
+      s.slave_force.percentile_N(0.99), s.slave_force.max_N(), s.stale_ticks, percentiles_us(s.tick_time),
+      percentiles_us(s.processing_latency), percentiles_us(s.end_to_end_latency), s.force_samples,
+      s.force_rms_error_N(), s.force_max_abs_error_N, s.relative_error.percentile(0.95),
+      s.relative_error.count(), s.true_state_rms_error_N(), s.true_state_relative_error.percentile(0.95),
+      s.release_rms_error_N(), s.clamped_fraction(), s.max_current_A, s.bus_load, s.passivity_energy_J,
+      s.passivity_min_energy_J, s.active_ticks, s.observer_errors, s.sensor_faults, s.sensor_fault_halts,
+      s.inverse_errors, s.inverse_cached,
       s.ticks == 0 ? 0.0 : s.inverse_residual_sum_N / static_cast<double>(s.ticks));
 }
 

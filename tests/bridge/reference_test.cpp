@@ -10,6 +10,7 @@
 #include <cmath>
 #include <cstdlib>
 #include <fstream>
+#include <iterator>
 #include <map>
 #include <sstream>
 #include <string>
@@ -129,6 +130,27 @@ TEST(Reference, EveryScenesStatisticsAtSeed7MatchTheGoldenFile) {
     std::ofstream(path) << text;
     std::printf("wrote %s\n", path.c_str());  // NOLINT(cppcoreguidelines-pro-type-vararg)
   }
+}
+
+// docs/statistics.md is the one table of the statistics' keys: every key to_json writes is in it.
+TEST(Reference, EveryStatisticsKeyIsDocumented) {
+  const std::string json = to_json(BridgeStats{}, 1e-3);
+  std::ifstream in(std::string(MRSKIN_DOCS_DIR) + "/statistics.md");
+  const std::string doc((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
+  ASSERT_FALSE(doc.empty());
+  EXPECT_NE(json.find("\"format_version\": " + std::to_string(kStatisticsFormatVersion)), std::string::npos);
+  std::size_t keys = 0;
+  for (std::size_t at = json.find('"'); at != std::string::npos; at = json.find('"', at)) {
+    const std::size_t end = json.find('"', at + 1);
+    ASSERT_NE(end, std::string::npos);
+    const std::string key = json.substr(at + 1, end - at - 1);
+    if (json.compare(end + 1, 1, ":") == 0) {
+      ++keys;
+      EXPECT_NE(doc.find("`" + key + "`"), std::string::npos) << key << " is not in docs/statistics.md";
+    }
+    at = end + 1;
+  }
+  EXPECT_GT(keys, 40U);
 }
 
 }  // namespace

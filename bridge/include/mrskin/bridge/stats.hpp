@@ -98,7 +98,7 @@ struct BridgeStats {
   // the target force and v the indentation rate): negative means the rendering gave energy.
   double passivity_energy_J = 0.0;
   double passivity_min_energy_J = 0.0;
-  std::uint64_t active_ticks = 0;  // ticks on which the energy was below -1 uJ
+  std::uint64_t active_ticks = 0;  // ticks on which the energy was below -passivity_tolerance_J
   // Bus load of the session's traffic (fraction of the bus), set by the caller after the run.
   double bus_load = 0.0;
 
@@ -108,7 +108,11 @@ struct BridgeStats {
   [[nodiscard]] double clamped_fraction() const noexcept;
 };
 
-// JSON text of the statistics (allocates: call off the tick thread).
+// The statistics' JSON layout (docs/statistics.md): raised when a key changes meaning or goes;
+// new keys may come without it.
+inline constexpr int kStatisticsFormatVersion = 1;
+
+// JSON text of the statistics (allocates: call off the tick thread). Every key: docs/statistics.md.
 std::string to_json(const BridgeStats& stats, double tick_period_s);
 
 }  // namespace mrskin::bridge
