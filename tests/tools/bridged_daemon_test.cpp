@@ -138,6 +138,17 @@ class BridgedDaemon : public ::testing::Test {
     return c;
   }
   static std::string status(LineClient& c) { return c.request(R"({"cmd":"status"})").value_or(""); }
+  // SIGHUP, then the status once it counts one reload more (bounded).
+  static std::string reload(Daemon& d, LineClient& c) {
+    const std::string before = json_field(status(c), "reloads").value_or("0");
+    d.signal(SIGHUP);
+    std::string s;
+    (void)eventually([&] {
+      s = status(c);
+      return json_field(s, "reloads").value_or(before) != before;
+    });
+    return s;
+  }
   // Sends estop and waits (bounded) for FAULT and halted; returns the last status.
   static std::string estop(LineClient& c) {
     EXPECT_EQ(json_field(c.request(R"({"cmd":"estop"})").value_or(""), "ok"), "true");
@@ -286,12 +297,8 @@ TEST_F(BridgedDaemon, SighupReloadsOnTheOpenDeviceAndSigintFlushesStatistics) {
   std::ofstream(cfg) << "device = \"mock://?seed=9\"\n"
                      << config_text("rate_hz = 500\n[bridge]\nrealtime = false\nfeedback_gain_per_s = 20")
                             .substr(std::string("device = \"mock://\"\n").size());
-  d.signal(SIGHUP);
-  ASSERT_TRUE(eventually([&] {
-    s = status(c);
-    return json_field(s, "reloads") == "1";
-  })) << s
-      << d.output();
+  s = reload(d, c);
+  ASSERT_EQ(json_field(s, "reloads"), "1") << s << d.output();
   EXPECT_EQ(json_field(s, "rate_hz"), "500") << s;
   EXPECT_EQ(json_field(s, "device"), "mock://") << s;
   // The same session: its packet counter carried on (a reopened device would start over).
@@ -593,6 +600,34 @@ TEST_F(BridgedDaemon, LinkFaultsAreCountedAndLogged) {
   EXPECT_NE(log.find("duplicate packets"), std::string::npos) << log;
   EXPECT_NE(log.find("link: the device disconnected"), std::string::npos) << log;
   EXPECT_NE(log.find("link: the device reconnected"), std::string::npos) << log;
+}
+
+// A new source on SIGHUP builds a new bridge (not bumpless, and the log says so) on the same
+// open device; an operator's e-stop carries over to it.
+TEST_F(BridgedDaemon, SighupWithANewSourceBuildsANewBridgeAndKeepsTheEstop) {
+  const fs::path cfg = config("[bridge]\nrealtime = false");
+  Daemon d(dir_, "d", {"--config", cfg.string()});
+  LineClient c = connect();
+  ASSERT_TRUE(c.connected()) << d.output();
+  std::string s = estop(c);
+  std::string text = config_text("[bridge]\nrealtime = false");
+  text.replace(text.find("scene://demo"), std::string("scene://demo").size(), "scene://hand");
+  std::ofstream(cfg) << text;
+  s = reload(d, c);
+  ASSERT_EQ(json_field(s, "reloads"), "1") << s << d.output();
+  EXPECT_EQ(json_field(s, "source"), "scene://hand") << s;
+  EXPECT_EQ(json_field(s, "halted"), "true") << "a reload never re-enables: " << s;
+  EXPECT_TRUE(eventually([&] {
+    return d.output().find("reload: new bridge on the open device for the new source, starting afresh") !=
+           std::string::npos;
+  })) << d.output();
+  EXPECT_EQ(json_field(c.request(R"({"cmd":"enable"})").value_or(""), "ok"), "true");
+  EXPECT_TRUE(eventually([&] {
+    s = status(c);
+    return json_field(s, "state") == "ENABLED" && json_field(s, "halted") == "false";
+  })) << s;
+  d.signal(SIGTERM);
+  EXPECT_EQ(d.wait(30s), mrskin::tools::kOk) << d.output();
 }
 
 // A stuck sensor: logged as it is found (naming the sensor, its cells and what the bridge does),
