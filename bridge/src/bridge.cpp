@@ -180,9 +180,11 @@ void Bridge::update_tissue_model(TimePoint now) noexcept {
       estimator_->end_stream(to_seconds(now - start_));
     }
   }
+  const bool was_fresh = estimate_.freshness == TissueFreshness::fresh;
   estimate_ = estimator_->estimate(to_seconds(now - start_));
   if (estimate_.freshness != TissueFreshness::fresh) {
     ++stats_.stale_ticks;
+    stats_.stream_stalls += was_fresh ? 1 : 0;
   }
   if (estimate_.freshness == TissueFreshness::fresh && slave_.indentation_m > 0.0) {
     // The cells around the mapped contact point take the current estimate; the others keep

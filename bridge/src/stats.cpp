@@ -137,6 +137,11 @@ std::string to_json(const BridgeStats& s, double tick_period_s) {
       "  \"passivity\": {{\"energy_j\": {:.6g}, \"min_energy_j\": {:.6g}, \"active_ticks\": {}}},\n"
       "  \"observer_errors\": {},\n"
       "  \"sensor_faults\": {{\"found\": {}, \"halts\": {}}},\n"
+      "  \"stream_stalls\": {},\n"
+      "  \"stream_connections\": {{\"made\": {}, \"lost\": {}, \"restarts\": {}}},\n"
+      "  \"device_faults\": {},\n"
+      "  \"link_errors\": {{\"sequence_gaps\": {}, \"duplicates\": {}, \"undecodable\": {}, \"crc\": {}, "
+      "\"telemetry_timeouts\": {}, \"disconnects\": {}, \"reconnects\": {}}},\n"
       "  \"inverse\": {{\"errors\": {}, \"cached_ticks\": {}, \"mean_residual_n\": {:.6g}}}\n"
       "}}\n",
       kStatisticsFormatVersion, tick_period_s, s.ticks, s.overruns, s.skipped_periods, s.send_failures,
@@ -148,7 +153,9 @@ std::string to_json(const BridgeStats& s, double tick_period_s) {
       s.relative_error.count(), s.true_state_rms_error_N(), s.true_state_relative_error.percentile(0.95),
       s.release_rms_error_N(), s.clamped_fraction(), s.max_current_A, s.bus_load, s.passivity_energy_J,
       s.passivity_min_energy_J, s.active_ticks, s.observer_errors, s.sensor_faults, s.sensor_fault_halts,
-      s.inverse_errors, s.inverse_cached,
+      s.stream_stalls, s.stream_connections, s.stream_disconnects, s.stream_restarts, s.device_faults,
+      s.link.sequence_gaps, s.link.duplicates, s.link.undecodable, s.link.crc, s.link.telemetry_timeouts,
+      s.link.disconnects, s.link.reconnects, s.inverse_errors, s.inverse_cached,
       s.ticks == 0 ? 0.0 : s.inverse_residual_sum_N / static_cast<double>(s.ticks));
 }
 

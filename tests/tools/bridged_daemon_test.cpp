@@ -196,6 +196,8 @@ TEST_F(BridgedDaemon, AStreamThatStopsFadesToReleased) {
       << d.output();
   d.signal(SIGTERM);
   EXPECT_EQ(d.wait(60s), mrskin::tools::kOk) << d.output();
+  const std::string stats = slurp(stats_);
+  EXPECT_EQ(std::stoull(json_field(stats, "stream_stalls").value_or("0")), 1U) << stats;  // as it went stale
 }
 
 TEST_F(BridgedDaemon, ControlSocketEstopFaultEnableThenSigtermFlushesStatistics) {
@@ -568,7 +570,8 @@ TEST_F(BridgedDaemon, AFaultLatchedAtExitIsExit1) {
   EXPECT_NE(d.output().find("in FAULT at exit"), std::string::npos) << d.output();
   // Logged as it happened, under --quiet too (issue 25).
   EXPECT_NE(d.output().find("device FAULT: bus off"), std::string::npos) << d.output();
-  EXPECT_TRUE(fs::exists(stats_));
+  const std::string stats = slurp(stats_);
+  EXPECT_EQ(std::stoull(json_field(stats, "device_faults").value_or("0")), 1U) << stats;
 }
 
 // Link faults are counted by kind in the status and logged at most once a second, under --quiet
@@ -600,6 +603,14 @@ TEST_F(BridgedDaemon, LinkFaultsAreCountedAndLogged) {
   EXPECT_NE(log.find("duplicate packets"), std::string::npos) << log;
   EXPECT_NE(log.find("link: the device disconnected"), std::string::npos) << log;
   EXPECT_NE(log.find("link: the device reconnected"), std::string::npos) << log;
+  // And in the statistics file (docs/statistics.md).
+  const std::string stats = slurp(stats_);
+  const auto n = [&](const char* key) { return std::stoull(json_field(stats, key).value_or("0")); };
+  EXPECT_GT(n("sequence_gaps"), 0U) << stats;
+  EXPECT_GT(n("duplicates"), 0U) << stats;
+  EXPECT_GT(n("undecodable"), 0U) << stats;
+  EXPECT_GT(n("reconnects"), 0U) << stats;
+  EXPECT_GT(n("disconnects"), 0U) << stats;
 }
 
 // A new source on SIGHUP builds a new bridge (not bumpless, and the log says so) on the same

@@ -745,11 +745,17 @@ bridge::BridgeStats Daemon::final_stats() const {
   // Busier direction: one packet per 64-byte report, one report per 1 ms full-speed USB-HID frame
   // (docs/protocol.md, "Bus load").
   stats.bus_load = static_cast<double>(std::max(link.sent, link.received)) / run_s / 1000.0;
+  stats.link = {link.sequence_gaps,      link.duplicates,  link.decode_errors, link.crc_errors,
+                link.telemetry_timeouts, link.disconnects, link.reconnects};
+  stats.device_faults = link.faults;
   if (source_.stream != nullptr) {
     const bridge::SourceStats in = source_.stream->stats();
     stats.samples_accepted = in.accepted;
     stats.samples_dropped = in.dropped();
     stats.samples_dropped_by_reason = in.drops;
+    stats.stream_connections = in.connections;
+    stats.stream_disconnects = in.disconnects;
+    stats.stream_restarts = in.restarts;
   } else {
     stats.samples_accepted = stats.slave_samples;  // a scene's samples are all well-formed
   }

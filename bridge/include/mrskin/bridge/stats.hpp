@@ -101,6 +101,23 @@ struct BridgeStats {
   std::uint64_t active_ticks = 0;  // ticks on which the energy was below -passivity_tolerance_J
   // Bus load of the session's traffic (fraction of the bus), set by the caller after the run.
   double bus_load = 0.0;
+  std::uint64_t stream_stalls = 0;  // times the slave stream went from fresh to stale
+  // Set by the owner of the session and the source after the run (mrskin-bridged): the link's
+  // errors by kind (SessionCounters), the device's FAULT entries (e-stops included), and the
+  // stream's connections, disconnections and restarts (SourceStats).
+  struct Link {
+    std::uint64_t sequence_gaps = 0;
+    std::uint64_t duplicates = 0;
+    std::uint64_t undecodable = 0;  // CRC failures included
+    std::uint64_t crc = 0;
+    std::uint64_t telemetry_timeouts = 0;
+    std::uint64_t disconnects = 0;
+    std::uint64_t reconnects = 0;
+  } link;
+  std::uint64_t device_faults = 0;
+  std::uint64_t stream_connections = 0;
+  std::uint64_t stream_disconnects = 0;
+  std::uint64_t stream_restarts = 0;
 
   [[nodiscard]] double force_rms_error_N() const noexcept;
   [[nodiscard]] double release_rms_error_N() const noexcept;
