@@ -392,6 +392,8 @@ std::string Daemon::stream_state(std::int64_t now_ns) const {
 }
 
 std::string Daemon::stream_warning() const {
+  // The control thread asks too; a reload with a new source swaps source_ under this lock.
+  const std::lock_guard<std::mutex> lock(shown_mutex_);
   return source_.stream != nullptr ? source_.stream->last_warning() : std::string{};
 }
 
@@ -843,7 +845,10 @@ std::vector<std::string> Daemon::reload(Settings next) {
       ticks_.store(0);
       bridge_ = std::move(b);  // old bridge first, then the wrapper and the source it read
       watched_ = std::move(watched);
-      source_ = std::move(fresh);
+      {
+        const std::lock_guard<std::mutex> lock(shown_mutex_);  // stream_warning() on the control thread
+        source_ = std::move(fresh);
+      }
       events_seen_ = 0;
     } else {
       try {

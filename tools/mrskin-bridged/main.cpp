@@ -194,13 +194,14 @@ int run(Settings cfg, const std::string& config_path, const mrskin::bridged::Ove
   if (const std::string warning = daemon.start(); !warning.empty()) {
     spdlog::warn("{}", warning);
   }
+  // Start-up ends before the control socket answers: a client that sees the daemon and then
+  // signals it gets the flushed statistics (the window between them once lost them under TSan).
+  startup.done();  // a signal that came meanwhile is still pending for the loop below
   server.start(daemon);
   // The control thread calls into the daemon: it must stop first, on every way out of here.
   const std::unique_ptr<bridged::ControlServer, void (*)(bridged::ControlServer*)> stop_server(
       &server, [](bridged::ControlServer* s) { s->stop(); });
   spdlog::info("control socket {}", server.path());
-
-  startup.done();  // a signal that came meanwhile is still pending for the loop below
   const TimePoint t0 = clock.now();
   TimePoint next_status = t0 + std::chrono::milliseconds(500);
   int stop_signal = 0;
