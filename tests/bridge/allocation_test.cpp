@@ -9,6 +9,7 @@
 #include "counting_new.hpp"
 #include "mrskin/bridge/bridge.hpp"
 #include "mrskin/driver/device.hpp"
+#include "mrskin/sim/open_mock.hpp"
 
 namespace mrskin::bridge {
 namespace {
@@ -23,11 +24,11 @@ TEST(Allocation, NoHeapAllocationPerTickAfterStartUp) {
   loop.set_perf_clock(&clock);
   scene->set_start(clock.now());
   ASSERT_EQ(loop.enable(), ResultCode::ok);
-  std::vector<double> finger(dev.mock->layout().fluid_cell_count());
+  std::vector<double> finger(sim::mock_of(dev)->layout().fluid_cell_count());
   auto tick = [&] {
-    scene->finger(to_seconds(clock.now() - scene->start()), dev.mock->layout(), finger);
-    dev.mock->set_finger_indentation(finger);
-    dev.mock->step(clock.now());
+    scene->finger(to_seconds(clock.now() - scene->start()), sim::mock_of(dev)->layout(), finger);
+    sim::mock_of(dev)->set_finger_indentation(finger);
+    sim::mock_of(dev)->step(clock.now());
     (void)loop.step(clock.now());
     clock.advance(std::chrono::milliseconds(1));
   };

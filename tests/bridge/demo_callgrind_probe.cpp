@@ -9,11 +9,13 @@
 
 #include <cstdio>
 #include <cstdlib>
+#include <memory>
 #include <string>
 #include <vector>
 
 #include "mrskin/bridge/bridge.hpp"
 #include "mrskin/driver/device.hpp"
+#include "mrskin/sim/open_mock.hpp"
 
 int main(int argc, char** argv) {
   using namespace mrskin;
@@ -34,12 +36,13 @@ int main(int argc, char** argv) {
     std::fputs("enable failed\n", stderr);
     return 1;
   }
-  std::vector<double> finger(dev.mock->layout().fluid_cell_count());
+  const std::shared_ptr<sim::MockDevice> mock = sim::mock_of(dev);
+  std::vector<double> finger(mock->layout().fluid_cell_count());
   CALLGRIND_START_INSTRUMENTATION;
   for (int k = 0; k < ticks; ++k) {
-    scene->finger(to_seconds(clock.now() - scene->start()), dev.mock->layout(), finger);
-    dev.mock->set_finger_indentation(finger);
-    dev.mock->step(clock.now());
+    scene->finger(to_seconds(clock.now() - scene->start()), mock->layout(), finger);
+    mock->set_finger_indentation(finger);
+    mock->step(clock.now());
     CALLGRIND_TOGGLE_COLLECT;
     (void)loop.step(clock.now());
     CALLGRIND_TOGGLE_COLLECT;

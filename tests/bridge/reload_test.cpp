@@ -16,6 +16,7 @@
 
 #include "mrskin/bridge/bridge.hpp"
 #include "mrskin/driver/device.hpp"
+#include "mrskin/sim/open_mock.hpp"
 
 namespace mrskin::bridge {
 namespace {
@@ -47,11 +48,11 @@ Trace run(double seconds, const BridgeTuning& before, const BridgeTuning& after,
   };
   auto bridge = std::make_unique<Bridge>(*dev.session, *scene, options_for(before));
   bridge->set_perf_clock(&clock);
-  MockDeviceTruth truth(*dev.mock);
+  sim::MockDeviceTruth truth(*sim::mock_of(dev));
   bridge->set_force_truth(&truth);
   scene->set_start(clock.now());
   EXPECT_EQ(bridge->enable(), ResultCode::ok);
-  const GridLayout& layout = dev.mock->layout();
+  const GridLayout& layout = sim::mock_of(dev)->layout();
   std::vector<double> finger(layout.fluid_cell_count());
   Trace trace;
   trace.reload_s = reload_s;
@@ -89,14 +90,14 @@ Trace run(double seconds, const BridgeTuning& before, const BridgeTuning& after,
       next_tick = clock.now();
     }
     scene->finger(to_seconds(clock.now() - scene->start()), layout, finger);
-    dev.mock->set_finger_indentation(finger);
-    dev.mock->step(clock.now());
+    sim::mock_of(dev)->set_finger_indentation(finger);
+    sim::mock_of(dev)->step(clock.now());
     if (clock.now() >= next_tick) {
       (void)bridge->step(clock.now());
       next_tick += from_seconds(1.0 / rate_hz);
     }
     std::vector<double> f(layout.fluid_cell_count());
-    dev.mock->true_contact_forces(f);
+    sim::mock_of(dev)->true_contact_forces(f);
     trace.true_N.push_back(std::move(f));
     const auto t = bridge->targets_N();
     trace.target_N.emplace_back(t.begin(), t.end());

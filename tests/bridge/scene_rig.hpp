@@ -11,6 +11,7 @@
 #include "mrskin/bridge/bridge.hpp"
 #include "mrskin/bridge/impairment.hpp"
 #include "mrskin/driver/device.hpp"
+#include "mrskin/sim/open_mock.hpp"
 
 namespace mrskin::bridge::test {
 
@@ -40,19 +41,19 @@ inline SceneRun run_scene(const std::string& scene_name, double seconds, const s
     source = impaired.get();
   }
   Bridge loop(*dev.session, *source, options);
-  MockDeviceTruth truth(*dev.mock);
+  sim::MockDeviceTruth truth(*sim::mock_of(dev));
   loop.set_force_truth(&truth);
   loop.set_perf_clock(&clock);  // deterministic: no wall time anywhere
   scene->set_start(clock.now());
   EXPECT_EQ(loop.enable(), ResultCode::ok);
-  std::vector<double> finger(dev.mock->layout().fluid_cell_count());
+  std::vector<double> finger(sim::mock_of(dev)->layout().fluid_cell_count());
   const auto ticks = static_cast<int>(seconds * 1000.0);
   for (int k = 0; k < ticks; ++k) {
     if (stall_every <= 0 || k % stall_every != 0) {
-      scene->finger(to_seconds(clock.now() - scene->start()), dev.mock->layout(), finger);
-      dev.mock->set_finger_indentation(finger);
+      scene->finger(to_seconds(clock.now() - scene->start()), sim::mock_of(dev)->layout(), finger);
+      sim::mock_of(dev)->set_finger_indentation(finger);
     }
-    dev.mock->step(clock.now());
+    sim::mock_of(dev)->step(clock.now());
     (void)loop.step(clock.now());
     clock.advance(std::chrono::milliseconds(1));
   }
@@ -61,8 +62,8 @@ inline SceneRun run_scene(const std::string& scene_name, double seconds, const s
   if (impaired) {
     r.network = impaired->stats();
   }
-  r.currents_A.resize(dev.mock->layout().valve_count());
-  dev.mock->applied_currents(r.currents_A);
+  r.currents_A.resize(sim::mock_of(dev)->layout().valve_count());
+  sim::mock_of(dev)->applied_currents(r.currents_A);
   r.state = dev.session->state();
   r.faults = dev.session->counters().faults;
   return r;

@@ -18,6 +18,7 @@
 #include "mrskin/driver/device.hpp"
 #include "mrskin/driver/layout.hpp"
 #include "mrskin/driver/model/profile.hpp"
+#include "mrskin/sim/open_mock.hpp"
 
 namespace mrskin::bridge {
 namespace {
@@ -40,19 +41,19 @@ FaultRun run(const std::string& scene_name, double seconds, const std::string& u
   OpenedDevice dev = open_device(uri, clock, open);
   auto scene = make_scene(scene_name);
   Bridge loop(*dev.session, *scene, options);
-  MockDeviceTruth truth(*dev.mock);
+  sim::MockDeviceTruth truth(*sim::mock_of(dev));
   loop.set_force_truth(&truth);
   loop.set_perf_clock(&clock);
   scene->set_start(clock.now());
   EXPECT_EQ(loop.enable(), ResultCode::ok);
-  std::vector<double> finger(dev.mock->layout().fluid_cell_count());
+  std::vector<double> finger(sim::mock_of(dev)->layout().fluid_cell_count());
   FaultRun r;
   const SensorFaultMonitor& monitor = loop.sensor_fault_monitor();
   const auto ticks = static_cast<int>(seconds * 1000.0);
   for (int k = 0; k < ticks; ++k) {
-    scene->finger(to_seconds(clock.now() - scene->start()), dev.mock->layout(), finger);
-    dev.mock->set_finger_indentation(finger);
-    dev.mock->step(clock.now());
+    scene->finger(to_seconds(clock.now() - scene->start()), sim::mock_of(dev)->layout(), finger);
+    sim::mock_of(dev)->set_finger_indentation(finger);
+    sim::mock_of(dev)->step(clock.now());
     (void)loop.step(clock.now());
     clock.advance(std::chrono::milliseconds(1));
     for (std::size_t s = 0; s < dev.session->sensors().size(); ++s) {
@@ -69,8 +70,8 @@ FaultRun run(const std::string& scene_name, double seconds, const std::string& u
   r.stats = loop.stats();
   r.halted = loop.halted();
   r.state = dev.session->state();
-  r.currents_A.resize(dev.mock->layout().valve_count());
-  dev.mock->applied_currents(r.currents_A);
+  r.currents_A.resize(sim::mock_of(dev)->layout().valve_count());
+  sim::mock_of(dev)->applied_currents(r.currents_A);
   return r;
 }
 
@@ -291,8 +292,8 @@ TEST(SensorFaults, ACellLeftUnreadReleasesTheValves) {
   std::vector<SensorFaultEvent> events;
   auto tick = [&] {
     scene->finger(to_seconds(clock.now() - scene->start()), layout, finger);
-    dev.mock->set_finger_indentation(finger);
-    dev.mock->step(clock.now());
+    sim::mock_of(dev)->set_finger_indentation(finger);
+    sim::mock_of(dev)->step(clock.now());
     (void)loop.step(clock.now());
     clock.advance(std::chrono::milliseconds(1));
     SensorFaultEvent e;
@@ -316,7 +317,7 @@ TEST(SensorFaults, ACellLeftUnreadReleasesTheValves) {
   }
   EXPECT_TRUE(loop.halted()) << "enable must not bring back a cell no sensor reads";
   std::vector<double> applied(layout.valve_count());
-  dev.mock->applied_currents(applied);
+  sim::mock_of(dev)->applied_currents(applied);
   for (const double a : applied) {
     EXPECT_EQ(a, 0.0);
   }
@@ -344,16 +345,16 @@ TEST(SensorFaults, AHaltOrALinkGapIsNoFault) {
     Bridge loop(*dev.session, *scene);
     scene->set_start(clock.now());
     ASSERT_EQ(loop.enable(), ResultCode::ok);
-    std::vector<double> finger(dev.mock->layout().fluid_cell_count());
+    std::vector<double> finger(sim::mock_of(dev)->layout().fluid_cell_count());
     for (int k = 0; k < 5000; ++k) {
       if (k == g.halt_ms) {
         loop.request(Bridge::Request::estop);
       } else if (k == g.enable_ms) {
         loop.request(Bridge::Request::enable);
       }
-      scene->finger(to_seconds(clock.now() - scene->start()), dev.mock->layout(), finger);
-      dev.mock->set_finger_indentation(finger);
-      dev.mock->step(clock.now());
+      scene->finger(to_seconds(clock.now() - scene->start()), sim::mock_of(dev)->layout(), finger);
+      sim::mock_of(dev)->set_finger_indentation(finger);
+      sim::mock_of(dev)->step(clock.now());
       (void)loop.step(clock.now());
       clock.advance(std::chrono::milliseconds(1));
     }

@@ -22,6 +22,7 @@
 #include "mrskin/bridge/bridge.hpp"
 #include "mrskin/driver/device.hpp"
 #include "mrskin/driver/model/coil.hpp"
+#include "mrskin/sim/open_mock.hpp"
 
 namespace mrskin::bridge {
 namespace {
@@ -54,12 +55,12 @@ std::vector<StepWindow> run_steps(int first_cycle, int last_cycle, double step_a
   coil_tau_s = model::coil_time_constant_s(dev.session->profile()->coil);
   auto scene = make_scene("step");
   Bridge bridge(*dev.session, *scene);
-  MockDeviceTruth truth(*dev.mock);
+  sim::MockDeviceTruth truth(*sim::mock_of(dev));
   bridge.set_force_truth(&truth);
   bridge.set_perf_clock(&clock);
   scene->set_start(clock.now());
   EXPECT_EQ(bridge.enable(), ResultCode::ok);
-  const GridLayout& layout = dev.mock->layout();
+  const GridLayout& layout = sim::mock_of(dev)->layout();
   std::vector<double> finger(layout.fluid_cell_count());
   std::vector<double> true_N(layout.fluid_cell_count());
   // The finger presses the centre fluid cell alone (scene.hpp).
@@ -91,8 +92,8 @@ std::vector<StepWindow> run_steps(int first_cycle, int last_cycle, double step_a
       }
     }
     scene->finger(t_s, layout, finger);
-    dev.mock->set_finger_indentation(finger);
-    dev.mock->step(clock.now());
+    sim::mock_of(dev)->set_finger_indentation(finger);
+    sim::mock_of(dev)->step(clock.now());
     if (actuation == Actuation::ideal && in_window >= 0) {
       (void)dev.session->poll(clock.now());
       EXPECT_EQ(dev.session->send_valve_currents(ideal_A), ResultCode::ok);

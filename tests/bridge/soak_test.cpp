@@ -30,9 +30,10 @@
 #include "mrskin/bridge/bridge.hpp"
 #include "mrskin/bridge/scene.hpp"
 #include "mrskin/driver/device.hpp"
-#include "mrskin/driver/mock_device.hpp"
-#include "mrskin/driver/plant.hpp"
 #include "mrskin/driver/session.hpp"
+#include "mrskin/sim/mock_device.hpp"
+#include "mrskin/sim/open_mock.hpp"
+#include "mrskin/sim/plant.hpp"
 
 namespace {
 
@@ -63,7 +64,7 @@ std::uint64_t count_from_env(const char* name, std::uint64_t fallback) {
 // cells the valve joins, as the network plant's), and its contact force relaxes with kTau_s
 // towards k_open d + min(k_locked d, F_full * mean valve current / full current): soft with the
 // valves open, up to F_full with them locked. No hydraulics, no fluid history.
-class FirstOrderPlant final : public Plant {
+class FirstOrderPlant final : public sim::Plant {
  public:
   explicit FirstOrderPlant(const model::DeviceProfile& profile)
       : profile_(profile),
@@ -222,7 +223,7 @@ struct SoakOutcome {
 
 // Runs `ticks` ticks of the rig's closed loop (finger -> mock step -> bridge step -> 1 ms) and
 // checks as it goes. window_ticks: a whole number of the schedule's periods.
-SoakOutcome soak(const char* label, MockDevice& mock, DeviceSession& session, Bridge& loop,
+SoakOutcome soak(const char* label, sim::MockDevice& mock, DeviceSession& session, Bridge& loop,
                  SceneSchedule& schedule, SimulatedClock& clock, std::uint64_t ticks,
                  std::uint64_t window_ticks) {
   SoakOutcome out;
@@ -383,17 +384,17 @@ std::uint64_t window_for(std::uint64_t ticks, std::uint64_t period) {
 
 TEST(BridgeSoak, BridgeTicksAgainstACheapPlant) {
   const std::uint64_t ticks = count_from_env("MRSKIN_SOAK_BRIDGE_TICKS", 100'000'000);
-  const LoadedProfile loaded = load_profile_with_text("mr-skin-5x5");
-  MockOptions options;
+  const model::LoadedProfile loaded = model::load_profile_with_text("mr-skin-5x5");
+  sim::MockOptions options;
   options.seed = 1;
   options.calibration_error = -1.0;  // the nominal calibration: no network plant to measure
-  auto mock = std::make_shared<MockDevice>(loaded.profile, loaded.text, options,
-                                           std::make_unique<FirstOrderPlant>(loaded.profile));
+  auto mock = std::make_shared<sim::MockDevice>(loaded.profile, loaded.text, options,
+                                                std::make_unique<FirstOrderPlant>(loaded.profile));
   SimulatedClock clock;
   DeviceSession session(mock->connect(true, &clock), clock, SessionOptions{});
   SceneSchedule schedule({"sweep"});
   Bridge loop(session, schedule);
-  MockDeviceTruth truth(*mock);
+  sim::MockDeviceTruth truth(*mock);
   loop.set_force_truth(&truth);
   loop.set_perf_clock(&clock);  // deterministic: no wall time in the loop
   ASSERT_EQ(loop.enable(), ResultCode::ok);
@@ -411,11 +412,11 @@ TEST(BridgeSoak, ClosedLoopOnTheMock) {
   std::vector<std::string_view> names(scene_names().begin(), scene_names().end());
   SceneSchedule schedule(names);
   Bridge loop(*dev.session, schedule);
-  MockDeviceTruth truth(*dev.mock);
+  sim::MockDeviceTruth truth(*sim::mock_of(dev));
   loop.set_force_truth(&truth);
   loop.set_perf_clock(&clock);
   ASSERT_EQ(loop.enable(), ResultCode::ok);
-  const SoakOutcome r = soak("mock", *dev.mock, *dev.session, loop, schedule, clock, ticks,
+  const SoakOutcome r = soak("mock", *sim::mock_of(dev), *dev.session, loop, schedule, clock, ticks,
                              window_for(ticks, schedule.period_ticks()));
   expect_steady("mock", r, ticks);
 }

@@ -9,6 +9,7 @@
 
 #include "mrskin/bridge/bridge.hpp"
 #include "mrskin/driver/device.hpp"
+#include "mrskin/sim/open_mock.hpp"
 
 namespace mrskin::bridge {
 namespace {
@@ -24,18 +25,18 @@ TEST(Threaded, LibraryLoopAndMockThreadRunTogether) {
   ASSERT_EQ(loop.enable(), ResultCode::ok);
   EXPECT_EQ(loop.start(clock), "");
   EXPECT_TRUE(loop.running());
-  std::vector<double> finger(dev.mock->layout().fluid_cell_count());
+  std::vector<double> finger(sim::mock_of(dev)->layout().fluid_cell_count());
   const TimePoint end = clock.now() + std::chrono::milliseconds(300);
   while (clock.now() < end) {
-    scene->finger(to_seconds(clock.now() - scene->start()), dev.mock->layout(), finger);
-    dev.mock->set_finger_indentation(finger);
+    scene->finger(to_seconds(clock.now() - scene->start()), sim::mock_of(dev)->layout(), finger);
+    sim::mock_of(dev)->set_finger_indentation(finger);
     std::this_thread::sleep_for(std::chrono::milliseconds(1));
     (void)loop.live_ticks();
     (void)loop.live_rms_error_N();
   }
   loop.stop();
   EXPECT_FALSE(loop.running());
-  dev.mock->stop();
+  sim::mock_of(dev)->stop();
   EXPECT_GT(loop.stats().ticks, 0U);
   EXPECT_GT(dev.session->counters().telemetry, 0U);
   EXPECT_EQ(dev.session->counters().decode_errors, 0U);

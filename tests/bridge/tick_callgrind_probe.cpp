@@ -28,9 +28,9 @@
 #include <vector>
 
 #include "mrskin/bridge/bridge.hpp"
-#include "mrskin/driver/mock_device.hpp"
-#include "mrskin/driver/plant.hpp"
 #include "mrskin/driver/session.hpp"
+#include "mrskin/sim/mock_device.hpp"
+#include "mrskin/sim/plant.hpp"
 
 namespace {
 
@@ -38,7 +38,7 @@ using namespace mrskin;
 
 // Sensors from the finger's depth, as the network plant's (a fluid-cell sensor reads its pad
 // depth, a valve sensor the mean of the cells it joins); pad depth = finger depth.
-class PatternPlant final : public Plant {
+class PatternPlant final : public sim::Plant {
  public:
   explicit PatternPlant(const model::DeviceProfile& profile)
       : profile_(profile), layout_(profile.rows, profile.cols), depth_(layout_.fluid_cell_count(), 0.0) {}
@@ -121,7 +121,7 @@ int main(int argc, char** argv) {
   Case c;
   const bool small = which == "idle5" || which == "load5" || which == "hold5";
   c.profile = dir + (small ? "/mr-skin-5x5.toml" : "/palm-64x64.toml");
-  const LoadedProfile loaded = load_profile_with_text(c.profile);
+  const model::LoadedProfile loaded = model::load_profile_with_text(c.profile);
   const GridLayout layout(loaded.profile.rows, loaded.profile.cols);
   const std::size_t cells = layout.fluid_cell_count();
   if (small) {
@@ -187,11 +187,11 @@ int main(int argc, char** argv) {
     return 2;
   }
 
-  MockOptions mock_options;
+  sim::MockOptions mock_options;
   mock_options.seed = 11;
   mock_options.calibration_error = -1.0;  // the nominal calibration: no plant to measure
-  auto mock = std::make_shared<MockDevice>(loaded.profile, loaded.text, mock_options,
-                                           std::make_unique<PatternPlant>(loaded.profile));
+  auto mock = std::make_shared<sim::MockDevice>(loaded.profile, loaded.text, mock_options,
+                                                std::make_unique<PatternPlant>(loaded.profile));
   SimulatedClock clock;
   DeviceSession session(mock->connect(true, &clock), clock, SessionOptions{});
   SteadySlave slave(c.stiffness_N_per_m);

@@ -6,6 +6,7 @@
 
 #include "mrskin/bridge/bridge.hpp"
 #include "mrskin/driver/device.hpp"
+#include "mrskin/sim/open_mock.hpp"
 #include "scene_rig.hpp"
 
 namespace mrskin::bridge {
@@ -52,12 +53,12 @@ TEST(WalkingSkeleton, HeartbeatLossReleasesValves) {
   Bridge loop(*dev.session, *scene);
   scene->set_start(clock.now());
   ASSERT_EQ(loop.enable(), ResultCode::ok);
-  std::vector<double> finger(dev.mock->layout().fluid_cell_count());
-  std::vector<double> currents(dev.mock->layout().valve_count());
+  std::vector<double> finger(sim::mock_of(dev)->layout().fluid_cell_count());
+  std::vector<double> currents(sim::mock_of(dev)->layout().valve_count());
   auto tick = [&](bool host_alive) {
-    scene->finger(to_seconds(clock.now() - scene->start()), dev.mock->layout(), finger);
-    dev.mock->set_finger_indentation(finger);
-    dev.mock->step(clock.now());
+    scene->finger(to_seconds(clock.now() - scene->start()), sim::mock_of(dev)->layout(), finger);
+    sim::mock_of(dev)->set_finger_indentation(finger);
+    sim::mock_of(dev)->step(clock.now());
     if (host_alive) {
       (void)loop.step(clock.now());
     }
@@ -66,7 +67,7 @@ TEST(WalkingSkeleton, HeartbeatLossReleasesValves) {
   for (int k = 0; k < 1500; ++k) {  // mid-hold: valves carry current
     tick(true);
   }
-  dev.mock->applied_currents(currents);
+  sim::mock_of(dev)->applied_currents(currents);
   double held = 0.0;
   for (const double a : currents) {
     held = std::max(held, a);
@@ -75,7 +76,7 @@ TEST(WalkingSkeleton, HeartbeatLossReleasesValves) {
   for (int k = 0; k < 150; ++k) {  // host silent for longer than the 100 ms watchdog
     tick(false);
   }
-  dev.mock->applied_currents(currents);
+  sim::mock_of(dev)->applied_currents(currents);
   for (const double a : currents) {
     EXPECT_EQ(a, 0.0);
   }
@@ -94,12 +95,12 @@ TEST(WalkingSkeleton, EmergencyStopReleasesEveryValveWithinOneTickThenEnableResu
   Bridge loop(*dev.session, *scene);
   scene->set_start(clock.now());
   ASSERT_EQ(loop.enable(), ResultCode::ok);
-  std::vector<double> finger(dev.mock->layout().fluid_cell_count());
-  std::vector<double> currents(dev.mock->layout().valve_count());
+  std::vector<double> finger(sim::mock_of(dev)->layout().fluid_cell_count());
+  std::vector<double> currents(sim::mock_of(dev)->layout().valve_count());
   auto tick = [&] {
-    scene->finger(to_seconds(clock.now() - scene->start()), dev.mock->layout(), finger);
-    dev.mock->set_finger_indentation(finger);
-    dev.mock->step(clock.now());
+    scene->finger(to_seconds(clock.now() - scene->start()), sim::mock_of(dev)->layout(), finger);
+    sim::mock_of(dev)->set_finger_indentation(finger);
+    sim::mock_of(dev)->step(clock.now());
     (void)loop.step(clock.now());
     clock.advance(std::chrono::milliseconds(1));
   };
@@ -117,7 +118,7 @@ TEST(WalkingSkeleton, EmergencyStopReleasesEveryValveWithinOneTickThenEnableResu
   for (int k = 0; k < 20; ++k) {  // the zero command crosses the mock's 1.5 ms command delay
     tick();
   }
-  dev.mock->applied_currents(currents);
+  sim::mock_of(dev)->applied_currents(currents);
   for (const double a : currents) {
     EXPECT_EQ(a, 0.0);
   }

@@ -23,11 +23,11 @@
 
 #include "../protocol/test_support.hpp"
 #include "counting_new.hpp"
-#include "mrskin/driver/mock_device.hpp"
 #include "mrskin/driver/session.hpp"
 #include "mrskin/driver/transports/can.hpp"
 #include "mrskin/protocol/can.hpp"
 #include "mrskin/protocol/packet.hpp"
+#include "mrskin/sim/mock_device.hpp"
 
 namespace mrskin {
 namespace {
@@ -1096,7 +1096,7 @@ TEST(CanTransport, NoAllocationPerFrameOnEitherSide) {
 // the bus's lock (from the transport's writes and from the test thread's steps).
 class SimNode {
  public:
-  SimNode(FakeCan& bus, MockDevice& mock, const Clock& clock, std::uint8_t node, bool fd)
+  SimNode(FakeCan& bus, sim::MockDevice& mock, const Clock& clock, std::uint8_t node, bool fd)
       : bus_(bus), codec_(CanRole::device, node, fd), link_(mock.connect(true, &clock)) {}
   void on_host_frame(const proto::CanFrame& f) {
     const CanPacketCodec::Decoded d = codec_.decode(f);
@@ -1171,9 +1171,9 @@ class LockstepClock final : public Clock {
 struct CanRig {
   explicit CanRig(bool fd) : bus(std::make_shared<FakeCan>()) {
     bus->interfaces["vcan0"].mtu = fd ? CANFD_MTU : CAN_MTU;
-    MockOptions mo;
+    sim::MockOptions mo;
     mo.seed = 11;
-    mock = MockDevice::make(mo);
+    mock = sim::MockDevice::make(mo);
     node = std::make_unique<SimNode>(*bus, *mock, clock, 3, fd);
     bus->on_write = [this](const proto::CanFrame& f) { node->on_host_frame(f); };
     auto wrapper = std::make_unique<CountingTransport>(
@@ -1217,7 +1217,7 @@ struct CanRig {
 
   LockstepClock clock;
   std::shared_ptr<FakeCan> bus;
-  std::shared_ptr<MockDevice> mock;
+  std::shared_ptr<sim::MockDevice> mock;
   std::unique_ptr<SimNode> node;
   std::unique_ptr<DeviceSession> session;
   const CountingTransport* counting = nullptr;
@@ -1279,7 +1279,7 @@ TEST(CanList, ListsTheNodesThatAnswerAndInterfacesThatAreDown) {
   auto bus = std::make_shared<FakeCan>();
   bus->interfaces["can1"] = FakeCan::Interface{4, CAN_MTU, false, true};
   SimulatedClock clock;
-  auto mock = MockDevice::make(MockOptions{});
+  auto mock = sim::MockDevice::make(sim::MockOptions{});
   SimNode node(*bus, *mock, clock, 3, false);
   bus->on_write = [&node](const proto::CanFrame& f) { node.on_host_frame(f); };
   const std::vector<DeviceListing> listed = list_can_devices(*bus, milliseconds(200));

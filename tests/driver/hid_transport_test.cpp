@@ -17,10 +17,10 @@
 #include <vector>
 
 #include "counting_new.hpp"
-#include "mrskin/driver/mock_device.hpp"
 #include "mrskin/driver/session.hpp"
 #include "mrskin/driver/transports/hid.hpp"
 #include "mrskin/protocol/packet.hpp"
+#include "mrskin/sim/mock_device.hpp"
 
 namespace mrskin {
 namespace {
@@ -680,10 +680,10 @@ class MockPeer final : public Peer {
 
 TEST(HidSession, HandshakeEnableTelemetryAndReconnectOverTheMockDevice) {
   MonotonicClock clock;
-  MockOptions mock_options;
+  sim::MockOptions mock_options;
   mock_options.seed = 11;
   mock_options.time_scale = 10.0;  // sanitizer builds run slowly: no heartbeat loss from that
-  const std::shared_ptr<MockDevice> mock = MockDevice::make(mock_options);
+  const std::shared_ptr<sim::MockDevice> mock = sim::MockDevice::make(mock_options);
   mock->start(clock);
   MockPeer peer(mock->connect(false));
   auto hid = std::make_shared<FakeHid>(std::vector<FakeHid::Unit>{{"/dev/hidraw3", "4D520001"}});

@@ -7,6 +7,7 @@
 #include <vector>
 
 #include "mrskin/driver/device.hpp"
+#include "mrskin/sim/open_mock.hpp"
 
 namespace mrskin::test {
 
@@ -16,14 +17,14 @@ struct Rig {
     open.synchronous_mock = true;
     open.session = session;
     dev = open_device(uri, clock, open);
-    currents.assign(dev.mock->layout().valve_count(), 0.0);
-    finger.assign(dev.mock->layout().fluid_cell_count(), 0.0);
+    currents.assign(sim::mock_of(dev)->layout().valve_count(), 0.0);
+    finger.assign(sim::mock_of(dev)->layout().fluid_cell_count(), 0.0);
   }
   // Runs for ms milliseconds; commands the currents each tick unless the host is silent.
   void run(int ms, bool host_alive = true) {
     for (int k = 0; k < ms; ++k) {
-      dev.mock->set_finger_indentation(finger);
-      dev.mock->step(clock.now());
+      sim::mock_of(dev)->set_finger_indentation(finger);
+      sim::mock_of(dev)->step(clock.now());
       if (host_alive) {
         last = dev.session->poll(clock.now());
         if (last == ResultCode::ok) {

@@ -14,6 +14,7 @@
 
 #include "mrskin/driver/device.hpp"
 #include "mrskin/protocol/messages.hpp"
+#include "mrskin/sim/open_mock.hpp"
 #include "rig.hpp"
 
 namespace mrskin {
@@ -73,10 +74,10 @@ class TestLink final : public Transport {
 // A session on a TestLink to a synchronous mock, at a time scale.
 struct LinkRig {
   explicit LinkRig(double time_scale, std::uint32_t serial = 0x4D520001) {
-    MockOptions mock_options;
+    sim::MockOptions mock_options;
     mock_options.time_scale = time_scale;
     mock_options.serial = serial;
-    mock = MockDevice::make(mock_options);
+    mock = sim::MockDevice::make(mock_options);
     auto owned = std::make_unique<TestLink>(mock->connect(true, &clock), clock);
     link = owned.get();
     link->identify_times.reserve(1000);
@@ -95,8 +96,8 @@ struct LinkRig {
     }
   }
   SimulatedClock clock;
-  std::shared_ptr<MockDevice> mock;
-  std::shared_ptr<MockDevice> other;
+  std::shared_ptr<sim::MockDevice> mock;
+  std::shared_ptr<sim::MockDevice> other;
   TestLink* link = nullptr;
   std::unique_ptr<DeviceSession> session;
   ResultCode last = ResultCode::ok;
@@ -176,9 +177,9 @@ TEST(Reconnect, AnotherUnitOnThePortIsRefused) {
   rig.run(50);
   rig.link->down = true;
   rig.run(5);
-  MockOptions other_options;
+  sim::MockOptions other_options;
   other_options.serial = 0x4D520002;
-  rig.other = MockDevice::make(other_options, "fingertip-16x16");
+  rig.other = sim::MockDevice::make(other_options, "fingertip-16x16");
   rig.link->replace_device(rig.other->connect(true, &rig.clock));
   rig.link->down = false;
   rig.run(500);
@@ -209,7 +210,7 @@ TEST(StateRequests, ALostEnableIsSentAgain) {
 struct LinkFault {
   const char* faults;
   // The mock's injection counter and the session's counter that must show it (null: none).
-  std::uint64_t MockDevice::FaultCounters::*injected = nullptr;
+  std::uint64_t sim::MockDevice::FaultCounters::*injected = nullptr;
   std::uint64_t injected_min = 0;
   std::uint64_t SessionCounters::*seen = nullptr;
   std::uint64_t seen_min = 0;
@@ -232,10 +233,10 @@ TEST_P(EnabledUnderFault, CountsItAndKeepsWorking) {
   EXPECT_EQ(c.faults, 0U);
   EXPECT_GT(c.telemetry, 600U);
   std::vector<double> applied(rig.currents.size());
-  rig.dev.mock->applied_currents(applied);
+  sim::mock_of(rig.dev)->applied_currents(applied);
   EXPECT_NEAR(*std::min_element(applied.begin(), applied.end()), 0.05, 1e-6);
   if (f.injected != nullptr) {
-    EXPECT_GT(rig.dev.mock->fault_counters().*f.injected, f.injected_min);
+    EXPECT_GT(sim::mock_of(rig.dev)->fault_counters().*f.injected, f.injected_min);
   }
   if (f.seen != nullptr) {
     EXPECT_GT(c.*f.seen, f.seen_min);
@@ -245,7 +246,7 @@ TEST_P(EnabledUnderFault, CountsItAndKeepsWorking) {
   }
 }
 
-using Mock = MockDevice::FaultCounters;
+using Mock = sim::MockDevice::FaultCounters;
 INSTANTIATE_TEST_SUITE_P(
     Driver, EnabledUnderFault,
     testing::Values(
@@ -283,16 +284,16 @@ TEST(Faults, OverheatedCoilRefusesEnableUntilItHasCooled) {
   ASSERT_EQ(rig.dev.session->request_enable(), ResultCode::ok);
   rig.run(100);
   EXPECT_EQ(rig.dev.session->state(), DeviceState::fault);
-  EXPECT_GE(rig.dev.mock->max_coil_temperature_C(), 100.0);
+  EXPECT_GE(sim::mock_of(rig.dev)->max_coil_temperature_C(), 100.0);
   // Heat off at 6 s; the coil cools (10 s time constant) below the derating knee by ~11 s.
   rig.run(static_cast<int>((12.0 - to_seconds(rig.clock.now())) * 1000.0));
-  EXPECT_LT(rig.dev.mock->max_coil_temperature_C(), 80.0);
+  EXPECT_LT(sim::mock_of(rig.dev)->max_coil_temperature_C(), 80.0);
   ASSERT_EQ(rig.dev.session->request_enable(), ResultCode::ok);
   rig.run(50);
   EXPECT_EQ(rig.dev.session->state(), DeviceState::enabled);
   EXPECT_FALSE(rig.dev.session->derated());
   std::vector<double> applied(rig.currents.size());
-  rig.dev.mock->applied_currents(applied);
+  sim::mock_of(rig.dev)->applied_currents(applied);
   EXPECT_NEAR(applied[2], 0.08, 1e-6);
 }
 
@@ -312,7 +313,7 @@ TEST(Limits, CurrentsAreBoundedAndSlewLimited) {
   double largest_step = 0.0;
   for (int k = 0; k < 6; ++k) {
     rig.run(1);
-    rig.dev.mock->applied_currents(applied);
+    sim::mock_of(rig.dev)->applied_currents(applied);
     largest_step = std::max(largest_step, applied[0] - previous);
     previous = applied[0];
   }

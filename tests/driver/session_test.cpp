@@ -15,6 +15,7 @@
 #include "mrskin/driver/device.hpp"
 #include "mrskin/protocol/packet.hpp"
 #include "mrskin/protocol/units.hpp"
+#include "mrskin/sim/open_mock.hpp"
 #include "rig.hpp"
 
 namespace mrskin {
@@ -132,13 +133,13 @@ TEST(Session, DegaussRunsAnAlternatingDecayOnBipolarUnitsOnly) {
     for (; ms < 3000 && (ms < 300 || s.degaussing()); ++ms) {
       rig.run(1);
       seen = seen || s.degaussing();
-      rig.dev.mock->applied_currents(applied);
+      sim::mock_of(rig.dev)->applied_currents(applied);
       lowest_A = std::min(lowest_A, *std::min_element(applied.begin(), applied.end()));
     }
     EXPECT_EQ(seen, bipolar);
     EXPECT_FALSE(s.degaussing());
     EXPECT_EQ(s.state(), DeviceState::disabled);
-    rig.dev.mock->applied_currents(applied);
+    sim::mock_of(rig.dev)->applied_currents(applied);
     for (const double a : applied) {
       EXPECT_EQ(a, 0.0);
     }
@@ -159,10 +160,10 @@ TEST(Session, HeartbeatLossLeadsToSafeStateAndEnableRecovers) {
   rig.run(50);
   EXPECT_EQ(rig.dev.session->state(), DeviceState::enabled);
   std::vector<double> applied(rig.currents.size());
-  rig.dev.mock->applied_currents(applied);
+  sim::mock_of(rig.dev)->applied_currents(applied);
   EXPECT_NEAR(applied[0], 0.05, 1e-4);
   rig.run(150, /*host_alive=*/false);
-  rig.dev.mock->applied_currents(applied);
+  sim::mock_of(rig.dev)->applied_currents(applied);
   for (const double a : applied) {
     EXPECT_EQ(a, 0.0);
   }
@@ -185,7 +186,7 @@ TEST(Session, DroppedFramesAreCountedAndTheLinkKeepsWorking) {
   Rig rig("mock://?seed=3&faults=drop:0.2");
   rig.run(500);
   const auto& c = rig.dev.session->counters();
-  EXPECT_GT(rig.dev.mock->fault_counters().dropped, 50U);
+  EXPECT_GT(sim::mock_of(rig.dev)->fault_counters().dropped, 50U);
   EXPECT_GT(c.sequence_gaps, 20U);
   EXPECT_GT(c.telemetry, 300U);
 }
@@ -193,7 +194,7 @@ TEST(Session, DroppedFramesAreCountedAndTheLinkKeepsWorking) {
 TEST(Session, CorruptedFramesFailTheirCrc) {
   Rig rig("mock://?seed=4&faults=corrupt:0.1");
   rig.run(500);
-  EXPECT_GT(rig.dev.mock->fault_counters().corrupted, 20U);
+  EXPECT_GT(sim::mock_of(rig.dev)->fault_counters().corrupted, 20U);
   EXPECT_GT(rig.dev.session->counters().decode_errors, 10U);
   EXPECT_GT(rig.dev.session->counters().crc_errors, 5U);
 }
@@ -207,7 +208,7 @@ TEST(Session, DuplicatesAreDroppedAndCounted) {
 TEST(Session, ReorderedFramesShowAsGaps) {
   Rig rig("mock://?seed=6&faults=reorder:0.05");
   rig.run(500);
-  EXPECT_GT(rig.dev.mock->fault_counters().reordered, 5U);
+  EXPECT_GT(sim::mock_of(rig.dev)->fault_counters().reordered, 5U);
   EXPECT_GT(rig.dev.session->counters().sequence_gaps, 5U);
 }
 
@@ -273,13 +274,13 @@ TEST(Session, LeakingValveHoldsLessPressure) {
     }
     rig.run(300);
     std::vector<double> force_N(rig.finger.size());
-    rig.dev.mock->true_contact_forces(force_N);
+    sim::mock_of(rig.dev)->true_contact_forces(force_N);
     return force_N[6];
   };
   std::size_t valve = 0;
   {
     const Rig probe("mock://?seed=13");  // one owner per unit: closed before the runs
-    valve = probe.dev.mock->layout().valves_of_cell(6)[0];
+    valve = sim::mock_of(probe.dev)->layout().valves_of_cell(6)[0];
   }
   const double tight_N = held_force_N("mock://?seed=13");
   const double leaky_N = held_force_N("mock://?seed=13&faults=leak:" + std::to_string(valve));
@@ -300,7 +301,7 @@ TEST(Session, OverheatedCoilDeratesThenFaults) {
   EXPECT_TRUE(saw_derated);
   EXPECT_EQ(rig.dev.session->state(), DeviceState::fault);
   EXPECT_STREQ(fault_name(rig.dev.session->fault_code()), "coil overtemperature");
-  EXPECT_GE(rig.dev.mock->max_coil_temperature_C(), 100.0);
+  EXPECT_GE(sim::mock_of(rig.dev)->max_coil_temperature_C(), 100.0);
 }
 
 TEST(Session, BusOffFaultsAndEnableRecovers) {
@@ -323,7 +324,7 @@ TEST(Session, EstopReleasesEverythingAndLatches) {
   ASSERT_EQ(rig.dev.session->request_estop(), ResultCode::ok);
   rig.run(1);
   std::vector<double> applied(rig.currents.size());
-  rig.dev.mock->applied_currents(applied);
+  sim::mock_of(rig.dev)->applied_currents(applied);
   for (const double a : applied) {
     EXPECT_EQ(a, 0.0);
   }
@@ -471,7 +472,7 @@ TEST(MockProfiles, GridCurrentRangeAndSensorsComeFromTheProfile) {
     ASSERT_NE(rig.dev.session->profile(), nullptr);
     EXPECT_EQ(rig.dev.session->profile()->rows, c.rows);
     EXPECT_EQ(rig.dev.session->profile()->sensors.size(), info.sensors);
-    EXPECT_EQ(rig.dev.mock->profile().name, rig.dev.session->profile()->name);
+    EXPECT_EQ(sim::mock_of(rig.dev)->profile().name, rig.dev.session->profile()->name);
     // Every sensor reports: telemetry covers the whole grid.
     // The last sensor sits under the last valve, which reads the mean depth of its fluid cells.
     rig.finger.back() = 1e-4;
@@ -515,7 +516,7 @@ TEST(MockProfiles, UnknownProfileListsTheSearchPathAndTheNames) {
   EXPECT_THROW((void)open_device("mock://no-such-skin", clock), InvalidArgument);  // a kind of
   EXPECT_THROW((void)open_device("mock:///nonexistent/unit.toml", clock), InvalidArgument);
   try {
-    (void)parse_mock_uri("mock://?rows=7");
+    (void)sim::parse_mock_uri("mock://?rows=7");
     FAIL() << "rows= was accepted";
   } catch (const InvalidArgument& e) {
     EXPECT_NE(std::string(e.what()).find("profile"), std::string::npos) << e.what();
@@ -541,7 +542,7 @@ struct TempProfile {
   }
 };
 
-std::string default_profile_text() { return load_profile_with_text("").text; }
+std::string default_profile_text() { return model::load_profile_with_text("").text; }
 
 // profile_text with its [sensors] table (up to the next table header) replaced by sensors_toml.
 std::string replace_sensors_section(const std::string& profile_text, const std::string& sensors_toml) {
@@ -574,7 +575,7 @@ TEST(MockProfiles, AProfileFileWithForceSensorsAtTheFluidCellsIsStoredVerbatim) 
   rig.finger[6] = 1e-3;
   rig.run(20);
   std::vector<double> truth(rig.finger.size());
-  rig.dev.mock->true_contact_forces(truth);
+  sim::mock_of(rig.dev)->true_contact_forces(truth);
   EXPECT_GT(truth[6], 0.1);
   EXPECT_NEAR(rig.dev.session->sensors()[6], truth[6], 2e-3);
 }
@@ -598,7 +599,7 @@ TEST(Session, ReadsALargeProfileOverAThreadedMockInTime) {
   MonotonicClock clock;
   OpenedDevice dev = open_device("mock://palm-64x64?seed=3", clock);  // the mock runs its own thread
   ASSERT_NE(dev.session->profile(), nullptr);
-  const LoadedProfile file = load_profile_with_text("palm-64x64");
+  const model::LoadedProfile file = model::load_profile_with_text("palm-64x64");
   EXPECT_EQ(dev.session->info().profile, file.text);
   EXPECT_EQ(dev.session->profile()->sensors.size(), dev.session->info().sensors);
 }
@@ -627,8 +628,8 @@ TEST(Enable, ReseedsTargetsFromTheMeasuredStateAfterAFault) {
   const std::vector<proto::CellTarget> targets(rig.finger.size(), stale.counts);
   ASSERT_EQ(session.send_cell_targets(0, targets), ResultCode::ok);
   rig.run(20);
-  EXPECT_EQ(rig.dev.mock->held_target(6).target, stale.counts);
-  EXPECT_NEAR(rig.dev.mock->commanded_currents()[0], 0.05, 1e-9);
+  EXPECT_EQ(sim::mock_of(rig.dev)->held_target(6).target, stale.counts);
+  EXPECT_NEAR(sim::mock_of(rig.dev)->commanded_currents()[0], 0.05, 1e-9);
 
   ASSERT_EQ(session.request_estop(), ResultCode::ok);
   rig.run(5);
@@ -670,20 +671,20 @@ TEST(Enable, ReseedsTargetsFromTheMeasuredStateAfterAFault) {
   // The firmware re-seeds too, and drives nothing until the host commands again.
   rig.run(1, /*host_alive=*/false);
   EXPECT_EQ(session.state(), DeviceState::fault);  // the status is not polled yet
-  const MockDevice::HeldTarget held = rig.dev.mock->held_target(6);
+  const sim::MockDevice::HeldTarget held = sim::mock_of(rig.dev)->held_target(6);
   EXPECT_EQ(held.target.stiffness, 0);
   EXPECT_NEAR(held.target.offset * proto::kOffsetLsb_m, measured_m, 2e-5);
   EXPECT_EQ(held.target.validity, stale.counts.validity);
   EXPECT_GE(held.validity_start, enabled_at);
-  for (const double a : rig.dev.mock->commanded_currents()) {
+  for (const double a : sim::mock_of(rig.dev)->commanded_currents()) {
     EXPECT_EQ(a, 0.0);
   }
   std::vector<double> applied(rig.currents.size());
-  rig.dev.mock->applied_currents(applied);
+  sim::mock_of(rig.dev)->applied_currents(applied);
   EXPECT_EQ(*std::max_element(applied.begin(), applied.end()), 0.0);
   rig.run(5);  // the host commands again
   EXPECT_EQ(session.state(), DeviceState::enabled);
-  EXPECT_NEAR(rig.dev.mock->commanded_currents()[0], 0.05, 1e-9);
+  EXPECT_NEAR(sim::mock_of(rig.dev)->commanded_currents()[0], 0.05, 1e-9);
 }
 
 TEST(Enable, LeavingPauseDoesNotResumeStaleCurrents) {
@@ -693,10 +694,10 @@ TEST(Enable, LeavingPauseDoesNotResumeStaleCurrents) {
   rig.run(20);
   ASSERT_EQ(rig.dev.session->request_pause(), ResultCode::ok);
   rig.run(5, /*host_alive=*/false);
-  EXPECT_NEAR(rig.dev.mock->commanded_currents()[3], 0.06, 1e-9);  // PAUSED holds
+  EXPECT_NEAR(sim::mock_of(rig.dev)->commanded_currents()[3], 0.06, 1e-9);  // PAUSED holds
   ASSERT_EQ(rig.dev.session->request_enable(), ResultCode::ok);
   rig.run(1, /*host_alive=*/false);
-  for (const double a : rig.dev.mock->commanded_currents()) {
+  for (const double a : sim::mock_of(rig.dev)->commanded_currents()) {
     EXPECT_EQ(a, 0.0);
   }
 }
@@ -745,23 +746,23 @@ TEST(Enable, SeederUsesTheProfilesSensors) {
 }
 
 TEST(MockUri, BadParametersAreNamed) {
-  EXPECT_THROW(parse_mock_uri("mock://?faults=drop:1.5"), InvalidArgument);
-  EXPECT_THROW(parse_mock_uri("mock://?faults=melt:1"), InvalidArgument);
-  EXPECT_THROW(parse_mock_uri("mock://?seed=abc"), InvalidArgument);
-  EXPECT_THROW(parse_mock_uri("mock://?colour=red"), InvalidArgument);
+  EXPECT_THROW(sim::parse_mock_uri("mock://?faults=drop:1.5"), InvalidArgument);
+  EXPECT_THROW(sim::parse_mock_uri("mock://?faults=melt:1"), InvalidArgument);
+  EXPECT_THROW(sim::parse_mock_uri("mock://?seed=abc"), InvalidArgument);
+  EXPECT_THROW(sim::parse_mock_uri("mock://?colour=red"), InvalidArgument);
   // Indices are sensors or valves; times are finite seconds within an hour.
   for (const char* bad :
        {"stuck:-1", "noisy:-2", "offset:-1", "leak:-1", "overheat:-1", "overheat:1+0", "disconnect:nan+1",
         "disconnect:1+inf", "disconnect:-1+1", "delay:1e9", "busoff:-0.5"}) {
-    EXPECT_THROW(parse_mock_uri(std::string("mock://?faults=") + bad), InvalidArgument) << bad;
+    EXPECT_THROW(sim::parse_mock_uri(std::string("mock://?faults=") + bad), InvalidArgument) << bad;
   }
-  EXPECT_THROW(parse_mock_uri("mock://?finger="), InvalidArgument);
-  EXPECT_THROW(parse_mock_uri("mock://?finger=Demo!"), InvalidArgument);
-  EXPECT_EQ(parse_mock_uri("mock://?finger=demo").options.finger_scene, "demo");
-  const MockUri u =
-      parse_mock_uri("mock://fingertip-16x16?seed=3&faults=drop:0.1,disconnect:2+0.5,overheat:4");
+  EXPECT_THROW(sim::parse_mock_uri("mock://?finger="), InvalidArgument);
+  EXPECT_THROW(sim::parse_mock_uri("mock://?finger=Demo!"), InvalidArgument);
+  EXPECT_EQ(sim::parse_mock_uri("mock://?finger=demo").options.finger_scene, "demo");
+  const sim::MockUri u =
+      sim::parse_mock_uri("mock://fingertip-16x16?seed=3&faults=drop:0.1,disconnect:2+0.5,overheat:4");
   EXPECT_EQ(u.profile, "fingertip-16x16");
-  const MockOptions& o = u.options;
+  const sim::MockOptions& o = u.options;
   EXPECT_EQ(o.seed, 3U);
   EXPECT_DOUBLE_EQ(o.faults.drop_probability, 0.1);
   EXPECT_DOUBLE_EQ(o.faults.disconnect_at_s, 2.0);
@@ -785,15 +786,15 @@ double press_centre(Rig& rig, bool send_targets) {
   EXPECT_EQ(session.request_enable(), ResultCode::ok);
   for (int k = 0; k < 620; ++k) {
     rig.finger[6] = 3e-3 * std::min(1.0, k / 600.0);
-    rig.dev.mock->set_finger_indentation(rig.finger);
-    rig.dev.mock->step(rig.clock.now());
+    sim::mock_of(rig.dev)->set_finger_indentation(rig.finger);
+    sim::mock_of(rig.dev)->step(rig.clock.now());
     if (session.poll(rig.clock.now()) == ResultCode::ok && send_targets && k % 10 == 0) {
       EXPECT_EQ(session.send_cell_targets(0, targets), ResultCode::ok);
     }
     rig.clock.advance(std::chrono::milliseconds(1));
   }
   std::vector<double> truth(rig.finger.size());
-  rig.dev.mock->true_contact_forces(truth);
+  sim::mock_of(rig.dev)->true_contact_forces(truth);
   return truth[6];
 }
 
@@ -805,27 +806,27 @@ TEST(Firmware, RendersPerCellTargetsThenReleasesWhenTheyExpire) {
   }
   Rig rendered("mock://?seed=4");
   const double with_targets_N = press_centre(rendered, true);
-  EXPECT_TRUE(rendered.dev.mock->rendering_targets());
+  EXPECT_TRUE(sim::mock_of(rendered.dev)->rendering_targets());
   // The centre's four valves (3, 5, 6, 8) resist: the finger feels more than the bare membrane.
   for (const std::size_t v : {3U, 5U, 6U, 8U}) {
-    EXPECT_GT(rendered.dev.mock->commanded_currents()[v], 0.0) << v;
+    EXPECT_GT(sim::mock_of(rendered.dev)->commanded_currents()[v], 0.0) << v;
   }
   EXPECT_GT(with_targets_N, without_N + 0.2) << with_targets_N << " vs " << without_N;
   // The host goes quiet about targets (heartbeats continue): after the 0.2 s validity every
   // valve is released.
   for (int k = 0; k < 300; ++k) {
-    rendered.dev.mock->step(rendered.clock.now());
+    sim::mock_of(rendered.dev)->step(rendered.clock.now());
     (void)rendered.dev.session->poll(rendered.clock.now());
     rendered.clock.advance(std::chrono::milliseconds(1));
   }
-  for (const double a : rendered.dev.mock->commanded_currents()) {
+  for (const double a : sim::mock_of(rendered.dev)->commanded_currents()) {
     EXPECT_EQ(a, 0.0);
   }
   // Currents from the host take the coils back.
   rendered.currents.assign(rendered.currents.size(), 0.01);
   rendered.run(5);
-  EXPECT_FALSE(rendered.dev.mock->rendering_targets());
-  EXPECT_NEAR(rendered.dev.mock->commanded_currents()[0], 0.01, 1e-9);
+  EXPECT_FALSE(sim::mock_of(rendered.dev)->rendering_targets());
+  EXPECT_NEAR(sim::mock_of(rendered.dev)->commanded_currents()[0], 0.01, 1e-9);
 }
 
 }  // namespace

@@ -17,10 +17,10 @@
 #include <utility>
 #include <vector>
 
-#include "mrskin/driver/mock_device.hpp"
 #include "mrskin/driver/session.hpp"
 #include "mrskin/driver/transports/usb.hpp"
 #include "mrskin/protocol/packet.hpp"
+#include "mrskin/sim/mock_device.hpp"
 
 namespace mrskin {
 namespace {
@@ -936,9 +936,9 @@ TEST(UsbListTest, RealLibusbNeverThrows) {
 
 TEST(UsbEndToEndTest, SessionOverUsbToMockDeviceSurvivesUnplug) {
   MonotonicClock clock;
-  MockOptions mo;
+  sim::MockOptions mo;
   mo.seed = 7;
-  const std::shared_ptr<MockDevice> mock = MockDevice::make(mo);
+  const std::shared_ptr<sim::MockDevice> mock = sim::MockDevice::make(mo);
   auto fake = std::make_shared<FakeLibusb>(true);
   FakeDevice unit;
   unit.serial = proto::format_usb_serial(mo.serial);

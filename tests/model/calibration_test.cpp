@@ -8,7 +8,7 @@
 #include <vector>
 
 #include "mrskin/driver/errors.hpp"
-#include "mrskin/driver/network_plant.hpp"
+#include "mrskin/sim/network_plant.hpp"
 
 namespace {
 
@@ -79,9 +79,9 @@ TEST(ModelCalibration, RefusesWhatCannotBeAUnit) {
 
 TEST(ModelCalibration, MeasuringAPerturbedPlantRecoversItsParameters) {
   const DeviceProfile nominal = load_profile(kDir + "/mr-skin-5x5.toml");
-  mrskin::NetworkPlantOptions o;
+  mrskin::sim::NetworkPlantOptions o;
   o.seed = 4;
-  const mrskin::NetworkPlant plant(nominal, o);
+  const mrskin::sim::NetworkPlant plant(nominal, o);
   const DeviceProfile& truth = plant.true_profile();
   // An exact factory: applying its calibration to the nominal gives the plant's parameters.
   const Calibration exact = measure_calibration(nominal, truth, plant.valve_yield_gain(), 0.0, 1);

@@ -15,16 +15,16 @@
 #include "mrskin/driver/errors.hpp"
 #include "mrskin/driver/model/device_model.hpp"
 #include "mrskin/driver/model/magnetic.hpp"
-#include "mrskin/driver/network_plant.hpp"
+#include "mrskin/sim/network_plant.hpp"
 
 namespace {
 
-using mrskin::NetworkPlant;
-using mrskin::NetworkPlantOptions;
 using mrskin::model::CellObserver;
 using mrskin::model::DeviceModel;
 using mrskin::model::ObserverOptions;
 using mrskin::model::Status;
+using mrskin::sim::NetworkPlant;
+using mrskin::sim::NetworkPlantOptions;
 
 constexpr double kTick_s = 1e-3;
 constexpr int kSubsteps = 10;

@@ -9,19 +9,19 @@
 #include "counting_new.hpp"
 #include "mrskin/driver/errors.hpp"
 #include "mrskin/driver/model/profile.hpp"
-#include "mrskin/driver/network_plant.hpp"
+#include "mrskin/sim/network_plant.hpp"
 
 namespace {
 
-using mrskin::NetworkPlant;
-using mrskin::NetworkPlantOptions;
 using mrskin::model::DeviceProfile;
+using mrskin::sim::NetworkPlant;
+using mrskin::sim::NetworkPlantOptions;
 
 TEST(PlantPerturbation, WithinSpreadAndRepeatablePerSeed) {
   const DeviceProfile nominal = mrskin::model::default_profile();
-  const DeviceProfile a = mrskin::perturbed_profile(nominal, 0.15, 7);
-  const DeviceProfile b = mrskin::perturbed_profile(nominal, 0.15, 7);
-  const DeviceProfile c = mrskin::perturbed_profile(nominal, 0.15, 8);
+  const DeviceProfile a = mrskin::sim::perturbed_profile(nominal, 0.15, 7);
+  const DeviceProfile b = mrskin::sim::perturbed_profile(nominal, 0.15, 7);
+  const DeviceProfile c = mrskin::sim::perturbed_profile(nominal, 0.15, 8);
   EXPECT_EQ(a.fluid.viscosity_Pa_s, b.fluid.viscosity_Pa_s);
   EXPECT_NE(a.fluid.viscosity_Pa_s, c.fluid.viscosity_Pa_s);
   const auto within = [](double x, double x0, double w) { return std::abs(x / x0 - 1.0) <= w + 1e-12; };
@@ -32,7 +32,7 @@ TEST(PlantPerturbation, WithinSpreadAndRepeatablePerSeed) {
     EXPECT_TRUE(within(p->valve.gap_m, nominal.valve.gap_m, 0.03));
     EXPECT_EQ(p->magnetic.fluid_gap_m, p->valve.gap_m);
   }
-  EXPECT_THROW((void)mrskin::perturbed_profile(nominal, 0.7, 1), mrskin::InvalidArgument);
+  EXPECT_THROW((void)mrskin::sim::perturbed_profile(nominal, 0.7, 1), mrskin::InvalidArgument);
 }
 
 TEST(PlantSensors, TwelveDisplacementSensorsQuantisedToTheirResolution) {

@@ -36,19 +36,19 @@ std::string output_dir() {
   return s != nullptr && *s != '\0' ? std::string(s) : std::string(".");
 }
 
-std::shared_ptr<MockDevice> start_mock(Clock& clock) {
-  MockOptions options;
+std::shared_ptr<sim::MockDevice> start_mock(Clock& clock) {
+  sim::MockOptions options;
   options.seed = 8;
   options.serial = kSerial;
   options.time_scale = time_scale();
-  auto mock = MockDevice::make(options);
+  auto mock = sim::MockDevice::make(options);
   mock->start(clock);
   return mock;
 }
 
 // --- FirmwareAdapter ------------------------------------------------------------------------------
 
-FirmwareAdapter::FirmwareAdapter(std::shared_ptr<MockDevice> mock)
+FirmwareAdapter::FirmwareAdapter(std::shared_ptr<sim::MockDevice> mock)
     : mock_(std::move(mock)), firmware_(mock_->connect(false)) {}
 
 FirmwareAdapter::~FirmwareAdapter() { stop(); }
@@ -105,7 +105,7 @@ std::unique_ptr<Transport> open_node(const std::string& uri) {
 }
 }  // namespace
 
-CanNode::CanNode(std::shared_ptr<MockDevice> mock, const std::string& uri)
+CanNode::CanNode(std::shared_ptr<sim::MockDevice> mock, const std::string& uri)
     : FirmwareAdapter(std::move(mock)), bus_(open_node(uri)) {
   start();
 }
@@ -136,7 +136,7 @@ bool uhid_write(int fd, const uhid_event& ev) {
 }
 }  // namespace
 
-UhidUnit::UhidUnit(std::shared_ptr<MockDevice> mock) : FirmwareAdapter(std::move(mock)) {
+UhidUnit::UhidUnit(std::shared_ptr<sim::MockDevice> mock) : FirmwareAdapter(std::move(mock)) {
   fd_ = ::open("/dev/uhid", O_RDWR | O_CLOEXEC | O_NONBLOCK);
   if (fd_ < 0) {
     throw std::runtime_error(std::string("open /dev/uhid: ") + std::strerror(errno));
@@ -261,7 +261,7 @@ bool UhidUnit::write_bus(const Datagram& d) {
 
 // --- GadgetUnit -------------------------------------------------------------------------------------
 
-GadgetUnit::GadgetUnit(std::shared_ptr<MockDevice> mock, std::string node)
+GadgetUnit::GadgetUnit(std::shared_ptr<sim::MockDevice> mock, std::string node)
     : FirmwareAdapter(std::move(mock)), node_(std::move(node)) {
   start();
 }
@@ -426,7 +426,7 @@ void print_counters(const char* prefix, const char* when, const DeviceSession& s
       static_cast<unsigned long long>(c.reconnects), to_string(s.state()));
 }
 
-void expect_session_runs(DeviceSession& session, MockDevice& mock, Clock& clock) {
+void expect_session_runs(DeviceSession& session, sim::MockDevice& mock, Clock& clock) {
   EXPECT_EQ(session.info().serial, kSerial);
   EXPECT_EQ(session.info().valves, mock.layout().valves().size());
   ASSERT_NE(session.profile(), nullptr);

@@ -16,9 +16,9 @@
 
 #include "mrskin/driver/clock.hpp"
 #include "mrskin/driver/device.hpp"
-#include "mrskin/driver/mock_device.hpp"
 #include "mrskin/driver/session.hpp"
 #include "mrskin/driver/transport.hpp"
+#include "mrskin/sim/mock_device.hpp"
 
 namespace mrskin::vmtest {
 
@@ -30,14 +30,14 @@ inline constexpr std::uint32_t kSerial = 0x4D52C0DE;
 
 // A mock unit (default profile) running on its own thread against clock, with its timeouts
 // scaled like the session's.
-std::shared_ptr<MockDevice> start_mock(Clock& clock);
+std::shared_ptr<sim::MockDevice> start_mock(Clock& clock);
 
 // Moves datagrams between the mock firmware's end of its in-process link and a bus, on its
 // own thread: what the firmware sends goes out with write_bus(), what read_bus() delivers
 // goes to the firmware. Subclasses provide the bus.
 class FirmwareAdapter {
  public:
-  explicit FirmwareAdapter(std::shared_ptr<MockDevice> mock);
+  explicit FirmwareAdapter(std::shared_ptr<sim::MockDevice> mock);
   FirmwareAdapter(const FirmwareAdapter&) = delete;
   FirmwareAdapter& operator=(const FirmwareAdapter&) = delete;
   FirmwareAdapter(FirmwareAdapter&&) = delete;
@@ -47,7 +47,7 @@ class FirmwareAdapter {
   [[nodiscard]] std::uint64_t to_bus() const noexcept { return to_bus_.load(); }
   [[nodiscard]] std::uint64_t from_bus() const noexcept { return from_bus_.load(); }
   [[nodiscard]] std::uint64_t dropped() const noexcept { return dropped_.load(); }
-  [[nodiscard]] MockDevice& mock() noexcept { return *mock_; }
+  [[nodiscard]] sim::MockDevice& mock() noexcept { return *mock_; }
 
  protected:
   // Starts the thread; call at the end of the subclass's constructor.
@@ -62,7 +62,7 @@ class FirmwareAdapter {
 
  private:
   void run() noexcept;
-  std::shared_ptr<MockDevice> mock_;
+  std::shared_ptr<sim::MockDevice> mock_;
   std::unique_ptr<Transport> firmware_;
   std::atomic<bool> running_{false};
   std::atomic<std::uint64_t> to_bus_{0};
@@ -74,7 +74,7 @@ class FirmwareAdapter {
 // A simulated CAN node: the firmware behind open_can_transport() in the device role.
 class CanNode final : public FirmwareAdapter {
  public:
-  CanNode(std::shared_ptr<MockDevice> mock, const std::string& uri);
+  CanNode(std::shared_ptr<sim::MockDevice> mock, const std::string& uri);
   ~CanNode() override;
 
  private:
@@ -89,7 +89,7 @@ class CanNode final : public FirmwareAdapter {
 // cable; plug() creates it again.
 class UhidUnit final : public FirmwareAdapter {
  public:
-  explicit UhidUnit(std::shared_ptr<MockDevice> mock);
+  explicit UhidUnit(std::shared_ptr<sim::MockDevice> mock);
   ~UhidUnit() override;
   void unplug();
   void plug();
@@ -111,7 +111,7 @@ class UhidUnit final : public FirmwareAdapter {
 // set_open(false) closes it (before an unbind) until set_open(true).
 class GadgetUnit final : public FirmwareAdapter {
  public:
-  GadgetUnit(std::shared_ptr<MockDevice> mock, std::string node);
+  GadgetUnit(std::shared_ptr<sim::MockDevice> mock, std::string node);
   ~GadgetUnit() override;
   void set_open(bool open) noexcept { want_open_ = open; }
   [[nodiscard]] bool is_open() const noexcept { return is_open_.load(); }
@@ -136,7 +136,7 @@ OpenedDevice open_with_retry(const std::string& uri, Clock& clock);
 void print_counters(const char* prefix, const char* when, const DeviceSession& session);
 // The checks every bus shares (GoogleTest assertions): the unit's identity and profile came over
 // the bus, it enables, the plant's coils follow the currents sent, and telemetry flows.
-void expect_session_runs(DeviceSession& session, MockDevice& mock, Clock& clock);
+void expect_session_runs(DeviceSession& session, sim::MockDevice& mock, Clock& clock);
 // Unplug mid-stream is noticed and plugging back in reconnects the session with telemetry
 // flowing again.
 void expect_unplug_noticed_and_replug_reconnects(const char* prefix, DeviceSession& session, Clock& clock,

@@ -77,12 +77,12 @@ class Gadget {
     unit_->set_open(true);
     mock_->set_link_up(true);
   }
-  [[nodiscard]] MockDevice& mock() { return *mock_; }
+  [[nodiscard]] sim::MockDevice& mock() { return *mock_; }
   [[nodiscard]] GadgetUnit& unit() { return *unit_; }
 
  private:
   std::string udc_;
-  std::shared_ptr<MockDevice> mock_;
+  std::shared_ptr<sim::MockDevice> mock_;
   std::unique_ptr<GadgetUnit> unit_;
 };
 

@@ -5,6 +5,7 @@
 
 #include "mrskin/bridge/bridge.hpp"
 #include "mrskin/driver/device.hpp"
+#include "mrskin/sim/open_mock.hpp"
 
 int main() {
   using namespace mrskin;
@@ -16,18 +17,18 @@ int main() {
     OpenedDevice dev = open_device("mock://?seed=1", clock, open);
     auto scene = bridge::make_scene("demo");
     bridge::Bridge loop(*dev.session, *scene);
-    bridge::MockDeviceTruth truth(*dev.mock);
+    sim::MockDeviceTruth truth(*sim::mock_of(dev));
     loop.set_force_truth(&truth);
     loop.set_perf_clock(&clock);
     scene->set_start(clock.now());
     (void)loop.enable();
 
-    std::vector<double> finger(dev.mock->layout().fluid_cell_count());
+    std::vector<double> finger(sim::mock_of(dev)->layout().fluid_cell_count());
     int faults = 0;
     for (int k = 0; k < 3500; ++k) {  // the console's 1 kHz loop
-      scene->finger(to_seconds(clock.now()), dev.mock->layout(), finger);
-      dev.mock->set_finger_indentation(finger);
-      dev.mock->step(clock.now());
+      scene->finger(to_seconds(clock.now()), sim::mock_of(dev)->layout(), finger);
+      sim::mock_of(dev)->set_finger_indentation(finger);
+      sim::mock_of(dev)->step(clock.now());
       if (loop.step(clock.now()) != ResultCode::ok) {
         ++faults;  // a console would react: pause, re-enable, alert
       }

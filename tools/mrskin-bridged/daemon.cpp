@@ -12,6 +12,7 @@
 #include <thread>
 
 #include "json_text.hpp"
+#include "mrskin/sim/open_mock.hpp"
 
 namespace mrskin::bridged {
 
@@ -67,10 +68,11 @@ Daemon::Daemon(Settings settings, MonotonicClock& clock)
     recorder_ = std::make_unique<bridge::SampleRecorder>(settings_.record);
   }
   dev_ = open_device(settings_.device, clock_);
-  if (dev_.mock) {
-    truth_.emplace(*dev_.mock);
-    finger_.assign(dev_.mock->layout().fluid_cell_count(), 0.0);
-    true_N_.assign(dev_.mock->layout().fluid_cell_count(), 0.0);
+  mock_ = sim::mock_of(dev_);
+  if (mock_) {
+    truth_.emplace(*mock_);
+    finger_.assign(mock_->layout().fluid_cell_count(), 0.0);
+    true_N_.assign(mock_->layout().fluid_cell_count(), 0.0);
   }
   const DeviceInfo& info = dev_.session->info();
   rows_ = info.rows;
@@ -103,8 +105,8 @@ Daemon::~Daemon() {
   stop();
   loop_.reset();
   bridge_.reset();
-  if (dev_.mock) {
-    dev_.mock->stop();
+  if (mock_) {
+    mock_->stop();
   }
 }
 
@@ -335,7 +337,7 @@ std::string Daemon::grid_members() {
       fault_name(last_fault_code_.load(std::memory_order_relaxed)), faults_.load(std::memory_order_relaxed),
       valves_released_.load(std::memory_order_relaxed), connected_.load(std::memory_order_relaxed), rows_,
       cols_, json_number(max_current_A_), json_number(force_range_N_), sensor_unit_);
-  const double hottest_C = dev_.mock ? dev_.mock->max_coil_temperature_C() : NAN;
+  const double hottest_C = mock_ ? mock_->max_coil_temperature_C() : NAN;
   out += fmt::format(R"("max_coil_temperature_c":{})", json_number(hottest_C));
   if (!grid_->read(grid_copy_)) {
     return out + R"(,"grid_t_s":null)";  // nothing published yet (the first 10 ms of a subscription)
@@ -551,15 +553,15 @@ std::unique_ptr<bridge::Scene> open_finger_scene(const Settings& s) {
   if (!s.device.starts_with("mock://")) {
     return nullptr;
   }
-  const std::string name = parse_mock_uri(s.device).options.finger_scene;
+  const std::string name = sim::parse_mock_uri(s.device).options.finger_scene;
   return name.empty() ? nullptr : bridge::make_scene(name, s.mapping);
 }
 
 void Daemon::drive_finger() {
   bridge::Scene* script = finger_scene_ ? finger_scene_.get() : source_.scene;
-  if (dev_.mock && script != nullptr) {
-    script->finger(to_seconds(clock_.now() - t0_), dev_.mock->layout(), finger_);
-    dev_.mock->set_finger_indentation(finger_);
+  if (mock_ && script != nullptr) {
+    script->finger(to_seconds(clock_.now() - t0_), mock_->layout(), finger_);
+    mock_->set_finger_indentation(finger_);
   }
 }
 

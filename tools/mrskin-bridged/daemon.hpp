@@ -142,7 +142,8 @@ class Daemon final : public bridge::Tickable, public ControlBackend {
   Settings settings_;
   MonotonicClock& clock_;
   OpenedDevice dev_;
-  std::optional<bridge::MockDeviceTruth> truth_;
+  std::shared_ptr<sim::MockDevice> mock_;  // set for mock:// (the simulated unit behind dev_)
+  std::optional<sim::MockDeviceTruth> truth_;
   // One waiter for the daemon's life, shared by every RealtimeLoop it builds (one runs at a
   // time) and woken by the stream sources' arrival hook: declared before the sources, so it
   // outlives their I/O threads, and never destroyed with a loop on a reload.

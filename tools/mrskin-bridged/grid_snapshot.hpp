@@ -11,7 +11,7 @@
 #include <span>
 #include <vector>
 
-#include "mrskin/driver/mock_device.hpp"
+#include "mrskin/sim/mock_device.hpp"
 
 namespace mrskin::bridged {
 
@@ -23,7 +23,7 @@ namespace mrskin::bridged {
 class CoilThermalEstimate {
  public:
   void reset(std::size_t valves, double resistance_ohm) {
-    const MockOptions mock{};
+    const sim::MockOptions mock{};
     resistance_ohm_ = resistance_ohm;
     thermal_resistance_K_per_W_ = mock.coil_thermal_resistance_K_per_W;
     time_constant_s_ = mock.coil_heat_capacity_J_per_K * mock.coil_thermal_resistance_K_per_W;

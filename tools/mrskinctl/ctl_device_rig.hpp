@@ -30,6 +30,7 @@
 #include "mrskin/driver/errors.hpp"
 #include "mrskin/protocol/messages.hpp"
 #include "mrskin/protocol/units.hpp"
+#include "mrskin/sim/open_mock.hpp"
 #include "tunnel_transport.hpp"
 
 namespace mrskin::ctl {
@@ -219,7 +220,7 @@ class Rig {
   [[nodiscard]] DeviceSession& session() const noexcept { return *dev_.session; }
   [[nodiscard]] const DeviceInfo& info() const noexcept { return dev_.session->info(); }
   // The press fixture: the mock's finger (nullptr on a real unit).
-  [[nodiscard]] MockDevice* fixture() const noexcept { return dev_.mock.get(); }
+  [[nodiscard]] sim::MockDevice* fixture() const noexcept { return sim::mock_of(dev_).get(); }
   [[nodiscard]] static bool interrupted() noexcept { return interrupted_flag() != 0; }
   double elapsed_s() noexcept { return to_seconds(clock().now() - start_); }
   [[nodiscard]] ResultCode last() const noexcept { return last_; }
@@ -228,7 +229,7 @@ class Rig {
   ResultCode tick() noexcept {
     if (simulated_) {
       sim_.advance(kTick);
-      dev_.mock->step(sim_.now());
+      sim::mock_of(dev_)->step(sim_.now());
     } else {
       next_ = std::max(next_ + kTick, mono_.now());  // behind: skip, never burst
       mono_.sleep_until(next_);
@@ -275,7 +276,7 @@ class Rig {
     const std::vector<double> zero(info().valves, 0.0);
     (void)session().send_valve_currents(zero);
     (void)session().request_disable();
-    if (MockDevice* f = fixture(); f != nullptr && simulated_) {
+    if (sim::MockDevice* f = fixture(); f != nullptr && simulated_) {
       lift_finger();
     }
     const TimePoint end = clock().now() + std::chrono::milliseconds(300);
@@ -305,7 +306,7 @@ class Rig {
     return seen ? DegaussOutcome::unfinished : DegaussOutcome::unsupported;
   }
   void lift_finger() const noexcept {
-    if (MockDevice* f = fixture(); f != nullptr) {
+    if (sim::MockDevice* f = fixture(); f != nullptr) {
       const std::vector<double> none(info().fluid_cells, 0.0);
       f->set_finger_indentation(none);
     }

@@ -146,7 +146,7 @@ struct PressReleaseResult {
 };
 
 inline PressReleaseResult press_release(Rig& rig, double current_a, const PressRelease& p) {
-  MockDevice* fixture = rig.fixture();
+  sim::MockDevice* fixture = rig.fixture();
   const model::DeviceProfile& profile = *rig.session().profile();
   const GridLayout layout(profile.rows, profile.cols);
   const auto groups = press_groups(layout);

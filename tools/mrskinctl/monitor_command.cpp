@@ -26,6 +26,7 @@
 #include "mrskin/driver/layout.hpp"
 #include "mrskin/driver/model/device_model.hpp"
 #include "mrskin/driver/model/observer.hpp"
+#include "mrskin/sim/open_mock.hpp"
 
 namespace mrskin::ctl {
 namespace {
@@ -365,7 +366,7 @@ int monitor_device(const MonitorOptions& o, Renderer& out) {
       f.current_A.assign(commanded.begin(), commanded.end());
       const std::span<const double> temperature = thermal.temperature_C();
       f.temperature_C.assign(temperature.begin(), temperature.end());
-      f.max_coil_C = dev.mock ? dev.mock->max_coil_temperature_C() : NAN;
+      f.max_coil_C = sim::mock_of(dev) ? sim::mock_of(dev)->max_coil_temperature_C() : NAN;
       out.show(f);
     }
     if (over) {

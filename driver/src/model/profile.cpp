@@ -1,9 +1,11 @@
 #include "mrskin/driver/model/profile.hpp"
 
+#include <fmt/format.h>
 #include <toml++/toml.h>
 
 #include <cmath>
 #include <cstdlib>
+#include <filesystem>
 #include <fstream>
 #include <initializer_list>
 #include <optional>
@@ -650,5 +652,70 @@ DeviceProfile load_profile(const std::string& path_or_name) {
 }
 
 DeviceProfile default_profile() { return load_profile(kDefaultProfileName); }
+
+namespace {
+
+bool is_path(std::string_view name) noexcept {
+  return name.find('/') != std::string_view::npos || name.ends_with(".toml");
+}
+
+}  // namespace
+
+std::vector<std::string> available_profile_names() {
+  std::set<std::string> names;
+  for (const std::string& dir : model::profile_search_path()) {
+    std::error_code ec;
+    for (const auto& entry : std::filesystem::directory_iterator(dir, ec)) {
+      if (entry.path().extension() == ".toml") {
+        names.insert(entry.path().stem().string());
+      }
+    }
+  }
+  return {names.begin(), names.end()};
+}
+
+LoadedProfile load_profile_with_text(std::string_view name_or_path) {
+  const std::string name = name_or_path.empty() || name_or_path == "default"
+                               ? std::string(model::kDefaultProfileName)
+                               : std::string(name_or_path);
+  std::string path;
+  if (is_path(name)) {
+    path = model::find_profile(name);  // InvalidArgument when unreadable
+  } else {
+    std::string looked;
+    for (const std::string& dir : model::profile_search_path()) {
+      const std::string candidate = fmt::format("{}/{}.toml", dir, name);
+      if (std::ifstream(candidate).good()) {
+        path = candidate;
+        break;
+      }
+      looked += looked.empty() ? dir : ", " + dir;
+    }
+    if (path.empty()) {
+      const std::vector<std::string> names = available_profile_names();
+      std::string list;
+      for (const std::string& n : names) {
+        list += list.empty() ? n : ", " + n;
+      }
+      throw ProfileNotFound(
+          fmt::format("device profile \"{}\" not found; searched {}; available: {}. Use one of those names "
+                      "(mock://NAME), a file path (mock:///path/to/profile.toml), or add its directory to "
+                      "MRSKIN_PROFILE_PATH",
+                      name, looked.empty() ? std::string("no directory") : looked,
+                      list.empty() ? std::string("none") : list));
+    }
+  }
+  std::ifstream in(path);
+  std::ostringstream text;
+  text << in.rdbuf();
+  if (!in.good() && !in.eof()) {
+    throw InvalidArgument("profile file " + path + " could not be read; check its permissions");
+  }
+  LoadedProfile loaded;
+  loaded.text = text.str();
+  loaded.profile = model::parse_profile(loaded.text, path);
+  loaded.path = path;
+  return loaded;
+}
 
 }  // namespace mrskin::model

@@ -20,7 +20,7 @@
 #include "mrskin/bridge/tissue.hpp"
 #include "mrskin/driver/clock.hpp"
 #include "mrskin/driver/errors.hpp"
-#include "mrskin/driver/mock_device.hpp"
+#include "mrskin/driver/force_truth.hpp"
 #include "mrskin/driver/model/device_model.hpp"
 #include "mrskin/driver/model/inverse.hpp"
 #include "mrskin/driver/model/observer.hpp"
@@ -113,34 +113,8 @@ struct SensorFaultEvent {
   double at_s = 0.0;                                         // since the bridge's first tick
 };
 
-// Ground truth for scoring (the mock's true contact forces); optional.
-class ForceTruth {
- public:
-  ForceTruth() = default;
-  ForceTruth(const ForceTruth&) = delete;
-  ForceTruth& operator=(const ForceTruth&) = delete;
-  ForceTruth(ForceTruth&&) = delete;
-  ForceTruth& operator=(ForceTruth&&) = delete;
-  virtual ~ForceTruth() = default;
-  virtual void true_forces(std::span<double> out_N) const noexcept = 0;
-  // The finger's true indentation per fluid cell, m, so that scoring follows the finger's true
-  // motion rather than the controller's own reading of it; false when unknown.
-  virtual bool finger_indentation(std::span<double> /*out_m*/) const noexcept { return false; }
-};
-
-// The mock device's ground truth: its plant's contact forces and the finger it was given.
-class MockDeviceTruth final : public ForceTruth {
- public:
-  explicit MockDeviceTruth(const MockDevice& mock) noexcept : mock_(mock) {}
-  void true_forces(std::span<double> out_N) const noexcept override { mock_.true_contact_forces(out_N); }
-  bool finger_indentation(std::span<double> out_m) const noexcept override {
-    mock_.finger_indentation(out_m);
-    return true;
-  }
-
- private:
-  const MockDevice& mock_;
-};
+// Ground truth for scoring (mrskin::sim::MockDeviceTruth on the mock); optional.
+using ForceTruth = mrskin::ForceTruth;
 
 class Bridge {
  public:

@@ -6,7 +6,8 @@
 //     the current range and resolution and the sensors come from the profile. faults is a
 //     comma list of drop:P, dup:P, corrupt:P, reorder:P, delay:S, disconnect:AT+FOR,
 //     stuck:SENSOR, noisy:SENSOR, overheat:VALVE[+FOR], busoff:AT (probabilities per
-//     datagram, times in seconds of device time).
+//     datagram, times in seconds of device time). The simulation is a library of its own,
+//     mrskin::sim (mrskin/sim/open_mock.hpp): mock:// opens only in a process linked with it.
 //   hid://VID:PID[?serial=S]   the unit through hidapi (hidraw); usb://VID:PID[?serial=S] through
 //     libusb, talking to its HID interface directly; can://IFACE?node=N[&fd=1] over SocketCAN.
 //     One ownership lock per unit: hid:// and usb:// to the same VID:PID:serial exclude each other.
@@ -18,14 +19,13 @@
 #include <string_view>
 
 #include "mrskin/driver/clock.hpp"
-#include "mrskin/driver/mock_device.hpp"
 #include "mrskin/driver/session.hpp"
 
 namespace mrskin {
 
 struct OpenOptions {
-  // mock:// only: true = the caller steps the mock device (deterministic, one thread);
-  // false = the mock runs on its own thread against the clock.
+  // Simulated units (mock://) only: true = the caller steps the simulation (deterministic, one
+  // thread); false = it runs on its own thread against the clock.
   bool synchronous_mock = false;
   SessionOptions session{};
 };
@@ -50,21 +50,32 @@ class DeviceLock {
   bool per_process_ = false;
 };
 
+// An in-process simulated unit behind a session (mrskin::sim's MockDevice). The driver only
+// keeps it alive; mrskin::sim::mock_of() gives it back to the simulation's users.
+class SimulatedUnit {
+ public:
+  SimulatedUnit() = default;
+  SimulatedUnit(const SimulatedUnit&) = delete;
+  SimulatedUnit& operator=(const SimulatedUnit&) = delete;
+  SimulatedUnit(SimulatedUnit&&) = delete;
+  SimulatedUnit& operator=(SimulatedUnit&&) = delete;
+  virtual ~SimulatedUnit() = default;
+};
+
 struct OpenedDevice {
   std::unique_ptr<DeviceLock> lock;  // destroyed last
   // Declared before the session so it is destroyed after it: the session's destructor
-  // still talks to it.
-  std::shared_ptr<MockDevice> mock;  // set for mock:// only
+  // still talks to it. Set for simulated units only.
+  std::shared_ptr<SimulatedUnit> simulation;
   std::unique_ptr<DeviceSession> session;
 };
 
-struct MockUri {
-  std::string profile;  // name or path as written ("" for the default)
-  MockOptions options;
-};
-// Parses a mock:// URI; throws InvalidArgument naming the bad parameter. The profile is not
-// loaded here (load_profile_with_text does that).
-MockUri parse_mock_uri(std::string_view uri);
+// Opens one URI scheme that the driver itself does not know ("mock" for mrskin::sim). The
+// SessionOptions are the caller's with MRSKIN_TIME_SCALE applied.
+using DeviceOpener = OpenedDevice (*)(std::string_view uri, Clock& clock, const OpenOptions& options,
+                                      const SessionOptions& session_options);
+// Registers (or replaces) the opener of `scheme` (without "://"). Setup only (it takes a lock).
+void register_device_scheme(std::string_view scheme, DeviceOpener opener);
 
 OpenedDevice open_device(std::string_view uri, Clock& clock, const OpenOptions& options = {});
 

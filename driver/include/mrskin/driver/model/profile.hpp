@@ -105,4 +105,18 @@ std::vector<std::string> profile_search_path();
 // The file a name resolves to; throws InvalidArgument listing where it looked.
 std::string find_profile(const std::string& name);
 
+// A device profile found by name or path, with the text it was read from.
+struct LoadedProfile {
+  DeviceProfile profile;
+  std::string text;
+  std::string path;
+};
+// name_or_path: "" or "default" (the default profile, mr-skin-5x5), a profile name looked up in
+// profile_search_path(), or a file path (containing '/' or ending in .toml). Throws
+// ProfileNotFound (listing the search path and the names found there) or InvalidArgument (a
+// file that cannot be read or parsed).
+LoadedProfile load_profile_with_text(std::string_view name_or_path);
+// The profile names (file stems) in the search path, sorted, without duplicates.
+std::vector<std::string> available_profile_names();
+
 }  // namespace mrskin::model

@@ -15,18 +15,20 @@
 #include <vector>
 
 #include "mrskin/driver/clock.hpp"
+#include "mrskin/driver/device.hpp"
+#include "mrskin/driver/force_truth.hpp"
 #include "mrskin/driver/layout.hpp"
 #include "mrskin/driver/model/device_model.hpp"
 #include "mrskin/driver/model/inverse.hpp"
 #include "mrskin/driver/model/observer.hpp"
 #include "mrskin/driver/model/profile.hpp"
-#include "mrskin/driver/plant.hpp"
 #include "mrskin/driver/session.hpp"
 #include "mrskin/driver/spsc_queue.hpp"
 #include "mrskin/driver/transport.hpp"
 #include "mrskin/protocol/messages.hpp"
+#include "mrskin/sim/plant.hpp"
 
-namespace mrskin {
+namespace mrskin::sim {
 
 // Faults the mock injects, seeded like everything else (mock://?faults=...).
 struct MockFaults {
@@ -94,21 +96,7 @@ struct MockOptions {
   double degauss_ratio = 0.85;   // amplitude ratio between half-cycles, from max_current_A
 };
 
-// A device profile found by name or path, with the text it was read from.
-struct LoadedProfile {
-  model::DeviceProfile profile;
-  std::string text;
-  std::string path;
-};
-// name_or_path: "" or "default" (the default profile, mr-skin-5x5), a profile name looked up in
-// model::profile_search_path(), or a file path (containing '/' or ending in .toml). Throws
-// ProfileNotFound (listing the search path and the names found there) or InvalidArgument (a
-// file that cannot be read or parsed).
-LoadedProfile load_profile_with_text(std::string_view name_or_path);
-// The profile names (file stems) in the search path, sorted, without duplicates.
-std::vector<std::string> available_profile_names();
-
-class MockDevice {
+class MockDevice final : public SimulatedUnit {
  public:
   // A unit built to profile, whose configuration memory holds profile_text (read back by the
   // host during the handshake) and a versioned calibration. The plant has one sensor per
@@ -121,12 +109,12 @@ class MockDevice {
   // (default: the default profile). Throws InvalidArgument naming the profile on failure.
   static std::shared_ptr<MockDevice> make(const MockOptions& options,
                                           std::string_view profile_name_or_path = "");
-  static std::shared_ptr<MockDevice> make(const MockOptions& options, const LoadedProfile& loaded);
+  static std::shared_ptr<MockDevice> make(const MockOptions& options, const model::LoadedProfile& loaded);
   MockDevice(const MockDevice&) = delete;
   MockDevice& operator=(const MockDevice&) = delete;
   MockDevice(MockDevice&&) = delete;
   MockDevice& operator=(MockDevice&&) = delete;
-  ~MockDevice();
+  ~MockDevice() override;
 
   // The host's end of the link. With synchronous == true (single-threaded tests), the
   // firmware answers requests inside the host's receive() call; telemetry and physics
@@ -285,4 +273,19 @@ class MockDevice {
   std::uint64_t noise_state_;
 };
 
-}  // namespace mrskin
+// The mock device's ground truth for the bridge's scoring: its plant's contact forces and the
+// finger it was given.
+class MockDeviceTruth final : public ForceTruth {
+ public:
+  explicit MockDeviceTruth(const MockDevice& mock) noexcept : mock_(mock) {}
+  void true_forces(std::span<double> out_N) const noexcept override { mock_.true_contact_forces(out_N); }
+  bool finger_indentation(std::span<double> out_m) const noexcept override {
+    mock_.finger_indentation(out_m);
+    return true;
+  }
+
+ private:
+  const MockDevice& mock_;
+};
+
+}  // namespace mrskin::sim

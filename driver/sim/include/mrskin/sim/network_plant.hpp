@@ -19,9 +19,9 @@
 
 #include "mrskin/driver/model/network.hpp"
 #include "mrskin/driver/model/profile.hpp"
-#include "mrskin/driver/plant.hpp"
+#include "mrskin/sim/plant.hpp"
 
-namespace mrskin {
+namespace mrskin::sim {
 
 struct NetworkPlantOptions {
   double perturbation = 0.15;  // relative half-width of the parameter spread
@@ -69,4 +69,4 @@ class NetworkPlant final : public Plant {
   std::unique_ptr<Impl> impl_;
 };
 
-}  // namespace mrskin
+}  // namespace mrskin::sim

@@ -1,4 +1,4 @@
-#include "mrskin/driver/network_plant.hpp"
+#include "mrskin/sim/network_plant.hpp"
 
 #include <algorithm>
 #include <cmath>
@@ -11,7 +11,7 @@
 #include "mrskin/driver/model/device_model.hpp"
 #include "mrskin/driver/model/magnetic.hpp"
 
-namespace mrskin {
+namespace mrskin::sim {
 
 namespace {
 
@@ -208,4 +208,4 @@ std::uint64_t NetworkPlant::failed_steps() const noexcept { return impl_->failed
 const model::DeviceProfile& NetworkPlant::true_profile() const noexcept { return impl_->truth.profile(); }
 std::span<const double> NetworkPlant::valve_yield_gain() const noexcept { return impl_->valve_gain; }
 
-}  // namespace mrskin
+}  // namespace mrskin::sim

@@ -1,4 +1,4 @@
-#include "mrskin/driver/mock_device.hpp"
+#include "mrskin/sim/mock_device.hpp"
 
 #include <fmt/format.h>
 
@@ -12,11 +12,11 @@
 
 #include "mrskin/driver/errors.hpp"
 #include "mrskin/driver/model/calibration.hpp"
-#include "mrskin/driver/network_plant.hpp"
 #include "mrskin/protocol/packet.hpp"
 #include "mrskin/protocol/units.hpp"
+#include "mrskin/sim/network_plant.hpp"
 
-namespace mrskin {
+namespace mrskin::sim {
 namespace proto = mrskin::protocol;
 
 namespace {
@@ -87,68 +87,7 @@ long calibration_version(std::span<const std::uint8_t> blob) noexcept {
   return -1;
 }
 
-bool is_path(std::string_view name) noexcept {
-  return name.find('/') != std::string_view::npos || name.ends_with(".toml");
-}
-
 }  // namespace
-
-std::vector<std::string> available_profile_names() {
-  std::set<std::string> names;
-  for (const std::string& dir : model::profile_search_path()) {
-    std::error_code ec;
-    for (const auto& entry : std::filesystem::directory_iterator(dir, ec)) {
-      if (entry.path().extension() == ".toml") {
-        names.insert(entry.path().stem().string());
-      }
-    }
-  }
-  return {names.begin(), names.end()};
-}
-
-LoadedProfile load_profile_with_text(std::string_view name_or_path) {
-  const std::string name = name_or_path.empty() || name_or_path == "default"
-                               ? std::string(model::kDefaultProfileName)
-                               : std::string(name_or_path);
-  std::string path;
-  if (is_path(name)) {
-    path = model::find_profile(name);  // InvalidArgument when unreadable
-  } else {
-    std::string looked;
-    for (const std::string& dir : model::profile_search_path()) {
-      const std::string candidate = fmt::format("{}/{}.toml", dir, name);
-      if (std::ifstream(candidate).good()) {
-        path = candidate;
-        break;
-      }
-      looked += looked.empty() ? dir : ", " + dir;
-    }
-    if (path.empty()) {
-      const std::vector<std::string> names = available_profile_names();
-      std::string list;
-      for (const std::string& n : names) {
-        list += list.empty() ? n : ", " + n;
-      }
-      throw ProfileNotFound(
-          fmt::format("device profile \"{}\" not found; searched {}; available: {}. Use one of those names "
-                      "(mock://NAME), a file path (mock:///path/to/profile.toml), or add its directory to "
-                      "MRSKIN_PROFILE_PATH",
-                      name, looked.empty() ? std::string("no directory") : looked,
-                      list.empty() ? std::string("none") : list));
-    }
-  }
-  std::ifstream in(path);
-  std::ostringstream text;
-  text << in.rdbuf();
-  if (!in.good() && !in.eof()) {
-    throw InvalidArgument("profile file " + path + " could not be read; check its permissions");
-  }
-  LoadedProfile loaded;
-  loaded.text = text.str();
-  loaded.profile = model::parse_profile(loaded.text, path);
-  loaded.path = path;
-  return loaded;
-}
 
 bool MockFaults::any() const noexcept {
   return drop_probability > 0.0 || duplicate_probability > 0.0 || corrupt_probability > 0.0 ||
@@ -307,7 +246,7 @@ MockDevice::MockDevice(const model::DeviceProfile& profile, std::string_view pro
   render_states_.assign(layout_.fluid_cell_count(), model::CellState{});
 }
 
-std::shared_ptr<MockDevice> MockDevice::make(const MockOptions& options, const LoadedProfile& loaded) {
+std::shared_ptr<MockDevice> MockDevice::make(const MockOptions& options, const model::LoadedProfile& loaded) {
   NetworkPlantOptions plant_options;
   plant_options.perturbation = options.perturbation;
   plant_options.seed = options.seed;
@@ -331,7 +270,7 @@ std::shared_ptr<MockDevice> MockDevice::make(const MockOptions& options, const L
 
 std::shared_ptr<MockDevice> MockDevice::make(const MockOptions& options,
                                              std::string_view profile_name_or_path) {
-  return make(options, load_profile_with_text(profile_name_or_path));
+  return make(options, model::load_profile_with_text(profile_name_or_path));
 }
 
 MockDevice::~MockDevice() { stop(); }
@@ -926,4 +865,4 @@ void MockDevice::step(TimePoint now) noexcept {
   flush_delayed(now);
 }
 
-}  // namespace mrskin
+}  // namespace mrskin::sim

@@ -5,7 +5,7 @@
 #include <cstddef>
 #include <span>
 
-namespace mrskin {
+namespace mrskin::sim {
 
 class Plant {
  public:
@@ -29,4 +29,4 @@ class Plant {
   virtual void contact_forces(std::span<double> out_N) const noexcept = 0;
 };
 
-}  // namespace mrskin
+}  // namespace mrskin::sim

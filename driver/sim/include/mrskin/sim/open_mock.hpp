@@ -1,0 +1,29 @@
+// Opening the simulated unit by URI (mock://, see mrskin/driver/device.hpp for the syntax):
+// this library registers the scheme with the driver when it is loaded, and
+// register_mock_scheme() does it again for a host that wants to be explicit.
+#pragma once
+
+#include <memory>
+#include <string>
+#include <string_view>
+
+#include "mrskin/driver/device.hpp"
+#include "mrskin/sim/mock_device.hpp"
+
+namespace mrskin::sim {
+
+struct MockUri {
+  std::string profile;  // name or path as written ("" for the default)
+  MockOptions options;
+};
+// Parses a mock:// URI; throws InvalidArgument naming the bad parameter. The profile is not
+// loaded here (model::load_profile_with_text does that).
+MockUri parse_mock_uri(std::string_view uri);
+
+// Makes open_device() open mock:// URIs. Idempotent.
+void register_mock_scheme();
+
+// The mock behind a device opened with mock://; null for any other device.
+std::shared_ptr<MockDevice> mock_of(const OpenedDevice& device) noexcept;
+
+}  // namespace mrskin::sim

@@ -1,0 +1,210 @@
+#include "mrskin/sim/open_mock.hpp"
+
+#include <algorithm>
+#include <charconv>
+#include <cmath>
+#include <cstdint>
+#include <string>
+
+#include "mrskin/driver/errors.hpp"
+#include "mrskin/driver/model/profile.hpp"
+
+namespace mrskin::sim {
+namespace {
+
+template <class T>
+T parse_number(std::string_view key, std::string_view text) {
+  T value{};
+  const auto* end = text.data() + text.size();
+  const auto r = std::from_chars(text.data(), end, value);
+  if (r.ec != std::errc{} || r.ptr != end) {
+    throw InvalidArgument("mock:// parameter '" + std::string(key) + "' has bad value '" + std::string(text) +
+                          "'");
+  }
+  return value;
+}
+
+// faults=drop:P,dup:P,corrupt:P,reorder:P,delay:S,disconnect:AT+FOR,stuck:N,noisy:N,offset:N,leak:V,
+//        overheat:N,busoff:AT
+MockFaults parse_faults(std::string_view list) {
+  MockFaults f;
+  while (!list.empty()) {
+    const auto comma = list.find(',');
+    const std::string_view item = list.substr(0, comma);
+    list = comma == std::string_view::npos ? std::string_view{} : list.substr(comma + 1);
+    const auto colon = item.find(':');
+    if (colon == std::string_view::npos) {
+      throw InvalidArgument("mock:// fault '" + std::string(item) + "' needs a value (name:value)");
+    }
+    const std::string_view name = item.substr(0, colon);
+    const std::string_view value = item.substr(colon + 1);
+    // An index of a sensor or valve: the unit's count is checked when the mock is built.
+    auto index = [&](std::string_view text) {
+      const int i = parse_number<int>(name, text);
+      if (i < 0 || i > 65535) {
+        throw InvalidArgument("mock:// fault '" + std::string(name) +
+                              "' names a sensor or valve index (0, 1, ...)");
+      }
+      return i;
+    };
+    // Seconds: finite, 0 to an hour.
+    auto seconds = [&](std::string_view text, bool zero_ok) {
+      const auto t = parse_number<double>(name, text);
+      if (!(std::isfinite(t) && (zero_ok ? t >= 0.0 : t > 0.0) && t <= 3600.0)) {
+        throw InvalidArgument("mock:// fault '" + std::string(name) + "' takes seconds in " +
+                              (zero_ok ? "[0, 3600]" : "(0, 3600]") + ", not '" + std::string(text) + "'");
+      }
+      return t;
+    };
+    auto probability = [&](double& out) {
+      out = parse_number<double>(name, value);
+      if (!(out >= 0.0 && out <= 1.0)) {
+        throw InvalidArgument("mock:// fault '" + std::string(name) + "' is a probability in [0, 1]");
+      }
+    };
+    if (name == "drop") {
+      probability(f.drop_probability);
+    } else if (name == "dup") {
+      probability(f.duplicate_probability);
+    } else if (name == "corrupt") {
+      probability(f.corrupt_probability);
+    } else if (name == "reorder") {
+      probability(f.reorder_probability);
+    } else if (name == "delay") {
+      f.delay_s = seconds(value, true);
+    } else if (name == "disconnect") {
+      const auto plus = value.find('+');
+      if (plus == std::string_view::npos) {
+        throw InvalidArgument("mock:// fault 'disconnect' is AT+FOR, in seconds (e.g. disconnect:2+0.5)");
+      }
+      f.disconnect_at_s = seconds(value.substr(0, plus), true);
+      f.disconnect_for_s = seconds(value.substr(plus + 1), false);
+    } else if (name == "stuck") {
+      f.stuck_sensor = index(value);
+    } else if (name == "noisy") {
+      f.noisy_sensor = index(value);
+    } else if (name == "offset") {
+      f.offset_sensor = index(value);
+    } else if (name == "overheat") {
+      const auto plus = value.find('+');
+      f.overheat_valve = index(value.substr(0, plus));
+      if (plus != std::string_view::npos) {
+        f.overheat_for_s = seconds(value.substr(plus + 1), false);
+      }
+    } else if (name == "busoff") {
+      f.bus_off_at_s = seconds(value, true);
+    } else if (name == "leak") {
+      f.leak_valve = index(value);
+    } else {
+      throw InvalidArgument("mock:// fault '" + std::string(name) +
+                            "' is unknown: use drop, dup, corrupt, reorder, delay, disconnect, stuck, noisy, "
+                            "offset, overheat, busoff or leak");
+    }
+  }
+  return f;
+}
+
+}  // namespace
+
+MockUri parse_mock_uri(std::string_view uri) {
+  MockUri parsed;
+  MockOptions& options = parsed.options;
+  constexpr std::string_view scheme = "mock://";
+  if (!uri.starts_with(scheme)) {
+    throw InvalidArgument("'" + std::string(uri) + "' is not a mock:// URI");
+  }
+  uri.remove_prefix(scheme.size());
+  const auto q = uri.find('?');
+  parsed.profile = std::string(uri.substr(0, q));
+  std::string_view query = q == std::string_view::npos ? std::string_view{} : uri.substr(q + 1);
+  while (!query.empty()) {
+    const auto amp = query.find('&');
+    const std::string_view pair = query.substr(0, amp);
+    query = amp == std::string_view::npos ? std::string_view{} : query.substr(amp + 1);
+    const auto eq = pair.find('=');
+    if (eq == std::string_view::npos) {
+      throw InvalidArgument("mock:// parameter '" + std::string(pair) + "' needs a value (key=value)");
+    }
+    const std::string_view key = pair.substr(0, eq);
+    const std::string_view value = pair.substr(eq + 1);
+    if (key == "seed") {
+      options.seed = parse_number<std::uint64_t>(key, value);
+    } else if (key == "perturbation") {
+      options.perturbation = parse_number<double>(key, value);
+      if (options.perturbation < 0.0 || options.perturbation >= 0.9) {
+        throw InvalidArgument("mock:// perturbation must be in [0, 0.9)");
+      }
+    } else if (key == "faults") {
+      options.faults = parse_faults(value);
+    } else if (key == "time_scale") {
+      options.time_scale = parse_number<double>(key, value);
+      if (!(options.time_scale >= 1.0 && options.time_scale <= 1000.0)) {
+        throw InvalidArgument("mock:// time_scale must be in [1, 1000]");
+      }
+    } else if (key == "protocol_major") {
+      const auto major = parse_number<unsigned>(key, value);
+      if (major < 1 || major > 255) {
+        throw InvalidArgument("mock:// protocol_major must be in [1, 255]");
+      }
+      options.protocol_major = static_cast<std::uint8_t>(major);
+    } else if (key == "bipolar") {
+      if (value != "0" && value != "1") {
+        throw InvalidArgument("mock:// bipolar must be 0 (a unipolar coil driver: no degauss) or 1");
+      }
+      options.bipolar_driver = value == "1";
+    } else if (key == "finger") {
+      const bool name_chars = std::all_of(value.begin(), value.end(), [](char c) {
+        return (c >= 'a' && c <= 'z') || (c >= '0' && c <= '9') || c == '_' || c == '-';
+      });
+      if (value.empty() || value.size() > 64 || !name_chars) {
+        throw InvalidArgument("mock:// finger must name a scene (mrskin-bridged --help lists them), not '" +
+                              std::string(value) + "'");
+      }
+      options.finger_scene = std::string(value);
+    } else if (key == "rows" || key == "cols") {
+      throw InvalidArgument("mock:// parameter '" + std::string(key) +
+                            "' is gone: the grid comes from the device profile; name one "
+                            "(mock://fingertip-16x16) or give a profile file (mock:///path/to/unit.toml)");
+    } else {
+      throw InvalidArgument("mock:// parameter '" + std::string(key) +
+                            "' is unknown: use seed, perturbation, faults, time_scale, bipolar, "
+                            "protocol_major or finger");
+    }
+  }
+  return parsed;
+}
+
+namespace {
+
+OpenedDevice open_mock(std::string_view uri, Clock& clock, const OpenOptions& options,
+                       const SessionOptions& session_options) {
+  MockUri parsed = parse_mock_uri(uri);
+  const model::LoadedProfile profile = model::load_profile_with_text(parsed.profile);
+  OpenedDevice opened;
+  opened.lock = std::make_unique<DeviceLock>(uri);
+  parsed.options.time_scale = std::max(parsed.options.time_scale, session_options.time_scale);
+  std::shared_ptr<MockDevice> mock = MockDevice::make(parsed.options, profile);
+  if (!options.synchronous_mock) {
+    mock->start(clock);
+  }
+  opened.session = std::make_unique<DeviceSession>(mock->connect(options.synchronous_mock, &clock), clock,
+                                                   session_options);
+  opened.simulation = std::move(mock);
+  return opened;
+}
+
+// Loading this library makes mock:// available to every open_device() of the process.
+[[maybe_unused]] const bool kRegisteredAtLoad = [] {
+  register_device_scheme("mock", &open_mock);
+  return true;
+}();
+
+}  // namespace
+
+void register_mock_scheme() { register_device_scheme("mock", &open_mock); }
+
+std::shared_ptr<MockDevice> mock_of(const OpenedDevice& device) noexcept {
+  return std::dynamic_pointer_cast<MockDevice>(device.simulation);
+}
+
+}  // namespace mrskin::sim

@@ -1,0 +1,34 @@
+#!/bin/sh
+# The simulation is a library of its own: the driver and bridge libraries define none of its
+# classes, and a console linked against mrskin::bridge alone needs no libmrskin_sim.
+# usage: library_split.sh NM READELF LIBDRIVER LIBBRIDGE LIBSIM CONSOLE
+set -eu
+nm=$1 readelf=$2 driver=$3 bridge=$4 sim=$5 console=$6
+# Classes of the simulation (defined symbols only: T, W, V, D, B, R in nm's listing).
+forbidden='mrskin::sim::|MockDevice|NetworkPlant|MockDeviceTruth|parse_mock_uri'
+status=0
+for lib in "$driver" "$bridge"; do
+  found=$("$nm" -DC --defined-only "$lib" | grep -E "$forbidden" || true)
+  if [ -n "$found" ]; then
+    echo "FAIL: $(basename "$lib") defines simulation symbols:"
+    echo "$found" | head -20
+    status=1
+  fi
+done
+if ! "$nm" -DC --defined-only "$sim" | grep -q 'mrskin::sim::MockDevice::'; then
+  echo "FAIL: $(basename "$sim") does not define mrskin::sim::MockDevice"
+  status=1
+fi
+needed=$("$readelf" -d "$console" | grep NEEDED)
+if echo "$needed" | grep -q 'libmrskin_sim'; then
+  echo "FAIL: $(basename "$console") (linked against mrskin::bridge only) needs libmrskin_sim:"
+  echo "$needed"
+  status=1
+fi
+if ! echo "$needed" | grep -q 'libmrskin_bridge'; then
+  echo "FAIL: $(basename "$console") does not need libmrskin_bridge (the check would prove nothing)"
+  status=1
+fi
+"$console" || status=1
+[ "$status" -eq 0 ] && echo "library split: driver and bridge carry no simulation; a bridge-only console needs no libmrskin_sim"
+exit "$status"
