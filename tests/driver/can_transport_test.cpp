@@ -24,10 +24,10 @@
 #include "../protocol/test_support.hpp"
 #include "counting_new.hpp"
 #include "mrskin/driver/session.hpp"
-#include "mrskin/driver/transports/can.hpp"
 #include "mrskin/protocol/can.hpp"
 #include "mrskin/protocol/packet.hpp"
 #include "mrskin/sim/mock_device.hpp"
+#include "transports/can_socket_api.hpp"
 
 namespace mrskin {
 namespace {

@@ -18,9 +18,9 @@
 #include <vector>
 
 #include "mrskin/driver/session.hpp"
-#include "mrskin/driver/transports/usb.hpp"
 #include "mrskin/protocol/packet.hpp"
 #include "mrskin/sim/mock_device.hpp"
+#include "transports/libusb_api.hpp"
 
 namespace mrskin {
 namespace {

@@ -18,9 +18,9 @@
 #include <thread>
 #include <utility>
 
+#include "can_socket_api.hpp"
 #include "event_fd.hpp"
 #include "mrskin/driver/queued_transport.hpp"
-#include "mrskin/driver/transports/can.hpp"
 
 namespace mrskin {
 namespace proto = mrskin::protocol;

@@ -14,8 +14,8 @@
 #include <thread>
 #include <utility>
 
+#include "libusb_api.hpp"
 #include "mrskin/driver/queued_transport.hpp"
-#include "mrskin/driver/transports/usb.hpp"
 #include "mrskin/protocol/packet.hpp"
 
 namespace mrskin {

@@ -3,7 +3,8 @@
 //   can://vcan0?node=5&fd=1  one CAN FD frame per packet (the interface needs MTU 72)
 // The session speaks protocol-v1 packets; CanPacketCodec turns them into frames and back
 // (docs/protocol.md, "Classic CAN" and "CAN FD"). Every socket call goes through the
-// CanSocketApi seam, so the transport's logic is tested with a fake bus.
+// CanSocketApi seam (driver/src/transports/can_socket_api.hpp, not installed), so the
+// transport's logic is tested with a fake bus.
 //
 // Back-pressure instead of ENOBUFS: the socket's send buffer is the kernel's minimum, so a
 // loaded bus makes write() wait (EAGAIN, then POLLOUT) with few frames in flight; an ENOBUFS
@@ -12,8 +13,6 @@
 // Error frames are counted; bus-off makes the state bus_off until the controller restarts.
 // An interface that goes down makes it disconnected; it reopens by itself when it is back.
 #pragma once
-
-#include <poll.h>
 
 #include <array>
 #include <cstddef>
@@ -144,42 +143,6 @@ struct CanIdFilters {
 };
 CanIdFilters can_receive_filters(CanRole role, std::uint8_t node) noexcept;
 
-// --- the OS seam -----------------------------------------------------------------------------
-// The socket calls of the transport, one virtual per call. Each returns >= 0 on success or
-// -errno (errno itself is not used), so fakes need no thread-local state. Frames are the
-// kernel's struct can_frame (CAN_MTU bytes) or struct canfd_frame (CANFD_MTU bytes).
-class CanSocketApi {
- public:
-  CanSocketApi() = default;
-  CanSocketApi(const CanSocketApi&) = delete;
-  CanSocketApi& operator=(const CanSocketApi&) = delete;
-  CanSocketApi(CanSocketApi&&) = delete;
-  CanSocketApi& operator=(CanSocketApi&&) = delete;
-  virtual ~CanSocketApi() = default;
-
-  // socket(PF_CAN, SOCK_RAW | SOCK_NONBLOCK | SOCK_CLOEXEC, CAN_RAW): a pollable descriptor.
-  virtual int open_socket() noexcept = 0;
-  virtual void close_socket(int fd) noexcept = 0;
-  // ioctl(SIOCGIFINDEX), ioctl(SIOCGIFMTU), ioctl(SIOCGIFFLAGS) for the interface name.
-  virtual int interface_index(int fd, std::string_view name) noexcept = 0;
-  virtual int interface_mtu(int fd, std::string_view name) noexcept = 0;
-  virtual int interface_flags(int fd, std::string_view name) noexcept = 0;
-  // setsockopt(fd, level, option, value, size).
-  virtual int set_option(int fd, int level, int option, std::span<const std::byte> value) noexcept = 0;
-  // bind() to a sockaddr_can of the interface index.
-  virtual int bind_interface(int fd, int ifindex) noexcept = 0;
-  // read() / write() of one frame: the bytes moved, or -errno (-EAGAIN: nothing now / full).
-  virtual long read_frame(int fd, std::span<std::byte> frame) noexcept = 0;
-  virtual long write_frame(int fd, std::span<const std::byte> frame) noexcept = 0;
-  // ppoll(): timeout < 0 waits without limit. Returns the ready count, 0 on timeout.
-  virtual int poll(std::span<pollfd> fds, Duration timeout) noexcept = 0;
-  // The interfaces of type ARPHRD_CAN (/sys/class/net/*/type == 280), sorted. Setup only.
-  virtual std::vector<std::string> can_interfaces() = 0;
-};
-
-// The kernel's SocketCAN.
-std::shared_ptr<CanSocketApi> make_system_can_api();
-
 // --- the transport -----------------------------------------------------------------------------
 struct CanTransportOptions {
   CanRole role = CanRole::host;  // device: a simulated node's end (VM tests)
@@ -201,8 +164,6 @@ struct CanTransportOptions {
 // that exist and how to create one; interface down: the command that brings it up; a kernel
 // without CAN: says so, and that modprobe can_raw loads it), PermissionDenied, Error.
 std::unique_ptr<Transport> open_can_transport(std::string_view uri, const CanTransportOptions& options = {});
-std::unique_ptr<Transport> open_can_transport(std::string_view uri, const CanTransportOptions& options,
-                                              std::shared_ptr<CanSocketApi> api);
 
 // What the CAN transport counted beyond TransportCounters. Any thread.
 struct CanTransportStats {
@@ -218,8 +179,5 @@ struct CanTransportStats {
 };
 // nullopt when transport does not come from open_can_transport().
 std::optional<CanTransportStats> can_transport_stats(const Transport& transport) noexcept;
-
-// list_can_devices() on a given seam: the interfaces api lists, each probed for nodes 1..15.
-std::vector<DeviceListing> list_can_devices(CanSocketApi& api, Duration timeout);
 
 }  // namespace mrskin
