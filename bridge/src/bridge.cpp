@@ -20,7 +20,160 @@ TissueEstimatorOptions default_estimator_options() noexcept {
   return o;
 }
 
-Bridge::Bridge(DeviceSession& session, SlaveSource& source, BridgeOptions options)
+class Bridge::Impl {
+ public:
+  // Setup: allocates everything the tick needs. Throws InvalidArgument on bad options or when
+  // the session has no profile (opened without reading the device's configuration).
+  Impl(DeviceSession& session, SlaveSource& source, BridgeOptions options);
+  Impl(const Impl&) = delete;
+  Impl& operator=(const Impl&) = delete;
+  Impl(Impl&&) = delete;
+  Impl& operator=(Impl&&) = delete;
+  ~Impl();
+
+  void set_force_truth(const ForceTruth* truth) noexcept { truth_ = truth; }
+  // Enables the device (call before the first step).
+  ResultCode enable() noexcept;
+
+  // From any thread (a control socket, a signal handler's flag): acted on at the start of the
+  // next tick. estop: zero currents sent and the device's emergency stop requested in that tick,
+  // then nothing is rendered until enable. disable: the same without the emergency stop. enable:
+  // leaves either. The strongest pending request wins (estop over disable over enable).
+  void request(Request r) noexcept;
+  // True after an estop or disable until the next enable.
+  [[nodiscard]] bool halted() const noexcept { return halted_.load(std::memory_order_acquire); }
+
+  // Between ticks, with the library's loop stopped: takes new tuning and keeps every state (the
+  // observer's depths and fluid, the tissue fit, the feedback integrals, the cells' latches), so
+  // a rate or gain change in the middle of a press renders on without a bump. Throws
+  // InvalidArgument for a value out of range (nothing changed then) or while start()ed. Setup.
+  void retune(const BridgeTuning& tuning);
+  [[nodiscard]] BridgeTuning tuning() const noexcept;
+
+  // One tick at time now. Real-time safe.
+  // Inlined into Bridge::step: the public face costs the tick no call.
+  [[gnu::always_inline]] inline ResultCode step(TimePoint now) noexcept;
+
+  // Or let the library run step() on a RealtimeLoop (bridge/loop.hpp) at rate_hz against clock.
+  // Returns the one warning when SCHED_FIFO/mlockall were refused ("" otherwise): log it.
+  // Setup: allocates.
+  std::string start(Clock& clock);
+  void stop() noexcept;
+  [[nodiscard]] bool running() const noexcept { return loop_ != nullptr && loop_->running(); }
+  // Any thread, between start() and stop(): a slave sample arrived, tick now.
+  void notify() noexcept {
+    if (loop_ != nullptr) {
+      loop_->notify();
+    }
+  }
+  // Scheduler state, wake latency, early wakes, overruns of the library's loop; after stop().
+  [[nodiscard]] const LoopStats* loop_stats() const noexcept { return loop_ ? &loop_->stats() : nullptr; }
+
+  // Statistics; read after stop() or from the tick thread. live_*() are safe from any thread.
+  [[nodiscard]] const BridgeStats& stats() const noexcept { return stats_; }
+  [[nodiscard]] std::uint64_t live_ticks() const noexcept {
+    return live_ticks_.load(std::memory_order_relaxed);
+  }
+  [[nodiscard]] double live_rms_error_N() const noexcept {
+    return live_rms_N_.load(std::memory_order_relaxed);
+  }
+  [[nodiscard]] double live_stiffness_N_per_m() const noexcept {
+    return live_stiffness_.load(std::memory_order_relaxed);
+  }
+  [[nodiscard]] std::span<const double> targets_N() const noexcept { return target_N_; }
+  [[nodiscard]] std::span<const double> currents_A() const noexcept { return current_A_; }
+  [[nodiscard]] const model::CellObserver& observer() const noexcept { return *observer_; }
+  [[nodiscard]] const model::CellInverse& inverse() const noexcept { return *inverse_; }
+  // Sensor faults: the monitor (setup data: cells_of_sensor, stuck_run_readings; its live state
+  // from the tick thread only), and the faults found, from one other thread (never blocks; a
+  // reader that falls 64 faults behind loses the oldest, the count stays in stats()).
+  [[nodiscard]] const SensorFaultMonitor& sensor_fault_monitor() const noexcept { return *sensor_faults_; }
+  bool take_sensor_fault(SensorFaultEvent& out) noexcept { return sensor_fault_events_.try_pop(out); }
+  [[nodiscard]] std::uint64_t live_sensor_faults() const noexcept {
+    return live_sensor_faults_.load(std::memory_order_relaxed);
+  }
+  [[nodiscard]] double tick_period_s() const noexcept { return 1.0 / options_.rate_hz; }
+  void set_perf_clock(const Clock* clock) noexcept { perf_clock_ = clock; }
+
+ private:
+  void update_tissue_model(TimePoint now) noexcept;
+  void compute_targets() noexcept;
+  double direction_rate(std::size_t i, bool contact, double depth_m, double rate_m_per_s) noexcept;
+  void lock_short_cells() noexcept;
+  void clamp_targets_into_envelope() noexcept;
+  [[nodiscard]] bool valves_open(std::size_t cell) const noexcept;  // every valve of the cell at ~0 A
+  bool apply_request() noexcept;                                    // true while halted
+  void release(Request r) noexcept;                                 // zero currents, disable or estop
+  void watch_sensors(TimePoint now) noexcept;
+  void score() noexcept;
+
+  DeviceSession& session_;
+  SlaveSource& source_;
+  BridgeOptions options_;
+  GridLayout layout_;
+  std::unique_ptr<model::DeviceModel> model_;
+  std::unique_ptr<model::CellObserver> observer_;
+  std::unique_ptr<model::CellInverse> inverse_;
+  const ForceTruth* truth_ = nullptr;
+  const Clock* perf_clock_ = nullptr;
+  MonotonicClock default_perf_clock_;
+  std::vector<model::CellImpedanceTarget> targets_;
+  std::vector<model::CellState> states_;
+  std::vector<double> target_N_;            // tissue law clamped into this tick's envelope (loaded cells)
+  std::vector<double> tissue_N_;            // tissue law at the cell's state
+  std::vector<double> feedback_N_;          // integral correction per cell
+  std::vector<unsigned char> unloading_;    // per cell: latched release (direction_rate)
+  std::vector<unsigned char> loading_;      // per cell: latched loading (direction_rate)
+  std::vector<double> extreme_m_;           // per cell: peak depth while loaded, trough while unloading
+  std::vector<double> smooth_depth_m_;      // per cell: depth smoothed for the unloading latch
+  std::vector<unsigned char> below_floor_;  // per cell: target below the observed open-valve floor
+  double unload_filter_alpha_ = 1.0;
+  std::vector<double> current_A_;
+  std::vector<double> valve_gain_;      // calibrated per-valve yield gain
+  std::vector<double> sensor_offset_;   // calibrated zero per sensor, the sensors' SI unit
+  std::vector<double> sensor_reading_;  // this tick's readings less their zero
+  std::vector<double> sent_A_;          // currents last sent
+  std::unique_ptr<SensorFaultMonitor> sensor_faults_;
+  SpscQueue<SensorFaultEvent> sensor_fault_events_{64};
+  std::atomic<std::uint64_t> live_sensor_faults_{0};
+  std::uint64_t telemetry_seen_ = 0;  // the session's telemetry count at the last tick
+  std::uint64_t link_gaps_seen_ = 0;  // ...and its timeouts and reconnects
+  bool watched_last_tick_ = false;    // false: a gap (halted, observer error) before this tick
+  bool sensor_halt_ = false;          // a cell has no healthy sensor: no enable
+  TimePoint last_send_{};
+  bool ever_sent_ = false;
+  std::atomic<unsigned char> pending_request_{0};
+  std::atomic<bool> halted_{false};
+  std::vector<double> truth_N_;
+  std::vector<double> finger_m_;                 // the truth's finger this tick...
+  std::vector<double> finger_prev_m_;            // ...and last tick
+  std::vector<int> finger_still_ticks_;          // per cell: ticks the true finger has not moved
+  std::vector<unsigned char> finger_retreated_;  // per cell: its last move was out
+  static constexpr int kStillTicks = 5;          // still this long after a retreat: holding
+  SlaveSample slave_{};
+  bool fresh_sample_ = false;  // this tick consumed a new slave sample
+  TimePoint fresh_arrival_{};
+  static constexpr double kReferenceDepth_m = 4e-3;  // live stiffness is reported at this depth
+  // A valve below this fraction of full current yields next to nothing: it counts as open.
+  static constexpr double kOpenValveFraction = 0.02;
+  std::unique_ptr<TissueEstimator> estimator_;
+  TissueEstimate estimate_{};
+  std::vector<TissueModel> cell_model_;            // per cell: the tissue mapped onto it
+  std::vector<unsigned char> cell_mapped_;         // ...once the instrument has been over it
+  std::vector<PassiveTissueUpdate> cell_law_;      // per cell: the law rendered, changed passively
+  std::vector<PassivityObserver> cell_passivity_;  // per cell: energy at the rendered port
+  std::vector<unsigned char> port_open_;           // ...while the finger is in the cell
+  TimePoint start_{};
+  bool started_ = false;
+  BridgeStats stats_;
+  std::atomic<std::uint64_t> live_ticks_{0};
+  std::atomic<double> live_rms_N_{0.0};
+  std::atomic<double> live_stiffness_{0.0};
+  Clock* loop_clock_ = nullptr;
+  std::unique_ptr<RealtimeLoop> loop_;  // last: destroyed (stopped) first
+};
+
+Bridge::Impl::Impl(DeviceSession& session, SlaveSource& source, BridgeOptions options)
     : session_(session),
       source_(source),
       options_(options),
@@ -93,11 +246,11 @@ Bridge::Bridge(DeviceSession& session, SlaveSource& source, BridgeOptions option
   sent_A_.assign(layout_.valve_count(), 0.0);
 }
 
-Bridge::~Bridge() { stop(); }
+Bridge::Impl::~Impl() { stop(); }
 
-ResultCode Bridge::enable() noexcept { return session_.request_enable(); }
+ResultCode Bridge::Impl::enable() noexcept { return session_.request_enable(); }
 
-void Bridge::request(Request r) noexcept {
+void Bridge::Impl::request(Request r) noexcept {
   auto wanted = static_cast<unsigned char>(r);
   unsigned char pending = pending_request_.load(std::memory_order_relaxed);
   while (wanted > pending &&
@@ -105,7 +258,7 @@ void Bridge::request(Request r) noexcept {
   }
 }
 
-void Bridge::release(Request r) noexcept {
+void Bridge::Impl::release(Request r) noexcept {
   std::fill(current_A_.begin(), current_A_.end(), 0.0);
   (void)session_.send_valve_currents(current_A_);  // released in this tick, whatever the state
   std::copy(current_A_.begin(), current_A_.end(), sent_A_.begin());
@@ -114,7 +267,7 @@ void Bridge::release(Request r) noexcept {
   halted_.store(true, std::memory_order_release);
 }
 
-bool Bridge::apply_request() noexcept {
+bool Bridge::Impl::apply_request() noexcept {
   const auto r = static_cast<Request>(pending_request_.exchange(0, std::memory_order_acq_rel));
   if (r == Request::estop || r == Request::disable) {
     release(r);
@@ -126,7 +279,7 @@ bool Bridge::apply_request() noexcept {
 }
 
 // Fresh telemetry only: a tick that read nothing new must not count as a repeated reading.
-void Bridge::watch_sensors(TimePoint now) noexcept {
+void Bridge::Impl::watch_sensors(TimePoint now) noexcept {
   const SessionCounters& link = session_.counters();
   const std::uint64_t gaps = link.telemetry_timeouts + link.reconnects;
   if (!watched_last_tick_ || gaps != link_gaps_seen_) {
@@ -160,7 +313,7 @@ void Bridge::watch_sensors(TimePoint now) noexcept {
   }
 }
 
-void Bridge::update_tissue_model(TimePoint now) noexcept {
+void Bridge::Impl::update_tissue_model(TimePoint now) noexcept {
   // Model-mediated rendering: the slave stream updates the online tissue estimate, and the cells
   // under the mapped contact point take it; the stale policy (hold, then fade to released) is the
   // estimator's.
@@ -206,7 +359,8 @@ void Bridge::update_tissue_model(TimePoint now) noexcept {
                         std::memory_order_relaxed);
 }
 
-double Bridge::direction_rate(std::size_t i, bool contact, double depth_m, double rate_m_per_s) noexcept {
+double Bridge::Impl::direction_rate(std::size_t i, bool contact, double depth_m,
+                                    double rate_m_per_s) noexcept {
   // Hysteresis in position, not in rate: the observer's rate noise (~0.5 mm/s RMS) must neither
   // release a held press nor re-hold a release that is under way. A cell unloads once its depth
   // has fallen retreat_m below its peak, and loads again once it has risen retreat_m above its
@@ -252,7 +406,7 @@ double Bridge::direction_rate(std::size_t i, bool contact, double depth_m, doubl
   return 0.0;
 }
 
-void Bridge::compute_targets() noexcept {
+void Bridge::Impl::compute_targets() noexcept {
   const double dt = 1.0 / options_.rate_hz;
   const std::span<const double> depth_m = observer_->indentation_m();
   const std::span<const double> rate_m_per_s = observer_->velocity_m_per_s();
@@ -320,7 +474,7 @@ void Bridge::compute_targets() noexcept {
   }
 }
 
-void Bridge::lock_short_cells() noexcept {
+void Bridge::Impl::lock_short_cells() noexcept {
   // Semi-active: a loaded cell that wants more than the quasi-static envelope allows (or more
   // than it has yet, below) gains nothing from open valves and loses fluid through them. Its valves hold at
   // least the threshold of the force it asked for (p = (F - F_membrane) / A_eff across the two passages of a
@@ -358,13 +512,13 @@ void Bridge::lock_short_cells() noexcept {
   }
 }
 
-bool Bridge::valves_open(std::size_t cell) const noexcept {
+bool Bridge::Impl::valves_open(std::size_t cell) const noexcept {
   const double open_A = kOpenValveFraction * session_.info().max_current_A;
   return std::ranges::all_of(layout_.valves_of_cell(cell),
                              [&](std::size_t v) { return current_A_[v] <= open_A; });
 }
 
-void Bridge::clamp_targets_into_envelope() noexcept {
+void Bridge::Impl::clamp_targets_into_envelope() noexcept {
   // Scored against the role and envelope of this tick's solve: a cell that just turned to
   // holding is scored on its hold target, never on last tick's release.
   const std::span<const model::CellSolution> cells = inverse_->cells();
@@ -388,7 +542,7 @@ void Bridge::clamp_targets_into_envelope() noexcept {
   }
 }
 
-void Bridge::score() noexcept {
+void Bridge::Impl::score() noexcept {
   const double dt = 1.0 / options_.rate_hz;
   const std::span<const model::CellSolution> cells = inverse_->cells();
   const std::span<const double> force_N = observer_->force_N();
@@ -482,7 +636,7 @@ void Bridge::score() noexcept {
   live_rms_N_.store(stats_.force_rms_error_N(), std::memory_order_relaxed);
 }
 
-ResultCode Bridge::step(TimePoint now) noexcept {
+ResultCode Bridge::Impl::step(TimePoint now) noexcept {
   const Clock& perf = perf_clock_ != nullptr ? *perf_clock_ : default_perf_clock_;
   const TimePoint t0 = perf.now();
   ResultCode rc = session_.poll(now);
@@ -590,7 +744,7 @@ void apply_tuning(const BridgeTuning& t, BridgeOptions& o) noexcept {
   o.rt_priority = t.rt_priority;
 }
 
-BridgeTuning Bridge::tuning() const noexcept {
+BridgeTuning Bridge::Impl::tuning() const noexcept {
   BridgeTuning t;
   t.rate_hz = options_.rate_hz;
   t.feedback_gain_per_s = options_.feedback_gain_per_s;
@@ -604,7 +758,7 @@ BridgeTuning Bridge::tuning() const noexcept {
   return t;
 }
 
-void Bridge::retune(const BridgeTuning& t) {
+void Bridge::Impl::retune(const BridgeTuning& t) {
   if (running()) {
     throw InvalidArgument("retune the bridge between ticks: stop() its loop first");
   }
@@ -631,7 +785,7 @@ void Bridge::retune(const BridgeTuning& t) {
   unload_filter_alpha_ = 1.0 - std::exp(-1.0 / (options_.rate_hz * std::max(options_.unload_filter_s, 1e-9)));
 }
 
-std::string Bridge::start(Clock& clock) {
+std::string Bridge::Impl::start(Clock& clock) {
   if (running()) {
     return {};
   }
@@ -641,19 +795,54 @@ std::string Bridge::start(Clock& clock) {
     lo.realtime = options_.realtime;
     lo.priority = options_.rt_priority;
     loop_ = std::make_unique<RealtimeLoop>(
-        clock, [](void* self, TimePoint now) noexcept { return static_cast<Bridge*>(self)->step(now); }, this,
+        clock, [](void* self, TimePoint now) noexcept { return static_cast<Impl*>(self)->step(now); }, this,
         lo);
     loop_clock_ = &clock;
   }
   return loop_->start();
 }
 
-void Bridge::stop() noexcept {
+void Bridge::Impl::stop() noexcept {
   if (loop_ == nullptr || !loop_->running()) {
     return;
   }
   loop_->stop();
   stats_.skipped_periods += loop_->stats().skipped_periods;
 }
+
+// --- the public face: one pointer to the state ---------------------------------------------
+
+Bridge::Bridge(DeviceSession& session, SlaveSource& source, BridgeOptions options)
+    : impl_(std::make_unique<Impl>(session, source, std::move(options))) {}
+Bridge::~Bridge() = default;
+void Bridge::set_force_truth(const ForceTruth* truth) noexcept { impl_->set_force_truth(truth); }
+ResultCode Bridge::enable() noexcept { return impl_->enable(); }
+void Bridge::request(Request r) noexcept { impl_->request(r); }
+bool Bridge::halted() const noexcept { return impl_->halted(); }
+void Bridge::retune(const BridgeTuning& tuning) { impl_->retune(tuning); }
+BridgeTuning Bridge::tuning() const noexcept { return impl_->tuning(); }
+ResultCode Bridge::step(TimePoint now) noexcept { return impl_->step(now); }
+std::string Bridge::start(Clock& clock) { return impl_->start(clock); }
+void Bridge::stop() noexcept { impl_->stop(); }
+bool Bridge::running() const noexcept { return impl_->running(); }
+void Bridge::notify() noexcept { impl_->notify(); }
+const LoopStats* Bridge::loop_stats() const noexcept { return impl_->loop_stats(); }
+const BridgeStats& Bridge::stats() const noexcept { return impl_->stats(); }
+std::uint64_t Bridge::live_ticks() const noexcept { return impl_->live_ticks(); }
+double Bridge::live_rms_error_N() const noexcept { return impl_->live_rms_error_N(); }
+double Bridge::live_stiffness_N_per_m() const noexcept { return impl_->live_stiffness_N_per_m(); }
+std::span<const double> Bridge::targets_N() const noexcept { return impl_->targets_N(); }
+std::span<const double> Bridge::currents_A() const noexcept { return impl_->currents_A(); }
+const model::CellObserver& Bridge::observer() const noexcept { return impl_->observer(); }
+const model::CellInverse& Bridge::inverse() const noexcept { return impl_->inverse(); }
+const SensorFaultMonitor& Bridge::sensor_fault_monitor() const noexcept {
+  return impl_->sensor_fault_monitor();
+}
+bool Bridge::take_sensor_fault(SensorFaultEvent& out) noexcept { return impl_->take_sensor_fault(out); }
+std::uint64_t Bridge::live_sensor_faults() const noexcept { return impl_->live_sensor_faults(); }
+double Bridge::tick_period_s() const noexcept { return impl_->tick_period_s(); }
+void Bridge::set_perf_clock(const Clock* clock) noexcept { impl_->set_perf_clock(clock); }
+
+static_assert(sizeof(Bridge) == sizeof(void*), "Bridge is one pointer: its state lives in Bridge::Impl");
 
 }  // namespace mrskin::bridge

@@ -127,7 +127,7 @@ class Bridge {
   Bridge& operator=(Bridge&&) = delete;
   ~Bridge();
 
-  void set_force_truth(const ForceTruth* truth) noexcept { truth_ = truth; }
+  void set_force_truth(const ForceTruth* truth) noexcept;
   // Enables the device (call before the first step).
   ResultCode enable() noexcept;
 
@@ -138,7 +138,7 @@ class Bridge {
   enum class Request : unsigned char { none = 0, enable = 1, disable = 2, estop = 3 };
   void request(Request r) noexcept;
   // True after an estop or disable until the next enable.
-  [[nodiscard]] bool halted() const noexcept { return halted_.load(std::memory_order_acquire); }
+  [[nodiscard]] bool halted() const noexcept;
 
   // Between ticks, with the library's loop stopped: takes new tuning and keeps every state (the
   // observer's depths and fluid, the tissue fit, the feedback integrals, the cells' latches), so
@@ -155,118 +155,35 @@ class Bridge {
   // Setup: allocates.
   std::string start(Clock& clock);
   void stop() noexcept;
-  [[nodiscard]] bool running() const noexcept { return loop_ != nullptr && loop_->running(); }
+  [[nodiscard]] bool running() const noexcept;
   // Any thread, between start() and stop(): a slave sample arrived, tick now.
-  void notify() noexcept {
-    if (loop_ != nullptr) {
-      loop_->notify();
-    }
-  }
+  void notify() noexcept;
   // Scheduler state, wake latency, early wakes, overruns of the library's loop; after stop().
-  [[nodiscard]] const LoopStats* loop_stats() const noexcept { return loop_ ? &loop_->stats() : nullptr; }
+  [[nodiscard]] const LoopStats* loop_stats() const noexcept;
 
   // Statistics; read after stop() or from the tick thread. live_*() are safe from any thread.
-  [[nodiscard]] const BridgeStats& stats() const noexcept { return stats_; }
-  [[nodiscard]] std::uint64_t live_ticks() const noexcept {
-    return live_ticks_.load(std::memory_order_relaxed);
-  }
-  [[nodiscard]] double live_rms_error_N() const noexcept {
-    return live_rms_N_.load(std::memory_order_relaxed);
-  }
-  [[nodiscard]] double live_stiffness_N_per_m() const noexcept {
-    return live_stiffness_.load(std::memory_order_relaxed);
-  }
-  [[nodiscard]] std::span<const double> targets_N() const noexcept { return target_N_; }
-  [[nodiscard]] std::span<const double> currents_A() const noexcept { return current_A_; }
-  [[nodiscard]] const model::CellObserver& observer() const noexcept { return *observer_; }
-  [[nodiscard]] const model::CellInverse& inverse() const noexcept { return *inverse_; }
+  [[nodiscard]] const BridgeStats& stats() const noexcept;
+  [[nodiscard]] std::uint64_t live_ticks() const noexcept;
+  [[nodiscard]] double live_rms_error_N() const noexcept;
+  [[nodiscard]] double live_stiffness_N_per_m() const noexcept;
+  [[nodiscard]] std::span<const double> targets_N() const noexcept;
+  [[nodiscard]] std::span<const double> currents_A() const noexcept;
+  [[nodiscard]] const model::CellObserver& observer() const noexcept;
+  [[nodiscard]] const model::CellInverse& inverse() const noexcept;
   // Sensor faults: the monitor (setup data: cells_of_sensor, stuck_run_readings; its live state
   // from the tick thread only), and the faults found, from one other thread (never blocks; a
   // reader that falls 64 faults behind loses the oldest, the count stays in stats()).
-  [[nodiscard]] const SensorFaultMonitor& sensor_fault_monitor() const noexcept { return *sensor_faults_; }
-  bool take_sensor_fault(SensorFaultEvent& out) noexcept { return sensor_fault_events_.try_pop(out); }
-  [[nodiscard]] std::uint64_t live_sensor_faults() const noexcept {
-    return live_sensor_faults_.load(std::memory_order_relaxed);
-  }
-  [[nodiscard]] double tick_period_s() const noexcept { return 1.0 / options_.rate_hz; }
-  void set_perf_clock(const Clock* clock) noexcept { perf_clock_ = clock; }
+  [[nodiscard]] const SensorFaultMonitor& sensor_fault_monitor() const noexcept;
+  bool take_sensor_fault(SensorFaultEvent& out) noexcept;
+  [[nodiscard]] std::uint64_t live_sensor_faults() const noexcept;
+  [[nodiscard]] double tick_period_s() const noexcept;
+  void set_perf_clock(const Clock* clock) noexcept;
 
  private:
-  void update_tissue_model(TimePoint now) noexcept;
-  void compute_targets() noexcept;
-  double direction_rate(std::size_t i, bool contact, double depth_m, double rate_m_per_s) noexcept;
-  void lock_short_cells() noexcept;
-  void clamp_targets_into_envelope() noexcept;
-  [[nodiscard]] bool valves_open(std::size_t cell) const noexcept;  // every valve of the cell at ~0 A
-  bool apply_request() noexcept;                                    // true while halted
-  void release(Request r) noexcept;                                 // zero currents, disable or estop
-  void watch_sensors(TimePoint now) noexcept;
-  void score() noexcept;
-
-  DeviceSession& session_;
-  SlaveSource& source_;
-  BridgeOptions options_;
-  GridLayout layout_;
-  std::unique_ptr<model::DeviceModel> model_;
-  std::unique_ptr<model::CellObserver> observer_;
-  std::unique_ptr<model::CellInverse> inverse_;
-  const ForceTruth* truth_ = nullptr;
-  const Clock* perf_clock_ = nullptr;
-  MonotonicClock default_perf_clock_;
-  std::vector<model::CellImpedanceTarget> targets_;
-  std::vector<model::CellState> states_;
-  std::vector<double> target_N_;            // tissue law clamped into this tick's envelope (loaded cells)
-  std::vector<double> tissue_N_;            // tissue law at the cell's state
-  std::vector<double> feedback_N_;          // integral correction per cell
-  std::vector<unsigned char> unloading_;    // per cell: latched release (direction_rate)
-  std::vector<unsigned char> loading_;      // per cell: latched loading (direction_rate)
-  std::vector<double> extreme_m_;           // per cell: peak depth while loaded, trough while unloading
-  std::vector<double> smooth_depth_m_;      // per cell: depth smoothed for the unloading latch
-  std::vector<unsigned char> below_floor_;  // per cell: target below the observed open-valve floor
-  double unload_filter_alpha_ = 1.0;
-  std::vector<double> current_A_;
-  std::vector<double> valve_gain_;      // calibrated per-valve yield gain
-  std::vector<double> sensor_offset_;   // calibrated zero per sensor, the sensors' SI unit
-  std::vector<double> sensor_reading_;  // this tick's readings less their zero
-  std::vector<double> sent_A_;          // currents last sent
-  std::unique_ptr<SensorFaultMonitor> sensor_faults_;
-  SpscQueue<SensorFaultEvent> sensor_fault_events_{64};
-  std::atomic<std::uint64_t> live_sensor_faults_{0};
-  std::uint64_t telemetry_seen_ = 0;  // the session's telemetry count at the last tick
-  std::uint64_t link_gaps_seen_ = 0;  // ...and its timeouts and reconnects
-  bool watched_last_tick_ = false;    // false: a gap (halted, observer error) before this tick
-  bool sensor_halt_ = false;          // a cell has no healthy sensor: no enable
-  TimePoint last_send_{};
-  bool ever_sent_ = false;
-  std::atomic<unsigned char> pending_request_{0};
-  std::atomic<bool> halted_{false};
-  std::vector<double> truth_N_;
-  std::vector<double> finger_m_;                 // the truth's finger this tick...
-  std::vector<double> finger_prev_m_;            // ...and last tick
-  std::vector<int> finger_still_ticks_;          // per cell: ticks the true finger has not moved
-  std::vector<unsigned char> finger_retreated_;  // per cell: its last move was out
-  static constexpr int kStillTicks = 5;          // still this long after a retreat: holding
-  SlaveSample slave_{};
-  bool fresh_sample_ = false;  // this tick consumed a new slave sample
-  TimePoint fresh_arrival_{};
-  static constexpr double kReferenceDepth_m = 4e-3;  // live stiffness is reported at this depth
-  // A valve below this fraction of full current yields next to nothing: it counts as open.
-  static constexpr double kOpenValveFraction = 0.02;
-  std::unique_ptr<TissueEstimator> estimator_;
-  TissueEstimate estimate_{};
-  std::vector<TissueModel> cell_model_;            // per cell: the tissue mapped onto it
-  std::vector<unsigned char> cell_mapped_;         // ...once the instrument has been over it
-  std::vector<PassiveTissueUpdate> cell_law_;      // per cell: the law rendered, changed passively
-  std::vector<PassivityObserver> cell_passivity_;  // per cell: energy at the rendered port
-  std::vector<unsigned char> port_open_;           // ...while the finger is in the cell
-  TimePoint start_{};
-  bool started_ = false;
-  BridgeStats stats_;
-  std::atomic<std::uint64_t> live_ticks_{0};
-  std::atomic<double> live_rms_N_{0.0};
-  std::atomic<double> live_stiffness_{0.0};
-  Clock* loop_clock_ = nullptr;
-  std::unique_ptr<RealtimeLoop> loop_;  // last: destroyed (stopped) first
+  // Everything else lives behind one pointer: a console linked against this header keeps its
+  // ABI when the tick's state changes (docs/api.md, "ABI").
+  class Impl;
+  std::unique_ptr<Impl> impl_;
 };
 
 }  // namespace mrskin::bridge
