@@ -22,54 +22,30 @@ TissueEstimatorOptions default_estimator_options() noexcept {
 
 class Bridge::Impl {
  public:
-  // Setup: allocates everything the tick needs. Throws InvalidArgument on bad options or when
-  // the session has no profile (opened without reading the device's configuration).
+  // The public functions, as documented in bridge.hpp (they forward here).
   Impl(DeviceSession& session, SlaveSource& source, BridgeOptions options);
   Impl(const Impl&) = delete;
   Impl& operator=(const Impl&) = delete;
   Impl(Impl&&) = delete;
   Impl& operator=(Impl&&) = delete;
   ~Impl();
-
   void set_force_truth(const ForceTruth* truth) noexcept { truth_ = truth; }
-  // Enables the device (call before the first step).
   ResultCode enable() noexcept;
-
-  // From any thread (a control socket, a signal handler's flag): acted on at the start of the
-  // next tick. estop: zero currents sent and the device's emergency stop requested in that tick,
-  // then nothing is rendered until enable. disable: the same without the emergency stop. enable:
-  // leaves either. The strongest pending request wins (estop over disable over enable).
   void request(Request r) noexcept;
-  // True after an estop or disable until the next enable.
   [[nodiscard]] bool halted() const noexcept { return halted_.load(std::memory_order_acquire); }
-
-  // Between ticks, with the library's loop stopped: takes new tuning and keeps every state (the
-  // observer's depths and fluid, the tissue fit, the feedback integrals, the cells' latches), so
-  // a rate or gain change in the middle of a press renders on without a bump. Throws
-  // InvalidArgument for a value out of range (nothing changed then) or while start()ed. Setup.
   void retune(const BridgeTuning& tuning);
   [[nodiscard]] BridgeTuning tuning() const noexcept;
-
-  // One tick at time now. Real-time safe.
-  // Inlined into Bridge::step: the public face costs the tick no call.
+  // The tick's calls: inlined into the public functions, so the pointer costs no call.
   [[gnu::always_inline]] inline ResultCode step(TimePoint now) noexcept;
-
-  // Or let the library run step() on a RealtimeLoop (bridge/loop.hpp) at rate_hz against clock.
-  // Returns the one warning when SCHED_FIFO/mlockall were refused ("" otherwise): log it.
-  // Setup: allocates.
   std::string start(Clock& clock);
   void stop() noexcept;
   [[nodiscard]] bool running() const noexcept { return loop_ != nullptr && loop_->running(); }
-  // Any thread, between start() and stop(): a slave sample arrived, tick now.
   void notify() noexcept {
     if (loop_ != nullptr) {
       loop_->notify();
     }
   }
-  // Scheduler state, wake latency, early wakes, overruns of the library's loop; after stop().
   [[nodiscard]] const LoopStats* loop_stats() const noexcept { return loop_ ? &loop_->stats() : nullptr; }
-
-  // Statistics; read after stop() or from the tick thread. live_*() are safe from any thread.
   [[nodiscard]] const BridgeStats& stats() const noexcept { return stats_; }
   [[nodiscard]] std::uint64_t live_ticks() const noexcept {
     return live_ticks_.load(std::memory_order_relaxed);
@@ -84,9 +60,6 @@ class Bridge::Impl {
   [[nodiscard]] std::span<const double> currents_A() const noexcept { return current_A_; }
   [[nodiscard]] const model::CellObserver& observer() const noexcept { return *observer_; }
   [[nodiscard]] const model::CellInverse& inverse() const noexcept { return *inverse_; }
-  // Sensor faults: the monitor (setup data: cells_of_sensor, stuck_run_readings; its live state
-  // from the tick thread only), and the faults found, from one other thread (never blocks; a
-  // reader that falls 64 faults behind loses the oldest, the count stays in stats()).
   [[nodiscard]] const SensorFaultMonitor& sensor_fault_monitor() const noexcept { return *sensor_faults_; }
   bool take_sensor_fault(SensorFaultEvent& out) noexcept { return sensor_fault_events_.try_pop(out); }
   [[nodiscard]] std::uint64_t live_sensor_faults() const noexcept {
@@ -111,6 +84,8 @@ class Bridge::Impl {
   SlaveSource& source_;
   BridgeOptions options_;
   GridLayout layout_;
+  // The unit's current limit, A: its Identity's, which a reconnect to the same unit keeps.
+  double max_current_A_ = 0.0;
   std::unique_ptr<model::DeviceModel> model_;
   std::unique_ptr<model::CellObserver> observer_;
   std::unique_ptr<model::CellInverse> inverse_;
@@ -177,7 +152,8 @@ Bridge::Impl::Impl(DeviceSession& session, SlaveSource& source, BridgeOptions op
     : session_(session),
       source_(source),
       options_(options),
-      layout_(session.info().rows, session.info().cols) {
+      layout_(session.info().rows, session.info().cols),
+      max_current_A_(session.info().max_current_A) {
   if (!(options_.rate_hz >= 1.0 && options_.rate_hz <= 20000.0)) {
     throw InvalidArgument("bridge rate " + std::to_string(options_.rate_hz) + " Hz is outside 1..20000 Hz");
   }
@@ -506,14 +482,14 @@ void Bridge::Impl::lock_short_cells() noexcept {
     const double yield_Pa = std::max(0.0, pressure_Pa) / (2.0 * per_passage_Pa_per_Pa);
     for (const std::size_t v : layout_.valves_of_cell(i)) {
       const model::Result<double> lock_A = inverse_->current_for_yield_stress_A(yield_Pa / valve_gain_[v]);
-      const double current_A = lock_A.ok() ? lock_A.value : session_.info().max_current_A;
-      current_A_[v] = std::max(current_A_[v], std::min(current_A, session_.info().max_current_A));
+      const double current_A = lock_A.ok() ? lock_A.value : max_current_A_;
+      current_A_[v] = std::max(current_A_[v], std::min(current_A, max_current_A_));
     }
   }
 }
 
 bool Bridge::Impl::valves_open(std::size_t cell) const noexcept {
-  const double open_A = kOpenValveFraction * session_.info().max_current_A;
+  const double open_A = kOpenValveFraction * max_current_A_;
   return std::ranges::all_of(layout_.valves_of_cell(cell),
                              [&](std::size_t v) { return current_A_[v] <= open_A; });
 }
@@ -655,7 +631,8 @@ ResultCode Bridge::Impl::step(TimePoint now) noexcept {
   }
   const double dt = 1.0 / options_.rate_hz;
   const std::span<const double> raw = session_.sensors();
-  for (std::size_t k = 0; k < sensor_reading_.size() && k < raw.size(); ++k) {
+  const std::size_t readings = std::min(sensor_reading_.size(), raw.size());
+  for (std::size_t k = 0; k < readings; ++k) {
     sensor_reading_[k] = raw[k] - sensor_offset_[k];
   }
   if (observer_->update(sensor_reading_, current_A_, dt) != model::Status::ok) {
@@ -681,8 +658,8 @@ ResultCode Bridge::Impl::step(TimePoint now) noexcept {
       // both accuracy figures with this, 57 without (docs/bridge.md).
       for (std::size_t v = 0; v < current_A_.size(); ++v) {
         if (current_A_[v] > 0.0) {
-          current_A_[v] = std::min(observer_->hysteresis_compensated_current_A(v, current_A_[v]),
-                                   session_.info().max_current_A);
+          current_A_[v] =
+              std::min(observer_->hysteresis_compensated_current_A(v, current_A_[v]), max_current_A_);
         }
       }
     }
@@ -694,12 +671,14 @@ ResultCode Bridge::Impl::step(TimePoint now) noexcept {
   } else {
     ++stats_.inverse_errors;  // the last good currents stand
   }
-  for (const double a : current_A_) {
-    stats_.max_current_A = std::max(stats_.max_current_A, a);
-  }
   // Unchanged currents are not sent again until the refresh period: a hold, or a skin nobody
   // touches, costs no bus traffic (the device's watchdog runs on the session's heartbeat).
   const bool changed = !std::equal(current_A_.begin(), current_A_.end(), sent_A_.begin());
+  if (changed) {  // unchanged currents are the ones sent, counted when they changed
+    for (const double a : current_A_) {
+      stats_.max_current_A = std::max(stats_.max_current_A, a);
+    }
+  }
   const bool due = now - last_send_ >= from_seconds(options_.resend_period_s);
   ResultCode sent = ResultCode::ok;
   if (changed || due || !ever_sent_) {

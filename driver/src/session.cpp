@@ -9,9 +9,15 @@
 #include "mrskin/driver/layout.hpp"
 #include "mrskin/protocol/packet.hpp"
 #include "mrskin/protocol/units.hpp"
+#include "session_impl.hpp"
+#include "session_names.hpp"
 
 namespace mrskin {
 namespace proto = mrskin::protocol;
+using session_names::config_key_name;
+using session_names::config_status_name;
+using session_names::quantity_name;
+using session_names::quantity_unit;
 
 namespace {
 constexpr std::size_t kConfigWindow = 16;  // configuration chunks in flight
@@ -20,76 +26,11 @@ Duration scaled(Duration d, double scale) noexcept {
   return Duration{static_cast<Duration::rep>(static_cast<double>(d.count()) * scale)};
 }
 
-const char* quantity_name(std::uint8_t q) noexcept {
-  switch (static_cast<proto::SensorQuantity>(q)) {
-    case proto::SensorQuantity::displacement_m:
-      return "displacement";
-    case proto::SensorQuantity::force_N:
-      return "force";
-    case proto::SensorQuantity::pressure_Pa:
-      return "pressure";
-  }
-  return "unknown";
-}
-const char* quantity_unit(std::uint8_t q) noexcept {
-  switch (static_cast<proto::SensorQuantity>(q)) {
-    case proto::SensorQuantity::displacement_m:
-      return "m";
-    case proto::SensorQuantity::force_N:
-      return "N";
-    case proto::SensorQuantity::pressure_Pa:
-      return "Pa";
-  }
-  return "?";
-}
-
 std::uint16_t clamp_counts(double value, double lsb, std::uint16_t max_counts) noexcept {
   if (!(value > 0.0)) {
     return 0;  // also NaN
   }
   return static_cast<std::uint16_t>(std::min(std::nearbyint(value / lsb), static_cast<double>(max_counts)));
-}
-
-const char* request_name(std::uint8_t r) noexcept {
-  switch (static_cast<proto::StateRequestCode>(r)) {
-    case proto::StateRequestCode::disable:
-      return "disable";
-    case proto::StateRequestCode::enable:
-      return "enable";
-    case proto::StateRequestCode::pause:
-      return "pause";
-    case proto::StateRequestCode::estop:
-      return "e-stop";
-    case proto::StateRequestCode::degauss:
-      return "degauss";
-  }
-  return "unknown";
-}
-
-const char* config_key_name(std::uint16_t key) noexcept {
-  switch (static_cast<proto::ConfigKey>(key)) {
-    case proto::ConfigKey::profile:
-      return "profile";
-    case proto::ConfigKey::calibration:
-      return "calibration";
-  }
-  return "unknown key";
-}
-
-const char* config_status_name(std::uint8_t s) noexcept {
-  switch (static_cast<proto::ConfigStatus>(s)) {
-    case proto::ConfigStatus::ok:
-      return "ok";
-    case proto::ConfigStatus::bad_key:
-      return "bad key";
-    case proto::ConfigStatus::bad_range:
-      return "bad range";
-    case proto::ConfigStatus::rejected:
-      return "rejected";
-    case proto::ConfigStatus::busy:
-      return "busy";
-  }
-  return "unknown status";
 }
 
 }  // namespace
@@ -248,7 +189,7 @@ proto::CellTarget TargetSeeder::seed(std::size_t cell, std::span<const double> s
 
 // --- DeviceSession: setup -------------------------------------------------------------------
 
-DeviceSession::DeviceSession(std::unique_ptr<Transport> transport, Clock& clock, SessionOptions options)
+DeviceSession::Impl::Impl(std::unique_ptr<Transport> transport, Clock& clock, SessionOptions options)
     : transport_(std::move(transport)), clock_(clock), options_(options) {
   if (!(options_.time_scale >= 1.0 && options_.time_scale <= 1000.0)) {
     throw InvalidArgument(fmt::format("time scale {} is outside [1, 1000]", options_.time_scale));
@@ -286,12 +227,12 @@ DeviceSession::DeviceSession(std::unique_ptr<Transport> transport, Clock& clock,
   last_telemetry_ = clock_.now();
 }
 
-DeviceSession::~DeviceSession() {
+DeviceSession::Impl::~Impl() {
   // Leave the unit safe: release valves; the device's watchdog covers a crash.
   (void)request_disable();
 }
 
-void DeviceSession::apply_identity(const proto::Identity& id) {
+void DeviceSession::Impl::apply_identity(const proto::Identity& id) {
   if (id.proto_major != proto::kVersionMajor) {
     throw ProtocolMismatch(fmt::format(
         "device on {} reports protocol v{}.{}, this library speaks v{}.{}: update the device "
@@ -320,7 +261,7 @@ void DeviceSession::apply_identity(const proto::Identity& id) {
   sensor_lsb_ = info_.sensor_lsb;
 }
 
-bool DeviceSession::same_unit(const proto::Identity& id) const noexcept {
+bool DeviceSession::Impl::same_unit(const proto::Identity& id) const noexcept {
   return id.serial == identity_.serial && id.rows == identity_.rows && id.cols == identity_.cols &&
          id.fluid_cells == identity_.fluid_cells && id.valves == identity_.valves &&
          id.sensors == identity_.sensors && id.current_lsb_nA == identity_.current_lsb_nA &&
@@ -328,7 +269,7 @@ bool DeviceSession::same_unit(const proto::Identity& id) const noexcept {
          id.sensor_quantity == identity_.sensor_quantity && id.sensor_lsb_nano == identity_.sensor_lsb_nano;
 }
 
-void DeviceSession::await_identity(TimePoint deadline) {
+void DeviceSession::Impl::await_identity(TimePoint deadline) {
   TimePoint next_request = clock_.now();
   for (;;) {
     const TimePoint now = clock_.now();
@@ -376,7 +317,7 @@ void DeviceSession::await_identity(TimePoint deadline) {
   }
 }
 
-std::string DeviceSession::read_config(proto::ConfigKey key) {
+std::string DeviceSession::Impl::read_config(proto::ConfigKey key) {
   constexpr std::size_t chunk = proto::kMaxConfigBytes;
   config_ = ConfigTransfer{};
   config_.active = true;
@@ -447,7 +388,7 @@ std::string DeviceSession::read_config(proto::ConfigKey key) {
   }
 }
 
-void DeviceSession::load_profile() {
+void DeviceSession::Impl::load_profile() {
   try {
     profile_ = std::make_unique<model::DeviceProfile>(
         model::parse_profile(info_.profile, fmt::format("profile stored on {}", transport_->uri())));
@@ -486,7 +427,7 @@ void DeviceSession::load_profile() {
 
 // --- DeviceSession: the tick ----------------------------------------------------------------
 
-void DeviceSession::log(const Datagram& d, bool sent, TimePoint now) noexcept {
+void DeviceSession::Impl::log(const Datagram& d, bool sent, TimePoint now) noexcept {
   TrafficRecord& r = ring_[ring_next_];
   r.time = now;
   r.sent = sent;
@@ -495,7 +436,7 @@ void DeviceSession::log(const Datagram& d, bool sent, TimePoint now) noexcept {
   ring_size_ = std::min(ring_size_ + 1, ring_.size());
 }
 
-ResultCode DeviceSession::send_packet(const proto::Message& message) noexcept {
+ResultCode DeviceSession::Impl::send_packet(const proto::Message& message) noexcept {
   Datagram d;
   const auto r = proto::encode_packet(message, tx_sequence_, d.bytes);
   if (r.error != proto::Error::ok) {
@@ -514,7 +455,7 @@ ResultCode DeviceSession::send_packet(const proto::Message& message) noexcept {
   return rc;
 }
 
-void DeviceSession::handle(const Datagram& d, TimePoint now) noexcept {
+void DeviceSession::Impl::handle(const Datagram& d, TimePoint now) noexcept {
   log(d, false, now);
   const proto::PacketDecoded p =
       proto::decode_packet(std::span<const std::uint8_t>(d.bytes.data(), d.length));
@@ -622,7 +563,7 @@ void DeviceSession::handle(const Datagram& d, TimePoint now) noexcept {
   }
 }
 
-ResultCode DeviceSession::poll(TimePoint now) noexcept {
+ResultCode DeviceSession::Impl::poll(TimePoint now) noexcept {
   if (transport_->state() != TransportState::open) {
     if (connected_) {
       connected_ = false;
@@ -679,7 +620,7 @@ ResultCode DeviceSession::poll(TimePoint now) noexcept {
   return state_ == DeviceState::fault ? ResultCode::device_fault : ResultCode::ok;
 }
 
-ResultCode DeviceSession::send_valve_currents(std::span<const double> current_A) noexcept {
+ResultCode DeviceSession::Impl::send_valve_currents(std::span<const double> current_A) noexcept {
   if (current_A.size() != current_counts_.size()) {
     ++counters_.invalid_commands;
     return ResultCode::invalid_value;
@@ -714,8 +655,8 @@ ResultCode DeviceSession::send_valve_currents(std::span<const double> current_A)
   return ResultCode::ok;
 }
 
-ResultCode DeviceSession::send_cell_targets(std::uint16_t first_cell,
-                                            std::span<const proto::CellTarget> targets) noexcept {
+ResultCode DeviceSession::Impl::send_cell_targets(std::uint16_t first_cell,
+                                                  std::span<const proto::CellTarget> targets) noexcept {
   if (first_cell + targets.size() > info_.fluid_cells) {
     ++counters_.invalid_commands;
     return ResultCode::invalid_value;
@@ -737,7 +678,7 @@ ResultCode DeviceSession::send_cell_targets(std::uint16_t first_cell,
   return ResultCode::ok;
 }
 
-void DeviceSession::reseed_and_send() noexcept {
+void DeviceSession::Impl::reseed_and_send() noexcept {
   ++counters_.reseeds;
   std::fill(current_counts_.begin(), current_counts_.end(), std::uint16_t{0});
   std::fill(commanded_A_.begin(), commanded_A_.end(), 0.0);
@@ -767,7 +708,7 @@ void DeviceSession::reseed_and_send() noexcept {
   }
 }
 
-ResultCode DeviceSession::send_state_request(proto::StateRequestCode request) noexcept {
+ResultCode DeviceSession::Impl::send_state_request(proto::StateRequestCode request) noexcept {
   pending_request_ = static_cast<std::uint8_t>(request);
   state_request_pending_ = true;
   state_retries_left_ = 10;
@@ -775,7 +716,7 @@ ResultCode DeviceSession::send_state_request(proto::StateRequestCode request) no
   return send_packet(proto::StateRequest{pending_request_});
 }
 
-ResultCode DeviceSession::request_enable() noexcept {
+ResultCode DeviceSession::Impl::request_enable() noexcept {
   wanted_state_ = DeviceState::enabled;
   const ResultCode rc = send_state_request(proto::StateRequestCode::enable);
   if (rc == ResultCode::ok) {
@@ -783,25 +724,25 @@ ResultCode DeviceSession::request_enable() noexcept {
   }
   return rc;
 }
-ResultCode DeviceSession::request_disable() noexcept {
+ResultCode DeviceSession::Impl::request_disable() noexcept {
   wanted_state_ = DeviceState::disabled;
   return send_state_request(proto::StateRequestCode::disable);
 }
-ResultCode DeviceSession::request_pause() noexcept {
+ResultCode DeviceSession::Impl::request_pause() noexcept {
   wanted_state_ = DeviceState::paused;
   return send_state_request(proto::StateRequestCode::pause);
 }
-ResultCode DeviceSession::request_degauss() noexcept {
+ResultCode DeviceSession::Impl::request_degauss() noexcept {
   // The device stays disabled; a device without a bipolar driver ignores it (no degaussing flag).
   wanted_state_ = DeviceState::disabled;
   return send_state_request(proto::StateRequestCode::degauss);
 }
-ResultCode DeviceSession::request_estop() noexcept {
+ResultCode DeviceSession::Impl::request_estop() noexcept {
   wanted_state_ = DeviceState::disabled;  // FAULT (e-stop) confirms it
   return send_state_request(proto::StateRequestCode::estop);
 }
 
-void DeviceSession::await_config_ack(std::uint16_t offset) {
+void DeviceSession::Impl::await_config_ack(std::uint16_t offset) {
   TimePoint last_progress = clock_.now();
   while (!config_.acked || config_.ack_offset != offset) {
     const TimePoint now = clock_.now();
@@ -825,7 +766,7 @@ void DeviceSession::await_config_ack(std::uint16_t offset) {
   }
 }
 
-void DeviceSession::write_calibration(std::string_view text) {
+void DeviceSession::Impl::write_calibration(std::string_view text) {
   constexpr std::size_t chunk = proto::kMaxConfigBytes;
   if (text.empty() || text.size() > 4096) {
     throw InvalidArgument(fmt::format(
@@ -886,182 +827,63 @@ void DeviceSession::write_calibration(std::string_view text) {
   info_.calibration = std::move(stored);
 }
 
-// --- DeviceSession: logs --------------------------------------------------------------------
+// --- the public face: one pointer to the state ---------------------------------------------
 
-std::vector<TrafficRecord> DeviceSession::ring_log() const {
-  std::vector<TrafficRecord> out;
-  out.reserve(ring_size_);
-  const std::size_t start = (ring_next_ + ring_.size() - ring_size_) % ring_.size();
-  for (std::size_t i = 0; i < ring_size_; ++i) {
-    out.push_back(ring_[(start + i) % ring_.size()]);
-  }
-  return out;
+DeviceSession::DeviceSession(std::unique_ptr<Transport> transport, Clock& clock, SessionOptions options)
+    : impl_(std::make_unique<Impl>(std::move(transport), clock, options)) {}
+DeviceSession::~DeviceSession() = default;
+const DeviceInfo& DeviceSession::info() const noexcept { return impl_->info(); }
+const model::DeviceProfile* DeviceSession::profile() const noexcept { return impl_->profile(); }
+void DeviceSession::set_telemetry_callback(TelemetryCallback callback, void* context) noexcept {
+  impl_->set_telemetry_callback(callback, context);
 }
-
-std::vector<TrafficRecord> DeviceSession::fault_log() const {
-  std::vector<TrafficRecord> out;
-  out.reserve(fault_ring_size_);
-  const std::size_t start = (fault_ring_next_ + fault_ring_.size() - fault_ring_size_) % fault_ring_.size();
-  for (std::size_t i = 0; i < fault_ring_size_; ++i) {
-    out.push_back(fault_ring_[(start + i) % fault_ring_.size()]);
-  }
-  return out;
+ResultCode DeviceSession::poll(TimePoint now) noexcept { return impl_->poll(now); }
+ResultCode DeviceSession::send_valve_currents(std::span<const double> current_A) noexcept {
+  return impl_->send_valve_currents(current_A);
 }
-
+ResultCode DeviceSession::send_cell_targets(std::uint16_t first_cell,
+                                            std::span<const protocol::CellTarget> targets) noexcept {
+  return impl_->send_cell_targets(first_cell, targets);
+}
+ResultCode DeviceSession::request_enable() noexcept { return impl_->request_enable(); }
+ResultCode DeviceSession::request_disable() noexcept { return impl_->request_disable(); }
+ResultCode DeviceSession::request_pause() noexcept { return impl_->request_pause(); }
+ResultCode DeviceSession::request_estop() noexcept { return impl_->request_estop(); }
+ResultCode DeviceSession::request_degauss() noexcept { return impl_->request_degauss(); }
+void DeviceSession::suppress_heartbeat(bool suppress) noexcept { impl_->suppress_heartbeat(suppress); }
+std::span<const double> DeviceSession::sensors() const noexcept { return impl_->sensors(); }
+std::uint32_t DeviceSession::sensor_device_time_us() const noexcept { return impl_->sensor_device_time_us(); }
+std::span<const double> DeviceSession::commanded_currents() const noexcept {
+  return impl_->commanded_currents();
+}
+std::span<const protocol::CellTarget> DeviceSession::cell_targets() const noexcept {
+  return impl_->cell_targets();
+}
+const TargetSeeder& DeviceSession::seeder() const noexcept { return impl_->seeder(); }
+TimePoint DeviceSession::last_telemetry_time() const noexcept { return impl_->last_telemetry_time(); }
+DeviceState DeviceSession::state() const noexcept { return impl_->state(); }
+std::uint8_t DeviceSession::fault_code() const noexcept { return impl_->fault_code(); }
+bool DeviceSession::valves_released() const noexcept { return impl_->valves_released(); }
+bool DeviceSession::derated() const noexcept { return impl_->derated(); }
+Transport& DeviceSession::transport() noexcept { return impl_->transport(); }
+bool DeviceSession::degaussing() const noexcept { return impl_->degaussing(); }
+bool DeviceSession::connected() const noexcept { return impl_->connected(); }
+const SessionCounters& DeviceSession::counters() const noexcept { return impl_->counters(); }
+TransportState DeviceSession::transport_state() const noexcept { return impl_->transport_state(); }
+void DeviceSession::write_calibration(std::string_view text) { impl_->write_calibration(text); }
+std::vector<TrafficRecord> DeviceSession::ring_log() const { return impl_->ring_log(); }
+std::vector<TrafficRecord> DeviceSession::fault_log() const { return impl_->fault_log(); }
+TimePoint DeviceSession::last_fault_time() const noexcept { return impl_->last_fault_time(); }
+std::uint8_t DeviceSession::last_fault_code() const noexcept { return impl_->last_fault_code(); }
 std::vector<LogEntry> DeviceSession::decode_log(const std::vector<TrafficRecord>& records) const {
-  std::vector<LogEntry> out;
-  out.reserve(records.size());
-  for (const TrafficRecord& r : records) {
-    LogEntry e;
-    e.host_time = r.time;
-    e.sent = r.sent;
-    const proto::PacketDecoded p =
-        proto::decode_packet(std::span<const std::uint8_t>(r.datagram.bytes.data(), r.datagram.length));
-    if (p.error != proto::Error::ok) {
-      e.kind = "undecodable";
-      e.error = proto::to_string(p.error);
-      std::string hex;
-      for (std::size_t i = 0; i < r.datagram.length; ++i) {
-        hex += fmt::format("{}{:02x}", i == 0 ? "" : " ", r.datagram.bytes[i]);
-      }
-      e.detail = hex;
-      out.push_back(std::move(e));
-      continue;
-    }
-    e.sequence = p.sequence;
-    if (const auto* v = std::get_if<proto::ValveCurrents>(&p.message)) {
-      e.kind = "currents";
-      e.first = v->first;
-      e.unit = "A";
-      for (std::size_t i = 0; i < v->count; ++i) {
-        e.values.push_back(static_cast<double>(v->counts[i]) * info_.current_lsb_A);
-      }
-    } else if (const auto* t = std::get_if<proto::CellTargets>(&p.message)) {
-      e.kind = "targets";
-      e.first = t->first;
-      for (std::size_t i = 0; i < t->count; ++i) {
-        e.targets.push_back(proto::cell_target_to_si(t->targets[i]));
-      }
-    } else if (const auto* m = std::get_if<proto::Telemetry>(&p.message)) {
-      e.kind = "telemetry";
-      e.has_device_time = true;
-      e.device_time_us = m->device_time_us;
-      e.first = m->first;
-      e.unit = quantity_unit(identity_.sensor_quantity);
-      for (std::size_t i = 0; i < m->count; ++i) {
-        e.values.push_back(static_cast<double>(m->counts[i]) * info_.sensor_lsb);
-      }
-    } else if (const auto* ts = std::get_if<proto::TimeSync>(&p.message)) {
-      e.kind = "time sync";
-      e.has_device_time = true;
-      e.device_time_us = ts->device_time_us;
-    } else if (const auto* s = std::get_if<proto::Status>(&p.message)) {
-      e.kind = "status";
-      e.state = to_string(static_cast<DeviceState>(s->state));
-      e.fault = fault_name(s->fault);
-      std::string flags;
-      for (const auto& [bit, name] :
-           {std::pair{proto::kFlagValvesReleased, "valves released"},
-            std::pair{proto::kFlagDerated, "derated"}, std::pair{proto::kFlagCalibrated, "calibrated"},
-            std::pair{proto::kFlagDegaussing, "degaussing"}}) {
-        if ((s->flags & bit) != 0) {
-          flags += flags.empty() ? name : fmt::format(", {}", name);
-        }
-      }
-      e.detail = flags.empty() ? std::string("no flags") : flags;
-      if (s->fault_detail != 0) {
-        e.detail += fmt::format("; detail {}", s->fault_detail);
-      }
-    } else if (const auto* h = std::get_if<proto::Heartbeat>(&p.message)) {
-      e.kind = "heartbeat";
-      e.detail = fmt::format("counter {}", h->counter);
-    } else if (const auto* q = std::get_if<proto::StateRequest>(&p.message)) {
-      e.kind = "state request";
-      e.state = request_name(q->request);
-    } else if (const auto* ir = std::get_if<proto::IdentifyRequest>(&p.message)) {
-      e.kind = "identify";
-      e.detail = fmt::format("host speaks v{}.{}", ir->host_major, ir->host_minor);
-    } else if (const auto* id = std::get_if<proto::Identity>(&p.message)) {
-      e.kind = "identity";
-      e.detail =
-          fmt::format("v{}.{}, firmware {}.{}.{}, serial {:08X}, {} x {}", id->proto_major, id->proto_minor,
-                      id->fw_major, id->fw_minor, id->fw_patch, id->serial, id->rows, id->cols);
-    } else if (const auto* cr = std::get_if<proto::ConfigRead>(&p.message)) {
-      e.kind = "config read";
-      e.detail =
-          fmt::format("{} bytes {}..{}", config_key_name(cr->key), cr->offset, cr->offset + cr->length);
-    } else if (const auto* cd = std::get_if<proto::ConfigData>(&p.message)) {
-      e.kind = "config data";
-      e.detail = fmt::format("{} bytes {}..{} of {}", config_key_name(cd->key), cd->offset,
-                             cd->offset + cd->length, cd->total);
-    } else if (const auto* cw = std::get_if<proto::ConfigWrite>(&p.message)) {
-      e.kind = "config write";
-      e.detail = fmt::format("{} bytes {}..{} of {}", config_key_name(cw->key), cw->offset,
-                             cw->offset + cw->length, cw->total);
-    } else if (const auto* ca = std::get_if<proto::ConfigAck>(&p.message)) {
-      e.kind = "config ack";
-      e.detail =
-          fmt::format("{} at {}: {}", config_key_name(ca->key), ca->offset, config_status_name(ca->status));
-    }
-    out.push_back(std::move(e));
-  }
-  return out;
+  return impl_->decode_log(records);
 }
-
 std::string DeviceSession::format_log(const std::vector<TrafficRecord>& records) const {
-  std::string out;
-  for (const LogEntry& e : decode_log(records)) {
-    out += fmt::format("{:12.6f} s {} ", to_seconds(e.host_time), e.sent ? "tx" : "rx");
-    if (e.sequence >= 0) {
-      out += fmt::format("#{:<3} ", e.sequence);
-    } else {
-      out += "#?   ";
-    }
-    out += fmt::format("{:<13}", e.kind);
-    if (e.has_device_time) {
-      out += fmt::format(" device {:.6f} s", static_cast<double>(e.device_time_us) * 1e-6);
-    }
-    if (!e.error.empty()) {
-      out += fmt::format(" {}:", e.error);
-    }
-    if (e.kind == "currents" || e.kind == "telemetry") {
-      out += fmt::format(" {} {}..{} [{}]:", e.kind == "currents" ? "valves" : "sensors", e.first,
-                         e.first + e.values.size() - 1, e.unit);
-      for (const double v : e.values) {
-        out += e.kind == "currents" ? fmt::format(" {:.6f}", v) : fmt::format(" {:.4g}", v);
-      }
-    }
-    std::size_t cell = e.first;
-    for (const proto::CellTargetSi& t : e.targets) {
-      out += fmt::format(" cell {}: {:g} N/m from {:.3f} mm, ceiling {:.3f} N, valid {:.2f} s;", cell++,
-                         t.stiffness_N_per_m, t.offset_m * 1e3, t.ceiling_N, t.validity_s);
-    }
-    if (!e.state.empty()) {
-      out += fmt::format(" {}", e.state);
-    }
-    if (!e.fault.empty()) {
-      out += fmt::format(" (fault: {})", e.fault);
-    }
-    if (!e.detail.empty()) {
-      out += fmt::format(" {}", e.detail);
-    }
-    out += '\n';
-  }
-  return out;
+  return impl_->format_log(records);
 }
+std::string DeviceSession::fault_report() const { return impl_->fault_report(); }
 
-std::string DeviceSession::fault_report() const {
-  if (counters_.faults == 0) {
-    return {};
-  }
-  std::string out = fmt::format(
-      "fault: {} at {:.6f} s (host time); {} fault(s) so far; state now {}{}\n"
-      "last {} packets before it, oldest first:\n",
-      fault_name(last_fault_code_), to_seconds(last_fault_time_), counters_.faults, to_string(state_),
-      state_ == DeviceState::fault ? fmt::format(" ({})", fault_name(fault_)) : std::string(),
-      fault_ring_size_);
-  out += format_log(fault_log());
-  return out;
-}
+static_assert(sizeof(DeviceSession) == sizeof(void*),
+              "DeviceSession is one pointer: its state lives in DeviceSession::Impl");
 
 }  // namespace mrskin

@@ -173,13 +173,10 @@ class DeviceSession {
   DeviceSession& operator=(DeviceSession&&) = delete;
   ~DeviceSession();
 
-  [[nodiscard]] const DeviceInfo& info() const noexcept { return info_; }
+  [[nodiscard]] const DeviceInfo& info() const noexcept;
   // The profile read from the device, parsed (nullptr with read_configuration = false).
-  [[nodiscard]] const model::DeviceProfile* profile() const noexcept { return profile_.get(); }
-  void set_telemetry_callback(TelemetryCallback callback, void* context) noexcept {
-    telemetry_callback_ = callback;
-    telemetry_context_ = context;
-  }
+  [[nodiscard]] const model::DeviceProfile* profile() const noexcept;
+  void set_telemetry_callback(TelemetryCallback callback, void* context) noexcept;
 
   // --- real-time path: no allocation, no exceptions, no blocking -----------------------
   // Drains received packets, sends the heartbeat when due, reconnects after an unplug.
@@ -205,28 +202,28 @@ class DeviceSession {
   // A state request is repeated every handshake_retry (at most 10 times) until a status
   // confirms the state, or a new FAULT overrides it: a lossy link cannot eat an enable.
   // Stops heartbeats (used to test the device's watchdog).
-  void suppress_heartbeat(bool suppress) noexcept { suppress_heartbeat_ = suppress; }
+  void suppress_heartbeat(bool suppress) noexcept;
 
   // Latest sensor values in SI, one per sensor, and their device timestamp.
-  [[nodiscard]] std::span<const double> sensors() const noexcept { return sensors_; }
-  [[nodiscard]] std::uint32_t sensor_device_time_us() const noexcept { return sensor_time_us_; }
+  [[nodiscard]] std::span<const double> sensors() const noexcept;
+  [[nodiscard]] std::uint32_t sensor_device_time_us() const noexcept;
   // The command state as last sent (or re-seeded): per-valve currents in A, per-cell targets.
-  [[nodiscard]] std::span<const double> commanded_currents() const noexcept { return commanded_A_; }
-  [[nodiscard]] std::span<const protocol::CellTarget> cell_targets() const noexcept { return targets_; }
-  [[nodiscard]] const TargetSeeder& seeder() const noexcept { return seeder_; }
-  [[nodiscard]] TimePoint last_telemetry_time() const noexcept { return last_telemetry_; }
-  [[nodiscard]] DeviceState state() const noexcept { return state_; }
-  [[nodiscard]] std::uint8_t fault_code() const noexcept { return fault_; }
-  [[nodiscard]] bool valves_released() const noexcept { return valves_released_; }
-  [[nodiscard]] bool derated() const noexcept { return derated_; }
+  [[nodiscard]] std::span<const double> commanded_currents() const noexcept;
+  [[nodiscard]] std::span<const protocol::CellTarget> cell_targets() const noexcept;
+  [[nodiscard]] const TargetSeeder& seeder() const noexcept;
+  [[nodiscard]] TimePoint last_telemetry_time() const noexcept;
+  [[nodiscard]] DeviceState state() const noexcept;
+  [[nodiscard]] std::uint8_t fault_code() const noexcept;
+  [[nodiscard]] bool valves_released() const noexcept;
+  [[nodiscard]] bool derated() const noexcept;
   // The transport underneath, for a host that lends its device to another session
   // (mrskin-bridged's lease): only while nothing polls or sends through this session.
-  [[nodiscard]] Transport& transport() noexcept { return *transport_; }
+  [[nodiscard]] Transport& transport() noexcept;
   // Protocol 1.1: a degauss cycle is running (request_degauss), per the device's last Status.
-  [[nodiscard]] bool degaussing() const noexcept { return degaussing_; }
-  [[nodiscard]] bool connected() const noexcept { return connected_; }
-  [[nodiscard]] const SessionCounters& counters() const noexcept { return counters_; }
-  [[nodiscard]] TransportState transport_state() const noexcept { return transport_->state(); }
+  [[nodiscard]] bool degaussing() const noexcept;
+  [[nodiscard]] bool connected() const noexcept;
+  [[nodiscard]] const SessionCounters& counters() const noexcept;
+  [[nodiscard]] TransportState transport_state() const noexcept;
 
   // --- off the tick thread -------------------------------------------------------------
   // Writes the calibration into the device's configuration memory and reads it back
@@ -242,8 +239,8 @@ class DeviceSession {
   // The ring log as it was when the last fault arrived (empty if none).
   [[nodiscard]] std::vector<TrafficRecord> fault_log() const;
   // When the last fault arrived, and its cause (fault code; 0 if none so far).
-  [[nodiscard]] TimePoint last_fault_time() const noexcept { return last_fault_time_; }
-  [[nodiscard]] std::uint8_t last_fault_code() const noexcept { return last_fault_code_; }
+  [[nodiscard]] TimePoint last_fault_time() const noexcept;
+  [[nodiscard]] std::uint8_t last_fault_code() const noexcept;
   // Records decoded into SI units with this device's identity (allocates).
   [[nodiscard]] std::vector<LogEntry> decode_log(const std::vector<TrafficRecord>& records) const;
   // Human-readable dump, one record per line: host time, direction, kind, device time,
@@ -253,82 +250,10 @@ class DeviceSession {
   [[nodiscard]] std::string fault_report() const;
 
  private:
-  ResultCode send_packet(const protocol::Message& message) noexcept;
-  void handle(const Datagram& d, TimePoint now) noexcept;
-  void log(const Datagram& d, bool sent, TimePoint now) noexcept;
-  void apply_identity(const protocol::Identity& id);
-  [[nodiscard]] bool same_unit(const protocol::Identity& id) const noexcept;
-  std::string read_config(protocol::ConfigKey key);
-  void await_config_ack(std::uint16_t offset);
-  ResultCode send_state_request(protocol::StateRequestCode request) noexcept;
-  void await_identity(TimePoint deadline);
-  void load_profile();
-  void reseed_and_send() noexcept;
-
-  std::unique_ptr<Transport> transport_;
-  Clock& clock_;
-  SessionOptions options_;
-  DeviceInfo info_;
-  protocol::Identity identity_{};
-  std::unique_ptr<model::DeviceProfile> profile_;
-  TargetSeeder seeder_;
-  std::vector<double> sensors_;
-  std::vector<std::uint16_t> current_counts_;
-  std::vector<double> commanded_A_;
-  bool currents_commanded_ = false;  // the host has sent currents since the handshake
-  std::vector<protocol::CellTarget> targets_;
-  std::vector<std::uint8_t> targeted_;  // per cell: the host has targeted it
-  std::uint32_t sensor_time_us_ = 0;
-  TimePoint last_telemetry_{};
-  bool telemetry_timed_out_ = false;
-  DeviceState state_ = DeviceState::disabled;
-  DeviceState wanted_state_ = DeviceState::disabled;
-  std::uint8_t fault_ = 0;
-  bool valves_released_ = true;
-  bool degaussing_ = false;
-  bool derated_ = false;
-  bool suppress_heartbeat_ = false;
-  bool state_request_pending_ = false;
-  std::uint8_t pending_request_ = 0;
-  int state_retries_left_ = 0;
-  TimePoint next_state_retry_{};
-  bool connected_ = true;
-  bool identify_pending_ = false;
-  TimePoint next_reconnect_{};
-  Duration backoff_{};
-  TimePoint next_heartbeat_{};
-  std::uint16_t heartbeat_counter_ = 0;
-  std::array<TimePoint, 64> heartbeat_sent_{};
-  std::uint8_t tx_sequence_ = 0;
-  int rx_last_sequence_ = -1;
-  SessionCounters counters_;
-  std::uint32_t current_lsb_nA_ = 0;
-  std::uint16_t current_max_counts_ = 0;
-  double sensor_lsb_ = 0.0;
-  TelemetryCallback telemetry_callback_ = nullptr;
-  void* telemetry_context_ = nullptr;
-  std::vector<TrafficRecord> ring_;
-  std::size_t ring_next_ = 0;
-  std::size_t ring_size_ = 0;
-  std::vector<TrafficRecord> fault_ring_;
-  std::size_t fault_ring_size_ = 0;
-  std::size_t fault_ring_next_ = 0;
-  TimePoint last_fault_time_{};
-  std::uint8_t last_fault_code_ = 0;
-  // The configuration blob being read at setup (chunks may arrive in any order).
-  struct ConfigTransfer {
-    bool active = false;
-    std::uint16_t key = 0;
-    int total = -1;  // unknown until the first chunk
-    std::string text;
-    std::vector<std::uint8_t> have;  // per chunk
-    std::size_t received = 0;
-    bool progress = false;
-    bool acked = false;  // a ConfigAck for key arrived
-    std::uint16_t ack_offset = 0;
-    std::uint8_t ack_status = 0;
-  };
-  ConfigTransfer config_;
+  // Everything else lives behind one pointer (driver/src/session_impl.hpp): a console linked
+  // against this header keeps its ABI when the session's state changes (docs/api.md, "ABI").
+  class Impl;
+  std::unique_ptr<Impl> impl_;
 };
 
 }  // namespace mrskin

@@ -1,0 +1,149 @@
+// DeviceSession's state and protocol logic behind its one pointer (session.hpp). Private to the
+// driver: session.cpp holds the handshake and the real-time path, session_log.cpp the traffic
+// log and its reports.
+#pragma once
+
+#include <array>
+#include <cstddef>
+#include <cstdint>
+#include <memory>
+#include <span>
+#include <string>
+#include <string_view>
+#include <vector>
+
+#include "mrskin/driver/session.hpp"
+#include "mrskin/protocol/messages.hpp"
+
+namespace mrskin {
+
+class DeviceSession::Impl {
+ public:
+  // The public functions, as documented in session.hpp (they forward here).
+  Impl(std::unique_ptr<Transport> transport, Clock& clock, SessionOptions options);
+  Impl(const Impl&) = delete;
+  Impl& operator=(const Impl&) = delete;
+  Impl(Impl&&) = delete;
+  Impl& operator=(Impl&&) = delete;
+  ~Impl();
+  [[nodiscard]] const DeviceInfo& info() const noexcept { return info_; }
+  [[nodiscard]] const model::DeviceProfile* profile() const noexcept { return profile_.get(); }
+  void set_telemetry_callback(TelemetryCallback callback, void* context) noexcept {
+    telemetry_callback_ = callback;
+    telemetry_context_ = context;
+  }
+  // The tick's calls: inlined into the public functions, so the pointer costs no call.
+  [[gnu::always_inline]] inline ResultCode poll(TimePoint now) noexcept;
+  [[gnu::always_inline]] inline ResultCode send_valve_currents(std::span<const double> current_A) noexcept;
+  ResultCode send_cell_targets(std::uint16_t first_cell,
+                               std::span<const protocol::CellTarget> targets) noexcept;
+  ResultCode request_enable() noexcept;
+  ResultCode request_disable() noexcept;
+  ResultCode request_pause() noexcept;
+  ResultCode request_estop() noexcept;
+  ResultCode request_degauss() noexcept;
+  void suppress_heartbeat(bool suppress) noexcept { suppress_heartbeat_ = suppress; }
+  [[nodiscard]] std::span<const double> sensors() const noexcept { return sensors_; }
+  [[nodiscard]] std::uint32_t sensor_device_time_us() const noexcept { return sensor_time_us_; }
+  [[nodiscard]] std::span<const double> commanded_currents() const noexcept { return commanded_A_; }
+  [[nodiscard]] std::span<const protocol::CellTarget> cell_targets() const noexcept { return targets_; }
+  [[nodiscard]] const TargetSeeder& seeder() const noexcept { return seeder_; }
+  [[nodiscard]] TimePoint last_telemetry_time() const noexcept { return last_telemetry_; }
+  [[nodiscard]] DeviceState state() const noexcept { return state_; }
+  [[nodiscard]] std::uint8_t fault_code() const noexcept { return fault_; }
+  [[nodiscard]] bool valves_released() const noexcept { return valves_released_; }
+  [[nodiscard]] bool derated() const noexcept { return derated_; }
+  [[nodiscard]] Transport& transport() noexcept { return *transport_; }
+  [[nodiscard]] bool degaussing() const noexcept { return degaussing_; }
+  [[nodiscard]] bool connected() const noexcept { return connected_; }
+  [[nodiscard]] const SessionCounters& counters() const noexcept { return counters_; }
+  [[nodiscard]] TransportState transport_state() const noexcept { return transport_->state(); }
+  void write_calibration(std::string_view text);
+  [[nodiscard]] std::vector<TrafficRecord> ring_log() const;
+  [[nodiscard]] std::vector<TrafficRecord> fault_log() const;
+  [[nodiscard]] TimePoint last_fault_time() const noexcept { return last_fault_time_; }
+  [[nodiscard]] std::uint8_t last_fault_code() const noexcept { return last_fault_code_; }
+  [[nodiscard]] std::vector<LogEntry> decode_log(const std::vector<TrafficRecord>& records) const;
+  [[nodiscard]] std::string format_log(const std::vector<TrafficRecord>& records) const;
+  [[nodiscard]] std::string fault_report() const;
+
+ private:
+  ResultCode send_packet(const protocol::Message& message) noexcept;
+  void handle(const Datagram& d, TimePoint now) noexcept;
+  void log(const Datagram& d, bool sent, TimePoint now) noexcept;
+  void apply_identity(const protocol::Identity& id);
+  [[nodiscard]] bool same_unit(const protocol::Identity& id) const noexcept;
+  std::string read_config(protocol::ConfigKey key);
+  void await_config_ack(std::uint16_t offset);
+  ResultCode send_state_request(protocol::StateRequestCode request) noexcept;
+  void await_identity(TimePoint deadline);
+  void load_profile();
+  void reseed_and_send() noexcept;
+
+  std::unique_ptr<Transport> transport_;
+  Clock& clock_;
+  SessionOptions options_;
+  DeviceInfo info_;
+  protocol::Identity identity_{};
+  std::unique_ptr<model::DeviceProfile> profile_;
+  TargetSeeder seeder_;
+  std::vector<double> sensors_;
+  std::vector<std::uint16_t> current_counts_;
+  std::vector<double> commanded_A_;
+  bool currents_commanded_ = false;  // the host has sent currents since the handshake
+  std::vector<protocol::CellTarget> targets_;
+  std::vector<std::uint8_t> targeted_;  // per cell: the host has targeted it
+  std::uint32_t sensor_time_us_ = 0;
+  TimePoint last_telemetry_{};
+  bool telemetry_timed_out_ = false;
+  DeviceState state_ = DeviceState::disabled;
+  DeviceState wanted_state_ = DeviceState::disabled;
+  std::uint8_t fault_ = 0;
+  bool valves_released_ = true;
+  bool degaussing_ = false;
+  bool derated_ = false;
+  bool suppress_heartbeat_ = false;
+  bool state_request_pending_ = false;
+  std::uint8_t pending_request_ = 0;
+  int state_retries_left_ = 0;
+  TimePoint next_state_retry_{};
+  bool connected_ = true;
+  bool identify_pending_ = false;
+  TimePoint next_reconnect_{};
+  Duration backoff_{};
+  TimePoint next_heartbeat_{};
+  std::uint16_t heartbeat_counter_ = 0;
+  std::array<TimePoint, 64> heartbeat_sent_{};
+  std::uint8_t tx_sequence_ = 0;
+  int rx_last_sequence_ = -1;
+  SessionCounters counters_;
+  std::uint32_t current_lsb_nA_ = 0;
+  std::uint16_t current_max_counts_ = 0;
+  double sensor_lsb_ = 0.0;
+  TelemetryCallback telemetry_callback_ = nullptr;
+  void* telemetry_context_ = nullptr;
+  std::vector<TrafficRecord> ring_;
+  std::size_t ring_next_ = 0;
+  std::size_t ring_size_ = 0;
+  std::vector<TrafficRecord> fault_ring_;
+  std::size_t fault_ring_size_ = 0;
+  std::size_t fault_ring_next_ = 0;
+  TimePoint last_fault_time_{};
+  std::uint8_t last_fault_code_ = 0;
+  // The configuration blob being read at setup (chunks may arrive in any order).
+  struct ConfigTransfer {
+    bool active = false;
+    std::uint16_t key = 0;
+    int total = -1;  // unknown until the first chunk
+    std::string text;
+    std::vector<std::uint8_t> have;  // per chunk
+    std::size_t received = 0;
+    bool progress = false;
+    bool acked = false;  // a ConfigAck for key arrived
+    std::uint16_t ack_offset = 0;
+    std::uint8_t ack_status = 0;
+  };
+  ConfigTransfer config_;
+};
+
+}  // namespace mrskin
