@@ -2,6 +2,9 @@
 //
 //   mrskin-model-bench [--suite valve|network|inverse|all] [--out DIR] [--reps N] [--profile FILE] [--check]
 //
+// --out (default: ./model-bench-out) is created when missing; the committed results in
+// tools/model-bench/results change only when it is named explicitly (docs/model.md).
+//
 // Suites (one function each in suites.hpp; add a new one there and to kSuites below):
 //   valve    every valve law timed per call and its error over the stated range (valve_bench.cpp)
 //   network  every network stepper and step size against a fine reference, and the step's
@@ -11,14 +14,16 @@
 //   all      every suite, in that order (default)
 // --reps and --profile apply to the valve suite; --check exits 1 unless the fast valve law is
 // within 0.5 % and at least 10x faster than the exact one. A progress bar is drawn on stderr
-// when it is a terminal.
-#include <algorithm>
+// when it is a terminal. Exit codes: 0, 1 (a suite failed, --check unmet), 2 (bad argument).
+#include <CLI/CLI.hpp>
 #include <array>
-#include <cstdlib>
+#include <filesystem>
 #include <iostream>
 #include <string>
-#include <vector>
+#include <system_error>
 
+#include "exit_codes.hpp"
+#include "mrskin/driver/version.hpp"
 #include "suites.hpp"
 
 namespace {
@@ -35,43 +40,45 @@ constexpr std::array<Suite, 3> kSuites = {{
     {"inverse", &mrskin::bench::run_inverse_suite},
 }};
 
-int usage() {
-  std::cerr << "usage: mrskin-model-bench [--suite valve|network|inverse|all] [--out DIR] [--reps N] "
-               "[--profile FILE] [--check]\n";
-  return 2;
-}
-
 }  // namespace
 
 int main(int argc, char** argv) {
-  const std::vector<std::string> args(argv + 1, argv + argc);
+  CLI::App app{"mrskin-model-bench: run time against error of the device model, written as CSV and SVG"};
+  app.set_version_flag("--version", std::string(mrskin::library_version()));
   BenchOptions o;
+  o.out = "model-bench-out";
   std::string suite = "all";
-  for (std::size_t i = 0; i < args.size(); ++i) {
-    const std::string& a = args[i];
-    if (a == "--out" && i + 1 < args.size()) {
-      o.out = args[++i];
-    } else if (a == "--reps" && i + 1 < args.size()) {
-      o.reps = std::max(3, std::atoi(args[++i].c_str()));
-    } else if (a == "--profile" && i + 1 < args.size()) {
-      o.profile = args[++i];
-    } else if (a == "--check") {
-      o.check = true;
-    } else if (a == "--suite" && i + 1 < args.size()) {
-      suite = args[++i];
-    } else {
-      return usage();
-    }
+  app.add_option("--suite", suite, "The suite to run")
+      ->check(CLI::IsMember({"valve", "network", "inverse", "all"}))
+      ->capture_default_str();
+  app.add_option("--out", o.out, "Directory for the CSV and SVG files (created when missing)")
+      ->capture_default_str();
+  app.add_option("--reps", o.reps, "Timing repetitions of the valve suite")
+      ->check(CLI::Range(3, 1000000))
+      ->capture_default_str();
+  app.add_option("--profile", o.profile, "Device profile file for the valve suite")->check(CLI::ExistingFile);
+  app.add_flag("--check", o.check,
+               "Exit 1 unless the fast valve law is within 0.5 % and at least 10x faster than the exact one");
+  try {
+    app.parse(argc, argv);
+  } catch (const CLI::ParseError& e) {
+    // --help and --version exit 0; every bad argument is a usage error (2).
+    return app.exit(e) == 0 ? mrskin::tools::kOk : mrskin::tools::kUsage;
   }
-  bool known = suite == "all";
-  int rc = 0;
+  std::error_code ec;
+  std::filesystem::create_directories(o.out, ec);
+  if (ec || !std::filesystem::is_directory(o.out)) {
+    std::cerr << "mrskin-model-bench: cannot create --out " << o.out << ": "
+              << (ec ? ec.message() : std::string("not a directory")) << "\n";
+    return mrskin::tools::kUsage;
+  }
+  int rc = mrskin::tools::kOk;
   for (const Suite& s : kSuites) {
     if (suite == "all" || suite == s.name) {
-      known = true;
       std::cout << "== " << s.name << "\n";
       const int r = s.run(o);
-      rc = rc != 0 ? rc : r;
+      rc = rc != mrskin::tools::kOk ? rc : r;
     }
   }
-  return known ? rc : usage();
+  return rc;
 }
