@@ -17,6 +17,7 @@
 // when it is a terminal. Exit codes: 0, 1 (a suite failed, --check unmet), 2 (bad argument).
 #include <CLI/CLI.hpp>
 #include <array>
+#include <exception>
 #include <filesystem>
 #include <iostream>
 #include <string>
@@ -40,9 +41,7 @@ constexpr std::array<Suite, 3> kSuites = {{
     {"inverse", &mrskin::bench::run_inverse_suite},
 }};
 
-}  // namespace
-
-int main(int argc, char** argv) {
+int run(int argc, char** argv) {
   CLI::App app{"mrskin-model-bench: run time against error of the device model, written as CSV and SVG"};
   app.set_version_flag("--version", std::string(mrskin::library_version()));
   BenchOptions o;
@@ -81,4 +80,15 @@ int main(int argc, char** argv) {
     }
   }
   return rc;
+}
+
+}  // namespace
+
+int main(int argc, char** argv) {
+  try {
+    return run(argc, argv);
+  } catch (const std::exception& e) {
+    std::cerr << "mrskin-model-bench: " << e.what() << "\n";
+    return mrskin::tools::kFailure;
+  }
 }
