@@ -20,7 +20,7 @@ inline CLI::App* add_unavailable_command(CLI::App& app, const char* name, const 
   sub->callback([&exit_code, name] {
     std::fputs("mrskinctl ", stderr);
     std::fputs(name, stderr);
-    std::fputs(": not available in this build (mrskinctl complete, #11)\n", stderr);
+    std::fputs(": not available in this build\n", stderr);
     exit_code = 69;
   });
   return sub;

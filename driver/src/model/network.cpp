@@ -1,5 +1,5 @@
 // The skin's hydraulic network in time: see mrskin/driver/model/network.hpp and
-// docs/model.md (Device model II). Everything after the constructor is noexcept and allocation-free:
+// docs/model.md (Part II). Everything after the constructor is noexcept and allocation-free:
 // the state, the Newton workspaces and the sparse factorisation are sized once.
 #include "mrskin/driver/model/network.hpp"
 

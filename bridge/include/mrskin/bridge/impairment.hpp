@@ -1,7 +1,8 @@
 // A network between the slave robot and the bridge, simulated: each sample of an inner source is
 // delivered after a random delay (uniform in delay +- jitter) or lost (probability loss), with a
 // fixed seed. With jitter, samples can arrive out of order; the bridge must stay consistent and
-// passive anyway (issue 9: 50 ms +- 20 ms and 5 % loss). Allocation-free after construction.
+// passive anyway (50 ms +- 20 ms and 5 % loss, as the product must survive). Allocation-free after
+// construction.
 #pragma once
 
 #include <cstdint>

@@ -1,4 +1,4 @@
-// Sensor faults from the readings and the observer's residuals (issue 25). Each displacement
+// Sensor faults from the readings and the observer's residuals. Each displacement
 // sensor is tested on every fresh reading:
 //   - stuck: the same reading over and over. A live sensor's noise moves its quantised reading:
 //     the run length is set so that a healthy sensor repeats that long with probability

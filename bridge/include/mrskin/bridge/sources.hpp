@@ -1,4 +1,4 @@
-// Robot stream sources named by URI (issue 10, docs/sources.md): scene://NAME, udp://HOST:PORT,
+// Robot stream sources named by URI (docs/sources.md): scene://NAME, udp://HOST:PORT,
 // replay://FILE, igtl://HOST:PORT (client) and igtl-listen://HOST:PORT (server). Network sources
 // read on their own I/O thread, validate every sample (untrusted input: dropped and counted, never
 // a crash or a stall) and hand it to the tick through a wait-free SPSC queue; latest() drains it

@@ -18,7 +18,7 @@
 // Invariants (tests): sum_n e_n is constant (volume, every stepper), and for the
 // discrete-gradient steppers work_J == stored_J - stored_J(initial) + dissipated_J to round-off
 // (dissipated: each passage's flow times the pressure difference its law was evaluated at).
-// docs/model.md (Device model II) has the schemes, their accuracy and cost.
+// docs/model.md (Part II) has the schemes, their accuracy and cost.
 //
 // Setup (constructor) may throw mrskin::InvalidArgument. After construction nothing allocates:
 // set_*, step() and the accessors are noexcept and allocation-free.

@@ -13,7 +13,7 @@
 // depths and the commanded currents through the nominal coil lag and yield curve: the
 // observer never sees the plant's parameters.
 //
-// Cost (issue 9: skip what the scene does not need). The fit stops once no depth moves more
+// Cost (skip what the scene does not need). The fit stops once no depth moves more
 // than sweep_tolerance_m in a sweep. On grids above network_max_cells it visits only the cells
 // with depth and those sharing a sensor with a changed reading (more than
 // reading_deadband_sigma from the reading last used) or with a cell that moved. A coil whose command has not
