@@ -132,6 +132,15 @@ class Daemon final : public bridge::Tickable, public ControlBackend {
   void lease_end() noexcept override;
 
  private:
+  // What a reload changes (plan_reload), and the swap itself (apply_reload: false when refused).
+  struct ReloadPlan {
+    bool mapping_changed = false;
+    bool source_changed = false;
+    bool loop_changed = false;
+    bool bridge_changed = false;
+  };
+  [[nodiscard]] ReloadPlan plan_reload(const Settings& next) const;
+  bool apply_reload(const Settings& next, const ReloadPlan& plan, std::vector<std::string>& log);
   void build_bridge(const Settings& s);  // setup, before the loop runs
   void publish(TimePoint now) noexcept;
   void publish_grid(TimePoint now) noexcept;
