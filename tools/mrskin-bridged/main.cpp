@@ -176,6 +176,149 @@ Settings load(const std::string& config_path, const mrskin::bridged::Overrides& 
   return s;
 }
 
+void log_health_events(const std::vector<mrskin::bridged::Daemon::HealthEvent>& events) {
+  for (const mrskin::bridged::Daemon::HealthEvent& e : events) {
+    if (e.warning) {
+      spdlog::warn("{}", e.text);
+    } else {
+      spdlog::info("{}", e.text);
+    }
+  }
+}
+
+// Reads the signals that arrived on sfd: SIGHUP reloads the configuration; the first other
+// signal is returned (0: none), to stop on.
+int read_signals(int sfd, Console& console, mrskin::bridged::Daemon& daemon, const std::string& config_path,
+                 const mrskin::bridged::Overrides& overrides) {
+  pollfd p{sfd, POLLIN, 0};
+  (void)::poll(&p, 1, 1);  // 1 ms: the simulated finger follows the script at 1 kHz
+  int stop_signal = 0;
+  signalfd_siginfo si{};
+  while ((p.revents & POLLIN) != 0 && ::read(sfd, &si, sizeof(si)) == static_cast<ssize_t>(sizeof(si))) {
+    if (si.ssi_signo != SIGHUP) {
+      stop_signal = static_cast<int>(si.ssi_signo);
+      continue;
+    }
+    console.clear();
+    if (config_path.empty()) {
+      spdlog::info("SIGHUP: no --config file to reload");
+      continue;
+    }
+    try {
+      Settings next = load(config_path, overrides);
+      for (const std::string& line : daemon.reload(std::move(next))) {
+        spdlog::info("{}", line);
+      }
+    } catch (const std::exception& e) {
+      spdlog::error("SIGHUP: configuration not reloaded, running on as before: {}", e.what());
+    }
+    p.revents = 0;  // one signal read per wake is enough; the next poll returns at once if more
+  }
+  return stop_signal;
+}
+
+// Once a status period: the events of the link, the stream and the control socket, the device's
+// loss and the status line. True when the device is lost for good.
+bool status_period(Console& console, mrskin::bridged::Daemon& daemon,
+                   mrskin::bridged::ControlServer& server) {
+  if (std::vector<mrskin::bridged::Daemon::HealthEvent> health = daemon.take_health_events();
+      !health.empty()) {
+    console.clear();  // link errors at most once a period, transitions as they happen
+    log_health_events(health);
+  }
+  if (std::vector<std::string> events = server.take_events(); !events.empty()) {
+    console.clear();
+    for (const std::string& e : events) {
+      spdlog::info("{}", e);
+    }
+  }
+  if (daemon.device_lost(daemon.settings().device_lost_s)) {
+    console.clear();
+    spdlog::error("device {} lost for good (down for more than {} s, or another unit answered)",
+                  daemon.settings().device, daemon.settings().device_lost_s);
+    return true;
+  }
+  if (!daemon.settings().quiet) {
+    console.status(daemon.status_line());
+  }
+  return false;
+}
+
+// The lines printed at exit after the statistics: bus, scheduler, recording, topics, reloads.
+void print_run_report(const mrskin::bridged::Daemon& daemon, const mrskin::bridge::BridgeStats& stats) {
+  using namespace mrskin;
+  const double run_s = std::max(1e-9, daemon.uptime_s());
+  const SessionCounters& link = daemon.link_counters();
+  fmt::print(
+      "bus load   {:.1f} % of full-speed USB-HID reports (host to device {:.1f} %, device to host {:.1f} "
+      "%)\n",
+      100.0 * stats.bus_load, 100.0 * static_cast<double>(link.sent) / run_s / 1000.0,
+      100.0 * static_cast<double>(link.received) / run_s / 1000.0);
+  if (const bridge::LoopStats* ls = daemon.loop_stats(); ls != nullptr) {
+    fmt::print(
+        "scheduler  {} priority {}, memory {}; wake latency p50 {:.1f} us, p99 {:.1f} us, p99.9 {:.1f} us; "
+        "early wakes {} (a stream sample woke the loop before its deadline), {} refused (too soon, or ahead "
+        "of the rate)\n",
+        ls->scheduler.policy_name(), ls->scheduler.priority,
+        ls->scheduler.memory_locked ? "locked" : "not locked", ls->wake_latency.percentile_ns(0.5) / 1e3,
+        ls->wake_latency.percentile_ns(0.99) / 1e3, ls->wake_latency.percentile_ns(0.999) / 1e3,
+        ls->early_wakes, ls->refused_wakes);
+  }
+  if (const bridge::SampleRecorder* rec = daemon.recorder(); rec != nullptr) {
+    fmt::print("recorded   {} samples to {} ({} dropped)\n", rec->written(), daemon.settings().record,
+               rec->dropped());
+  }
+  if (const bridge::SkinPublisher* topics = daemon.topics(); topics != nullptr) {
+    fmt::print("topics     {} frames published under {} ({} failed), {} subscriber(s) at exit\n",
+               topics->published(), topics->ns(), topics->failures(), topics->subscribers());
+  }
+  if (daemon.reloads() > 0) {
+    fmt::print("reloads    {} (the statistics cover the run since the last bridge rebuild)\n",
+               daemon.reloads());
+  }
+}
+
+// After the loop: the last events, the summary, the statistics file; returns the exit code.
+int finish(mrskin::bridged::Daemon& daemon, mrskin::bridged::ControlServer& server, Console& console,
+           int stop_signal, bool lost) {
+  using namespace mrskin;
+  server.stop();
+  daemon.stop();
+  console.end_status();
+  for (const std::string& e : server.take_events()) {  // the last ones, not lost to the exit
+    spdlog::info("{}", e);
+  }
+  log_health_events(daemon.take_health_events());
+  if (stop_signal != 0) {
+    fmt::print("stopped by signal {} ({})\n", stop_signal, stop_signal == SIGINT ? "SIGINT" : "SIGTERM");
+  }
+  const Settings& final_cfg = daemon.settings();
+  const bridge::BridgeStats stats = daemon.final_stats();
+  print_summary(stats, final_cfg.rate_hz);
+  print_stream_summary(stats);
+  print_run_report(daemon, stats);
+  int code = kOk;
+  if (!final_cfg.stats_json.empty()) {
+    std::ofstream out(final_cfg.stats_json);
+    out << bridge::to_json(stats, daemon.tick_period_s());
+    if (!out) {
+      spdlog::error("cannot write statistics to {}: check the directory exists and is writable",
+                    final_cfg.stats_json);
+      code = kFailure;
+    } else {
+      fmt::print("statistics written to {}\n", final_cfg.stats_json);
+    }
+  }
+  if (lost) {
+    return kFailure;
+  }
+  if (daemon.unrequested_fault()) {
+    spdlog::error("the device is in FAULT at exit: see `fault` on the control socket or the log");
+    return kFailure;
+  }
+  return code;
+}
+
 int run(Settings cfg, const std::string& config_path, const mrskin::bridged::Overrides& overrides, int sfd) {
   using namespace mrskin;
   Console console(::isatty(STDOUT_FILENO) == 1);
@@ -206,35 +349,12 @@ int run(Settings cfg, const std::string& config_path, const mrskin::bridged::Ove
   TimePoint next_status = t0 + std::chrono::milliseconds(500);
   int stop_signal = 0;
   bool lost = false;
-  while (stop_signal == 0) {
+  while (stop_signal == 0 && !lost) {
     const Settings& now_cfg = daemon.settings();
-    const TimePoint now = clock.now();
-    if (now_cfg.duration_s > 0.0 && now >= t0 + from_seconds(now_cfg.duration_s)) {
+    if (now_cfg.duration_s > 0.0 && clock.now() >= t0 + from_seconds(now_cfg.duration_s)) {
       break;
     }
-    pollfd p{sfd, POLLIN, 0};
-    (void)::poll(&p, 1, 1);  // 1 ms: the simulated finger follows the script at 1 kHz
-    signalfd_siginfo si{};
-    while ((p.revents & POLLIN) != 0 && ::read(sfd, &si, sizeof(si)) == static_cast<ssize_t>(sizeof(si))) {
-      if (si.ssi_signo != SIGHUP) {
-        stop_signal = static_cast<int>(si.ssi_signo);
-        continue;
-      }
-      console.clear();
-      if (config_path.empty()) {
-        spdlog::info("SIGHUP: no --config file to reload");
-        continue;
-      }
-      try {
-        Settings next = load(config_path, overrides);
-        for (const std::string& line : daemon.reload(std::move(next))) {
-          spdlog::info("{}", line);
-        }
-      } catch (const std::exception& e) {
-        spdlog::error("SIGHUP: configuration not reloaded, running on as before: {}", e.what());
-      }
-      p.revents = 0;  // one signal read per wake is enough; the next poll returns at once if more
-    }
+    stop_signal = read_signals(sfd, console, daemon, config_path, overrides);
     daemon.drive_finger();
     if (std::vector<mrskin::bridge::SourceEvent> events = daemon.take_source_events(); !events.empty()) {
       console.clear();  // each reason once, connections as they happen: no spam to rate-limit
@@ -248,103 +368,10 @@ int run(Settings cfg, const std::string& config_path, const mrskin::bridged::Ove
     }
     if (clock.now() >= next_status) {
       next_status += std::chrono::milliseconds(console.tty() ? 500 : 1000);
-      if (std::vector<bridged::Daemon::HealthEvent> health = daemon.take_health_events(); !health.empty()) {
-        console.clear();  // link errors at most once a period, transitions as they happen
-        for (const bridged::Daemon::HealthEvent& e : health) {
-          if (e.warning) {
-            spdlog::warn("{}", e.text);
-          } else {
-            spdlog::info("{}", e.text);
-          }
-        }
-      }
-      if (std::vector<std::string> events = server.take_events(); !events.empty()) {
-        console.clear();
-        for (const std::string& e : events) {
-          spdlog::info("{}", e);
-        }
-      }
-      if (daemon.device_lost(daemon.settings().device_lost_s)) {
-        console.clear();
-        spdlog::error("device {} lost for good (down for more than {} s, or another unit answered)",
-                      daemon.settings().device, daemon.settings().device_lost_s);
-        lost = true;
-        break;
-      }
-      if (!daemon.settings().quiet) {
-        console.status(daemon.status_line());
-      }
+      lost = status_period(console, daemon, server);
     }
   }
-  server.stop();
-  daemon.stop();
-  console.end_status();
-  for (const std::string& e : server.take_events()) {  // the last ones, not lost to the exit
-    spdlog::info("{}", e);
-  }
-  for (const bridged::Daemon::HealthEvent& e : daemon.take_health_events()) {
-    if (e.warning) {
-      spdlog::warn("{}", e.text);
-    } else {
-      spdlog::info("{}", e.text);
-    }
-  }
-  if (stop_signal != 0) {
-    fmt::print("stopped by signal {} ({})\n", stop_signal, stop_signal == SIGINT ? "SIGINT" : "SIGTERM");
-  }
-  const Settings& final_cfg = daemon.settings();
-  const bridge::BridgeStats stats = daemon.final_stats();
-  print_summary(stats, final_cfg.rate_hz);
-  print_stream_summary(stats);
-  const double run_s = std::max(1e-9, daemon.uptime_s());
-  const SessionCounters& link = daemon.link_counters();
-  fmt::print(
-      "bus load   {:.1f} % of full-speed USB-HID reports (host to device {:.1f} %, device to host {:.1f} "
-      "%)\n",
-      100.0 * stats.bus_load, 100.0 * static_cast<double>(link.sent) / run_s / 1000.0,
-      100.0 * static_cast<double>(link.received) / run_s / 1000.0);
-  if (const bridge::LoopStats* ls = daemon.loop_stats(); ls != nullptr) {
-    fmt::print(
-        "scheduler  {} priority {}, memory {}; wake latency p50 {:.1f} us, p99 {:.1f} us, p99.9 {:.1f} us; "
-        "early wakes {} (a stream sample woke the loop before its deadline), {} refused (too soon, or ahead "
-        "of the rate)\n",
-        ls->scheduler.policy_name(), ls->scheduler.priority,
-        ls->scheduler.memory_locked ? "locked" : "not locked", ls->wake_latency.percentile_ns(0.5) / 1e3,
-        ls->wake_latency.percentile_ns(0.99) / 1e3, ls->wake_latency.percentile_ns(0.999) / 1e3,
-        ls->early_wakes, ls->refused_wakes);
-  }
-  if (const bridge::SampleRecorder* rec = daemon.recorder(); rec != nullptr) {
-    fmt::print("recorded   {} samples to {} ({} dropped)\n", rec->written(), final_cfg.record,
-               rec->dropped());
-  }
-  if (const bridge::SkinPublisher* topics = daemon.topics(); topics != nullptr) {
-    fmt::print("topics     {} frames published under {} ({} failed), {} subscriber(s) at exit\n",
-               topics->published(), topics->ns(), topics->failures(), topics->subscribers());
-  }
-  if (daemon.reloads() > 0) {
-    fmt::print("reloads    {} (the statistics cover the run since the last bridge rebuild)\n",
-               daemon.reloads());
-  }
-  int code = kOk;
-  if (!final_cfg.stats_json.empty()) {
-    std::ofstream out(final_cfg.stats_json);
-    out << bridge::to_json(stats, daemon.tick_period_s());
-    if (!out) {
-      spdlog::error("cannot write statistics to {}: check the directory exists and is writable",
-                    final_cfg.stats_json);
-      code = kFailure;
-    } else {
-      fmt::print("statistics written to {}\n", final_cfg.stats_json);
-    }
-  }
-  if (lost) {
-    return kFailure;
-  }
-  if (daemon.unrequested_fault()) {
-    spdlog::error("the device is in FAULT at exit: see `fault` on the control socket or the log");
-    return kFailure;
-  }
-  return code;
+  return finish(daemon, server, console, stop_signal, lost);
 }
 
 int guarded_main(int argc, char** argv) {
