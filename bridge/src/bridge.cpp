@@ -1,10 +1,14 @@
 #include "mrskin/bridge/bridge.hpp"
 
 #include <algorithm>
+#include <atomic>
 #include <cmath>
 #include <string>
+#include <vector>
 
 #include "mrskin/driver/model/calibration.hpp"
+#include "mrskin/driver/model/device_model.hpp"
+#include "mrskin/driver/spsc_queue.hpp"
 
 namespace mrskin::bridge {
 

@@ -168,14 +168,16 @@ void register_device_scheme(std::string_view scheme, DeviceOpener opener) {
 OpenedDevice open_device(std::string_view uri, Clock& clock, const OpenOptions& options) {
   SessionOptions session_options = options.session;
   session_options.time_scale = time_scale_from_environment(session_options.time_scale);
-  if (uri.starts_with("mock://")) {
-    const DeviceOpener opener = registered_opener("mock");
-    if (opener == nullptr) {
-      throw InvalidArgument("'" + std::string(uri) +
-                            "' needs the simulation library: link mrskin::sim (the simulated unit is not "
-                            "part of mrskin::driver) and call mrskin::sim::register_mock_scheme()");
+  if (const auto colon = uri.find("://"); colon != std::string_view::npos) {
+    if (const DeviceOpener opener = registered_opener(uri.substr(0, colon)); opener != nullptr) {
+      return opener(uri, clock, options, session_options);
     }
-    return opener(uri, clock, options, session_options);
+  }
+  if (uri.starts_with("mock://")) {
+    throw InvalidArgument("'" + std::string(uri) +
+                          "' needs the simulation library: link mrskin::sim (the simulated unit is not "
+                          "part of mrskin::driver) and call mrskin::sim::register_mock_scheme() once at "
+                          "start-up");
   }
   if (uri.starts_with("hid://")) {
     return open_on_bus<HidTransportOptions>(uri, clock, session_options, &open_hid_transport);

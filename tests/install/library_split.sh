@@ -1,14 +1,19 @@
 #!/bin/sh
 # The simulation is a library of its own: the driver and bridge libraries define none of its
 # classes, and a console linked against mrskin::bridge alone needs no libmrskin_sim.
-# usage: library_split.sh NM READELF LIBDRIVER LIBBRIDGE LIBSIM CONSOLE
+# usage: library_split.sh NM READELF LIBDRIVER LIBBRIDGE LIBSIM CONSOLE SIM_CONSOLE
 set -eu
-nm=$1 readelf=$2 driver=$3 bridge=$4 sim=$5 console=$6
+nm=$1 readelf=$2 driver=$3 bridge=$4 sim=$5 console=$6 sim_console=$7
 # Classes of the simulation (defined symbols only: T, W, V, D, B, R in nm's listing).
 forbidden='mrskin::sim::|MockDevice|NetworkPlant|MockDeviceTruth|parse_mock_uri'
 status=0
 for lib in "$driver" "$bridge"; do
-  found=$("$nm" -DC --defined-only "$lib" | grep -E "$forbidden" || true)
+  if ! symbols=$("$nm" -DC --defined-only "$lib"); then
+    echo "FAIL: $nm could not read $lib"
+    status=1
+    continue
+  fi
+  found=$(echo "$symbols" | grep -E "$forbidden" || true)
   if [ -n "$found" ]; then
     echo "FAIL: $(basename "$lib") defines simulation symbols:"
     echo "$found" | head -20
@@ -30,5 +35,7 @@ if ! echo "$needed" | grep -q 'libmrskin_bridge'; then
   status=1
 fi
 "$console" || status=1
-[ "$status" -eq 0 ] && echo "library split: driver and bridge carry no simulation; a bridge-only console needs no libmrskin_sim"
+# A console linked with mrskin::sim that registers the scheme opens mock://.
+"$sim_console" || status=1
+[ "$status" -eq 0 ] && echo "library split: driver and bridge carry no simulation; a bridge-only console needs no libmrskin_sim; a sim console opens mock://"
 exit "$status"

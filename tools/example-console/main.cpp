@@ -1,6 +1,7 @@
 // Example master console: owns its real-time thread and calls Bridge::step(now) from it.
 // Setup may throw (typed, with what to do); the loop only sees return codes.
 #include <cstdio>
+#include <memory>
 #include <vector>
 
 #include "mrskin/bridge/bridge.hpp"
@@ -10,6 +11,7 @@
 int main() {
   using namespace mrskin;
   try {
+    sim::register_mock_scheme();  // mock://: the simulated unit, from mrskin::sim
     // Simulated time keeps the example deterministic; a console uses MonotonicClock.
     SimulatedClock clock;
     OpenOptions open;
@@ -17,18 +19,19 @@ int main() {
     OpenedDevice dev = open_device("mock://?seed=1", clock, open);
     auto scene = bridge::make_scene("demo");
     bridge::Bridge loop(*dev.session, *scene);
-    sim::MockDeviceTruth truth(*sim::mock_of(dev));
+    const std::shared_ptr<sim::MockDevice> mock = sim::mock_of(dev);  // the simulated finger's side
+    sim::MockDeviceTruth truth(*mock);
     loop.set_force_truth(&truth);
     loop.set_perf_clock(&clock);
     scene->set_start(clock.now());
     (void)loop.enable();
 
-    std::vector<double> finger(sim::mock_of(dev)->layout().fluid_cell_count());
+    std::vector<double> finger(mock->layout().fluid_cell_count());
     int faults = 0;
     for (int k = 0; k < 3500; ++k) {  // the console's 1 kHz loop
-      scene->finger(to_seconds(clock.now()), sim::mock_of(dev)->layout(), finger);
-      sim::mock_of(dev)->set_finger_indentation(finger);
-      sim::mock_of(dev)->step(clock.now());
+      scene->finger(to_seconds(clock.now()), mock->layout(), finger);
+      mock->set_finger_indentation(finger);
+      mock->step(clock.now());
       if (loop.step(clock.now()) != ResultCode::ok) {
         ++faults;  // a console would react: pause, re-enable, alert
       }

@@ -25,6 +25,7 @@
 #include "exit_codes.hpp"
 #include "mrskin/bridge/scene.hpp"
 #include "mrskin/driver/version.hpp"
+#include "mrskin/sim/open_mock.hpp"
 
 namespace {
 
@@ -375,6 +376,7 @@ int run(Settings cfg, const std::string& config_path, const mrskin::bridged::Ove
 }
 
 int guarded_main(int argc, char** argv) {
+  mrskin::sim::register_mock_scheme();  // mock:// (the simulated unit, mrskin::sim)
   // Before any thread exists (the mock device's, the loop's, the control socket's), so that all
   // inherit the mask and the signals arrive only through the signalfd.
   sigset_t mask;

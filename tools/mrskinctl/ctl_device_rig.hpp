@@ -195,6 +195,7 @@ class Rig {
       OpenOptions open;
       open.synchronous_mock = simulated_;
       dev_ = open_device(uri, clock(), open);
+      mock_ = sim::mock_of(dev_);
     }
     start_ = clock().now();
     next_ = start_;  // NOLINT(cppcoreguidelines-prefer-member-initializer): after the handshake
@@ -220,7 +221,7 @@ class Rig {
   [[nodiscard]] DeviceSession& session() const noexcept { return *dev_.session; }
   [[nodiscard]] const DeviceInfo& info() const noexcept { return dev_.session->info(); }
   // The press fixture: the mock's finger (nullptr on a real unit).
-  [[nodiscard]] sim::MockDevice* fixture() const noexcept { return sim::mock_of(dev_).get(); }
+  [[nodiscard]] sim::MockDevice* fixture() const noexcept { return mock_.get(); }
   [[nodiscard]] static bool interrupted() noexcept { return interrupted_flag() != 0; }
   double elapsed_s() noexcept { return to_seconds(clock().now() - start_); }
   [[nodiscard]] ResultCode last() const noexcept { return last_; }
@@ -229,7 +230,7 @@ class Rig {
   ResultCode tick() noexcept {
     if (simulated_) {
       sim_.advance(kTick);
-      sim::mock_of(dev_)->step(sim_.now());
+      mock_->step(sim_.now());
     } else {
       next_ = std::max(next_ + kTick, mono_.now());  // behind: skip, never burst
       mono_.sleep_until(next_);
@@ -317,6 +318,7 @@ class Rig {
   SimulatedClock sim_;
   MonotonicClock mono_;
   OpenedDevice dev_;
+  std::shared_ptr<sim::MockDevice> mock_;  // set for mock:// (the unit behind dev_)
   TimePoint start_{};
   TimePoint next_{};
   ResultCode last_ = ResultCode::ok;

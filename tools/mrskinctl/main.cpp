@@ -17,6 +17,7 @@
 #include "mrskin/driver/device.hpp"
 #include "mrskin/driver/version.hpp"
 #include "mrskin/protocol/messages.hpp"
+#include "mrskin/sim/open_mock.hpp"
 
 namespace {
 
@@ -217,6 +218,7 @@ int cmd_info(const InfoOptions& o) {
 namespace {
 
 int guarded_main(int argc, char** argv) {
+  mrskin::sim::register_mock_scheme();  // mock:// (the simulated unit, mrskin::sim)
   CLI::App app{"mrskinctl: inspect, test and calibrate MR skin devices"};
   app.set_version_flag("--version", std::string(mrskin::library_version()) + " (protocol v" +
                                         std::to_string(mrskin::protocol_version_major()) + "." +

@@ -296,6 +296,7 @@ Duration period_of(const MonitorOptions& o) {
 int monitor_device(const MonitorOptions& o, Renderer& out) {
   MonotonicClock clock;
   const OpenedDevice dev = open_device(o.device, clock);
+  const std::shared_ptr<sim::MockDevice> mock = sim::mock_of(dev);
   DeviceSession& session = *dev.session;
   const DeviceInfo& info = session.info();
   const model::DeviceProfile* profile = session.profile();
@@ -366,7 +367,7 @@ int monitor_device(const MonitorOptions& o, Renderer& out) {
       f.current_A.assign(commanded.begin(), commanded.end());
       const std::span<const double> temperature = thermal.temperature_C();
       f.temperature_C.assign(temperature.begin(), temperature.end());
-      f.max_coil_C = sim::mock_of(dev) ? sim::mock_of(dev)->max_coil_temperature_C() : NAN;
+      f.max_coil_C = mock ? mock->max_coil_temperature_C() : NAN;
       out.show(f);
     }
     if (over) {

@@ -5,12 +5,10 @@
 // step(now) is the tick; it never allocates, locks, blocks, logs or throws.
 #pragma once
 
-#include <atomic>
 #include <cstdint>
 #include <memory>
 #include <span>
 #include <string>
-#include <vector>
 
 #include "mrskin/bridge/loop.hpp"
 #include "mrskin/bridge/mapping.hpp"
@@ -21,11 +19,9 @@
 #include "mrskin/driver/clock.hpp"
 #include "mrskin/driver/errors.hpp"
 #include "mrskin/driver/force_truth.hpp"
-#include "mrskin/driver/model/device_model.hpp"
 #include "mrskin/driver/model/inverse.hpp"
 #include "mrskin/driver/model/observer.hpp"
 #include "mrskin/driver/session.hpp"
-#include "mrskin/driver/spsc_queue.hpp"
 
 namespace mrskin::bridge {
 

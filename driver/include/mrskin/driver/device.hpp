@@ -70,8 +70,9 @@ struct OpenedDevice {
   std::unique_ptr<DeviceSession> session;
 };
 
-// Opens one URI scheme that the driver itself does not know ("mock" for mrskin::sim). The
-// SessionOptions are the caller's with MRSKIN_TIME_SCALE applied.
+// Opens one URI scheme ("mock" for mrskin::sim); open_device() asks the registered opener of a
+// URI's scheme first, then its own (hid, usb, can). The SessionOptions are the caller's with
+// MRSKIN_TIME_SCALE applied.
 using DeviceOpener = OpenedDevice (*)(std::string_view uri, Clock& clock, const OpenOptions& options,
                                       const SessionOptions& session_options);
 // Registers (or replaces) the opener of `scheme` (without "://"). Setup only (it takes a lock).

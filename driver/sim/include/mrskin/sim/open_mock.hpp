@@ -1,6 +1,7 @@
-// Opening the simulated unit by URI (mock://, see mrskin/driver/device.hpp for the syntax):
-// this library registers the scheme with the driver when it is loaded, and
-// register_mock_scheme() does it again for a host that wants to be explicit.
+// Opening the simulated unit by URI (mock://, see mrskin/driver/device.hpp for the syntax).
+// Call register_mock_scheme() once at start-up: loading this library registers the scheme too,
+// but a linker with --as-needed (Debian's default) drops a library none of whose symbols the
+// program uses, and then mock:// is unknown.
 #pragma once
 
 #include <memory>
@@ -20,7 +21,7 @@ struct MockUri {
 // loaded here (model::load_profile_with_text does that).
 MockUri parse_mock_uri(std::string_view uri);
 
-// Makes open_device() open mock:// URIs. Idempotent.
+// Makes open_device() open mock:// URIs. Idempotent; setup only.
 void register_mock_scheme();
 
 // The mock behind a device opened with mock://; null for any other device.
