@@ -7,7 +7,7 @@ set -euo pipefail
 PACKAGES=(
   # compilers and build tools
   g++ clang clang-14 libclang-rt-14-dev cmake ninja-build pkg-config
-  # libraries (BRIEF section 7)
+  # libraries (Debian 12's packages)
   libhidapi-dev libusb-1.0-0-dev libeigen3-dev libspdlog-dev libcli11-dev
   libtomlplusplus-dev nlohmann-json3-dev libcap-dev libopenigtlink-dev
   # ROS 2 topics over DDS: Cyclone's C API and its IDL compiler (idlc)

@@ -1,6 +1,6 @@
 // Bridge I on every built-in scene, on the simulated clock, against the perturbed plant of the
 // mock device (seed 7), scored by the finger's true motion against the tissue law clamped into
-// the envelope. Every scene but step holds the product's figures (BRIEF section 5); step holds a
+// the envelope. Every scene but step holds the product's figures (docs/requirements.md); step holds a
 // regression bound at its measured value (docs/bridge.md has the table and what limits it).
 // Then the same under a network of 50 ms +- 20 ms delay and 5 % loss.
 #include <gtest/gtest.h>

@@ -1,4 +1,4 @@
-// Settling of the closed force loop after a force step (BRIEF section 5: within 2 % of the step
+// Settling of the closed force loop after a force step (docs/requirements.md: within 2 % of the step
 // in at most 3 coil time constants of the profile plus 5 ms, in simulated time). Scene "step"
 // (scene.hpp): the finger holds at 1.5 mm, then moves on at a constant 5 mm/s, and the tissue's
 // damping steps the target force up by 0.3 N at t = 1.0 s of every cycle; at t = 1.6 s the finger

@@ -1,5 +1,5 @@
 #!/bin/sh
-# The bridge tick's cost gate (BRIEF section 5, issue 9): runs tick_callgrind_probe under
+# The bridge tick's cost gate (docs/requirements.md): runs tick_callgrind_probe under
 # callgrind for each case and fails if
 #   - a 5 x 5 case (idle5, load5, hold5) costs more than LIMIT_5X5 instructions per tick, or
 #   - the 64 x 64 with 5 % of its cells in contact costs more than RATIO_PERCENT % of the 64 x 64

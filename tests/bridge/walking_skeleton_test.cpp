@@ -25,7 +25,7 @@ TEST(WalkingSkeleton, DemoConvergesOnSimulatedClock) {
   EXPECT_EQ(r.stats.slave_samples, 10000U);
   EXPECT_GT(r.stats.force_samples, 5000U);
   EXPECT_EQ(r.state, DeviceState::enabled);
-  // The product's figures (BRIEF section 5) on this seed, scored by the finger's true motion
+  // The product's figures (docs/requirements.md) on this seed, scored by the finger's true motion
   // against the tissue law clamped into the envelope: 0.031 N RMS and a 6.4 % 95th-percentile
   // relative error measured; docs/bridge.md gives the spread over seeds.
   EXPECT_LE(r.stats.force_rms_error_N(), 0.04) << to_json(r.stats, 1e-3);

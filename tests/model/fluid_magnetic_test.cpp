@@ -14,7 +14,7 @@ using namespace mrskin::model;
 
 TEST(ModelFluid, CarlsonYieldStressAtTheBriefsFields) {
   const FluidParams f;  // MRF-132DG class, phi = 0.32, hydrocarbon
-  // BRIEF: about 0.3 kPa at 1 kA/m, 3 at 10, 27 at 100, 41 at 200.
+  // The product brief's check values: about 0.3 kPa at 1 kA/m, 3 at 10, 27 at 100, 41 at 200.
   EXPECT_NEAR(yield_stress_Pa(f, 1e3).value, 300.0, 10.0);
   EXPECT_NEAR(yield_stress_Pa(f, 1e4).value, 3000.0, 100.0);
   EXPECT_NEAR(yield_stress_Pa(f, 1e5).value, 27e3, 500.0);

@@ -243,7 +243,7 @@ TEST(ModelValve, WereleyPangIsAFewPercentOffAndNotEnough) {
       hi = std::max(hi, e);
     }
   }
-  EXPECT_NEAR(lo, -0.022, 0.002);  // BRIEF: -2.2 % to +3.4 %
+  EXPECT_NEAR(lo, -0.022, 0.002);  // docs/requirements.md: -2.2 % to +3.4 %
   EXPECT_NEAR(hi, 0.034, 0.002);
 }
 

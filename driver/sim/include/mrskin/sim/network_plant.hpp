@@ -26,7 +26,7 @@ namespace mrskin::sim {
 struct NetworkPlantOptions {
   double perturbation = 0.15;  // relative half-width of the parameter spread
   std::uint64_t seed = 1;
-  double command_delay_s = 1.5e-3;  // bus delay from command to coil driver (BRIEF: 1-2 ms)
+  double command_delay_s = 1.5e-3;  // bus delay from command to coil driver (1-2 ms: docs/requirements.md)
   double hysteresis_scale = 1.0;    // multiplies the profile's steel coercivity (0: none)
   double sensor_noise_scale = 1.0;  // multiplies every sensor's noise_std (0: noise-free)
   bool quantise_sensors = true;     // round readings to the sensor's resolution
