@@ -349,22 +349,10 @@ void validate_graph(const DeviceProfile& p, const Grid& g) {
   }
 }
 
-}  // namespace
+// --- one function per section of the profile ---------------------------------------------
 
-DeviceProfile parse_profile(std::string_view toml_text, const std::string& origin) {
-  toml::table root;
-  try {
-    root = toml::parse(toml_text, origin);
-  } catch (const toml::parse_error& e) {
-    std::ostringstream s;
-    s << origin << ":" << e.source().begin.line << ":" << e.source().begin.column
-      << ": TOML syntax: " << e.description();
-    throw InvalidArgument(s.str());
-  }
-  DeviceProfile p;
-  p.origin = origin;
-  Section top(&root, "", origin);
-
+// [profile]
+void parse_identity(Section& top, DeviceProfile& p, const std::string& origin) {
   Section prof = top.sub("profile");
   if (!prof.present()) {
     fail(origin, "[profile]: missing (name, description, format_version)");
@@ -375,7 +363,10 @@ DeviceProfile parse_profile(std::string_view toml_text, const std::string& origi
     prof.fail_key("format_version", "this library reads format_version = 1");
   }
   prof.finish();
+}
 
+// [grid]
+void parse_grid(Section& top, DeviceProfile& p) {
   Section grid = top.sub("grid");
   const long long rows = grid.integer("rows");
   const long long cols = grid.integer("cols");
@@ -390,8 +381,10 @@ DeviceProfile parse_profile(std::string_view toml_text, const std::string& origi
   p.cell_pitch_m = grid.positive("cell_pitch_m");
   p.cell_depth_m = grid.positive("cell_depth_m");
   grid.finish();
-  const Grid g(p.rows, p.cols);
+}
 
+// [fluid]
+void parse_fluid(Section& top, DeviceProfile& p, const std::string& origin) {
   Section fl = top.sub("fluid");
   p.fluid.volume_fraction = fl.positive("volume_fraction");
   p.fluid.carrier_factor = fl.positive("carrier_factor", 1.0);
@@ -407,7 +400,10 @@ DeviceProfile parse_profile(std::string_view toml_text, const std::string& origi
   p.fluid.saturation_rate_per_T = fl.positive("saturation_rate_per_T", p.fluid.saturation_rate_per_T);
   fl.finish();
   check(origin, "fluid", check_fluid(p.fluid));
+}
 
+// [valve]
+void parse_valve(Section& top, DeviceProfile& p, const std::string& origin) {
   Section va = top.sub("valve");
   const std::string shape = va.text("shape", "slot");
   if (shape == "slot") {
@@ -419,7 +415,10 @@ DeviceProfile parse_profile(std::string_view toml_text, const std::string& origi
   }
   va.finish();
   check(origin, "valve", check_valve_geometry(p.valve));
+}
 
+// [magnetic]
+void parse_magnetic(Section& top, DeviceProfile& p, const std::string& origin) {
   Section mg = top.sub("magnetic");
   const long long turns = mg.integer("turns");
   if (turns < 1 || turns > 100000) {
@@ -439,7 +438,10 @@ DeviceProfile parse_profile(std::string_view toml_text, const std::string& origi
   st.finish();
   mg.finish();
   check(origin, "magnetic", check_magnetic(p.magnetic));
+}
 
+// [coil]
+void parse_coil(Section& top, DeviceProfile& p, const std::string& origin) {
   Section co = top.sub("coil");
   p.coil.resistance_ohm = co.positive("resistance_ohm");
   p.coil.inductance_H = co.positive("inductance_H");
@@ -450,7 +452,10 @@ DeviceProfile parse_profile(std::string_view toml_text, const std::string& origi
   p.coil.eddy_time_constant_s = co.non_negative("eddy_time_constant_s", 0.0);
   co.finish();
   check(origin, "coil", check_coil(p.coil));
+}
 
+// [membrane]
+void parse_membrane(Section& top, DeviceProfile& p, const std::string& origin) {
   Section me = top.sub("membrane");
   p.membrane.thickness_m = me.positive("thickness_m");
   p.membrane.youngs_modulus_Pa = me.positive("youngs_modulus_Pa");
@@ -459,7 +464,10 @@ DeviceProfile parse_profile(std::string_view toml_text, const std::string& origi
   p.membrane.hencky_K = me.positive("hencky_K", 0.65);
   me.finish();
   check(origin, "membrane", check_membrane(p.membrane));
+}
 
+// [contact]
+void parse_contact(Section& top, DeviceProfile& p) {
   Section ct = top.sub("contact");
   p.finger_radius_m = ct.positive("finger_radius_m");
   ct.finish();
@@ -467,12 +475,18 @@ DeviceProfile parse_profile(std::string_view toml_text, const std::string& origi
     ct.fail_key("finger_radius_m", "must be at least 1 % of the cell's equivalent radius " +
                                        number_text(p.cell_radius_m()) + " m");
   }
+}
 
+// [reservoir]
+void parse_reservoir(Section& top, DeviceProfile& p) {
   Section re = top.sub("reservoir");
   p.reservoir.initial_pressure_Pa = re.number("initial_pressure_Pa", 0.0);
   p.reservoir.compliance_m3_per_Pa = re.positive("compliance_m3_per_Pa");
   re.finish();
+}
 
+// [hydraulics]
+void parse_hydraulics(Section& top, DeviceProfile& p, const std::string& origin, const Grid& g) {
   Section hy = top.sub("hydraulics");
   p.topology = hy.text("topology", "chamber");
   if (p.topology != "chamber" && p.topology != "direct" && p.topology != "explicit") {
@@ -505,7 +519,10 @@ DeviceProfile parse_profile(std::string_view toml_text, const std::string& origi
   }
   hy.finish();
   validate_graph(p, g);
+}
 
+// [sensors]
+void parse_sensors(Section& top, DeviceProfile& p, const std::string& origin, const Grid& g) {
   Section se = top.sub("sensors");
   const std::string generate = se.text("generate", "none");
   if (generate != "none") {
@@ -564,7 +581,10 @@ DeviceProfile parse_profile(std::string_view toml_text, const std::string& origi
     fail(origin,
          R"([sensors]: the profile declares no sensor (generate = "under_valves" or [[sensors.sensor]]))");
   }
+}
 
+// [design]
+void parse_design(Section& top, DeviceProfile& p, const Grid& g) {
   Section de = top.sub("design");
   p.design.force_range_N = de.positive("force_range_N", 2.0);
   p.design.indentation_m = de.positive("indentation_m", 5e-3);
@@ -578,7 +598,37 @@ DeviceProfile parse_profile(std::string_view toml_text, const std::string& origi
   p.design.row = dr;
   p.design.col = dc;
   de.finish();
+}
 
+}  // namespace
+
+DeviceProfile parse_profile(std::string_view toml_text, const std::string& origin) {
+  toml::table root;
+  try {
+    root = toml::parse(toml_text, origin);
+  } catch (const toml::parse_error& e) {
+    std::ostringstream s;
+    s << origin << ":" << e.source().begin.line << ":" << e.source().begin.column
+      << ": TOML syntax: " << e.description();
+    throw InvalidArgument(s.str());
+  }
+  DeviceProfile p;
+  p.origin = origin;
+  Section top(&root, "", origin);
+
+  parse_identity(top, p, origin);
+  parse_grid(top, p);
+  const Grid g(p.rows, p.cols);
+  parse_fluid(top, p, origin);
+  parse_valve(top, p, origin);
+  parse_magnetic(top, p, origin);
+  parse_coil(top, p, origin);
+  parse_membrane(top, p, origin);
+  parse_contact(top, p);
+  parse_reservoir(top, p);
+  parse_hydraulics(top, p, origin, g);
+  parse_sensors(top, p, origin, g);
+  parse_design(top, p, g);
   top.finish();
   return p;
 }
