@@ -113,6 +113,77 @@ CanEncodeResult encode_segmented(const Message& m, std::uint8_t node, std::uint8
   return {Error::ok, frames};
 }
 
+// The message a classic frame carries once its CRC checked: valve and sensor blocks, one cell's
+// target, or a management frame (heartbeat, status, time sync, state request).
+Error decode_cyclic(std::uint8_t fn, std::uint8_t block, std::uint8_t low,
+                    const std::array<std::uint8_t, 64>& d, Message& out) noexcept {
+  switch (static_cast<CanFunction>(fn)) {
+    case CanFunction::valve_block: {
+      if (low == 0 || low > kCanValuesPerBlock) {
+        return Error::out_of_range;
+      }
+      ValveCurrents v;
+      v.first = static_cast<std::uint16_t>(block * kCanValuesPerBlock);
+      v.count = low;
+      for (unsigned i = 0; i < low; ++i) {
+        v.counts[i] = static_cast<std::uint16_t>(get_bits(d, 12 * i, 12));
+      }
+      out = Message(std::move(v));
+      break;
+    }
+    case CanFunction::sensor_block: {
+      if (low == 0 || low > kCanValuesPerBlock) {
+        return Error::out_of_range;
+      }
+      Telemetry t;
+      t.first = static_cast<std::uint16_t>(block * kCanValuesPerBlock);
+      t.count = low;
+      for (unsigned i = 0; i < low; ++i) {
+        const std::uint32_t raw = get_bits(d, 12 * i, 12);
+        t.counts[i] =
+            static_cast<std::int16_t>(raw >= 0x800U ? static_cast<int>(raw) - 0x1000 : static_cast<int>(raw));
+      }
+      out = Message(std::move(t));
+      break;
+    }
+    case CanFunction::cell_target: {
+      CellTargets c;
+      c.first = static_cast<std::uint16_t>(block | (get_bits(d, 44, 4) << 4U));
+      c.count = 1;
+      c.targets[0].stiffness = static_cast<std::uint16_t>(get_bits(d, 0, 14));
+      c.targets[0].offset = static_cast<std::uint16_t>(get_bits(d, 14, 12));
+      c.targets[0].ceiling = static_cast<std::uint16_t>(get_bits(d, 26, 12));
+      c.targets[0].validity = static_cast<std::uint8_t>(get_bits(d, 38, 6));
+      out = Message(std::move(c));
+      break;
+    }
+    case CanFunction::management: {
+      switch (static_cast<CanManagement>(block)) {
+        case CanManagement::heartbeat:
+          out = Message(Heartbeat{static_cast<std::uint16_t>(d[0] | (d[1] << 8U))});
+          break;
+        case CanManagement::status:
+          out = Message(Status{d[0], d[1], static_cast<std::uint16_t>(d[2] | (d[3] << 8U)), d[4]});
+          break;
+        case CanManagement::time_sync:
+          out = Message(TimeSync{static_cast<std::uint32_t>(d[0]) | (static_cast<std::uint32_t>(d[1]) << 8U) |
+                                 (static_cast<std::uint32_t>(d[2]) << 16U) |
+                                 (static_cast<std::uint32_t>(d[3]) << 24U)});
+          break;
+        case CanManagement::state_request:
+          out = Message(StateRequest{d[0]});
+          break;
+        default:
+          return Error::unknown_type;
+      }
+      break;
+    }
+    default:
+      return Error::unknown_type;
+  }
+  return Error::ok;
+}
+
 }  // namespace
 
 CanEncodeResult encode_can(const Message& message, std::uint8_t node, std::uint8_t counter,
@@ -298,74 +369,9 @@ CanDecoded CanDecoder::decode(const CanFrame& frame) noexcept {
   }
   result.counter = static_cast<std::uint8_t>(frame.data[6] >> 4U);
   const auto low = static_cast<std::uint8_t>(frame.data[6] & 0xFU);
-  const auto& d = frame.data;
-  switch (static_cast<CanFunction>(fn)) {
-    case CanFunction::valve_block: {
-      if (low == 0 || low > kCanValuesPerBlock) {
-        result.error = Error::out_of_range;
-        return result;
-      }
-      ValveCurrents v;
-      v.first = static_cast<std::uint16_t>(block * kCanValuesPerBlock);
-      v.count = low;
-      for (unsigned i = 0; i < low; ++i) {
-        v.counts[i] = static_cast<std::uint16_t>(get_bits(d, 12 * i, 12));
-      }
-      result.message = Message(std::move(v));
-      break;
-    }
-    case CanFunction::sensor_block: {
-      if (low == 0 || low > kCanValuesPerBlock) {
-        result.error = Error::out_of_range;
-        return result;
-      }
-      Telemetry t;
-      t.first = static_cast<std::uint16_t>(block * kCanValuesPerBlock);
-      t.count = low;
-      for (unsigned i = 0; i < low; ++i) {
-        const std::uint32_t raw = get_bits(d, 12 * i, 12);
-        t.counts[i] =
-            static_cast<std::int16_t>(raw >= 0x800U ? static_cast<int>(raw) - 0x1000 : static_cast<int>(raw));
-      }
-      result.message = Message(std::move(t));
-      break;
-    }
-    case CanFunction::cell_target: {
-      CellTargets c;
-      c.first = static_cast<std::uint16_t>(block | (get_bits(d, 44, 4) << 4U));
-      c.count = 1;
-      c.targets[0].stiffness = static_cast<std::uint16_t>(get_bits(d, 0, 14));
-      c.targets[0].offset = static_cast<std::uint16_t>(get_bits(d, 14, 12));
-      c.targets[0].ceiling = static_cast<std::uint16_t>(get_bits(d, 26, 12));
-      c.targets[0].validity = static_cast<std::uint8_t>(get_bits(d, 38, 6));
-      result.message = Message(std::move(c));
-      break;
-    }
-    case CanFunction::management: {
-      switch (static_cast<CanManagement>(block)) {
-        case CanManagement::heartbeat:
-          result.message = Message(Heartbeat{static_cast<std::uint16_t>(d[0] | (d[1] << 8U))});
-          break;
-        case CanManagement::status:
-          result.message = Message(Status{d[0], d[1], static_cast<std::uint16_t>(d[2] | (d[3] << 8U)), d[4]});
-          break;
-        case CanManagement::time_sync:
-          result.message = Message(TimeSync{
-              static_cast<std::uint32_t>(d[0]) | (static_cast<std::uint32_t>(d[1]) << 8U) |
-              (static_cast<std::uint32_t>(d[2]) << 16U) | (static_cast<std::uint32_t>(d[3]) << 24U)});
-          break;
-        case CanManagement::state_request:
-          result.message = Message(StateRequest{d[0]});
-          break;
-        default:
-          result.error = Error::unknown_type;
-          return result;
-      }
-      break;
-    }
-    default:
-      result.error = Error::unknown_type;
-      return result;
+  result.error = decode_cyclic(fn, block, low, frame.data, result.message);
+  if (result.error != Error::ok) {
+    return result;
   }
   result.error = detail::validate(result.message);
   result.complete = result.error == Error::ok;
