@@ -55,8 +55,8 @@ struct BridgeOptions {
   bool freeze_feedback_while_holding = false;
   // A cell whose passages let out less than this (the observer's network flows) is sealed: more
   // current cannot raise its force, so the feedback does not wind up asking for it (the surplus
-  // pressurised the next press: hand 0.93 N against 0.79 N). The regularised network's creep
-  // through a locked passage is ~1e-10 m^3/s; a flowing press moves ~1e-6.
+  // pressurised the next press). The regularised network's creep through a locked passage is
+  // ~1e-10 m^3/s; a flowing press moves ~1e-6.
   double sealed_outflow_m3_per_s = 1e-9;
   // Currents moved along the steel's play (the observer's model) so each valve reaches the yield
   // the inverse asked for on the anhysteretic curve: the band's upper edge going up, its lower
@@ -64,11 +64,11 @@ struct BridgeOptions {
   bool compensate_hysteresis = true;
   // A loading cell whose observed force is below its request holds its valves at the request's
   // threshold until the force gets there (the quasi-static feed-forward assumes the compliance
-  // has filled). Over 9 scenes x seeds 1-8: 72 of 72 runs meet both figures with it, 69 without.
+  // has filled). docs/bridge.md, "What the tuning measured".
   bool lock_while_short = true;
   // A holding cell's valves stay at least this fraction above the threshold of its target, so
   // model error does not leak the trapped volume away. Off: slow loading that reads as a hold
-  // then overshoots (demo 0.031 -> 0.046 N RMS at 0.1, sweep 0.055 -> 0.088 N).
+  // then overshoots (docs/bridge.md, "What the tuning measured").
   double hold_margin = 0.0;
   bool realtime = true;           // SCHED_FIFO + mlockall on the library's loop thread (start())
   double resend_period_s = 0.05;  // unchanged currents are sent again only this often

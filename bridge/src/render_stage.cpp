@@ -1,0 +1,179 @@
+#include "render_stage.hpp"
+
+#include <algorithm>
+#include <cmath>
+
+namespace mrskin::bridge::detail {
+
+namespace {
+double unload_filter_alpha(const BridgeOptions& o) noexcept {
+  return 1.0 - std::exp(-1.0 / (o.rate_hz * std::max(o.unload_filter_s, 1e-9)));
+}
+}  // namespace
+
+RenderStage::RenderStage(const BridgeOptions& options, const GridLayout& layout)
+    : options_(options),
+      layout_(layout),
+      estimator_(options.estimator),
+      unload_filter_alpha_(unload_filter_alpha(options)),
+      cell_(layout.fluid_cell_count()) {}
+
+void RenderStage::retune_rate() noexcept { unload_filter_alpha_ = unload_filter_alpha(options_); }
+
+void RenderStage::clear_feedback() noexcept {
+  for (CellMemory& c : cell_) {
+    c.feedback_N = 0.0;
+  }
+}
+
+void RenderStage::take_stream(SlaveSource& source, TimePoint now, TimePoint start, BridgeStats& stats,
+                              Rendering& out) noexcept {
+  // Model-mediated rendering: the slave stream updates the online tissue estimate, and the cells
+  // under the mapped contact point take it; the stale policy (hold, then fade to released) is the
+  // estimator's.
+  out.fresh_sample = false;
+  SlaveSample sample;
+  if (source.latest(now, sample) && sample.valid) {
+    ++stats.slave_samples;
+    if (!slave_.valid || sample.stamp != slave_.stamp) {
+      out.fresh_sample = true;  // its effect leaves with this tick's frame (latency figures)
+      stats.slave_force.add(sample.force_N);
+      out.fresh_arrival = sample.received.count() != 0 ? sample.received : sample.stamp;
+    }
+    slave_ = sample;
+    // Out-of-order, duplicate and malformed samples are refused and counted by the estimator.
+    (void)estimator_.push(
+        TissueSample{to_seconds(sample.stamp - start), sample.force_N, sample.indentation_m});
+    if (sample.ended) {
+      estimator_.end_stream(to_seconds(now - start));
+    }
+  }
+  const bool was_fresh = estimate_.freshness == TissueFreshness::fresh;
+  estimate_ = estimator_.estimate(to_seconds(now - start));
+  if (estimate_.freshness != TissueFreshness::fresh) {
+    ++stats.stale_ticks;
+    stats.stream_stalls += was_fresh ? 1 : 0;
+  }
+  if (estimate_.freshness == TissueFreshness::fresh && slave_.indentation_m > 0.0) {
+    // The cells around the mapped contact point take the current estimate; the others keep
+    // theirs (a map of the tissue as the instrument went over it).
+    const CellPoint at =
+        options_.mapping.to_cell(slave_.contact_x_m, slave_.contact_y_m, layout_.rows(), layout_.cols());
+    const double reach = std::max(options_.footprint_cells, options_.mapping.to_cells(slave_.tip_radius_m));
+    const auto& cells = layout_.fluid_cells();
+    for (std::size_t i = 0; i < cells.size(); ++i) {
+      const double dr = cells[i].row - at.row;
+      const double dc = cells[i].col - at.col;
+      if (dr * dr + dc * dc <= reach * reach) {
+        cell_[i].mapped_model = estimate_.model;  // fresh: scale 1
+        cell_[i].mapped = 1;
+      }
+    }
+  }
+}
+
+double RenderStage::direction_rate(CellMemory& cell, bool contact, double depth_m,
+                                   double rate_m_per_s) const noexcept {
+  // Hysteresis in position, not in rate: the observer's rate noise (~0.5 mm/s RMS) must neither
+  // release a held press nor re-hold a release that is under way. A cell unloads once its depth
+  // has fallen retreat_m below its peak, and loads again once it has risen retreat_m above its
+  // trough. Between the two, rates within the deadband count as holding.
+  const double retreat_m = options_.unload_retreat_m;
+  if (!contact) {
+    cell.loading = 0;
+    cell.unloading = 0;
+    cell.extreme_m = 0.0;
+    cell.smooth_depth_m = 0.0;
+    return 0.0;
+  }
+  // On a smoothed depth: the fit's noise (2-3 um RMS, ~20 um peaks) shrinks well below retreat_m.
+  cell.smooth_depth_m += unload_filter_alpha_ * (depth_m - cell.smooth_depth_m);
+  depth_m = cell.smooth_depth_m;
+  if (cell.unloading == 0) {
+    cell.extreme_m = std::max(cell.extreme_m, depth_m);
+    if (depth_m < cell.extreme_m - retreat_m) {
+      cell.unloading = 1;
+      cell.extreme_m = depth_m;
+    }
+  } else {
+    cell.extreme_m = std::min(cell.extreme_m, depth_m);
+    if (depth_m > cell.extreme_m + retreat_m) {
+      cell.unloading = 0;
+      cell.extreme_m = depth_m;
+    }
+  }
+  if (cell.unloading != 0) {
+    cell.loading = 0;
+    // Released: the inverse sees a retreating finger whatever the noise says.
+    return std::min(rate_m_per_s, -options_.unload_rate_m_per_s);
+  }
+  // Loading starts above the deadband and lasts until the rate falls below load_exit_rate:
+  // hysteresis in rate, so the noise at a press's smooth start does not flip the inverse between
+  // loading and holding every few ticks (docs/bridge.md).
+  if (rate_m_per_s > options_.unload_rate_m_per_s ||
+      (cell.loading != 0 && rate_m_per_s > options_.load_exit_rate_m_per_s)) {
+    cell.loading = 1;
+    return rate_m_per_s;
+  }
+  cell.loading = 0;
+  return 0.0;
+}
+
+void RenderStage::render(const Observation& observed, std::span<const model::CellSolution> last_solve,
+                         std::span<const double> last_target_N, double dt_s, Rendering& out) noexcept {
+  const std::span<const double> depth_m = observed.depth_m;
+  const std::span<const double> force_N = observed.force_N;
+  const std::span<const double> outflow = observed.outflow_m3_per_s;
+  const double valid_until_s = estimate_.valid_until_s;
+  for (std::size_t i = 0; i < cell_.size(); ++i) {
+    CellMemory& cell = cell_[i];
+    model::CellState& state = out.state[i];
+    // A membrane sucked in after a release reads as depth with no force on it: no finger.
+    const bool contact = depth_m[i] > options_.contact_threshold_m && force_N[i] > options_.contact_force_N;
+    const double rate = direction_rate(cell, contact, depth_m[i], observed.rate_m_per_s[i]);
+    state.indentation_m = contact ? depth_m[i] : 0.0;
+    state.rate_m_per_s = contact ? rate : 0.0;
+    out.contact[i] = contact ? 1 : 0;
+    const model::CellRole role = last_solve[i].role;
+    const bool loaded = contact && (role == model::CellRole::loading || role == model::CellRole::holding);
+    // The cell's law: its mapped tissue (or the current estimate where the instrument never was),
+    // scaled by the stale policy, changed passively while the finger is in the cell.
+    PassiveTissueUpdate& law = cell.law;
+    if (contact || law.surface_offset_m() > 0.0 || law.tank_J() > 0.0) {
+      law.update(cell.mapped != 0 ? cell.mapped_model.scaled(estimate_.scale) : estimate_.model,
+                 state.indentation_m);
+    }
+    // What the finger should feel (the feedback's shift is not part of it); allocate clamps it
+    // into the envelope after the solve.
+    out.tissue_N[i] = std::min(law.force_N(state.indentation_m, rate), options_.max_force_N);
+    if (!loaded) {
+      cell.feedback_N = 0.0;
+    } else {
+      const double error_N = last_target_N[i] - force_N[i];
+      // Optionally frozen while holding: the force is then mostly the trapped volume's. Off by
+      // default: the valves hold near their threshold and the integral still trims the slow leak
+      // (docs/bridge.md).
+      const bool sealed = i < outflow.size() && outflow[i] < options_.sealed_outflow_m3_per_s;
+      const bool wound_up = (error_N > 0.0 && (last_solve[i].clamped_high || sealed)) ||
+                            (error_N < 0.0 && last_solve[i].clamped_low) ||
+                            (options_.freeze_feedback_while_holding && role == model::CellRole::holding);
+      if (!wound_up) {
+        cell.feedback_N = std::clamp(cell.feedback_N + options_.feedback_gain_per_s * dt_s * error_N,
+                                     -options_.feedback_limit_N, options_.feedback_limit_N);
+      }
+    }
+    model::CellImpedanceTarget& t = out.target[i];
+    t = law.target(state.indentation_m, options_.max_force_N, valid_until_s);
+    // The correction enters as a shift of the tissue's surface: F(x - offset) ~ F(x) + feedback,
+    // through the law's tangent stiffness at the state (no correction: no shift to compute).
+    if (cell.feedback_N != 0.0) {
+      const double tangent =
+          law.model().tangent_stiffness_N_per_m(state.indentation_m - law.surface_offset_m());
+      if (tangent > 1.0) {
+        t.surface_offset_m -= cell.feedback_N / tangent;
+      }
+    }
+  }
+}
+
+}  // namespace mrskin::bridge::detail

@@ -1,0 +1,68 @@
+// The bridge tick's record: what each of its four stages (observe -> render -> allocate -> send)
+// wrote, and what the watchers (scoring, statistics) read after the tick. docs/architecture.md.
+// Private to the bridge library. Everything here is sized at setup; the tick only writes into it.
+#pragma once
+
+#include <span>
+#include <vector>
+
+#include "mrskin/bridge/tissue.hpp"
+#include "mrskin/driver/clock.hpp"
+#include "mrskin/driver/model/inverse.hpp"
+
+namespace mrskin::bridge::detail {
+
+// Observe: the cells as the observer estimates them from this tick's readings (views into the
+// observer, valid until its next update).
+struct Observation {
+  std::span<const double> depth_m;
+  std::span<const double> rate_m_per_s;
+  std::span<const double> force_N;
+  std::span<const double> outflow_m3_per_s;  // empty: the profile has the local force model
+};
+
+// Render, per cell, as arrays: the inverse takes the states and the targets as one span each.
+struct Rendering {
+  std::vector<model::CellState> state;             // in contact, else zero depth and rate
+  std::vector<model::CellImpedanceTarget> target;  // the cell's law with the feedback's shift
+  std::vector<double> tissue_N;                    // the law at the state, capped at the range
+  std::vector<unsigned char> contact;              // the finger is on the cell
+  // This tick consumed a new slave sample (its arrival, for the latency figures).
+  bool fresh_sample = false;
+  TimePoint fresh_arrival{};
+};
+
+// Allocate, per valve and per cell. Carried over: a failed solve keeps the last good
+// allocation, and its targets are the next tick's feedback error.
+struct Allocation {
+  std::vector<double> current_A;           // per valve: what send hands to the session
+  std::vector<double> target_N;            // per cell: the law clamped into this solve's envelope
+  std::vector<unsigned char> below_floor;  // per cell: the law is below the open-valve floor
+  bool solved = false;                     // this tick's solve succeeded
+};
+
+struct TickRecord {
+  TimePoint now{};
+  double since_start_s = 0.0;
+  Observation observed;
+  Rendering rendered;
+  Allocation allocated;
+};
+
+// What render carries from tick to tick for one cell: named, so no tick reads another's leftovers.
+struct CellMemory {
+  // The direction latch (hysteresis in position): latched loading or release, the depth's peak
+  // while loaded (trough while unloading), and the depth smoothed for it.
+  unsigned char loading = 0;
+  unsigned char unloading = 0;
+  double extreme_m = 0.0;
+  double smooth_depth_m = 0.0;
+  double feedback_N = 0.0;  // the integral correction
+  // The tissue mapped onto the cell once the instrument has been over it, and the law rendered
+  // (the mapped one, changed passively while the finger is in the cell).
+  TissueModel mapped_model{};
+  unsigned char mapped = 0;
+  PassiveTissueUpdate law{};
+};
+
+}  // namespace mrskin::bridge::detail
