@@ -1,11 +1,13 @@
 #!/bin/sh
 # The simulation is a library of its own: the driver and bridge libraries define none of its
-# classes, and a console linked against mrskin::bridge alone needs no libmrskin_sim.
+# classes nor the inverse's offline reference (libmrskin_model_reference, tests and bench only),
+# and a console linked against mrskin::bridge alone needs no libmrskin_sim.
 # usage: library_split.sh NM READELF LIBDRIVER LIBBRIDGE LIBSIM CONSOLE SIM_CONSOLE
 set -eu
 nm=$1 readelf=$2 driver=$3 bridge=$4 sim=$5 console=$6 sim_console=$7
-# Classes of the simulation (defined symbols only: T, W, V, D, B, R in nm's listing).
-forbidden='mrskin::sim::|MockDevice|NetworkPlant|MockDeviceTruth|parse_mock_uri'
+# Classes of the simulation and the offline reference (defined symbols only: T, W, V, D, B, R in
+# nm's listing).
+forbidden='mrskin::sim::|MockDevice|NetworkPlant|MockDeviceTruth|parse_mock_uri|solve_inverse_exact|exact_rendered_forces_N'
 status=0
 for lib in "$driver" "$bridge"; do
   if ! symbols=$("$nm" -DC --defined-only "$lib"); then

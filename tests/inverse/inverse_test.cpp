@@ -1,6 +1,7 @@
 // CellInverse: the fast model against DeviceModel, accuracy of the rendered force (evaluated
 // with the exact quasi-static model), clamping, release, errors, incremental work, tracking.
 // Nothing here is timed; instruction counts are gated by InverseCallgrind.
+#include "mrskin/driver/model/exact_inverse.hpp"
 #include "mrskin/driver/model/inverse.hpp"
 
 #include <gtest/gtest.h>

@@ -14,6 +14,7 @@
 #include <string>
 #include <vector>
 
+#include "mrskin/driver/model/exact_inverse.hpp"
 #include "mrskin/driver/model/inverse.hpp"
 
 namespace mrskin::bench {
