@@ -7,7 +7,9 @@
 #include <cmath>
 #include <limits>
 #include <memory>
+#include <optional>
 #include <string>
+#include <utility>
 #include <vector>
 
 #include "command.hpp"
@@ -98,6 +100,7 @@ struct Report {
   std::string sensor_unit = "m";        // the unit's sensors: "m", "N" or "Pa"
   double worst_sensor_misfit_m = 0.0;   // the fit's largest per-sensor rms miss
   double median_sensor_misfit_m = 0.0;  // ...and its median
+  std::size_t worst_sensor = 0;         // the sensor of the worst misfit
   std::string text;
   std::string read_back;
   bool read_back_matches = false;
@@ -246,6 +249,271 @@ int write_and_read_back(Report& r, const model::Calibration& next, const Calibra
   return r.read_back_matches ? tools::kOk : tools::kFailure;
 }
 
+// The stored calibration as the next version, with yield_scale and the zero at rest (the bridge
+// subtracts it from each reading); formatted into r.text.
+model::Calibration next_calibration(const model::Calibration& stored, double yield_scale,
+                                    const std::string& sensor_unit, Report& r) {
+  model::Calibration next = stored;
+  next.version = stored.version + 1;
+  next.yield_scale = yield_scale;
+  next.sensor_offset = r.offset_m;
+  next.sensor_offset_unit = offset_unit(sensor_unit);
+  r.new_version = next.version;
+  r.new_scale = yield_scale;
+  r.text = model::format_calibration(next);
+  return next;
+}
+
+// Why the yield sweep cannot run on this unit ("" when it can).
+std::string sweep_unavailable(Rig& rig, const DeviceInfo& info) {
+  if (rig.fixture() == nullptr) {
+    return "the yield sweep needs a press: only mock:// has a fixture the host can drive; "
+           "--zero-only tares the sensors alone (docs/cli.md)";
+  }
+  if (info.sensor_unit != "m") {
+    return "the yield sweep needs displacement sensors (it measures the residual depth); "
+           "--zero-only tares the sensors alone";
+  }
+  return "";
+}
+
+// Zero: each sensor's mean at rest (valves open, nothing pressing) is its offset; the largest
+// standard deviation is the noise.
+SensorStats tare(Rig& rig, CurrentHolder& hold, double rest_s, Report& r) {
+  hold.set(0.0);
+  rig.run_for(0.1, hold);  // let the first readings settle after enabling
+  SensorStats rest = sample_sensors(rig, rest_s, hold);
+  r.offset_m = rest.mean;
+  for (const double sd : rest.std_dev) {
+    r.noise_m = std::max(r.noise_m, sd);
+  }
+  return rest;
+}
+
+// Conditioning: decaying on/off steps from the maximum current (30 ms each: the coil settles in
+// ~5 ms) leave every core on the branch down from the maximum, which the sweep's model assumes.
+void condition_cores(Rig& rig, CurrentHolder& hold, const model::DeviceProfile& profile,
+                     const model::Calibration& stored, Report& r) {
+  r.condition_a = degauss_amplitudes_a(rig.info().max_current_A);
+  for (const double a : r.condition_a) {
+    hold.set(a);
+    rig.run_for(0.03, hold);
+    hold.set(0.0);
+    rig.run_for(0.03, hold);
+  }
+  r.remanence = model_remanence(model::apply_calibration(profile, stored), r.condition_a);
+}
+
+// The yield sweep's residual depths per sensor, each sensor's zero taken off.
+struct Sweep {
+  std::vector<std::size_t> shares;              // how many press groups load each sensor
+  std::vector<bool> use;                        // the sensors some group loads: the fitted ones
+  std::vector<std::vector<double>> fit_m;       // at each fitted current (r.fit_a)
+  std::vector<std::vector<double>> held_out_m;  // at each held-out current (r.held_out_a)
+};
+
+// The sweep: level 0 (0 A), then k * max / levels; odd k fit, even k held out. Empty when the
+// unit left ENABLED (or the run was interrupted) on the way.
+std::optional<Sweep> sweep_yield(Rig& rig, const YieldSweepModel& sweep_model, const PressRelease& pr,
+                                 double max_a, int levels, Report& r, Progress& progress, int& step) {
+  const std::size_t sensors = rig.info().sensors;
+  Sweep sweep;
+  sweep.shares = sweep_model.groups_per_sensor();
+  sweep.use.assign(sensors, false);
+  for (std::size_t s = 0; s < sensors && s < sweep.shares.size(); ++s) {
+    sweep.use[s] = sweep.shares[s] > 0;
+  }
+  for (int k = 0; k <= levels; ++k) {
+    const double current_a = max_a * k / levels;
+    PressReleaseResult m = press_release(rig, current_a, pr);
+    if (rig.session().state() != DeviceState::enabled || Rig::interrupted()) {
+      return std::nullopt;
+    }
+    for (std::size_t s = 0; s < m.residual_m.size(); ++s) {
+      m.residual_m[s] -= r.offset_m[s] * static_cast<double>(s < sweep.shares.size() ? sweep.shares[s] : 0);
+    }
+    if (k == 0) {
+      for (const double v : m.residual_m) {
+        r.zero_residual_m = std::max(r.zero_residual_m, std::abs(v));
+      }
+    } else if (k % 2 == 1) {
+      r.fit_a.push_back(current_a);
+      sweep.fit_m.push_back(m.residual_m);
+    } else {
+      r.held_out_a.push_back(current_a);
+      sweep.held_out_m.push_back(m.residual_m);
+    }
+    progress.step(++step);
+  }
+  return sweep;
+}
+
+// Degauss (protocol 1.1): the unit's own decaying alternating current, so the sweep's currents
+// leave no remanence behind (the valves' floor at 0 A as low as the steel allows, and the state
+// the bridge's observer starts from). A unipolar unit ignores it.
+void degauss_cores(Rig& rig, const model::DeviceProfile& profile, const model::Calibration& stored,
+                   Report& r) {
+  switch (rig.degauss(kDegaussTimeout_s)) {
+    case Rig::DegaussOutcome::done:
+      r.degauss = "done";
+      break;
+    case Rig::DegaussOutcome::unsupported:
+      r.degauss = "unsupported";
+      break;
+    case Rig::DegaussOutcome::unfinished:
+      r.degauss = "unfinished";
+      break;
+  }
+  r.degauss_remanence = model_remanence(model::apply_calibration(profile, stored),
+                                        degauss_amplitudes_a(rig.info().max_current_A, 0.85, 1e-3), true);
+}
+
+// The model: residual against valve yield, over every yield the scale range can give. A
+// calibration with yield_scale s at current I predicts table.at(s * the unit yield at I).
+struct SweepPrediction {
+  std::vector<double> fit_unit_pa;       // the valves' yield at each fitted current, yield_scale 1
+  std::vector<double> held_out_unit_pa;  // ...and at each held-out one
+  ResidualTable table;
+
+  [[nodiscard]] std::vector<std::vector<double>> at(const std::vector<double>& unit_pa, double scale) const {
+    std::vector<std::vector<double>> out;
+    out.reserve(unit_pa.size());
+    for (const double u : unit_pa) {
+      out.push_back(table.at(scale * u));
+    }
+    return out;
+  }
+};
+
+SweepPrediction predict_sweep(YieldSweepModel& sweep_model, const Report& r, Progress& progress, int& step) {
+  std::vector<double> unit_fit;
+  std::vector<double> unit_held;
+  for (const double a : r.fit_a) {
+    unit_fit.push_back(sweep_model.unit_yield_pa(a));
+  }
+  for (const double a : r.held_out_a) {
+    unit_held.push_back(sweep_model.unit_yield_pa(a));
+  }
+  const double u_lo = kScaleMin * std::max(1e-3, std::min(unit_fit.front(), unit_held.front()));
+  const double u_hi = kScaleMax * std::max(unit_fit.back(), unit_held.back()) * 1.01;
+  ResidualTable table(sweep_model, u_lo, std::max(u_hi, 2.0 * u_lo), kTablePoints,
+                      [&] { progress.step(++step); });
+  return {std::move(unit_fit), std::move(unit_held), std::move(table)};
+}
+
+// The yield_scale with the least fit_rms(scale): a coarse scan in log scale, then golden section
+// around the best point.
+template <class FitRms>
+double best_scale(const FitRms& fit_rms, double stored_scale) {
+  constexpr int kScan = 61;
+  double best = stored_scale;
+  double best_rms = std::numeric_limits<double>::infinity();
+  const double step_log = std::log(kScaleMax / kScaleMin) / (kScan - 1);
+  for (int i = 0; i < kScan; ++i) {
+    const double s = kScaleMin * std::exp(step_log * i);
+    const double e = fit_rms(s);
+    if (e < best_rms) {
+      best_rms = e;
+      best = s;
+    }
+  }
+  double lo = std::log(std::max(kScaleMin, best * std::exp(-step_log)));
+  double hi = std::log(std::min(kScaleMax, best * std::exp(step_log)));
+  constexpr double kGolden = 0.6180339887498949;
+  for (int i = 0; i < 40; ++i) {
+    const double a = hi - kGolden * (hi - lo);
+    const double b = lo + kGolden * (hi - lo);
+    if (fit_rms(std::exp(a)) < fit_rms(std::exp(b))) {
+      hi = b;
+    } else {
+      lo = a;
+    }
+  }
+  if (fit_rms(std::exp(0.5 * (lo + hi))) < best_rms) {
+    best = std::exp(0.5 * (lo + hi));
+  }
+  return best;
+}
+
+// Each fitted sensor's rms miss of the fit: the median and the worst (and which sensor that is).
+void sensor_misfits(const std::vector<double>& per_sensor, const std::vector<bool>& use, Report& r) {
+  std::vector<double> used;
+  std::size_t worst = 0;
+  for (std::size_t s = 0; s < per_sensor.size(); ++s) {
+    if (use[s]) {
+      used.push_back(per_sensor[s]);
+      worst = per_sensor[s] > per_sensor[worst] || !use[worst] ? s : worst;
+    }
+  }
+  std::nth_element(used.begin(), used.begin() + static_cast<std::ptrdiff_t>(used.size() / 2), used.end());
+  r.median_sensor_misfit_m = used.empty() ? 0.0 : used[used.size() / 2];
+  r.worst_sensor_misfit_m = per_sensor.empty() ? 0.0 : per_sensor[worst];
+  r.worst_sensor = worst;
+}
+
+// Fits yield_scale to the sweep: into r the new scale, the rms residuals of the new and the stored
+// one (fitted and held out), how sharply the fit tells the scale, what the sweep resolves, and the
+// per-sensor misfits.
+void fit_yield_scale(YieldSweepModel& sweep_model, const Sweep& sweep, const model::Calibration& stored,
+                     const DeviceInfo& info, Report& r, Progress& progress, int& step) {
+  const SweepPrediction predicted = predict_sweep(sweep_model, r, progress, step);
+  const auto fit_rms = [&](double scale) {
+    return rms(sweep.fit_m, predicted.at(predicted.fit_unit_pa, scale), sweep.use);
+  };
+  const auto held_out_rms = [&](double scale) {
+    return rms(sweep.held_out_m, predicted.at(predicted.held_out_unit_pa, scale), sweep.use);
+  };
+  const double best = best_scale(fit_rms, stored.yield_scale);
+  r.new_scale = best;
+  r.rms_fit_new_m = fit_rms(best);
+  r.rms_fit_stored_m = fit_rms(stored.yield_scale);
+  r.rms_held_new_m = held_out_rms(best);
+  r.rms_held_stored_m = held_out_rms(stored.yield_scale);
+  r.sensitivity_m = std::min(fit_rms(std::clamp(best * 1.2, kScaleMin, kScaleMax)),
+                             fit_rms(std::clamp(best / 1.2, kScaleMin, kScaleMax))) -
+                    r.rms_fit_new_m;
+  // A residual is the sum of 50 ms means (50 samples) over the groups that load the sensor.
+  const double groups = static_cast<double>(*std::max_element(sweep.shares.begin(), sweep.shares.end()));
+  r.resolution_m = 3.0 * std::max(r.noise_m, info.sensor_lsb) * std::sqrt(groups / 50.0);
+  sensor_misfits(rms_per_sensor(sweep.fit_m, predicted.at(predicted.fit_unit_pa, best), sweep.use), sweep.use,
+                 r);
+}
+
+// Why the new calibration is not written, into r.result and r.reason: REFUSED for a sweep the
+// model does not explain (a fault) or one that cannot tell the scale, KEPT for a fit worse than
+// the stored calibration's. False when it may be written.
+bool withheld(Report& r) {
+  if (r.median_sensor_misfit_m > kMisfitResolutions * r.resolution_m) {
+    r.result = "REFUSED";
+    r.reason = fmt::format(
+        "the model does not explain the sweep: the median sensor misses it by {:.1f} um rms ({:.1f} "
+        "resolutions; the worst, sensor {}, by {:.1f} um): a leaking valve or a faulty sensor? (run "
+        "mrskinctl selftest); nothing written",
+        r.median_sensor_misfit_m * 1e6, r.median_sensor_misfit_m / r.resolution_m, r.worst_sensor,
+        r.worst_sensor_misfit_m * 1e6);
+    return true;
+  }
+  if (r.sensitivity_m < r.resolution_m) {
+    r.result = "REFUSED";
+    r.reason = fmt::format(
+        "ill-conditioned: moving yield_scale 20 % changes the fit by {:.2f} um, below the {:.2f} um the "
+        "sweep "
+        "resolves; sweep higher currents (--max-current-a) or check the sensors",
+        r.sensitivity_m * 1e6, r.resolution_m * 1e6);
+    return true;
+  }
+  if (r.rms_held_new_m > r.rms_held_stored_m) {
+    // Not a failure: the unit is calibrated, and better than this sweep would make it.
+    r.result = "KEPT";
+    r.reason = fmt::format(
+        "the stored calibration fits the held-out sweep better than the new yield_scale ({:.2f} um "
+        "against {:.2f} um rms): kept it, nothing written",
+        r.rms_held_stored_m * 1e6, r.rms_held_new_m * 1e6);
+    return true;
+  }
+  return false;
+}
+
 int run_calibrate(const CalibrateOptions& o, const GlobalOptions& global) {
   Report r;
   Rig rig(o.uri, o.realtime, o.lease.lease_socket());
@@ -275,15 +543,8 @@ int run_calibrate(const CalibrateOptions& o, const GlobalOptions& global) {
     throw InvalidArgument(
         fmt::format("--max-current-a {} A is above the device's maximum {} A", max_a, info.max_current_A));
   }
-  if (!o.zero_only && rig.fixture() == nullptr) {
-    return refuse("FAILED",
-                  "the yield sweep needs a press: only mock:// has a fixture the host can drive; "
-                  "--zero-only tares the sensors alone (docs/cli.md)");
-  }
-  if (!o.zero_only && info.sensor_unit != "m") {
-    return refuse("FAILED",
-                  "the yield sweep needs displacement sensors (it measures the residual depth); "
-                  "--zero-only tares the sensors alone");
+  if (const std::string why = o.zero_only ? "" : sweep_unavailable(rig, info); !why.empty()) {
+    return refuse("FAILED", why);
   }
   const int levels = o.levels;
   const int total = o.zero_only ? 2 : 2 + (levels + 1) + 1 + kTablePoints + 1;
@@ -295,16 +556,9 @@ int run_calibrate(const CalibrateOptions& o, const GlobalOptions& global) {
     return refuse("FAILED", e.what());
   }
 
-  // Zero: each sensor's mean at rest (valves open, nothing pressing) is its offset.
   CurrentHolder hold(rig);
-  hold.set(0.0);
-  rig.run_for(0.1, hold);  // let the first readings settle after enabling
-  const SensorStats rest = sample_sensors(rig, o.rest_s, hold);
+  const SensorStats rest = tare(rig, hold, o.rest_s, r);
   progress.step(++step);
-  r.offset_m = rest.mean;
-  for (const double sd : rest.std_dev) {
-    r.noise_m = std::max(r.noise_m, sd);
-  }
   if (const std::string still = still_sensors(rest); !still.empty()) {
     return refuse("REFUSED",
                   fmt::format("sensor(s) {} read the same value throughout the rest while the others "
@@ -313,198 +567,29 @@ int run_calibrate(const CalibrateOptions& o, const GlobalOptions& global) {
   }
   if (o.zero_only) {
     rig.release();  // the unit takes a calibration only while not ENABLED
-    model::Calibration next = stored;
-    next.version = stored.version + 1;
-    next.sensor_offset = r.offset_m;
-    next.sensor_offset_unit = offset_unit(info.sensor_unit);
-    r.new_version = next.version;
-    r.new_scale = stored.yield_scale;
-    r.text = model::format_calibration(next);
+    const model::Calibration next = next_calibration(stored, stored.yield_scale, info.sensor_unit, r);
     return write_and_read_back(r, next, o, global, rig, progress, step);
   }
-
-  // Conditioning: decaying on/off steps from the maximum current (30 ms each: the coil settles in
-  // ~5 ms) leave every core on the branch down from the maximum, which the sweep's model assumes.
-  r.condition_a = degauss_amplitudes_a(info.max_current_A);
-  for (const double a : r.condition_a) {
-    hold.set(a);
-    rig.run_for(0.03, hold);
-    hold.set(0.0);
-    rig.run_for(0.03, hold);
-  }
-  r.remanence = model_remanence(model::apply_calibration(*profile, stored), r.condition_a);
+  condition_cores(rig, hold, *profile, stored, r);
   progress.step(++step);
 
-  // The sweep: level 0 (0 A), then k * max / levels; odd k fit, even k held out.
   PressRelease pr;
   YieldSweepModel sweep_model(*profile, stored, pr, kModelStep_s);
-  const std::vector<std::size_t> shares = sweep_model.groups_per_sensor();
-  std::vector<bool> use(info.sensors, false);
-  for (std::size_t s = 0; s < info.sensors && s < shares.size(); ++s) {
-    use[s] = shares[s] > 0;
-  }
-  std::vector<std::vector<double>> fit_measured;
-  std::vector<std::vector<double>> held_measured;
-  for (int k = 0; k <= levels; ++k) {
-    const double current_a = max_a * k / levels;
-    PressReleaseResult m = press_release(rig, current_a, pr);
-    if (rig.session().state() != DeviceState::enabled || Rig::interrupted()) {
-      return refuse("FAILED",
-                    fmt::format("the unit left ENABLED during the sweep: state {}, fault {}",
-                                to_string(rig.session().state()), fault_name(rig.session().fault_code())));
-    }
-    for (std::size_t s = 0; s < m.residual_m.size(); ++s) {
-      m.residual_m[s] -= r.offset_m[s] * static_cast<double>(s < shares.size() ? shares[s] : 0);
-    }
-    if (k == 0) {
-      for (const double v : m.residual_m) {
-        r.zero_residual_m = std::max(r.zero_residual_m, std::abs(v));
-      }
-    } else if (k % 2 == 1) {
-      r.fit_a.push_back(current_a);
-      fit_measured.push_back(m.residual_m);
-    } else {
-      r.held_out_a.push_back(current_a);
-      held_measured.push_back(m.residual_m);
-    }
-    progress.step(++step);
+  const std::optional<Sweep> sweep = sweep_yield(rig, sweep_model, pr, max_a, levels, r, progress, step);
+  if (!sweep) {
+    return refuse("FAILED",
+                  fmt::format("the unit left ENABLED during the sweep: state {}, fault {}",
+                              to_string(rig.session().state()), fault_name(rig.session().fault_code())));
   }
   rig.release();  // the unit takes a calibration only while not ENABLED
-
-  // Degauss (protocol 1.1): the unit's own decaying alternating current, so the sweep's currents
-  // leave no remanence behind (the valves' floor at 0 A as low as the steel allows, and the state
-  // the bridge's observer starts from). A unipolar unit ignores it.
-  switch (rig.degauss(kDegaussTimeout_s)) {
-    case Rig::DegaussOutcome::done:
-      r.degauss = "done";
-      break;
-    case Rig::DegaussOutcome::unsupported:
-      r.degauss = "unsupported";
-      break;
-    case Rig::DegaussOutcome::unfinished:
-      r.degauss = "unfinished";
-      break;
-  }
-  r.degauss_remanence = model_remanence(model::apply_calibration(*profile, stored),
-                                        degauss_amplitudes_a(info.max_current_A, 0.85, 1e-3), true);
+  degauss_cores(rig, *profile, stored, r);
   progress.step(++step);
 
-  // The model: residual against valve yield, over every yield the scale range can give.
-  std::vector<double> unit_fit;
-  std::vector<double> unit_held;
-  for (const double a : r.fit_a) {
-    unit_fit.push_back(sweep_model.unit_yield_pa(a));
-  }
-  for (const double a : r.held_out_a) {
-    unit_held.push_back(sweep_model.unit_yield_pa(a));
-  }
-  const double u_lo = kScaleMin * std::max(1e-3, std::min(unit_fit.front(), unit_held.front()));
-  const double u_hi = kScaleMax * std::max(unit_fit.back(), unit_held.back()) * 1.01;
-  const ResidualTable table(sweep_model, u_lo, std::max(u_hi, 2.0 * u_lo), kTablePoints,
-                            [&] { progress.step(++step); });
-  const auto predict = [&](const std::vector<double>& unit, double scale) {
-    std::vector<std::vector<double>> out;
-    out.reserve(unit.size());
-    for (const double u : unit) {
-      out.push_back(table.at(scale * u));
-    }
-    return out;
-  };
-  const auto fit_rms = [&](double scale) { return rms(fit_measured, predict(unit_fit, scale), use); };
-  // Coarse scan in log scale, then golden section around the best point.
-  constexpr int kScan = 61;
-  double best = stored.yield_scale;
-  double best_rms = std::numeric_limits<double>::infinity();
-  const double step_log = std::log(kScaleMax / kScaleMin) / (kScan - 1);
-  for (int i = 0; i < kScan; ++i) {
-    const double s = kScaleMin * std::exp(step_log * i);
-    const double e = fit_rms(s);
-    if (e < best_rms) {
-      best_rms = e;
-      best = s;
-    }
-  }
-  double lo = std::log(std::max(kScaleMin, best * std::exp(-step_log)));
-  double hi = std::log(std::min(kScaleMax, best * std::exp(step_log)));
-  constexpr double kGolden = 0.6180339887498949;
-  for (int i = 0; i < 40; ++i) {
-    const double a = hi - kGolden * (hi - lo);
-    const double b = lo + kGolden * (hi - lo);
-    if (fit_rms(std::exp(a)) < fit_rms(std::exp(b))) {
-      hi = b;
-    } else {
-      lo = a;
-    }
-  }
-  if (fit_rms(std::exp(0.5 * (lo + hi))) < best_rms) {
-    best = std::exp(0.5 * (lo + hi));
-  }
-  r.new_scale = best;
-  r.rms_fit_new_m = fit_rms(best);
-  r.rms_fit_stored_m = fit_rms(stored.yield_scale);
-  r.rms_held_new_m = rms(held_measured, predict(unit_held, best), use);
-  r.rms_held_stored_m = rms(held_measured, predict(unit_held, stored.yield_scale), use);
-  r.sensitivity_m = std::min(fit_rms(std::clamp(best * 1.2, kScaleMin, kScaleMax)),
-                             fit_rms(std::clamp(best / 1.2, kScaleMin, kScaleMax))) -
-                    r.rms_fit_new_m;
-  // A residual is the sum of 50 ms means (50 samples) over the groups that load the sensor.
-  const double groups = static_cast<double>(*std::max_element(shares.begin(), shares.end()));
-  r.resolution_m = 3.0 * std::max(r.noise_m, info.sensor_lsb) * std::sqrt(groups / 50.0);
-
-  model::Calibration next = stored;
-  next.version = stored.version + 1;
-  next.yield_scale = best;
-  r.new_version = next.version;
-  next.sensor_offset = r.offset_m;  // the zero at rest; the bridge subtracts it from each reading
-  next.sensor_offset_unit = offset_unit(info.sensor_unit);
-  r.text = model::format_calibration(next);
-
-  // Refusals: a sweep the model does not explain (a fault), a sweep that cannot tell the scale,
-  // or a fit worse than the stored calibration.
-  {
-    std::vector<double> per_sensor = rms_per_sensor(fit_measured, predict(unit_fit, best), use);
-    std::vector<double> used;
-    std::size_t worst = 0;
-    for (std::size_t s = 0; s < per_sensor.size(); ++s) {
-      if (use[s]) {
-        used.push_back(per_sensor[s]);
-        worst = per_sensor[s] > per_sensor[worst] || !use[worst] ? s : worst;
-      }
-    }
-    std::nth_element(used.begin(), used.begin() + static_cast<std::ptrdiff_t>(used.size() / 2), used.end());
-    r.median_sensor_misfit_m = used.empty() ? 0.0 : used[used.size() / 2];
-    r.worst_sensor_misfit_m = per_sensor.empty() ? 0.0 : per_sensor[worst];
-    if (r.median_sensor_misfit_m > kMisfitResolutions * r.resolution_m) {
-      r.result = "REFUSED";
-      r.reason = fmt::format(
-          "the model does not explain the sweep: the median sensor misses it by {:.1f} um rms ({:.1f} "
-          "resolutions; the worst, sensor {}, by {:.1f} um): a leaking valve or a faulty sensor? (run "
-          "mrskinctl selftest); nothing written",
-          r.median_sensor_misfit_m * 1e6, r.median_sensor_misfit_m / r.resolution_m, worst,
-          r.worst_sensor_misfit_m * 1e6);
-      print_report(r, o, global);
-      return tools::kFailure;
-    }
-  }
-  if (r.sensitivity_m < r.resolution_m) {
-    r.result = "REFUSED";
-    r.reason = fmt::format(
-        "ill-conditioned: moving yield_scale 20 % changes the fit by {:.2f} um, below the {:.2f} um the "
-        "sweep "
-        "resolves; sweep higher currents (--max-current-a) or check the sensors",
-        r.sensitivity_m * 1e6, r.resolution_m * 1e6);
+  fit_yield_scale(sweep_model, *sweep, stored, info, r, progress, step);
+  const model::Calibration next = next_calibration(stored, r.new_scale, info.sensor_unit, r);
+  if (withheld(r)) {
     print_report(r, o, global);
-    return tools::kFailure;
-  }
-  if (r.rms_held_new_m > r.rms_held_stored_m) {
-    // Not a failure: the unit is calibrated, and better than this sweep would make it.
-    r.result = "KEPT";
-    r.reason = fmt::format(
-        "the stored calibration fits the held-out sweep better than the new yield_scale ({:.2f} um "
-        "against {:.2f} um rms): kept it, nothing written",
-        r.rms_held_stored_m * 1e6, r.rms_held_new_m * 1e6);
-    print_report(r, o, global);
-    return tools::kOk;
+    return r.result == "KEPT" ? tools::kOk : tools::kFailure;
   }
   return write_and_read_back(r, next, o, global, rig, progress, step);
 }
