@@ -251,53 +251,28 @@ Tracking run_tracking(const DeviceModel& m) {
   return tr;
 }
 
-}  // namespace
-
-int run_inverse_bench(const std::string& out_dir, const DeviceModel& model, bool progress) {
-  const auto built = Clock::now();
-  CellInverse inv(model);
-  const double build_s = std::chrono::duration<double>(Clock::now() - built).count();
-  const std::vector<Case> cases = make_cases(model);
-  std::ofstream csv(out_dir + "/inverse_cases.csv");
-  std::ofstream methods(out_dir + "/inverse_methods.csv");
-  if (!csv || !methods) {
-    std::cerr << "inverse: cannot write into " << out_dir << ": create it or pass another --out\n";
-    return 1;
-  }
+// Solves every case fast and slow; one row each in csv (after its header), a tick each on bar.
+std::vector<Outcome> run_cases(const DeviceModel& model, CellInverse& inv, const std::vector<Case>& cases,
+                               std::ofstream& csv, Progress* bar) {
   csv << "case,kind,loaded_cells,fast_ns_median,slow_s,fast_max_err_N,fast_rms_err_N,slow_max_err_N,"
          "slow_rms_err_N,fast_model_residual_N,slow_exact_evaluations\n";
-  std::unique_ptr<Progress> bar;
-  if (progress) {
-    bar = std::make_unique<Progress>("inverse: fast and slow solves", cases.size() + 1);
-  }
   std::vector<Outcome> out;
-  bool ok = true;
   for (std::size_t k = 0; k < cases.size(); ++k) {
     const Outcome o = run_case(model, inv, cases[k]);
-    ok = ok && o.ok;
     csv << k << ',' << name_of(cases[k].kind) << ',' << o.fast.cells << ',' << sci(o.fast_ns, 4) << ','
         << sci(o.slow_s, 4) << ',' << sci(o.fast.max_N, 4) << ',' << sci(o.fast.rms_N, 4) << ','
         << sci(o.slow.max_N, 4) << ',' << sci(o.slow.rms_N, 4) << ',' << sci(o.fast_residual_N, 4) << ','
         << o.slow_evaluations << '\n';
     out.push_back(o);
-    if (bar) {
+    if (bar != nullptr) {
       bar->tick(name_of(cases[k].kind));
     }
   }
-  const Tracking tr = run_tracking(model);
-  if (bar) {
-    bar->tick("tracking");
-  }
+  return out;
+}
 
-  // Per method and kind: time and error distributions.
-  methods << "method,kind,cases,time_per_solve_s_median,max_err_N_median,max_err_N_p95,max_err_N_max\n";
-  std::cout << "inverse: " << cases.size() << " cases (" << kCasesPerKind
-            << " each kind), fast timed as the median of " << kFastRepetitions
-            << " cold solves; construction " << fixed(build_s * 1e3, 1)
-            << " ms (tables: branch flow max relative error " << sci(inv.branch_table_max_relative_error(), 2)
-            << ", current inverse max error " << sci(inv.current_table_max_error_Pa(), 2) << " Pa)\n";
-  std::cout << pad("method", 8, true) << pad("kind", 18, true) << pad("time/solve", 12)
-            << pad("err median", 12) << pad("err p95", 12) << pad("err max", 12) << "\n";
+// The time-against-error plot's frame and reference lines; the series come from the results.
+LogLogPlot time_error_plot() {
   LogLogPlot plot;
   plot.title = "Inverse: exact rendered force error against time per solve";
   plot.subtitle =
@@ -313,6 +288,13 @@ int run_inverse_bench(const std::string& out_dir, const DeviceModel& model, bool
   plot.x_tick = [](double v) { return general(v, 3) + " s"; };
   plot.refs.push_back({false, 0.04, "0.04 N (2 % of 2 N)", "#c00"});
   plot.refs.push_back({true, 1e-3, "1 kHz tick", "#06c"});
+  return plot;
+}
+
+// Per method and kind: the time and error distributions as a row of methods, a line of the
+// summary table and a series of the plot.
+void report_methods(const std::vector<Case>& cases, const std::vector<Outcome>& out, std::ofstream& methods,
+                    LogLogPlot& plot) {
   // Per kind: dark for the fast solve, light for the slow one.
   const std::array<std::array<const char*, 3>, 2> colours = {
       {{"#0072b2", "#009e73", "#d55e00"}, {"#9ccbe8", "#8fd6bf", "#f2b38a"}}};
@@ -347,6 +329,10 @@ int run_inverse_bench(const std::string& out_dir, const DeviceModel& model, bool
                 << pad(sci(*std::max_element(errs.begin(), errs.end()), 2), 12) << "\n";
     }
   }
+}
+
+// The tracked press: a row of methods, a line of the summary table and a point of the plot.
+void report_tracking(const Tracking& tr, std::ofstream& methods, LogLogPlot& plot) {
   plot.series.push_back({"fast tracking (warm, 1 kHz)",
                          "#333",
                          {{tr.median_ns * 1e-9, std::max(tr.error.max_N, kPlotFloor_N), "tracking"}},
@@ -357,14 +343,57 @@ int run_inverse_bench(const std::string& out_dir, const DeviceModel& model, bool
   std::cout << pad("fast", 8, true) << pad("tracking", 18, true) << pad(sci(tr.median_ns * 1e-9, 2), 12)
             << pad("", 12) << pad("", 12) << pad(sci(tr.error.max_N, 2), 12) << "  (" << tr.ticks
             << " ticks, p99 " << sci(tr.p99_ns * 1e-9, 2) << " s, rms " << sci(tr.error.rms_N, 2) << " N)\n";
-  // Head to head on the conflicting cases: the fast residual over the slow one.
+}
+
+// Head to head on the conflicting cases: the largest fast RMS error over the slow one's, where
+// the slow one is above 1 uN.
+double worst_conflicting_ratio(const std::vector<Case>& cases, const std::vector<Outcome>& out) {
   double worst_ratio = 0.0;
   for (std::size_t k = 0; k < cases.size(); ++k) {
     if (cases[k].kind == Kind::conflicting && out[k].slow.rms_N > 1e-6) {
       worst_ratio = std::max(worst_ratio, out[k].fast.rms_N / out[k].slow.rms_N);
     }
   }
-  std::cout << "conflicting cases: fast RMS error at most " << fixed(worst_ratio, 3)
+  return worst_ratio;
+}
+
+}  // namespace
+
+int run_inverse_bench(const std::string& out_dir, const DeviceModel& model, bool progress) {
+  const auto built = Clock::now();
+  CellInverse inv(model);
+  const double build_s = std::chrono::duration<double>(Clock::now() - built).count();
+  const std::vector<Case> cases = make_cases(model);
+  std::ofstream csv(out_dir + "/inverse_cases.csv");
+  std::ofstream methods(out_dir + "/inverse_methods.csv");
+  if (!csv || !methods) {
+    std::cerr << "inverse: cannot write into " << out_dir << ": create it or pass another --out\n";
+    return 1;
+  }
+  std::unique_ptr<Progress> bar;
+  if (progress) {
+    bar = std::make_unique<Progress>("inverse: fast and slow solves", cases.size() + 1);
+  }
+  const std::vector<Outcome> out = run_cases(model, inv, cases, csv, bar.get());
+  const bool ok = std::all_of(out.begin(), out.end(), [](const Outcome& o) { return o.ok; });
+  const Tracking tr = run_tracking(model);
+  if (bar) {
+    bar->tick("tracking");
+  }
+
+  // Per method and kind: time and error distributions.
+  methods << "method,kind,cases,time_per_solve_s_median,max_err_N_median,max_err_N_p95,max_err_N_max\n";
+  std::cout << "inverse: " << cases.size() << " cases (" << kCasesPerKind
+            << " each kind), fast timed as the median of " << kFastRepetitions
+            << " cold solves; construction " << fixed(build_s * 1e3, 1)
+            << " ms (tables: branch flow max relative error " << sci(inv.branch_table_max_relative_error(), 2)
+            << ", current inverse max error " << sci(inv.current_table_max_error_Pa(), 2) << " Pa)\n";
+  std::cout << pad("method", 8, true) << pad("kind", 18, true) << pad("time/solve", 12)
+            << pad("err median", 12) << pad("err p95", 12) << pad("err max", 12) << "\n";
+  LogLogPlot plot = time_error_plot();
+  report_methods(cases, out, methods, plot);
+  report_tracking(tr, methods, plot);
+  std::cout << "conflicting cases: fast RMS error at most " << fixed(worst_conflicting_ratio(cases, out), 3)
             << " x the slow exact solve's (where the slow one is above 1 uN)\n";
   if (!plot.write(out_dir + "/inverse_time_vs_error.svg")) {
     return 1;

@@ -13,6 +13,7 @@
 #include <cmath>
 #include <fstream>
 #include <iostream>
+#include <optional>
 #include <random>
 #include <string>
 #include <vector>
@@ -86,26 +87,13 @@ void write_svg(const std::string& path, const std::vector<Point>& pts, double ex
   (void)plot.write(path);
 }
 
-}  // namespace
+using Uniform = std::uniform_real_distribution<double>;
 
-int run_valve_suite(const BenchOptions& o) {
-  const DeviceProfile profile = o.profile.empty() ? default_profile() : load_profile(o.profile);
-  // The stated range is for the paper's valve (0.5 mm gap); the profile supplies the fluid.
-  const ValveLaw v(slot_geometry(0.5e-3, 30e-3, 24.01e-3), profile.fluid.viscosity_Pa_s,
-                   profile.fluid.density_kg_per_m3);
-  const DeviceModel model(profile);
-
-  // ---- error over the stated range: a 401 x 401 grid plus 200,000 random points ----
-  std::vector<MethodStats> stats(3);
-  stats[0].name = "exact";
-  stats[1].name = "wereley-pang";
-  stats[2].name = "fast";
-  std::ofstream grid(o.out + "/valve_errors.csv");
-  if (!grid) {
-    std::cerr << "cannot write to " << o.out << ": create the directory first, or pass another --out DIR\n";
-    return 1;
-  }
-  grid << "q_m3_s,tau_y_pa,dp_exact_pa,rel_err_fast,rel_err_wereley_pang,round_trip_rel_err_exact\n";
+// Each law's relative pressure error against the exact one over the stated range: a 401 x 401
+// grid (every 4th point of every 4th row written to grid, which is then closed) plus 200,000
+// random points. Returns the number of points.
+std::size_t measure_errors(const ValveLaw& v, std::ofstream& grid, std::mt19937_64& rng, Uniform& u01,
+                           std::vector<MethodStats>& stats) {
   std::size_t n = 0;
   auto measure = [&](double q, double tau, bool write) {
     const double e = v.pressure_exact_Pa(q, tau).value;
@@ -138,16 +126,30 @@ int run_valve_suite(const BenchOptions& o) {
     }
   }
   grid.close();
-  std::mt19937_64 rng(20240601);
-  std::uniform_real_distribution<double> u01(0.0, 1.0);
   for (int k = 0; k < 200000; ++k) {
     measure(kQMin * std::pow(kQMax / kQMin, u01(rng)), kTauMax * u01(rng), false);
   }
   for (MethodStats& s : stats) {
     s.mean_rel /= static_cast<double>(n);
   }
+  return n;
+}
 
-  // ---- time per call: the same 4096 random inputs for every method, interleaved ----
+// The model's two calls timed beside the laws, ns per call, one entry per repetition.
+struct ModelTimes {
+  std::vector<double> cell_ns;  // cell_force_uniform at the design cell
+  std::vector<double> env_ns;   // envelope there
+  std::size_t law_calls = 0;    // valve-law calls per repetition
+  std::size_t model_calls = 0;  // model calls per repetition
+};
+
+// Times each law (into stats[m].ns) on the same 4096 random inputs, interleaved, and the model's
+// two calls on 256 random presses of the design cell: three warm-up passes, then reps
+// repetitions. The bar is made after the warm-up and left to the caller: it ends its line when
+// the suite ends.
+ModelTimes time_calls(const ValveLaw& v, const DeviceModel& model, const DeviceProfile& profile, int reps,
+                      std::mt19937_64& rng, Uniform& u01, std::vector<MethodStats>& stats,
+                      std::optional<Progress>& bar) {
   std::vector<double> qs(4096);
   std::vector<double> taus(4096);
   for (std::size_t i = 0; i < qs.size(); ++i) {
@@ -161,11 +163,10 @@ int run_valve_suite(const BenchOptions& o) {
     ds[i] = profile.design.indentation_m * (0.2 + 0.8 * u01(rng));
     vs[i] = 10e-3 * u01(rng);
   }
-  std::vector<double> cell_ns;
-  std::vector<double> env_ns;
-  auto exact = [&](double q, double t) { return v.pressure_exact_Pa(q, t).value; };
-  auto wp = [&](double q, double t) { return v.pressure_wereley_pang_Pa(q, t).value; };
-  auto fast = [&](double q, double t) { return v.pressure_fast_Pa(q, t).value; };
+  ModelTimes t{{}, {}, qs.size(), ds.size()};
+  auto exact = [&](double q, double tau) { return v.pressure_exact_Pa(q, tau).value; };
+  auto wp = [&](double q, double tau) { return v.pressure_wereley_pang_Pa(q, tau).value; };
+  auto fast = [&](double q, double tau) { return v.pressure_fast_Pa(q, tau).value; };
   const double imax = profile.coil.max_current_A;
   auto cell = [&](double d, double vel) {
     return model.cell_force_uniform(centre, d, vel, 0.6 * imax).value.force_N;
@@ -176,9 +177,9 @@ int run_valve_suite(const BenchOptions& o) {
     time_pass(qs, taus, wp);
     time_pass(qs, taus, fast);
   }
-  Progress bar("valve laws", static_cast<std::size_t>(o.reps));
-  for (int r = 0; r < o.reps; ++r) {
-    bar.tick();
+  bar.emplace("valve laws", static_cast<std::size_t>(reps));
+  for (int r = 0; r < reps; ++r) {
+    bar->tick();
     // Rotate the order so that no method always runs first after the others.
     for (int k = 0; k < 3; ++k) {
       switch ((r + k) % 3) {
@@ -193,18 +194,24 @@ int run_valve_suite(const BenchOptions& o) {
           break;
       }
     }
-    cell_ns.push_back(time_pass(ds, vs, cell));
-    env_ns.push_back(time_pass(ds, vs, env));
+    t.cell_ns.push_back(time_pass(ds, vs, cell));
+    t.env_ns.push_back(time_pass(ds, vs, env));
   }
+  return t;
+}
 
-  const double exact_med = percentile(stats[0].ns, 0.5);
+// valve_methods.csv and the summary table: each law's time per call and error, then the model's
+// two calls. Returns each law's point for the plot.
+std::vector<Point> report_methods(const BenchOptions& o, const std::vector<MethodStats>& stats,
+                                  const ModelTimes& t, std::size_t points, double exact_med,
+                                  const DeviceProfile& profile) {
   std::ofstream csv(o.out + "/valve_methods.csv");
   csv << "method,ns_per_call_median,ns_per_call_p10,ns_per_call_p90,speedup_vs_exact,max_rel_error,"
          "mean_rel_error,min_signed_error,max_signed_error,worst_q_m3_s,worst_tau_y_pa,error_points,"
          "repetitions,calls_per_repetition\n";
   std::cout << "valve law over Q " << sci(kQMin, 0) << ".." << sci(kQMax, 0) << " m^3/s, tau_y 0.."
-            << fixed(kTauMax / 1e3, 0) << " kPa (" << n << " points; " << o.reps << " repetitions x "
-            << qs.size() << " calls)\n";
+            << fixed(kTauMax / 1e3, 0) << " kPa (" << points << " points; " << o.reps << " repetitions x "
+            << t.law_calls << " calls)\n";
   std::cout << pad("method", 14, true) << pad("median_ns", 11) << pad("p10_ns", 11) << pad("p90_ns", 11)
             << pad("speedup", 10) << pad("max_rel_err", 13) << pad("mean_rel_err", 13) << "   signed range\n";
   std::vector<Point> pts;
@@ -215,8 +222,8 @@ int run_valve_suite(const BenchOptions& o) {
     csv << s.name << ',' << fixed(med, 4) << ',' << fixed(percentile(s.ns, 0.1), 4) << ','
         << fixed(percentile(s.ns, 0.9), 4) << ',' << fixed(exact_med / med, 3) << ',' << sci(s.max_rel, 6)
         << ',' << sci(s.mean_rel, 6) << ',' << sci(s.min_signed, 6) << ',' << sci(s.max_signed, 6) << ','
-        << sci(s.worst_q, 6) << ',' << sci(s.worst_tau, 6) << ',' << n << ',' << o.reps << ',' << qs.size()
-        << '\n';
+        << sci(s.worst_q, 6) << ',' << sci(s.worst_tau, 6) << ',' << points << ',' << o.reps << ','
+        << t.law_calls << '\n';
     std::cout << pad(s.name, 14, true) << pad(fixed(med, 2), 11) << pad(fixed(percentile(s.ns, 0.1), 2), 11)
               << pad(fixed(percentile(s.ns, 0.9), 2), 11) << pad(fixed(exact_med / med, 1) + "x", 10)
               << pad(sci(s.max_rel, 3), 13) << pad(sci(s.mean_rel, 3), 13) << "   ["
@@ -226,19 +233,53 @@ int run_valve_suite(const BenchOptions& o) {
                : s.name + " (" + general(s.max_rel * 100, 2) + " %, " + fixed(exact_med / med, 1) + "x)";
     pts.push_back({label, med, std::max(s.max_rel, 1e-17), colours[m]});
   }
-  csv << "cell_force_uniform," << fixed(percentile(cell_ns, 0.5), 4) << ','
-      << fixed(percentile(cell_ns, 0.1), 4) << ',' << fixed(percentile(cell_ns, 0.9), 4) << ",,,,,,,,"
-      << o.reps << ',' << ds.size() << '\n';
-  csv << "envelope," << fixed(percentile(env_ns, 0.5), 4) << ',' << fixed(percentile(env_ns, 0.1), 4) << ','
-      << fixed(percentile(env_ns, 0.9), 4) << ",,,,,,,," << o.reps << ',' << ds.size() << '\n';
+  csv << "cell_force_uniform," << fixed(percentile(t.cell_ns, 0.5), 4) << ','
+      << fixed(percentile(t.cell_ns, 0.1), 4) << ',' << fixed(percentile(t.cell_ns, 0.9), 4) << ",,,,,,,,"
+      << o.reps << ',' << t.model_calls << '\n';
+  csv << "envelope," << fixed(percentile(t.env_ns, 0.5), 4) << ',' << fixed(percentile(t.env_ns, 0.1), 4)
+      << ',' << fixed(percentile(t.env_ns, 0.9), 4) << ",,,,,,,," << o.reps << ',' << t.model_calls << '\n';
   csv.close();
-  std::cout << pad("cell_force", 14, true) << pad(fixed(percentile(cell_ns, 0.5), 0), 11)
-            << pad(fixed(percentile(cell_ns, 0.1), 0), 11) << pad(fixed(percentile(cell_ns, 0.9), 0), 11)
+  std::cout << pad("cell_force", 14, true) << pad(fixed(percentile(t.cell_ns, 0.5), 0), 11)
+            << pad(fixed(percentile(t.cell_ns, 0.1), 0), 11) << pad(fixed(percentile(t.cell_ns, 0.9), 0), 11)
             << "   (cell " << profile.design.row << "," << profile.design.col << " of " << profile.name
             << ", exact network solve)\n";
-  std::cout << pad("envelope", 14, true) << pad(fixed(percentile(env_ns, 0.5), 0), 11)
-            << pad(fixed(percentile(env_ns, 0.1), 0), 11) << pad(fixed(percentile(env_ns, 0.9), 0), 11)
+  std::cout << pad("envelope", 14, true) << pad(fixed(percentile(t.env_ns, 0.5), 0), 11)
+            << pad(fixed(percentile(t.env_ns, 0.1), 0), 11) << pad(fixed(percentile(t.env_ns, 0.9), 0), 11)
             << "   (two cell forces)\n";
+  return pts;
+}
+
+}  // namespace
+
+int run_valve_suite(const BenchOptions& o) {
+  const DeviceProfile profile = o.profile.empty() ? default_profile() : load_profile(o.profile);
+  // The stated range is for the paper's valve (0.5 mm gap); the profile supplies the fluid.
+  const ValveLaw v(slot_geometry(0.5e-3, 30e-3, 24.01e-3), profile.fluid.viscosity_Pa_s,
+                   profile.fluid.density_kg_per_m3);
+  const DeviceModel model(profile);
+
+  // ---- error over the stated range: a 401 x 401 grid plus 200,000 random points ----
+  std::vector<MethodStats> stats(3);
+  stats[0].name = "exact";
+  stats[1].name = "wereley-pang";
+  stats[2].name = "fast";
+  std::ofstream grid(o.out + "/valve_errors.csv");
+  if (!grid) {
+    std::cerr << "cannot write to " << o.out << ": create the directory first, or pass another --out DIR\n";
+    return 1;
+  }
+  grid << "q_m3_s,tau_y_pa,dp_exact_pa,rel_err_fast,rel_err_wereley_pang,round_trip_rel_err_exact\n";
+  // One random stream: the error points first, then the timed inputs.
+  std::mt19937_64 rng(20240601);
+  Uniform u01(0.0, 1.0);
+  const std::size_t n = measure_errors(v, grid, rng, u01, stats);
+
+  // ---- time per call: the same 4096 random inputs for every method, interleaved ----
+  std::optional<Progress> bar;
+  const ModelTimes times = time_calls(v, model, profile, o.reps, rng, u01, stats, bar);
+
+  const double exact_med = percentile(stats[0].ns, 0.5);
+  const std::vector<Point> pts = report_methods(o, stats, times, n, exact_med, profile);
   write_svg(o.out + "/valve_time_vs_error.svg", pts, exact_med,
             "Q " + sci(kQMin, 0) + ".." + sci(kQMax, 0) + " m^3/s, tau_y 0..50 kPa; " + std::to_string(n) +
                 " error points; " + std::to_string(o.reps) + " x 4096 timed calls per method");
