@@ -1,5 +1,6 @@
 #!/usr/bin/env bash
-# Lint: clang-format (dry run, any difference fails) on the project's C++ sources, then clang-tidy
+# Lint: clang-format (dry run, any difference fails) on the project's C++ sources, no file over
+# 1,000 lines outside tests/, then clang-tidy
 # (.clang-tidy, warnings are errors) over protocol/, driver/, bridge/ and tools/ using the release
 # build's compile_commands.json (configured first if missing). Prints a count of findings per check.
 # Usage: scripts/lint.sh [--format-only | --tidy-only]
@@ -49,6 +50,24 @@ if [[ $mode != --tidy-only ]]; then
     echo "  $(grep -c 'error: code should be clang-formatted' "$logs/format.log") places; details in $logs/format.log"
   else
     echo "clang-format: clean"
+  fi
+fi
+
+if [[ $mode != --tidy-only ]]; then
+  # No source file over 1,000 lines outside tests/ (a file a newcomer can hold in mind).
+  echo "== lint: file size (at most 1000 lines outside tests/)"
+  long=()
+  for f in "${sources[@]}"; do
+    if [[ $f != tests/* ]] && (($(wc -l <"$f") > 1000)); then
+      long+=("$f ($(wc -l <"$f") lines)")
+    fi
+  done
+  if ((${#long[@]})); then
+    rc=1
+    echo "files over 1000 lines (split them by responsibility):"
+    printf '  %s\n' "${long[@]}"
+  else
+    echo "file size: clean"
   fi
 fi
 

@@ -499,7 +499,8 @@ void TissueEstimator::restart_pair(double xs) noexcept {
   filter_primed_ = false;
 }
 
-bool TissueEstimator::push(const TissueSample& sample) noexcept {
+// Refuses (and counts) a sample that is not finite, out of range, a duplicate or out of order.
+inline bool TissueEstimator::admit(const TissueSample& sample) noexcept {
   const TissueEstimatorOptions& o = options_;
   if (!finite(sample.stamp_s) || !finite(sample.force_N) || !finite(sample.indentation_m)) {
     ++stats_.rejected_non_finite;
@@ -517,6 +518,101 @@ bool TissueEstimator::push(const TissueSample& sample) noexcept {
     ++stats_.rejected_out_of_order;
     return false;
   }
+  return true;
+}
+
+// One bank member's recursive least squares step on this sample's filtered regressors.
+inline void TissueEstimator::update_member(Member& m, std::size_t j, double alpha, double d2) noexcept {
+  const TissueEstimatorOptions& o = options_;
+  const double mu = o.forgetting;
+  const double g1 = g1_[j];
+  const double g2 = g2_[j];
+  const double phi1 = 0.5 * (g1 + m.g1_prev);
+  const double phi2 = (g2 - m.g2_prev) * d2;
+  m.g1_prev = g1;
+  m.g2_prev = g2;
+  if (filter_primed_) {
+    m.phi1_f += alpha * (phi1 - m.phi1_f);
+    m.phi2_f += alpha * (phi2 - m.phi2_f);
+  } else {
+    m.phi1_f = phi1;
+    m.phi2_f = phi2;
+  }
+  const double p1 = m.phi1_f;
+  const double p2 = m.phi2_f;
+  std::array<double, 4>& p = m.p;
+  const double pp0 = p[0] * p1 + p[1] * p2;
+  const double pp1 = p[2] * p1 + p[3] * p2;
+  const double s = mu + p1 * pp0 + p2 * pp1;
+  const double e = force_f_ - (m.theta[0] * p1 + m.theta[1] * p2);
+  if (!(s > 0.0) || !finite(s) || !finite(e)) {
+    m.err2 = mu * m.err2 + (finite(e) ? e * e : 0.0);
+    ++stats_.covariance_resets;
+    p = {o.initial_covariance, 0.0, 0.0, o.initial_covariance};
+    return;
+  }
+  // A-posteriori error e mu / s: the fit after this sample (early prior mismatch fades fast).
+  const double e_post = e * mu / s;
+  m.err2 = mu * m.err2 + e_post * e_post;
+  const double k0 = pp0 / s;
+  const double k1 = pp1 / s;
+  m.theta[0] += k0 * e;
+  m.theta[1] += k1 * e;
+  const double off = 0.5 * ((p[1] - k0 * pp1) + (p[2] - k1 * pp0)) / mu;
+  p = {(p[0] - k0 * pp0) / mu, off, off, (p[3] - k1 * pp1) / mu};
+  if (!(p[0] > 0.0 && p[3] > 0.0 && p[0] * p[3] - off * off > 0.0) || !finite(p[0] + p[3])) {
+    ++stats_.covariance_resets;
+    p = {o.initial_covariance, 0.0, 0.0, o.initial_covariance};
+  } else if (const double tr = p[0] + p[3]; tr > o.max_covariance_trace) {
+    // Forgetting without excitation blows the covariance up (wind-up): cap it.
+    const double c = o.max_covariance_trace / tr;
+    p = {p[0] * c, p[1] * c, p[2] * c, p[3] * c};
+    if (j == best_) {
+      ++stats_.covariance_limits;
+    }
+  }
+  if (!finite(m.theta[0]) || !finite(m.theta[1])) {
+    m.theta = {0.0, 0.0};
+    ++stats_.covariance_resets;
+    p = {o.initial_covariance, 0.0, 0.0, o.initial_covariance};
+  }
+}
+
+// The forgotten moments of force and depth, the best member (smallest forgotten prediction error,
+// with 2 % hysteresis against flicker between neighbours), and the law once it is confident.
+inline void TissueEstimator::update_fit(double indentation_m) noexcept {
+  const TissueEstimatorOptions& o = options_;
+  const double mu = o.forgetting;
+  weight_ = mu * weight_ + 1.0;
+  force_sum_ = mu * force_sum_ + force_f_;
+  force_sq_sum_ = mu * force_sq_sum_ + force_f_ * force_f_;
+  depth_sum_ = mu * depth_sum_ + indentation_m;
+  depth_sq_sum_ = mu * depth_sq_sum_ + indentation_m * indentation_m;
+  std::size_t best = best_;
+  for (std::size_t j = 0; j < bank_size_; ++j) {
+    if (bank_[j].err2 < bank_[best].err2) {
+      best = j;
+    }
+  }
+  if (bank_[best].err2 < 0.98 * bank_[best_].err2) {
+    best_ = best;
+  }
+  const std::array<double, 2>& fit = bank_[best_].theta;
+  if (fit[0] < 0.0 || fit[0] > o.max_elastic_force_at_ref_N || fit[1] < 0.0 ||
+      fit[1] > o.max_damping_force_at_ref_N) {
+    ++stats_.parameter_clamps;  // the law is projected onto the plausible box
+  }
+  if (confidence() >= o.min_confidence) {
+    last_good_ = to_model(bank_[best_]);
+    confident_ = true;
+  }
+}
+
+bool TissueEstimator::push(const TissueSample& sample) noexcept {
+  if (!admit(sample)) {
+    return false;
+  }
+  const TissueEstimatorOptions& o = options_;
   ++stats_.accepted;
   const double dt = sample.stamp_s - last_stamp_s_;
   const bool was_sample = have_sample_;
@@ -537,95 +633,17 @@ bool TissueEstimator::push(const TissueSample& sample) noexcept {
     restart_pair(xs);
     return true;
   }
-
-  const double mu = o.forgetting;
   const double alpha = o.filter_s > 0.0 ? dt / (o.filter_s + dt) : 1.0;
   const double d2 = o.reference_depth_m / (o.reference_rate_m_per_s * dt);
   const double force_mid = 0.5 * (sample.force_N + f_prev);
   force_f_ = filter_primed_ ? force_f_ + alpha * (force_mid - force_f_) : force_mid;
   bank_regressors(xs);
   for (std::size_t j = 0; j < bank_size_; ++j) {
-    Member& m = bank_[j];
-    const double g1 = g1_[j];
-    const double g2 = g2_[j];
-    const double phi1 = 0.5 * (g1 + m.g1_prev);
-    const double phi2 = (g2 - m.g2_prev) * d2;
-    m.g1_prev = g1;
-    m.g2_prev = g2;
-    if (filter_primed_) {
-      m.phi1_f += alpha * (phi1 - m.phi1_f);
-      m.phi2_f += alpha * (phi2 - m.phi2_f);
-    } else {
-      m.phi1_f = phi1;
-      m.phi2_f = phi2;
-    }
-    const double p1 = m.phi1_f;
-    const double p2 = m.phi2_f;
-    std::array<double, 4>& p = m.p;
-    const double pp0 = p[0] * p1 + p[1] * p2;
-    const double pp1 = p[2] * p1 + p[3] * p2;
-    const double s = mu + p1 * pp0 + p2 * pp1;
-    const double e = force_f_ - (m.theta[0] * p1 + m.theta[1] * p2);
-    if (!(s > 0.0) || !finite(s) || !finite(e)) {
-      m.err2 = mu * m.err2 + (finite(e) ? e * e : 0.0);
-      ++stats_.covariance_resets;
-      p = {o.initial_covariance, 0.0, 0.0, o.initial_covariance};
-      continue;
-    }
-    // A-posteriori error e mu / s: the fit after this sample (early prior mismatch fades fast).
-    const double e_post = e * mu / s;
-    m.err2 = mu * m.err2 + e_post * e_post;
-    const double k0 = pp0 / s;
-    const double k1 = pp1 / s;
-    m.theta[0] += k0 * e;
-    m.theta[1] += k1 * e;
-    const double off = 0.5 * ((p[1] - k0 * pp1) + (p[2] - k1 * pp0)) / mu;
-    p = {(p[0] - k0 * pp0) / mu, off, off, (p[3] - k1 * pp1) / mu};
-    if (!(p[0] > 0.0 && p[3] > 0.0 && p[0] * p[3] - off * off > 0.0) || !finite(p[0] + p[3])) {
-      ++stats_.covariance_resets;
-      p = {o.initial_covariance, 0.0, 0.0, o.initial_covariance};
-    } else if (const double tr = p[0] + p[3]; tr > o.max_covariance_trace) {
-      // Forgetting without excitation blows the covariance up (wind-up): cap it.
-      const double c = o.max_covariance_trace / tr;
-      p = {p[0] * c, p[1] * c, p[2] * c, p[3] * c};
-      if (j == best_) {
-        ++stats_.covariance_limits;
-      }
-    }
-    if (!finite(m.theta[0]) || !finite(m.theta[1])) {
-      m.theta = {0.0, 0.0};
-      ++stats_.covariance_resets;
-      p = {o.initial_covariance, 0.0, 0.0, o.initial_covariance};
-    }
+    update_member(bank_[j], j, alpha, d2);
   }
   filter_primed_ = true;
   ++stats_.updates;
-
-  weight_ = mu * weight_ + 1.0;
-  force_sum_ = mu * force_sum_ + force_f_;
-  force_sq_sum_ = mu * force_sq_sum_ + force_f_ * force_f_;
-  depth_sum_ = mu * depth_sum_ + sample.indentation_m;
-  depth_sq_sum_ = mu * depth_sq_sum_ + sample.indentation_m * sample.indentation_m;
-
-  // Smallest forgotten prediction error, with 2 % hysteresis against flicker between neighbours.
-  std::size_t best = best_;
-  for (std::size_t j = 0; j < bank_size_; ++j) {
-    if (bank_[j].err2 < bank_[best].err2) {
-      best = j;
-    }
-  }
-  if (bank_[best].err2 < 0.98 * bank_[best_].err2) {
-    best_ = best;
-  }
-  const std::array<double, 2>& fit = bank_[best_].theta;
-  if (fit[0] < 0.0 || fit[0] > o.max_elastic_force_at_ref_N || fit[1] < 0.0 ||
-      fit[1] > o.max_damping_force_at_ref_N) {
-    ++stats_.parameter_clamps;  // the law is projected onto the plausible box
-  }
-  if (confidence() >= o.min_confidence) {
-    last_good_ = to_model(bank_[best_]);
-    confident_ = true;
-  }
+  update_fit(sample.indentation_m);
   return true;
 }
 

@@ -1,7 +1,6 @@
 // CellInverse: the fast model against DeviceModel, accuracy of the rendered force (evaluated
 // with the exact quasi-static model), clamping, release, errors, incremental work, tracking.
 // Nothing here is timed; instruction counts are gated by InverseCallgrind.
-#include "mrskin/driver/model/exact_inverse.hpp"
 #include "mrskin/driver/model/inverse.hpp"
 
 #include <gtest/gtest.h>
@@ -18,6 +17,7 @@
 
 #include "inverse_cases.hpp"
 #include "mrskin/driver/errors.hpp"
+#include "mrskin/driver/model/exact_inverse.hpp"
 
 namespace {
 

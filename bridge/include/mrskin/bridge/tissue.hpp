@@ -202,6 +202,11 @@ class TissueEstimator {
     double err2 = 0.0;     // forgotten sum of squared prediction errors
   };
   void regressors(const Member& m, double xs, double& g1, double& g2) const noexcept;
+  // push()'s steps, defined inline in tissue.cpp (its only caller): a sample admitted, each
+  // member's least squares step, then the moments, the best member and the confident law.
+  inline bool admit(const TissueSample& sample) noexcept;
+  inline void update_member(Member& m, std::size_t j, double alpha, double d2) noexcept;
+  inline void update_fit(double indentation_m) noexcept;
   bool stream_ended_ = false;
   double ended_at_s_ = 0.0;
   // Every member's regressors at xs into g1_/g2_: the Hunt-Crossley bank's exponents are evenly
