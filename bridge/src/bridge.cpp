@@ -8,6 +8,7 @@
 #include <vector>
 
 #include "allocate_stage.hpp"
+#include "mrskin/driver/atomic_raise.hpp"
 #include "mrskin/driver/model/calibration.hpp"
 #include "mrskin/driver/model/device_model.hpp"
 #include "mrskin/driver/spsc_queue.hpp"
@@ -205,11 +206,7 @@ Bridge::Impl::~Impl() { stop(); }
 ResultCode Bridge::Impl::enable() noexcept { return session_.request_enable(); }
 
 void Bridge::Impl::request(Request r) noexcept {
-  auto wanted = static_cast<unsigned char>(r);
-  unsigned char pending = pending_request_.load(std::memory_order_relaxed);
-  while (wanted > pending &&
-         !pending_request_.compare_exchange_weak(pending, wanted, std::memory_order_acq_rel)) {
-  }
+  atomic_raise(pending_request_, static_cast<unsigned char>(r));  // the strongest pending request wins
 }
 
 void Bridge::Impl::release(Request r) noexcept {

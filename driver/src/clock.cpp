@@ -3,6 +3,8 @@
 #include <cerrno>
 #include <ctime>
 
+#include "mrskin/driver/atomic_raise.hpp"
+
 namespace mrskin {
 
 TimePoint MonotonicClock::now() const noexcept {
@@ -19,11 +21,6 @@ void MonotonicClock::sleep_until(TimePoint t) noexcept {
   }
 }
 
-void SimulatedClock::sleep_until(TimePoint t) noexcept {
-  std::int64_t current = now_ns_.load(std::memory_order_acquire);
-  while (current < t.count() &&
-         !now_ns_.compare_exchange_weak(current, t.count(), std::memory_order_acq_rel)) {
-  }
-}
+void SimulatedClock::sleep_until(TimePoint t) noexcept { atomic_raise(now_ns_, t.count()); }
 
 }  // namespace mrskin

@@ -22,10 +22,6 @@ using session_names::quantity_unit;
 namespace {
 constexpr std::size_t kConfigWindow = 16;  // configuration chunks in flight
 
-Duration scaled(Duration d, double scale) noexcept {
-  return Duration{static_cast<Duration::rep>(static_cast<double>(d.count()) * scale)};
-}
-
 std::uint16_t clamp_counts(double value, double lsb, std::uint16_t max_counts) noexcept {
   if (!(value > 0.0)) {
     return 0;  // also NaN
@@ -201,12 +197,12 @@ DeviceSession::Impl::Impl(std::unique_ptr<Transport> transport, Clock& clock, Se
   }
   ring_.resize(options_.ring_log_packets);
   fault_ring_.resize(options_.ring_log_packets);
-  options_.handshake_timeout = scaled(options_.handshake_timeout, options_.time_scale);
-  options_.handshake_retry = scaled(options_.handshake_retry, options_.time_scale);
-  options_.heartbeat_period = scaled(options_.heartbeat_period, options_.time_scale);
-  options_.reconnect_backoff_min = scaled(options_.reconnect_backoff_min, options_.time_scale);
-  options_.reconnect_backoff_max = scaled(options_.reconnect_backoff_max, options_.time_scale);
-  options_.telemetry_timeout = scaled(options_.telemetry_timeout, options_.time_scale);
+  options_.handshake_timeout = scaled_duration(options_.handshake_timeout, options_.time_scale);
+  options_.handshake_retry = scaled_duration(options_.handshake_retry, options_.time_scale);
+  options_.heartbeat_period = scaled_duration(options_.heartbeat_period, options_.time_scale);
+  options_.reconnect_backoff_min = scaled_duration(options_.reconnect_backoff_min, options_.time_scale);
+  options_.reconnect_backoff_max = scaled_duration(options_.reconnect_backoff_max, options_.time_scale);
+  options_.telemetry_timeout = scaled_duration(options_.telemetry_timeout, options_.time_scale);
   if (!transport_ || transport_->state() != TransportState::open) {
     throw DeviceNotFound(fmt::format(
         "no device answers on {}: check the cable and the URI (mrskinctl list shows what is attached)",

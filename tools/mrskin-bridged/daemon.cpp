@@ -12,6 +12,7 @@
 #include <thread>
 
 #include "json_text.hpp"
+#include "mrskin/driver/atomic_raise.hpp"
 #include "mrskin/sim/open_mock.hpp"
 
 namespace mrskin::bridged {
@@ -364,11 +365,7 @@ void Daemon::request(std::string_view cmd) {
   const Bridge::Request r = cmd == "estop"     ? Bridge::Request::estop
                             : cmd == "disable" ? Bridge::Request::disable
                                                : Bridge::Request::enable;
-  // The strongest pending request wins (as in Bridge::request): an e-stop is never overwritten.
-  auto wanted = static_cast<unsigned char>(r);
-  unsigned char pending = pending_.load(std::memory_order_relaxed);
-  while (wanted > pending && !pending_.compare_exchange_weak(pending, wanted, std::memory_order_acq_rel)) {
-  }
+  atomic_raise(pending_, static_cast<unsigned char>(r));  // the strongest pending request wins
 }
 
 std::string Daemon::stream_state(std::int64_t now_ns) const {

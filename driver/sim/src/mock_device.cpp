@@ -465,9 +465,7 @@ void MockDevice::reseed(TimePoint now) noexcept {
 
 void MockDevice::render_targets(TimePoint now) noexcept {
   // The firmware's local impedance loop: what it reported to the host is all it measures.
-  constexpr double kContactDepth_m = 50e-6;
-  constexpr double kContactForce_N = 0.03;
-  constexpr double kHoldRate_m_per_s = 2e-3;  // observer rate noise must not release a hold
+  constexpr model::ContactThresholds kContact{};  // the bridge's defaults
   if (render_observer_->update(reported_, commanded_A_, options_.telemetry_period_s) != model::Status::ok) {
     return;  // the last currents stand
   }
@@ -482,8 +480,8 @@ void MockDevice::render_targets(TimePoint now) noexcept {
     t.force_ceiling_N = held.ceiling * proto::kCeilingLsb_N;
     t.valid_until_s =
         to_seconds(targets_held_[c].validity_start - start_) + held.validity * proto::kValidityLsb_s;
-    const bool contact = depth_m[c] > kContactDepth_m && force_N[c] > kContactForce_N;
-    const double rate = std::abs(rate_m_per_s[c]) < kHoldRate_m_per_s ? 0.0 : rate_m_per_s[c];
+    const bool contact = kContact.touched(depth_m[c], force_N[c]);
+    const double rate = std::abs(rate_m_per_s[c]) < kContact.hold_rate_m_per_s ? 0.0 : rate_m_per_s[c];
     render_states_[c].indentation_m = contact ? depth_m[c] : 0.0;
     render_states_[c].rate_m_per_s = contact ? rate : 0.0;
   }

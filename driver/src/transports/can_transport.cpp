@@ -105,10 +105,6 @@ std::string format_can_uri(const CanUri& uri) {
 
 namespace {
 
-Duration scaled(Duration d, double scale) noexcept {
-  return Duration{static_cast<Duration::rep>(static_cast<double>(d.count()) * scale)};
-}
-
 class CanTransport final : public QueuedTransport {
  public:
   CanTransport(const CanUri& parsed, const CanTransportOptions& options, std::shared_ptr<CanSocketApi> api)
@@ -118,10 +114,10 @@ class CanTransport final : public QueuedTransport {
         api_(std::move(api)),
         codec_(options.role, parsed.node, parsed.fd),
         filters_(can_receive_filters(options.role, parsed.node)),
-        reopen_min_(scaled(options.reopen_backoff_min, options.time_scale)),
-        reopen_max_(scaled(options.reopen_backoff_max, options.time_scale)),
-        enobufs_min_(scaled(options.enobufs_backoff_min, options.time_scale)),
-        enobufs_max_(scaled(options.enobufs_backoff_max, options.time_scale)) {
+        reopen_min_(scaled_duration(options.reopen_backoff_min, options.time_scale)),
+        reopen_max_(scaled_duration(options.reopen_backoff_max, options.time_scale)),
+        enobufs_min_(scaled_duration(options.enobufs_backoff_min, options.time_scale)),
+        enobufs_max_(scaled_duration(options.enobufs_backoff_max, options.time_scale)) {
     const OpenResult r = open();
     if (r.fd < 0) {
       throw_open_error(uri(), uri_.interface, uri_.fd, r, *api_);

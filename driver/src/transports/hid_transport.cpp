@@ -69,10 +69,6 @@ bool gone(int error) noexcept {
   return error == ENODEV || error == ENXIO || error == ENOENT || error == ESHUTDOWN;
 }
 
-Duration scaled(Duration d, double scale) noexcept {
-  return Duration{static_cast<Duration::rep>(static_cast<double>(d.count()) * scale)};
-}
-
 // hid_init() for as long as it lives.
 class HidInit {
  public:
@@ -176,9 +172,9 @@ class HidTransport final : public QueuedTransport {
         init_(*api_),
         wake_(uri_text),
         read_timeout_ms_(to_ms(options.read_timeout)),
-        backoff_min_(scaled(options.reopen_backoff_min, options.time_scale)),
-        backoff_max_(scaled(options.reopen_backoff_max, options.time_scale)),
-        permission_retry_(scaled(options.permission_retry, options.time_scale)),
+        backoff_min_(scaled_duration(options.reopen_backoff_min, options.time_scale)),
+        backoff_max_(scaled_duration(options.reopen_backoff_max, options.time_scale)),
+        permission_retry_(scaled_duration(options.permission_retry, options.time_scale)),
         backoff_(backoff_min_) {
     std::vector<HidDeviceInfo> all;
     Attempt a = try_open(*api_, uri_, &all);

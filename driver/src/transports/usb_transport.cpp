@@ -89,8 +89,6 @@ std::string read_serial(LibusbApi& api, libusb_device_handle* handle, std::uint8
   return {text.begin(), text.begin() + n};
 }
 
-Duration scaled(Duration d, double k) { return std::chrono::duration_cast<Duration>(d * std::max(k, 1e-3)); }
-
 timeval to_timeval(Duration d) {
   const auto us = std::chrono::duration_cast<std::chrono::microseconds>(d).count();
   return timeval{static_cast<time_t>(us / 1000000), static_cast<suseconds_t>(us % 1000000)};
@@ -369,10 +367,10 @@ UsbTransport::UsbTransport(std::string_view uri, std::shared_ptr<LibusbApi> api,
       api_(std::move(api)),
       want_(parse_usb_uri(uri)),
       options_(options) {
-  options_.out_timeout = scaled(options_.out_timeout, options_.time_scale);
-  options_.reopen_backoff_min = scaled(options_.reopen_backoff_min, options_.time_scale);
-  options_.reopen_backoff_max = scaled(options_.reopen_backoff_max, options_.time_scale);
-  options_.reopen_window = scaled(options_.reopen_window, options_.time_scale);
+  options_.out_timeout = scaled_duration(options_.out_timeout, options_.time_scale);
+  options_.reopen_backoff_min = scaled_duration(options_.reopen_backoff_min, options_.time_scale);
+  options_.reopen_backoff_max = scaled_duration(options_.reopen_backoff_max, options_.time_scale);
+  options_.reopen_window = scaled_duration(options_.reopen_window, options_.time_scale);
   if (options_.in_transfers == 0 || options_.out_transfers == 0) {
     throw InvalidArgument(
         fmt::format("'{}': set UsbTransportOptions in_transfers and out_transfers to 1 or more", uri));

@@ -31,8 +31,8 @@ TissueEstimatorOptions default_estimator_options() noexcept;
 
 struct BridgeOptions {
   double rate_hz = 1000.0;
-  double contact_threshold_m = 50e-6;  // a cell deeper than this is in contact
-  double max_force_N = 2.0;            // device range
+  double contact_threshold_m = model::ContactThresholds{}.depth_m;  // a cell deeper than this is in contact
+  double max_force_N = 2.0;                                         // device range
   // The online tissue estimate: the law fitted, its prior, and the stale policy (hold, then fade
   // to released: hold_s, fade_s).
   TissueEstimatorOptions estimator = default_estimator_options();
@@ -44,11 +44,11 @@ struct BridgeOptions {
   // peaks) at up to 2 N swings the energy by tens of uJ without any energy being made: deficits
   // within this count as passive.
   double passivity_tolerance_J = 50e-6;
-  double unload_rate_m_per_s = 2e-3;       // rates within +-this are holding (observer noise)...
+  double unload_rate_m_per_s = model::ContactThresholds{}.hold_rate_m_per_s;  // rates within +-this hold...
   double load_exit_rate_m_per_s = 0.5e-3;  // ...but a loading cell loads until its rate is below this
   double unload_retreat_m = 30e-6;         // a cell unloads after retreating this far from its peak...
   double unload_filter_s = 5e-3;           // ...on its depth smoothed with this time constant
-  double contact_force_N = 0.03;           // estimated force below this: the finger is not on the cell
+  double contact_force_N = model::ContactThresholds{}.force_N;  // estimated force below this: no finger
   // Integral feedback on the observer's force, 1/s: corrects what the quasi-static inverse does
   // not know (the cell's fluid history, coil lag); frozen while the target is clamped.
   double feedback_gain_per_s = 30.0;

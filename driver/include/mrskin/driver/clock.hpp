@@ -51,5 +51,11 @@ inline double to_seconds(Duration d) noexcept { return std::chrono::duration<dou
 inline Duration from_seconds(double s) noexcept {
   return std::chrono::duration_cast<Duration>(std::chrono::duration<double>(s));
 }
+// A timeout or period stretched by a time scale (MRSKIN_TIME_SCALE: above 1 on a slow machine).
+// A scale below 1e-3, or NaN, counts as 1e-3: no wait collapses to zero or overflows.
+inline Duration scaled_duration(Duration d, double time_scale) noexcept {
+  const double k = time_scale >= 1e-3 ? time_scale : 1e-3;
+  return Duration{static_cast<Duration::rep>(static_cast<double>(d.count()) * k)};
+}
 
 }  // namespace mrskin

@@ -46,6 +46,20 @@ enum class ObserverForceModel : unsigned char {
   local,      // the quasi-static cell law, contacted cells only
 };
 
+// When an observed cell counts as touched: deeper than depth_m with an estimated force above
+// force_N (a membrane sucked in after a release reads as depth with no force on it), and rates
+// within +-hold_rate_m_per_s as holding (the observer's rate noise must not release a hold). The
+// one definition for every impedance loop on observed cells: the bridge's defaults
+// (BridgeOptions) and a device's own loop (the mock's firmware).
+struct ContactThresholds {
+  double depth_m = 50e-6;
+  double force_N = 0.03;
+  double hold_rate_m_per_s = 2e-3;
+  [[nodiscard]] bool touched(double observed_depth_m, double observed_force_N) const noexcept {
+    return observed_depth_m > depth_m && observed_force_N > force_N;
+  }
+};
+
 struct ObserverOptions {
   // Expected depth change per tick not explained by the rate (the prior's spread), m.
   double prior_spread_m = 50e-6;
