@@ -232,4 +232,48 @@ TEST(ControlRequest, ParsesJsonAndBareWords) {
   }
 }
 
+// Requests are read with nlohmann-json: escapes decoded, any JSON number for period_ms; a bad
+// line gets an error that says what is wrong (nlohmann-json's words for malformed JSON).
+TEST(ControlRequest, ReadsJsonAndNamesWhatIsWrong) {
+  mrskin::bridged::ControlRequest r;
+  std::string error;
+  ASSERT_TRUE(mrskin::bridged::parse_request(R"({"cmd":"st\u0061tus"})", r, error)) << error;
+  EXPECT_EQ(r.cmd, "status");
+  ASSERT_TRUE(
+      mrskin::bridged::parse_request(R"({"grid":false,"period_ms":2.5e1,"cmd":"telemetry"})", r, error))
+      << error;
+  EXPECT_EQ(r.cmd, "telemetry");
+  EXPECT_DOUBLE_EQ(r.period_ms, 25.0);
+  EXPECT_FALSE(r.grid);
+  const struct {
+    const char* line;
+    const char* error;
+  } cases[] = {
+      {R"({"cmd": )",
+       "malformed JSON: syntax error while parsing value - unexpected end of input; expected '[', '{', or a "
+       "literal (column 9)"},
+      {R"({"cmd":"status"} x)",
+       "malformed JSON: syntax error while parsing value - invalid literal; last read: "
+       "'\"status\"} x'; expected end of input (column 18)"},
+      {R"({"cmd":"telemetry","period_ms":NaN})",
+       "malformed JSON: syntax error while parsing value - invalid literal"},
+      {R"({"cmd":"telemetry","period_ms":1e999})", "malformed JSON: number overflow parsing '1e999'"},
+      {R"({"cmd":"status",})", "malformed JSON: syntax error while parsing object key - unexpected '}'"},
+      {R"({"cmd":7})", R"("cmd" must be a string)"},
+      {R"({"cmd":null})", R"("cmd" must be a string)"},
+      {R"({"cmd":"telemetry","period_ms":"50"})", R"("period_ms" must be a number)"},
+      {R"({"cmd":"telemetry","period_ms":null})", R"("period_ms" must be a number)"},
+      {R"({"cmd":"telemetry","grid":1})", R"("grid" must be true or false)"},
+      {R"({"cmd":"status","x":[1,{"a":2}]})", R"(unknown field "x")"},
+      {R"({"cmd":""})", R"(missing "cmd")"},
+      {"{}", R"(missing "cmd")"},
+      {"St@tus", R"(malformed request: expected a JSON object such as {"cmd":"status"} or a command word)"},
+      {" \t", "empty request"},
+  };
+  for (const auto& c : cases) {
+    EXPECT_FALSE(mrskin::bridged::parse_request(c.line, r, error)) << c.line;
+    EXPECT_TRUE(error.starts_with(c.error)) << c.line << "\n" << error;
+  }
+}
+
 }  // namespace

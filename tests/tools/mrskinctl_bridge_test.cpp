@@ -12,12 +12,14 @@
 #include <array>
 #include <atomic>
 #include <chrono>
+#include <cmath>
 #include <csignal>
 #include <cstdlib>
 #include <filesystem>
 #include <fstream>
 #include <functional>
 #include <memory>
+#include <optional>
 #include <sstream>
 #include <string>
 #include <thread>
@@ -26,6 +28,7 @@
 #include "child_process.hpp"
 #include "control_server.hpp"
 #include "exit_codes.hpp"
+#include "json_reply.hpp"
 #include "line_client.hpp"
 
 namespace {
@@ -363,6 +366,57 @@ TEST(ControlRequestGrid, TelemetryTakesAGridFlag) {
   for (const char* bad : {R"({"cmd":"telemetry","grid":tru})", R"({"cmd":"status","halted":true})"}) {
     EXPECT_FALSE(mrskin::bridged::parse_request(bad, r, error)) << bad;
   }
+}
+
+// mrskinctl reads the daemon's lines with JsonReply (nlohmann-json): the top-level members only,
+// strings decoded, numbers, arrays of numbers with null as NaN, the fault log's texts.
+TEST(MrskinctlJsonReply, ReadsTheDaemonsShapes) {
+  const mrskin::ctl::JsonReply r(
+      R"({"ok":true,"state":"FAULT","faults":2,"rms_error_n":0.028,"note":"a \"word\"\u00e9\n",)"
+      R"("max_coil_temperature_c":null,"force_n":[1,-2.5e-06,null],"link_errors":{"crc":3},)"
+      R"("log":[{"t_s":0.5,"text":"tx state request"},{"text":7},{"t_s":0.6,"text":"rx status"},8]})");
+  EXPECT_TRUE(r.is_object());
+  EXPECT_EQ(r.text("ok"), "true");
+  EXPECT_EQ(r.text("state"), "FAULT");
+  EXPECT_EQ(r.text("faults"), "2");
+  EXPECT_EQ(r.text("note"), "a \"word\"\xc3\xa9\n");
+  EXPECT_EQ(r.text("max_coil_temperature_c"), "null");
+  EXPECT_EQ(r.number("rms_error_n"), 0.028);
+  EXPECT_EQ(r.number("faults"), 2.0);
+  EXPECT_FALSE(r.number("state"));  // a string is no number
+  EXPECT_FALSE(r.number("max_coil_temperature_c"));
+  const std::optional<std::vector<double>> force = r.numbers("force_n");
+  ASSERT_TRUE(force.has_value());
+  ASSERT_EQ(force->size(), 3U);
+  EXPECT_EQ(force->at(1), -2.5e-06);
+  EXPECT_TRUE(std::isnan(force->at(2)));
+  EXPECT_FALSE(r.numbers("log"));     // objects in it
+  EXPECT_FALSE(r.numbers("faults"));  // not an array
+  EXPECT_EQ(r.strings_in_array("log", "text"), (std::vector<std::string>{"tx state request", "rx status"}));
+  EXPECT_FALSE(r.text("crc"));  // a nested member is not a top-level one
+  EXPECT_FALSE(r.text("absent"));
+  // The statistics file: pretty-printed over lines.
+  EXPECT_EQ(json_field("{\n  \"ticks\": 12,\n  \"tick_us\": {\"p50\": 3.5}\n}\n", "ticks"), "12");
+}
+
+// Garbage, broken or mistyped text from a daemon: no members, wrong types read as absent, and
+// nothing throws.
+TEST(MrskinctlJsonReply, BadTextHasNoMembers) {
+  for (const char* bad : {"", "this is not JSON at all", R"({"ok":true)", R"({"ok":true} {"ok":false})",
+                          R"({"ok":true,"x":NaN})", R"({"ok":true,"x":1e999})", R"([{"ok":true}])", R"("ok")",
+                          "{\"ok\":\"\xff\"}"}) {
+    const mrskin::ctl::JsonReply r(bad);
+    EXPECT_FALSE(r.is_object()) << bad;
+    EXPECT_FALSE(r.text("ok")) << bad;
+    EXPECT_FALSE(r.number("ok")) << bad;
+    EXPECT_FALSE(r.numbers("ok")) << bad;
+    EXPECT_TRUE(r.strings_in_array("ok", "text").empty()) << bad;
+  }
+  const mrskin::ctl::JsonReply r(R"({"force_n":[1,2,"x"],"rows":"5","log":{"text":"a"}})");
+  EXPECT_FALSE(r.numbers("force_n"));
+  EXPECT_FALSE(r.number("rows"));
+  EXPECT_EQ(r.text("rows"), "5");
+  EXPECT_TRUE(r.strings_in_array("log", "text").empty());  // not an array
 }
 
 }  // namespace

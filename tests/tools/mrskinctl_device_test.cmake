@@ -192,6 +192,29 @@ if(PART STREQUAL "record")
   file(WRITE "${WORK}/bad4.ndjson" "${header}\n{\"t_s\": 0.2, \"dir\": \"rx\", \"kind\": \"status\", \"state\": \"ENABLED\", \"fault\": \"none\"}\n{\"t_s\": 0.1, \"dir\": \"rx\", \"kind\": \"status\", \"state\": \"ENABLED\", \"fault\": \"none\"}\n")
   run(2 replay "${WORK}/bad4.ndjson")
   expect("bad4.ndjson:3: t_s 0.1 goes back in time" "${err}")
+  # Read with nlohmann-json: wrong types, NaN-like values and broken JSON are named, exit 2; escapes
+  # and spacing JSON allows are read.
+  set(status "\"dir\": \"rx\", \"kind\": \"status\", \"state\": \"ENABLED\", \"fault\": \"none\"")
+  foreach(bad "{\"t_s\": \"0.1\", ${status}}|\"t_s\" has the wrong type"
+              "{\"t_s\": NaN, ${status}}|syntax error while parsing value - invalid literal"
+              "{\"t_s\": null, ${status}}|\"t_s\" is null (a non-finite value)"
+              "{\"t_s\": 1e999, ${status}}|number overflow parsing '1e999'"
+              "{\"t_s\": 0.1, \"dir\": \"tx\", \"kind\": \"currents\", \"values\": [0.01, null]}|\"values\": null in a number array"
+              "{\"t_s\": 0.1, \"dir\": \"tx\", \"kind\": \"currents\", \"values\": [0.01, \"x\"]}|\"values\": an array holds numbers only"
+              "{\"t_s\": 0.1, ${status}, \"extra\": {\"a\": 1}}|\"extra\" is not a string, a number or an array of numbers"
+              "[0.1]|not an object"
+              "{\"t_s\": 0.1, ${status},}|syntax error while parsing object key")
+    string(REPLACE "|" ";" bad "${bad}")
+    list(GET bad 0 line)
+    list(GET bad 1 reason)
+    file(WRITE "${WORK}/bad.ndjson" "${header}\n${line}\n")
+    run(2 replay "${WORK}/bad.ndjson")
+    expect("bad.ndjson:2: ${reason}" "${err}")
+  endforeach()
+  file(WRITE "${WORK}/spaced.ndjson"
+       "${header}\n  { \"t_s\" : 0.1 , \"dir\":\"rx\",\"kind\":\"status\",\"state\":\"EN\\u0041BLED\",\"fault\":\"none\" }  \n")
+  run(0 replay "${WORK}/spaced.ndjson")
+  expect("rx status    ENABLED (fault: none)" "${out}")
   run(2 record --out "${WORK}/no/such/dir/x.ndjson" --duration 0.1)
   expect("cannot write" "${err}")
 endif()

@@ -20,6 +20,7 @@
 
 #include "child_process.hpp"
 #include "exit_codes.hpp"
+#include "json_reply.hpp"
 #include "line_client.hpp"
 
 namespace {

@@ -1,6 +1,6 @@
 // A client for mrskin-bridged's control socket (docs/daemon.md): connect to the UNIX socket,
 // send one request line, read response lines with a timeout. Header-only, no JSON library:
-// callers pick fields with json_field() or print the lines as they come.
+// callers read the lines with JsonReply (json_reply.hpp) or print them as they come.
 #pragma once
 
 #include <poll.h>
@@ -126,32 +126,5 @@ class LineClient {
   int fd_ = -1;
   std::string buffer_;
 };
-
-// The raw text of a top-level field of a flat JSON response: "ENABLED" for a string (unquoted,
-// escapes left as they are), "true", "12.5"; nullopt when absent. Enough for the daemon's replies.
-inline std::optional<std::string> json_field(std::string_view json, std::string_view key) {
-  std::string pattern;
-  pattern.reserve(key.size() + 3);
-  pattern += '"';
-  pattern += key;
-  pattern += "\":";
-  const std::size_t at = json.find(pattern);
-  if (at == std::string_view::npos) {
-    return std::nullopt;
-  }
-  std::size_t i = at + pattern.size();
-  if (i < json.size() && json[i] == '"') {
-    std::size_t end = i + 1;
-    while (end < json.size() && json[end] != '"') {
-      end += json[end] == '\\' ? 2 : 1;
-    }
-    return std::string(json.substr(i + 1, std::min(end, json.size()) - i - 1));
-  }
-  std::size_t end = i;
-  while (end < json.size() && json[end] != ',' && json[end] != '}' && json[end] != ']') {
-    ++end;
-  }
-  return std::string(json.substr(i, end - i));
-}
 
 }  // namespace mrskin::ctl

@@ -12,12 +12,13 @@
 #include <algorithm>
 #include <array>
 #include <cerrno>
-#include <cmath>
 #include <cstring>
 #include <fstream>
+#include <nlohmann/json.hpp>
 #include <string>
 #include <system_error>
 
+#include "json_reply.hpp"
 #include "json_text.hpp"
 
 namespace mrskin::bridged {
@@ -73,44 +74,34 @@ void make_private_directory(const std::string& dir) {
   }
 }
 
-// Skips whitespace; the JSON parser below reads one flat object.
-void skip_ws(std::string_view s, std::size_t& i) {
-  while (i < s.size() && (s[i] == ' ' || s[i] == '\t' || s[i] == '\r' || s[i] == '\n')) {
-    ++i;
-  }
-}
-
-bool parse_string(std::string_view s, std::size_t& i, std::string& out) {
-  if (i >= s.size() || s[i] != '"') {
+// One member of a request object into out; false with error set for an unknown or mistyped one.
+bool take_member(const std::string& key, const nlohmann::json& value, ControlRequest& out,
+                 std::string& error) {
+  if (key == "cmd" && value.is_string()) {
+    out.cmd = value.get<std::string>();
+  } else if (key == "period_ms" && value.is_number()) {
+    out.period_ms = value.get<double>();
+  } else if (key == "grid" && value.is_boolean()) {
+    out.grid = value.get<bool>();
+  } else if (key == "cmd" || key == "period_ms" || key == "grid") {
+    error = fmt::format(R"("{}" must be {})", key,
+                        key == "cmd"    ? "a string"
+                        : key == "grid" ? "true or false"
+                                        : "a number");
+    return false;
+  } else {
+    error = R"(unknown field ")" + key + R"(")";
     return false;
   }
-  ++i;
-  out.clear();
-  while (i < s.size() && s[i] != '"') {
-    if (s[i] == '\\') {
-      if (++i >= s.size()) {
-        return false;
-      }
-      const char e = s[i];
-      out += e == 'n' ? '\n' : e == 't' ? '\t' : e;  // \uXXXX is not needed by any command
-    } else {
-      out += s[i];
-    }
-    ++i;
-  }
-  if (i >= s.size()) {
-    return false;
-  }
-  ++i;
   return true;
 }
 
 }  // namespace
 
 bool parse_request(std::string_view line, ControlRequest& out, std::string& error) {
-  std::size_t i = 0;
-  skip_ws(line, i);
   out = ControlRequest{};
+  error.clear();
+  const std::size_t i = std::min(line.find_first_not_of(" \t\r\n"), line.size());
   if (i < line.size() && line[i] != '{') {  // a bare word: "status"
     std::size_t end = line.size();
     while (end > i && (line[end - 1] == ' ' || line[end - 1] == '\r' || line[end - 1] == '\t')) {
@@ -127,83 +118,20 @@ bool parse_request(std::string_view line, ControlRequest& out, std::string& erro
     error = "empty request";
     return false;
   }
-  ++i;  // '{'
-  skip_ws(line, i);
-  bool first = true;
-  while (i < line.size() && line[i] != '}') {
-    if (!first) {
-      if (line[i] != ',') {
-        error = "malformed JSON: expected ',' or '}'";
-        return false;
-      }
-      ++i;
-      skip_ws(line, i);
-    }
-    first = false;
-    std::string key;
-    if (!parse_string(line, i, key)) {
-      error = "malformed JSON: expected a quoted key";
-      return false;
-    }
-    skip_ws(line, i);
-    if (i >= line.size() || line[i] != ':') {
-      error = R"(malformed JSON: expected ':' after ")" + key + R"(")";
-      return false;
-    }
-    ++i;
-    skip_ws(line, i);
-    if (line.substr(i, 4) == "true" || line.substr(i, 5) == "false") {
-      const bool value = line[i] == 't';
-      i += value ? 4 : 5;
-      if (key == "grid") {
-        out.grid = value;
-      } else {
-        error = R"(unknown field ")" + key + R"(")";
-        return false;
-      }
-    } else if (i < line.size() && line[i] == '"') {
-      std::string value;
-      if (!parse_string(line, i, value)) {
-        error = "malformed JSON: unterminated string";
-        return false;
-      }
-      if (key == "cmd") {
-        out.cmd = value;
-      } else {
-        error = R"(unknown field ")" + key + R"(")";
-        return false;
-      }
-    } else {
-      const std::size_t start = i;
-      while (i < line.size() && (std::isdigit(static_cast<unsigned char>(line[i])) != 0 || line[i] == '.' ||
-                                 line[i] == '-' || line[i] == '+' || line[i] == 'e' || line[i] == 'E')) {
-        ++i;
-      }
-      const std::string number(line.substr(start, i - start));
-      char* end = nullptr;
-      const double v = number.empty() ? NAN : std::strtod(number.c_str(), &end);
-      if (number.empty() || end != number.c_str() + number.size() || !std::isfinite(v)) {
-        error = R"(malformed JSON: ")" + key + R"(" needs a string or a number)";
-        return false;
-      }
-      if (key == "period_ms") {
-        out.period_ms = v;
-      } else {
-        error = R"(unknown field ")" + key + R"(")";
-        return false;
-      }
-    }
-    skip_ws(line, i);
-  }
-  if (i >= line.size()) {
-    error = "malformed JSON: missing '}'";
+  nlohmann::json request;
+  try {
+    request = nlohmann::json::parse(line);
+  } catch (const nlohmann::json::parse_error& e) {
+    error = fmt::format("malformed JSON: {} (column {})", ctl::json_error_text(e.what()), e.byte);
+    return false;
+  } catch (const nlohmann::json::exception& e) {  // a number out of range
+    error = "malformed JSON: " + ctl::json_error_text(e.what());
     return false;
   }
-  ++i;
-  skip_ws(line, i);
-  if (i != line.size()) {
-    error = "malformed JSON: text after the object";
-    return false;
+  for (const auto& [key, value] : request.items()) {
+    if (!take_member(key, value, out, error)) {
+      return false;
+    }
   }
   if (out.cmd.empty()) {
     error = R"(missing "cmd")";

@@ -1,5 +1,5 @@
 // mrskinctl's side of mrskin-bridged's control socket: connecting with an actionable error, and
-// reading the few JSON shapes the daemon sends (flat objects, arrays of numbers, strings).
+// streaming its grid telemetry (the replies are read with JsonReply, json_reply.hpp).
 #pragma once
 
 #include <fmt/format.h>
@@ -8,10 +8,8 @@
 #include <atomic>
 #include <cerrno>
 #include <chrono>
-#include <cmath>
 #include <csignal>
 #include <cstdio>
-#include <cstdlib>
 #include <cstring>
 #include <optional>
 #include <string>
@@ -20,6 +18,7 @@
 
 #include "../mrskin-bridged/socket_path.hpp"
 #include "exit_codes.hpp"
+#include "json_reply.hpp"
 #include "line_client.hpp"
 #include "mrskin/driver/errors.hpp"
 
@@ -74,8 +73,8 @@ class StopSignals {
   struct sigaction old_term_ {};
 };
 
-// Subscribes to the daemon's grid telemetry every period_ms and hands each line it sends to
-// on_line until duration_s (0: until SIGINT/SIGTERM). Exit code: 0 ended, 1 the daemon refused,
+// Subscribes to the daemon's grid telemetry every period_ms and hands each line it sends, parsed,
+// to on_line until duration_s (0: until SIGINT/SIGTERM). Exit code: 0 ended, 1 the daemon refused,
 // closed the socket or went silent (5 s, or three periods); throws DeviceNotFound (exit 3) when
 // no daemon answers. `who` names the command in messages.
 template <class OnLine>
@@ -91,9 +90,9 @@ int stream_bridge_grid(const std::string& path, double period_ms, double duratio
                     "connection or is busy)",
                     path));
   }
-  if (json_field(*ack, "ok") != "true") {
+  if (const JsonReply reply(*ack); reply.text("ok") != "true") {
     fmt::print(stderr, "mrskinctl {}: mrskin-bridged on {} refused the grid telemetry: {}\n", who, path,
-               json_field(*ack, "error").value_or(*ack));
+               reply.text("error").value_or(*ack));
     return tools::kFailure;
   }
   const auto t0 = std::chrono::steady_clock::now();
@@ -122,108 +121,10 @@ int stream_bridge_grid(const std::string& path, double period_ms, double duratio
       continue;
     }
     last_event = std::chrono::steady_clock::now();
-    on_line(*line);
+    on_line(JsonReply(*line));
   }
   (void)c.send_line("stop");
   return tools::kOk;
-}
-
-// Decodes the JSON string body that json_field() returns (escapes kept): \" \\ \n \t \r \uXXXX
-// (ASCII only; other code points become '?').
-inline std::string json_unescape(std::string_view s) {
-  std::string out;
-  out.reserve(s.size());
-  for (std::size_t i = 0; i < s.size(); ++i) {
-    if (s[i] != '\\' || i + 1 >= s.size()) {
-      out += s[i];
-      continue;
-    }
-    const char e = s[++i];
-    switch (e) {
-      case 'n':
-        out += '\n';
-        break;
-      case 't':
-        out += '\t';
-        break;
-      case 'r':
-        out += '\r';
-        break;
-      case 'u': {
-        const std::string hex(s.substr(i + 1, 4));
-        const long code = std::strtol(hex.c_str(), nullptr, 16);
-        out += code > 0 && code < 0x80 ? static_cast<char>(code) : '?';
-        i += std::min<std::size_t>(4, s.size() - i - 1);
-        break;
-      }
-      default:
-        out += e;
-    }
-  }
-  return out;
-}
-
-// The numbers of a top-level array of numbers ("key":[1,2.5,null]); null -> NaN. nullopt when
-// the key is absent or its value is not such an array.
-inline std::optional<std::vector<double>> json_numbers_field(std::string_view json, std::string_view key) {
-  const std::string pattern = fmt::format(R"("{}":[)", key);
-  const std::size_t at = json.find(pattern);
-  if (at == std::string_view::npos) {
-    return std::nullopt;
-  }
-  std::vector<double> out;
-  std::size_t i = at + pattern.size();
-  while (i < json.size() && json[i] != ']') {
-    std::size_t end = i;
-    while (end < json.size() && json[end] != ',' && json[end] != ']') {
-      ++end;
-    }
-    const std::string item(json.substr(i, end - i));
-    if (item == "null") {
-      out.push_back(NAN);
-    } else {
-      char* stop = nullptr;
-      const double v = std::strtod(item.c_str(), &stop);
-      if (item.empty() || stop != item.c_str() + item.size()) {
-        return std::nullopt;  // not an array of numbers
-      }
-      out.push_back(v);
-    }
-    i = end < json.size() && json[end] == ',' ? end + 1 : end;
-  }
-  if (i >= json.size()) {
-    return std::nullopt;  // unterminated
-  }
-  return out;
-}
-
-// The values of every string member named key inside the array member array_key, in order:
-// the "text" of each record of the fault response's "log".
-inline std::vector<std::string> json_strings_in_array(std::string_view json, std::string_view array_key,
-                                                      std::string_view key) {
-  std::vector<std::string> out;
-  const std::string open = fmt::format(R"("{}":[)", array_key);
-  const std::size_t at = json.find(open);
-  if (at == std::string_view::npos) {
-    return out;
-  }
-  const std::string pattern = fmt::format(R"("{}":")", key);
-  std::size_t i = at + open.size();
-  for (;;) {
-    const std::size_t k = json.find(pattern, i);
-    if (k == std::string_view::npos) {
-      return out;
-    }
-    std::size_t end = k + pattern.size();
-    while (end < json.size() && json[end] != '"') {
-      end += json[end] == '\\' ? 2 : 1;
-    }
-    if (end >= json.size()) {
-      return out;
-    }
-    out.push_back(json_unescape(json.substr(k + pattern.size(), end - k - pattern.size())));
-    i = end + 1;
-  }
 }
 
 }  // namespace mrskin::ctl

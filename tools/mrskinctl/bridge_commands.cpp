@@ -4,14 +4,15 @@
 #include <fmt/format.h>
 
 #include <chrono>
-#include <cstdlib>
 #include <memory>
 #include <string>
 #include <thread>
+#include <vector>
 
 #include "bridge_client.hpp"
 #include "command.hpp"
 #include "exit_codes.hpp"
+#include "json_reply.hpp"
 #include "line_client.hpp"
 
 namespace mrskin::ctl {
@@ -39,12 +40,10 @@ std::string ask(LineClient& c, const std::string& path, const std::string& cmd, 
   return *std::move(line);
 }
 
-std::string field(const std::string& json, std::string_view key) {
-  return json_unescape(json_field(json, key).value_or("?"));
-}
+std::string field(const JsonReply& reply, std::string_view key) { return reply.text(key).value_or("?"); }
 
 // Whether a status line shows the request done.
-bool confirmed(const std::string& cmd, const std::string& status) {
+bool confirmed(const std::string& cmd, const JsonReply& status) {
   const std::string halted = field(status, "halted");
   if (cmd == "enable") {
     return halted == "false" && field(status, "state") == "ENABLED";
@@ -56,28 +55,24 @@ int run_request(const std::string& cmd, const BridgeOptions& o, const GlobalOpti
   const std::string path = bridge_socket(o.socket);
   LineClient c = connect_bridge(path);
   const std::string response = ask(c, path, cmd, o);
-  const bool ok = json_field(response, "ok") == "true";
+  const JsonReply reply(response);
   if (global.json) {
     fmt::print("{}\n", response);
   }
-  if (!ok) {
-    fmt::print(stderr, "mrskinctl {}: mrskin-bridged on {} refused: {}\n", cmd, path,
-               field(response, "error"));
+  if (reply.text("ok") != "true") {
+    fmt::print(stderr, "mrskinctl {}: mrskin-bridged on {} refused: {}\n", cmd, path, field(reply, "error"));
     return tools::kFailure;
   }
   if (!o.wait) {
     if (!global.json) {
-      fmt::print("{} requested on {}: {}\n", cmd, path, field(response, "note"));
+      fmt::print("{} requested on {}: {}\n", cmd, path, field(reply, "note"));
     }
     return tools::kOk;
   }
   const auto end = std::chrono::steady_clock::now() + timeout_ms(o);
-  std::string status;
-  for (;;) {
-    status = ask(c, path, "status", o);
-    if (confirmed(cmd, status)) {
-      break;
-    }
+  std::string line = ask(c, path, "status", o);
+  JsonReply status(line);
+  while (!confirmed(cmd, status)) {
     if (std::chrono::steady_clock::now() >= end) {
       fmt::print(stderr,
                  "mrskinctl {}: requested, but the bridge did not show it within {} s: state {}, halted {}, "
@@ -86,9 +81,11 @@ int run_request(const std::string& cmd, const BridgeOptions& o, const GlobalOpti
       return tools::kFailure;
     }
     std::this_thread::sleep_for(20ms);
+    line = ask(c, path, "status", o);
+    status = JsonReply(line);
   }
   if (global.json) {
-    fmt::print("{}\n", status);
+    fmt::print("{}\n", line);
   } else {
     fmt::print("{} done on {}: state {}, fault {}, {}\n", cmd, path, field(status, "state"),
                field(status, "fault"), field(status, "halted") == "true" ? "halted" : "running");
@@ -99,10 +96,11 @@ int run_request(const std::string& cmd, const BridgeOptions& o, const GlobalOpti
 int run_fault(const BridgeOptions& o, const GlobalOptions& global) {
   const std::string path = bridge_socket(o.socket);
   LineClient c = connect_bridge(path);
-  const std::string response = ask(c, path, "fault", o);
-  const bool ok = json_field(response, "ok") == "true" && !json_field(response, "error").has_value();
+  const std::string line = ask(c, path, "fault", o);
+  const JsonReply response(line);
+  const bool ok = response.text("ok") == "true" && !response.text("error").has_value();
   if (global.json) {
-    fmt::print("{}\n", response);
+    fmt::print("{}\n", line);
   }
   if (!ok) {
     fmt::print(stderr, "mrskinctl fault: mrskin-bridged on {} answered with an error: {}\n", path,
@@ -119,12 +117,12 @@ int run_fault(const BridgeOptions& o, const GlobalOptions& global) {
     fmt::print(")\nno fault yet: no ring log frozen\n");
     return tools::kOk;
   }
-  const double at_s = std::strtod(field(response, "last_fault_time_s").c_str(), nullptr);
+  const double at_s = response.number("last_fault_time_s").value_or(0.0);
   fmt::print("; last: {} at {:.3f} s)\n", field(response, "last_fault"), at_s);
-  const std::vector<std::string> lines = json_strings_in_array(response, "log", "text");
-  fmt::print("ring log frozen at the last fault, {} records, oldest first:\n", lines.size());
-  for (const std::string& line : lines) {
-    fmt::print("  {}\n", line);
+  const std::vector<std::string> records = response.strings_in_array("log", "text");
+  fmt::print("ring log frozen at the last fault, {} records, oldest first:\n", records.size());
+  for (const std::string& record : records) {
+    fmt::print("  {}\n", record);
   }
   return tools::kOk;
 }

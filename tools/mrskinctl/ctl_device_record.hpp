@@ -14,14 +14,14 @@
 
 #include <fmt/format.h>
 
-#include <cctype>
-#include <cstdlib>
-#include <map>
+#include <nlohmann/json.hpp>
 #include <span>
 #include <string>
 #include <string_view>
+#include <utility>
 #include <vector>
 
+#include "json_reply.hpp"
 #include "json_text.hpp"
 #include "mrskin/driver/errors.hpp"
 
@@ -30,159 +30,35 @@ namespace mrskin::ctl {
 inline constexpr std::string_view kRecordFormat = "mrskinctl-record";
 inline constexpr int kRecordVersion = 1;
 
-struct RecordValue {
-  enum class Type : unsigned char { string, number, array };
-  Type type = Type::number;
-  std::string text;
-  double number = 0.0;
-  std::vector<double> array;
-};
-using RecordObject = std::map<std::string, RecordValue, std::less<>>;
-
-// Parses one line; throws InvalidArgument("where: reason").
-class RecordLineParser {
+// One line of a recording, parsed with nlohmann-json. Throws InvalidArgument("where: reason")
+// when it is not a JSON object of strings, numbers and arrays of numbers, and from the accessors
+// for a member that is missing or of another type. No nlohmann exception leaves it.
+class RecordLine {
  public:
-  RecordLineParser(std::string_view line, std::string where) : s_(line), where_(std::move(where)) {}
-  RecordObject parse() {
-    RecordObject out;
-    skip();
-    expect('{');
-    skip();
-    if (peek() == '}') {
-      ++i_;
-    } else {
-      for (;;) {
-        skip();
-        std::string key = string();
-        skip();
-        expect(':');
-        skip();
-        out[key] = value();
-        skip();
-        if (peek() == ',') {
-          ++i_;
-          continue;
-        }
-        expect('}');
-        break;
-      }
+  RecordLine(std::string_view line, std::string where) : where_(std::move(where)) {
+    try {
+      object_ = nlohmann::json::parse(line);
+    } catch (const nlohmann::json::parse_error& e) {
+      fail(fmt::format("{} (column {})", json_error_text(e.what()), e.byte));
+    } catch (const nlohmann::json::exception& e) {  // a number out of range
+      fail(json_error_text(e.what()));
     }
-    skip();
-    if (i_ != s_.size()) {
-      fail("text after the closing '}'");
+    if (!object_.is_object()) {
+      fail("not an object");
     }
-    return out;
+    for (const auto& [key, value] : object_.items()) {
+      check_flat(key, value);
+    }
   }
 
- private:
-  [[noreturn]] void fail(std::string_view why) const {
-    throw InvalidArgument(fmt::format(
-        "{}: {} (column {}); each line must be one flat JSON object (docs/cli.md)", where_, why, i_ + 1));
-  }
-  [[nodiscard]] char peek() const { return i_ < s_.size() ? s_[i_] : '\0'; }
-  void skip() {
-    while (i_ < s_.size() && std::isspace(static_cast<unsigned char>(s_[i_])) != 0) {
-      ++i_;
-    }
-  }
-  void expect(char c) {
-    if (peek() != c) {
-      fail(fmt::format("expected '{}'", c));
-    }
-    ++i_;
-  }
-  std::string string() {
-    expect('"');
-    std::string out;
-    while (i_ < s_.size() && s_[i_] != '"') {
-      if (s_[i_] == '\\' && i_ + 1 < s_.size()) {
-        ++i_;
-        const char c = s_[i_];
-        out += c == 'n' ? '\n' : c == 't' ? '\t' : c == 'r' ? '\r' : c;
-      } else {
-        out += s_[i_];
-      }
-      ++i_;
-    }
-    expect('"');
-    return out;
-  }
-  double number() {
-    const std::size_t start = i_;
-    while (i_ < s_.size() && (std::isdigit(static_cast<unsigned char>(s_[i_])) != 0 || s_[i_] == '-' ||
-                              s_[i_] == '+' || s_[i_] == '.' || s_[i_] == 'e' || s_[i_] == 'E')) {
-      ++i_;
-    }
-    const std::string text(s_.substr(start, i_ - start));
-    char* end = nullptr;
-    const double v = std::strtod(text.c_str(), &end);
-    if (text.empty() || end != text.c_str() + text.size()) {
-      i_ = start;
-      fail("expected a number");
-    }
-    return v;
-  }
-  RecordValue value() {
-    RecordValue v;
-    if (peek() == '"') {
-      v.type = RecordValue::Type::string;
-      v.text = string();
-    } else if (peek() == '[') {
-      v.type = RecordValue::Type::array;
-      ++i_;
-      skip();
-      if (peek() == ']') {
-        ++i_;
-        return v;
-      }
-      for (;;) {
-        skip();
-        if (s_.substr(i_, 4) == "null") {  // a non-finite value was written as null
-          fail("null in a number array (a non-finite value)");
-        }
-        v.array.push_back(number());
-        skip();
-        if (peek() == ',') {
-          ++i_;
-          continue;
-        }
-        expect(']');
-        break;
-      }
-    } else {
-      v.type = RecordValue::Type::number;
-      v.number = number();
-    }
-    return v;
-  }
-
-  std::string_view s_;
-  std::string where_;
-  std::size_t i_ = 0;
-};
-
-// Field access with line-numbered errors.
-class RecordFields {
- public:
-  RecordFields(const RecordObject& o, std::string where) : o_(o), where_(std::move(where)) {}
-  [[nodiscard]] const RecordValue& get(std::string_view key, RecordValue::Type type) const {
-    const auto it = o_.find(key);
-    if (it == o_.end()) {
-      throw InvalidArgument(fmt::format("{}: missing \"{}\"", where_, key));
-    }
-    if (it->second.type != type) {
-      throw InvalidArgument(fmt::format("{}: \"{}\" has the wrong type", where_, key));
-    }
-    return it->second;
-  }
-  [[nodiscard]] const std::string& text(std::string_view key) const {
-    return get(key, RecordValue::Type::string).text;
+  [[nodiscard]] std::string text(std::string_view key) const {
+    return get(key, [](const nlohmann::json& v) { return v.is_string(); }).get<std::string>();
   }
   [[nodiscard]] double number(std::string_view key) const {
-    return get(key, RecordValue::Type::number).number;
+    return get(key, [](const nlohmann::json& v) { return v.is_number(); }).get<double>();
   }
-  [[nodiscard]] const std::vector<double>& array(std::string_view key) const {
-    return get(key, RecordValue::Type::array).array;
+  [[nodiscard]] std::vector<double> array(std::string_view key) const {
+    return get(key, [](const nlohmann::json& v) { return v.is_array(); }).get<std::vector<double>>();
   }
   [[nodiscard]] std::size_t index(std::string_view key) const {
     const double v = number(key);
@@ -194,7 +70,40 @@ class RecordFields {
   [[nodiscard]] const std::string& where() const noexcept { return where_; }
 
  private:
-  const RecordObject& o_;
+  [[noreturn]] void fail(std::string_view why) const {
+    throw InvalidArgument(
+        fmt::format("{}: {}; each line must be one flat JSON object (docs/cli.md)", where_, why));
+  }
+  // Only strings, numbers and arrays of numbers: the accessors' get<>() can then not throw.
+  void check_flat(const std::string& key, const nlohmann::json& value) const {
+    if (value.is_array()) {
+      for (const nlohmann::json& item : value) {
+        if (item.is_null()) {  // a non-finite value was written as null
+          fail(fmt::format(R"("{}": null in a number array (a non-finite value))", key));
+        }
+        if (!item.is_number()) {
+          fail(fmt::format(R"("{}": an array holds numbers only)", key));
+        }
+      }
+    } else if (value.is_null()) {
+      fail(fmt::format(R"("{}" is null (a non-finite value))", key));
+    } else if (!value.is_string() && !value.is_number()) {
+      fail(fmt::format(R"("{}" is not a string, a number or an array of numbers)", key));
+    }
+  }
+  template <class Is>
+  [[nodiscard]] const nlohmann::json& get(std::string_view key, Is is) const {
+    const auto it = object_.find(key);
+    if (it == object_.end()) {
+      throw InvalidArgument(fmt::format("{}: missing \"{}\"", where_, key));
+    }
+    if (!is(*it)) {
+      throw InvalidArgument(fmt::format("{}: \"{}\" has the wrong type", where_, key));
+    }
+    return *it;
+  }
+
+  nlohmann::json object_;
   std::string where_;
 };
 

@@ -20,8 +20,8 @@
 #include "bridge_client.hpp"
 #include "command.hpp"
 #include "exit_codes.hpp"
+#include "json_reply.hpp"
 #include "json_text.hpp"
-#include "line_client.hpp"
 #include "mrskin/driver/device.hpp"
 #include "mrskin/driver/layout.hpp"
 #include "mrskin/driver/model/device_model.hpp"
@@ -378,56 +378,44 @@ int monitor_device(const MonitorOptions& o, Renderer& out) {
   return tools::kOk;
 }
 
-std::string field_or(const std::string& json, std::string_view key, std::string_view fallback = "") {
-  const std::optional<std::string> v = json_field(json, key);
-  return v ? json_unescape(*v) : std::string(fallback);
-}
-
-double number_or(const std::string& json, std::string_view key, double fallback) {
-  const std::optional<std::string> v = json_field(json, key);
-  if (!v) {
-    return fallback;
-  }
-  char* end = nullptr;
-  const double x = std::strtod(v->c_str(), &end);
-  return end == v->c_str() + v->size() ? x : fallback;
-}
-
 // A daemon's grid event -> frame; false when it carries no grid yet (or is not one).
-bool frame_from_event(const std::string& line, const std::string& path, Frame& f) {
-  if (json_field(line, "event") != "telemetry") {
+bool frame_from_event(const JsonReply& event, const std::string& path, Frame& f) {
+  if (event.text("event") != "telemetry") {
     return false;
   }
-  std::optional<std::vector<double>> force = json_numbers_field(line, "force_n");
-  std::optional<std::vector<double>> depth = json_numbers_field(line, "displacement_m");
-  std::optional<std::vector<double>> current = json_numbers_field(line, "current_a");
-  const double rows = number_or(line, "rows", 0.0);
-  const double cols = number_or(line, "cols", 0.0);
+  std::optional<std::vector<double>> force = event.numbers("force_n");
+  std::optional<std::vector<double>> depth = event.numbers("displacement_m");
+  std::optional<std::vector<double>> current = event.numbers("current_a");
+  const double rows = event.number("rows").value_or(0.0);
+  const double cols = event.number("cols").value_or(0.0);
   if (!force || !depth || !current || !(rows >= 1.0 && rows <= 255.0) || !(cols >= 1.0 && cols <= 255.0)) {
     return false;
   }
+  const auto text = [&](std::string_view key, std::string_view fallback = "") {
+    return event.text(key).value_or(std::string(fallback));
+  };
   f = Frame{};
   f.source = "bridge:" + path;
-  f.t_s = number_or(line, "t_s", NAN);
-  f.state = field_or(line, "state", "?");
-  f.fault = field_or(line, "fault", "?");
-  f.last_fault = field_or(line, "last_fault");
-  f.faults = field_or(line, "faults");
-  f.valves_released = field_or(line, "valves_released");
-  f.connected = field_or(line, "connected");
-  f.halted = field_or(line, "halted");
-  f.stream = field_or(line, "stream");
+  f.t_s = event.number("t_s").value_or(NAN);
+  f.state = text("state", "?");
+  f.fault = text("fault", "?");
+  f.last_fault = text("last_fault");
+  f.faults = text("faults");
+  f.valves_released = text("valves_released");
+  f.connected = text("connected");
+  f.halted = text("halted");
+  f.stream = text("stream");
   f.rows = static_cast<int>(rows);
   f.cols = static_cast<int>(cols);
-  f.max_current_A = number_or(line, "max_current_a", 0.1);
-  f.force_range_N = number_or(line, "force_range_n", 2.0);
+  f.max_current_A = event.number("max_current_a").value_or(0.1);
+  f.force_range_N = event.number("force_range_n").value_or(2.0);
   f.force_from = "observer estimate";
   f.force_N = *std::move(force);
   f.displacement_m = *std::move(depth);
   f.current_A = *std::move(current);
-  f.target_N = json_numbers_field(line, "target_n").value_or(std::vector<double>{});
-  f.temperature_C = json_numbers_field(line, "temperature_c").value_or(std::vector<double>{});
-  f.max_coil_C = number_or(line, "max_coil_temperature_c", NAN);
+  f.target_N = event.numbers("target_n").value_or(std::vector<double>{});
+  f.temperature_C = event.numbers("temperature_c").value_or(std::vector<double>{});
+  f.max_coil_C = event.number("max_coil_temperature_c").value_or(NAN);
   // A grid that does not match its rows x cols is not drawn (a daemon of another version).
   const GridLayout layout(f.rows, f.cols);
   return f.force_N.size() == layout.fluid_cell_count() &&
@@ -437,8 +425,8 @@ bool frame_from_event(const std::string& line, const std::string& path, Frame& f
 int monitor_bridge(const MonitorOptions& o, Renderer& out) {
   const std::string path = bridge_socket(o.bridge);
   Frame f;
-  return stream_bridge_grid(path, o.period_ms, o.duration_s, "monitor", [&](const std::string& line) {
-    if (frame_from_event(line, path, f)) {
+  return stream_bridge_grid(path, o.period_ms, o.duration_s, "monitor", [&](const JsonReply& event) {
+    if (frame_from_event(event, path, f)) {
       out.show(f);
     }
   });

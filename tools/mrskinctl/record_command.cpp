@@ -147,24 +147,23 @@ int run_record_bridge(const RecordOptions& o, const GlobalOptions& global) {
   std::size_t telemetry = 0;
   std::size_t commands = 0;
   const StopSignals signals;
-  const int code = stream_bridge_grid(path, 10.0, o.duration_s, "record", [&](const std::string& line) {
-    if (json_field(line, "event") != "telemetry") {
+  const int code = stream_bridge_grid(path, 10.0, o.duration_s, "record", [&](const JsonReply& event) {
+    if (event.text("event") != "telemetry") {
       return;
     }
-    std::optional<std::vector<double>> sensors = json_numbers_field(line, "sensor");
-    std::optional<std::vector<double>> currents = json_numbers_field(line, "current_a");
-    const std::optional<std::vector<double>> cells = json_numbers_field(line, "force_n");
+    std::optional<std::vector<double>> sensors = event.numbers("sensor");
+    std::optional<std::vector<double>> currents = event.numbers("current_a");
+    const std::optional<std::vector<double>> cells = event.numbers("force_n");
     if (!sensors || !currents || !cells || sensors->empty()) {
       return;  // no grid yet, or a daemon without the raw sensors (older)
     }
     const double t_s = elapsed_s();
-    const std::string now_state = json_field(line, "state").value_or("?");
-    const std::string now_fault = json_field(line, "fault").value_or("?");
+    const std::string now_state = event.text("state").value_or("?");
+    const std::string now_fault = event.text("fault").value_or("?");
     if (!header) {
-      const std::optional<std::string> max_a = json_field(line, "max_current_a");
       out.line(header_line("bridge:" + path, currents->size(), cells->size(), sensors->size(),
-                           json_field(line, "sensor_unit").value_or("m"),
-                           max_a ? std::strtod(max_a->c_str(), nullptr) : 0.0));
+                           event.text("sensor_unit").value_or("m"),
+                           event.number("max_current_a").value_or(0.0)));
       header = true;
     }
     if (now_state != state || now_fault != fault) {
@@ -186,7 +185,7 @@ int run_record_bridge(const RecordOptions& o, const GlobalOptions& global) {
     }
     out.line(fmt::format(R"({{"t_s": {}, "dir": "rx", "kind": "telemetry", "device_time_s": {}, "first": 0, )"
                          R"("values": {}}})",
-                         json_number(t_s), json_field(line, "grid_t_s").value_or("0"),
+                         json_number(t_s), json_number(event.number("grid_t_s").value_or(0.0)),
                          record_numbers(*sensors)));
     ++telemetry;
   });
@@ -311,8 +310,7 @@ Recording read_recording(const std::string& path) {
     if (text.empty() || text.find_first_not_of(" \t\r") == std::string::npos) {
       continue;
     }
-    const RecordObject object = RecordLineParser(text, where).parse();
-    const RecordFields f(object, where);
+    const RecordLine f(text, where);
     if (n == 1) {
       if (f.text("format") != kRecordFormat || f.number("version") != kRecordVersion) {
         throw InvalidArgument(

@@ -38,9 +38,9 @@ class TunnelTransport final : public Transport {
       throw Error(fmt::format("mrskin-bridged on {} did not answer the device lease request within 5 s",
                               socket_path));
     }
-    if (json_field(*ack, "ok") != "true") {
+    if (const JsonReply reply(*ack); reply.text("ok") != "true") {
       throw DeviceBusy(fmt::format("mrskin-bridged on {} refused the device lease: {}", socket_path,
-                                   json_unescape(json_field(*ack, "error").value_or(*ack))));
+                                   reply.text("error").value_or(*ack)));
     }
     auto [fd, rest] = c.release();
     fd_ = fd;
