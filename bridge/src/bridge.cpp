@@ -14,7 +14,7 @@
 #include "mrskin/driver/spsc_queue.hpp"
 #include "render_stage.hpp"
 #include "tick_record.hpp"
-#include "tick_scorer.hpp"
+#include "tick_statistics.hpp"
 
 namespace mrskin::bridge {
 
@@ -39,10 +39,7 @@ class Bridge::Impl {
   Impl(Impl&&) = delete;
   Impl& operator=(Impl&&) = delete;
   ~Impl();
-  void set_force_truth(const ForceTruth* truth) noexcept {
-    truth_known_ = truth != nullptr;
-    scorer_->set_truth(truth);
-  }
+  void set_tick_watcher(TickWatcher* watcher) noexcept { watcher_ = watcher; }
   ResultCode enable() noexcept;
   void request(Request r) noexcept;
   [[nodiscard]] bool halted() const noexcept { return halted_.load(std::memory_order_acquire); }
@@ -111,8 +108,38 @@ class Bridge::Impl {
   detail::TickRecord record_;
   std::optional<detail::RenderStage> render_;
   std::optional<detail::AllocateStage> allocate_;
-  std::optional<detail::TickScorer> scorer_;
-  bool truth_known_ = false;
+  std::optional<detail::TickStatistics> statistics_;
+  TickWatcher* watcher_ = nullptr;
+  // The record as a watcher sees it (TickView).
+  class RecordView final : public TickView {
+   public:
+    explicit RecordView(const Impl& bridge) noexcept : b_(bridge) {}
+    [[nodiscard]] double since_start_s() const noexcept override { return b_.record_.since_start_s; }
+    [[nodiscard]] double period_s() const noexcept override { return 1.0 / b_.options_.rate_hz; }
+    [[nodiscard]] std::span<const double> observed_force_N() const noexcept override {
+      return b_.record_.observed.force_N;
+    }
+    [[nodiscard]] std::span<const double> tissue_N() const noexcept override {
+      return b_.record_.rendered.tissue_N;
+    }
+    [[nodiscard]] std::span<const double> target_N() const noexcept override {
+      return b_.record_.allocated.target_N;
+    }
+    [[nodiscard]] std::span<const model::CellSolution> solve() const noexcept override {
+      return b_.inverse_->cells();
+    }
+    [[nodiscard]] bool valves_open(std::size_t cell) const noexcept override {
+      return detail::valves_open(b_.layout_, b_.record_.allocated.current_A, cell, b_.max_current_A_);
+    }
+    [[nodiscard]] double law_force_N(std::size_t cell, double depth_m,
+                                     double rate_m_per_s) const noexcept override {
+      return b_.render_->cells()[cell].law.force_N(depth_m, rate_m_per_s);
+    }
+
+   private:
+    const Impl& b_;
+  };
+  RecordView view_{*this};
   // Send's state across ticks: the currents last sent, when, and whether anything was.
   std::vector<double> sent_A_;
   TimePoint last_send_{};
@@ -198,7 +225,7 @@ Bridge::Impl::Impl(DeviceSession& session, SlaveSource& source, BridgeOptions op
   sent_A_.assign(layout_.valve_count(), 0.0);
   render_.emplace(options_, layout_);
   allocate_.emplace(options_, layout_, *model_, *inverse_, *observer_, valve_gain_, max_current_A_);
-  scorer_.emplace(options_, layout_, max_current_A_);
+  statistics_.emplace(options_, cells);
 }
 
 Bridge::Impl::~Impl() { stop(); }
@@ -339,10 +366,11 @@ ResultCode Bridge::Impl::send(TimePoint now, TimePoint began, const Clock& perf)
   return sent;
 }
 
-// After the tick: scoring and statistics read its record; nothing here feeds back.
+// After the tick: the statistics and the watcher read its record; nothing here feeds back.
 void Bridge::Impl::watch(TimePoint began, const Clock& perf) noexcept {
-  scorer_->score(record_, inverse_->cells(), render_->cells(), stats_);
-  if (truth_known_) {
+  statistics_->count(record_, inverse_->cells(), stats_);
+  if (watcher_ != nullptr) {
+    watcher_->on_tick(view_, stats_);
     live_rms_N_.store(stats_.force_rms_error_N(), std::memory_order_relaxed);
   }
   count_tick();
@@ -465,7 +493,7 @@ void Bridge::Impl::stop() noexcept {
 Bridge::Bridge(DeviceSession& session, SlaveSource& source, BridgeOptions options)
     : impl_(std::make_unique<Impl>(session, source, std::move(options))) {}
 Bridge::~Bridge() = default;
-void Bridge::set_force_truth(const ForceTruth* truth) noexcept { impl_->set_force_truth(truth); }
+void Bridge::set_tick_watcher(TickWatcher* watcher) noexcept { impl_->set_tick_watcher(watcher); }
 ResultCode Bridge::enable() noexcept { return impl_->enable(); }
 void Bridge::request(Request r) noexcept { impl_->request(r); }
 bool Bridge::halted() const noexcept { return impl_->halted(); }

@@ -17,7 +17,6 @@ namespace {
 constexpr std::array<std::string_view, 10> kSceneNames = {"demo", "hand",    "neck",  "abdomen", "thigh",
                                                           "back", "stomach", "sweep", "tumour",  "step"};
 
-constexpr double kFingerRadius_cells = 1.2;
 constexpr double kTipRadius_m = 3e-3;
 constexpr double kStepHoldDepth_m = 1.5e-3;  // scene "step": the hold before the step
 
@@ -31,30 +30,14 @@ double smoothstep_slope(double u) noexcept {
   return 6.0 * u * (1.0 - u);
 }
 
-// The fingertip pad: full depth at centre, 1 - r^2 / R^2 of it out to R (cell units).
-void press_pad(const GridLayout& layout, CellPoint centre, double depth_m,
-               std::span<double> indentation_m) noexcept {
-  const auto& cells = layout.fluid_cells();
-  const std::size_t n = std::min(indentation_m.size(), cells.size());
-  for (std::size_t i = 0; i < n; ++i) {
-    const double dr = cells[i].row - centre.row;
-    const double dc = cells[i].col - centre.col;
-    const double share = 1.0 - (dr * dr + dc * dc) / (kFingerRadius_cells * kFingerRadius_cells);
-    indentation_m[i] = share > 0.0 ? depth_m * share : 0.0;
-  }
-}
-
 class DemoScene final : public Scene {
  public:
-  explicit DemoScene(const WorkspaceMapping& mapping) noexcept
-      : origin_x_m_(mapping.origin_x_m), origin_y_m_(mapping.origin_y_m) {}
+  explicit DemoScene(const WorkspaceMapping& mapping) noexcept : mapping_(mapping) {}
 
   [[nodiscard]] std::string_view name() const noexcept override { return "demo"; }
   [[nodiscard]] double cycle_s() const noexcept override { return kCycle_s; }
 
-  void finger(double t_s, const GridLayout& layout, std::span<double> indentation_m) const noexcept override {
-    press_pad(layout, {0.5 * (layout.rows() - 1), 0.5 * (layout.cols() - 1)}, depth_m(t_s), indentation_m);
-  }
+  [[nodiscard]] const WorkspaceMapping& mapping() const noexcept override { return mapping_; }
 
   bool latest(TimePoint now, SlaveSample& out) noexcept override {
     const SlaveTruth s = slave_truth(to_seconds(now - start()));
@@ -75,8 +58,8 @@ class DemoScene final : public Scene {
   [[nodiscard]] SlaveTruth slave_truth(double t_s) const noexcept override {
     const double x = depth_m(t_s);
     const double v = (depth_m(t_s + 1e-4) - depth_m(t_s - 1e-4)) / 2e-4;
-    return {.contact_x_m = origin_x_m_,
-            .contact_y_m = origin_y_m_,
+    return {.contact_x_m = mapping_.origin_x_m,
+            .contact_y_m = mapping_.origin_y_m,
             .indentation_m = x,
             .rate_m_per_s = v,
             .force_N = x > 0.0 ? std::max(0.0, kStiffness_N_per_m * x + kDamping_N_s_per_m * v) : 0.0};
@@ -88,8 +71,7 @@ class DemoScene final : public Scene {
   static constexpr double kStiffness_N_per_m = 300.0;
   static constexpr double kDamping_N_s_per_m = 0.5;
 
-  double origin_x_m_;
-  double origin_y_m_;
+  WorkspaceMapping mapping_;  // the slave palpates its origin, the skin's centre
 
   static double depth_m(double t_s) noexcept {
     if (t_s < 0.0) {
@@ -166,13 +148,7 @@ class ScriptedScene final : public Scene {
   [[nodiscard]] std::string_view name() const noexcept override { return name_; }
   [[nodiscard]] double cycle_s() const noexcept override { return keys_.back().t_s; }
 
-  void finger(double t_s, const GridLayout& layout, std::span<double> indentation_m) const noexcept override {
-    const Pose p = pose(t_s);
-    press_pad(layout,
-              mapping_.to_cell(mapping_.origin_x_m + p.x_m, mapping_.origin_y_m + p.y_m, layout.rows(),
-                               layout.cols()),
-              p.depth_m, indentation_m);
-  }
+  [[nodiscard]] const WorkspaceMapping& mapping() const noexcept override { return mapping_; }
 
   bool latest(TimePoint now, SlaveSample& out) noexcept override {
     const std::int64_t elapsed_ns = (now - start()).count();

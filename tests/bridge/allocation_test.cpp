@@ -9,6 +9,7 @@
 #include "counting_new.hpp"
 #include "mrskin/bridge/bridge.hpp"
 #include "mrskin/driver/device.hpp"
+#include "mrskin/eval/truth_scorer.hpp"
 #include "mrskin/sim/open_mock.hpp"
 
 namespace mrskin::bridge {
@@ -26,7 +27,8 @@ TEST(Allocation, NoHeapAllocationPerTickAfterStartUp) {
   ASSERT_EQ(loop.enable(), ResultCode::ok);
   std::vector<double> finger(sim::mock_of(dev)->layout().fluid_cell_count());
   auto tick = [&] {
-    scene->finger(to_seconds(clock.now() - scene->start()), sim::mock_of(dev)->layout(), finger);
+    mrskin::eval::press_scene_finger(*scene, to_seconds(clock.now() - scene->start()),
+                                     sim::mock_of(dev)->layout(), finger);
     sim::mock_of(dev)->set_finger_indentation(finger);
     sim::mock_of(dev)->step(clock.now());
     (void)loop.step(clock.now());

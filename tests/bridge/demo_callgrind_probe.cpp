@@ -15,6 +15,7 @@
 
 #include "mrskin/bridge/bridge.hpp"
 #include "mrskin/driver/device.hpp"
+#include "mrskin/eval/truth_scorer.hpp"
 #include "mrskin/sim/open_mock.hpp"
 
 int main(int argc, char** argv) {
@@ -40,7 +41,8 @@ int main(int argc, char** argv) {
   std::vector<double> finger(mock->layout().fluid_cell_count());
   CALLGRIND_START_INSTRUMENTATION;
   for (int k = 0; k < ticks; ++k) {
-    scene->finger(to_seconds(clock.now() - scene->start()), mock->layout(), finger);
+    mrskin::eval::press_scene_finger(*scene, to_seconds(clock.now() - scene->start()), mock->layout(),
+                                     finger);
     mock->set_finger_indentation(finger);
     mock->step(clock.now());
     CALLGRIND_TOGGLE_COLLECT;

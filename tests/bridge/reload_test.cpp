@@ -9,6 +9,7 @@
 #include <cstdio>
 #include <functional>
 #include <memory>
+#include <optional>
 #include <string>
 #include <tuple>
 #include <utility>
@@ -16,6 +17,7 @@
 
 #include "mrskin/bridge/bridge.hpp"
 #include "mrskin/driver/device.hpp"
+#include "mrskin/eval/truth_scorer.hpp"
 #include "mrskin/sim/open_mock.hpp"
 
 namespace mrskin::bridge {
@@ -49,7 +51,10 @@ Trace run(double seconds, const BridgeTuning& before, const BridgeTuning& after,
   auto bridge = std::make_unique<Bridge>(*dev.session, *scene, options_for(before));
   bridge->set_perf_clock(&clock);
   sim::MockDeviceTruth truth(*sim::mock_of(dev));
-  bridge->set_force_truth(&truth);
+  // A rebuilt bridge is scored afresh, by a scorer of its own.
+  std::optional<eval::TruthScorer> scorer;
+  scorer.emplace(truth, sim::mock_of(dev)->layout().fluid_cell_count(), options_for(before));
+  bridge->set_tick_watcher(&*scorer);
   scene->set_start(clock.now());
   EXPECT_EQ(bridge->enable(), ResultCode::ok);
   const GridLayout& layout = sim::mock_of(dev)->layout();
@@ -83,13 +88,14 @@ Trace run(double seconds, const BridgeTuning& before, const BridgeTuning& after,
       } else {
         bridge = std::make_unique<Bridge>(*dev.session, *scene, options_for(after));
         bridge->set_perf_clock(&clock);
-        bridge->set_force_truth(&truth);
+        scorer.emplace(truth, sim::mock_of(dev)->layout().fluid_cell_count(), options_for(after));
+        bridge->set_tick_watcher(&*scorer);
         EXPECT_EQ(bridge->enable(), ResultCode::ok);
       }
       rate_hz = after.rate_hz;
       next_tick = clock.now();
     }
-    scene->finger(to_seconds(clock.now() - scene->start()), layout, finger);
+    mrskin::eval::press_scene_finger(*scene, to_seconds(clock.now() - scene->start()), layout, finger);
     sim::mock_of(dev)->set_finger_indentation(finger);
     sim::mock_of(dev)->step(clock.now());
     if (clock.now() >= next_tick) {

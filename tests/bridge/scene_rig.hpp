@@ -11,6 +11,7 @@
 #include "mrskin/bridge/bridge.hpp"
 #include "mrskin/bridge/impairment.hpp"
 #include "mrskin/driver/device.hpp"
+#include "mrskin/eval/truth_scorer.hpp"
 #include "mrskin/sim/open_mock.hpp"
 
 namespace mrskin::bridge::test {
@@ -42,7 +43,8 @@ inline SceneRun run_scene(const std::string& scene_name, double seconds, const s
   }
   Bridge loop(*dev.session, *source, options);
   sim::MockDeviceTruth truth(*sim::mock_of(dev));
-  loop.set_force_truth(&truth);
+  eval::TruthScorer scorer(truth, sim::mock_of(dev)->layout().fluid_cell_count(), options);
+  loop.set_tick_watcher(&scorer);
   loop.set_perf_clock(&clock);  // deterministic: no wall time anywhere
   scene->set_start(clock.now());
   EXPECT_EQ(loop.enable(), ResultCode::ok);
@@ -50,7 +52,8 @@ inline SceneRun run_scene(const std::string& scene_name, double seconds, const s
   const auto ticks = static_cast<int>(seconds * 1000.0);
   for (int k = 0; k < ticks; ++k) {
     if (stall_every <= 0 || k % stall_every != 0) {
-      scene->finger(to_seconds(clock.now() - scene->start()), sim::mock_of(dev)->layout(), finger);
+      mrskin::eval::press_scene_finger(*scene, to_seconds(clock.now() - scene->start()),
+                                       sim::mock_of(dev)->layout(), finger);
       sim::mock_of(dev)->set_finger_indentation(finger);
     }
     sim::mock_of(dev)->step(clock.now());

@@ -16,6 +16,7 @@
 #include <vector>
 
 #include "mrskin/driver/errors.hpp"
+#include "mrskin/eval/truth_scorer.hpp"
 
 namespace {
 
@@ -104,7 +105,7 @@ TEST(Scenes, StayInTheSkinsRangeOverACycle) {
       double max_depth_m = 0.0;
       for (int k = 0; k <= n; ++k) {
         const double t_s = k * 1e-3;
-        scene->finger(t_s, layout, finger);
+        mrskin::eval::press_scene_finger(*scene, t_s, layout, finger);
         for (const double d : finger) {
           ASSERT_GE(d, 0.0) << name << " t " << t_s;
           ASSERT_LE(d, kMaxDepth_m) << name << " t " << t_s;
@@ -142,8 +143,8 @@ TEST(Scenes, RepeatEveryCycle) {
     std::vector<double> a(layout.fluid_cell_count());
     std::vector<double> b(layout.fluid_cell_count());
     for (const double t_s : {0.25, 1.1, 2.05, 3.3, 5.0}) {
-      scene->finger(t_s, layout, a);
-      scene->finger(t_s + 2.0 * scene->cycle_s(), layout, b);
+      mrskin::eval::press_scene_finger(*scene, t_s, layout, a);
+      mrskin::eval::press_scene_finger(*scene, t_s + 2.0 * scene->cycle_s(), layout, b);
       for (std::size_t i = 0; i < a.size(); ++i) {
         EXPECT_NEAR(a[i], b[i], 1e-9) << name << " t " << t_s;
       }
@@ -228,7 +229,7 @@ TEST(DemoScene, KeepsItsStream) {
   auto scene = make_scene("demo");
   const GridLayout layout(5, 5);
   std::vector<double> finger(layout.fluid_cell_count());
-  scene->finger(1.5, layout, finger);
+  mrskin::eval::press_scene_finger(*scene, 1.5, layout, finger);
   for (std::size_t i = 0; i < finger.size(); ++i) {
     const bool centre = layout.fluid_cells()[i].row == 2 && layout.fluid_cells()[i].col == 2;
     EXPECT_EQ(finger[i], centre ? 4e-3 : 0.0);
@@ -275,7 +276,8 @@ TEST(OrganScenes, ReachTheirPresetsTable2RangeAtTheHolds) {
       if (s.rate_m_per_s == 0.0 && std::abs(s.force_N - preset->force_max_N) < 1e-9) {
         ++deep_hold_ms;
         EXPECT_EQ(s.indentation_m, preset->reference_depth_m);
-        scene->finger(k * 1e-3, layout, finger);  // the finger holds the same depth, centre cell only
+        mrskin::eval::press_scene_finger(*scene, k * 1e-3, layout,
+                                         finger);  // the finger holds the same depth, centre cell only
         EXPECT_EQ(finger[centre_cell], preset->reference_depth_m);
         EXPECT_EQ(std::count(finger.begin(), finger.end(), 0.0), static_cast<long>(finger.size() - 1));
       }
@@ -308,7 +310,7 @@ TEST(SweepScene, FingerCrossesTheSkinWithTheSlave) {
     double max_x_m = -1.0;
     for (int k = 0; k <= cycle_ms(*scene); ++k) {
       const SlaveTruth s = scene->slave_truth(k * 1e-3);
-      scene->finger(k * 1e-3, layout, finger);
+      mrskin::eval::press_scene_finger(*scene, k * 1e-3, layout, finger);
       if (s.indentation_m < 0.5e-3) {
         continue;
       }
@@ -372,7 +374,7 @@ TEST(TumourScene, ForceRisesOverTheInclusion) {
     if (from_inclusion_m < 1e-3) {
       ++over;
       over_N = std::max(over_N, s.force_N);
-      scene->finger(k * 1e-3, layout, finger);
+      mrskin::eval::press_scene_finger(*scene, k * 1e-3, layout, finger);
       EXPECT_EQ(layout.fluid_cells()[deepest_cell(finger)].row, 3);
       EXPECT_EQ(layout.fluid_cells()[deepest_cell(finger)].col, 3);
     } else if (from_inclusion_m > 10e-3) {
@@ -401,8 +403,8 @@ void expect_finger_maps(std::string_view name, const WorkspaceMapping& mapping, 
   std::vector<double> b(layout.fluid_cell_count());
   int moved = 0;
   for (int k = 0; k <= cycle_ms(*plain); k += 7) {
-    plain->finger(k * 1e-3, layout, a);
-    mapped->finger(k * 1e-3, layout, b);
+    mrskin::eval::press_scene_finger(*plain, k * 1e-3, layout, a);
+    mrskin::eval::press_scene_finger(*mapped, k * 1e-3, layout, b);
     for (std::size_t i = 0; i < b.size(); ++i) {
       const GridCell c = to_default(layout.fluid_cells()[i].row, layout.fluid_cells()[i].col);
       const auto& cells = layout.fluid_cells();
@@ -466,7 +468,7 @@ TEST(SceneMapping, FingerIsWhereTheMappingPutsTheSlaveUnderAnyMapping) {
           const SlaveTruth s = scene->slave_truth(k * 1e-3);
           const CellPoint mapped =
               mapping.to_cell(s.contact_x_m, s.contact_y_m, layout.rows(), layout.cols());
-          scene->finger(k * 1e-3, layout, finger);
+          mrskin::eval::press_scene_finger(*scene, k * 1e-3, layout, finger);
           CellPoint centre;
           const bool on_skin = mapped.row >= 0.0 && mapped.row <= layout.rows() - 1 && mapped.col >= 0.0 &&
                                mapped.col <= layout.cols() - 1;

@@ -18,6 +18,7 @@
 #include "mrskin/driver/device.hpp"
 #include "mrskin/driver/layout.hpp"
 #include "mrskin/driver/model/profile.hpp"
+#include "mrskin/eval/truth_scorer.hpp"
 #include "mrskin/sim/open_mock.hpp"
 
 namespace mrskin::bridge {
@@ -42,7 +43,8 @@ FaultRun run(const std::string& scene_name, double seconds, const std::string& u
   auto scene = make_scene(scene_name);
   Bridge loop(*dev.session, *scene, options);
   sim::MockDeviceTruth truth(*sim::mock_of(dev));
-  loop.set_force_truth(&truth);
+  eval::TruthScorer scorer(truth, sim::mock_of(dev)->layout().fluid_cell_count(), options);
+  loop.set_tick_watcher(&scorer);
   loop.set_perf_clock(&clock);
   scene->set_start(clock.now());
   EXPECT_EQ(loop.enable(), ResultCode::ok);
@@ -51,7 +53,8 @@ FaultRun run(const std::string& scene_name, double seconds, const std::string& u
   const SensorFaultMonitor& monitor = loop.sensor_fault_monitor();
   const auto ticks = static_cast<int>(seconds * 1000.0);
   for (int k = 0; k < ticks; ++k) {
-    scene->finger(to_seconds(clock.now() - scene->start()), sim::mock_of(dev)->layout(), finger);
+    mrskin::eval::press_scene_finger(*scene, to_seconds(clock.now() - scene->start()),
+                                     sim::mock_of(dev)->layout(), finger);
     sim::mock_of(dev)->set_finger_indentation(finger);
     sim::mock_of(dev)->step(clock.now());
     (void)loop.step(clock.now());
@@ -291,7 +294,7 @@ TEST(SensorFaults, ACellLeftUnreadReleasesTheValves) {
   std::vector<double> finger(layout.fluid_cell_count());
   std::vector<SensorFaultEvent> events;
   auto tick = [&] {
-    scene->finger(to_seconds(clock.now() - scene->start()), layout, finger);
+    mrskin::eval::press_scene_finger(*scene, to_seconds(clock.now() - scene->start()), layout, finger);
     sim::mock_of(dev)->set_finger_indentation(finger);
     sim::mock_of(dev)->step(clock.now());
     (void)loop.step(clock.now());
@@ -352,7 +355,8 @@ TEST(SensorFaults, AHaltOrALinkGapIsNoFault) {
       } else if (k == g.enable_ms) {
         loop.request(Bridge::Request::enable);
       }
-      scene->finger(to_seconds(clock.now() - scene->start()), sim::mock_of(dev)->layout(), finger);
+      mrskin::eval::press_scene_finger(*scene, to_seconds(clock.now() - scene->start()),
+                                       sim::mock_of(dev)->layout(), finger);
       sim::mock_of(dev)->set_finger_indentation(finger);
       sim::mock_of(dev)->step(clock.now());
       (void)loop.step(clock.now());

@@ -22,6 +22,7 @@
 #include "mrskin/bridge/bridge.hpp"
 #include "mrskin/driver/device.hpp"
 #include "mrskin/driver/model/coil.hpp"
+#include "mrskin/eval/truth_scorer.hpp"
 #include "mrskin/sim/open_mock.hpp"
 
 namespace mrskin::bridge {
@@ -56,7 +57,8 @@ std::vector<StepWindow> run_steps(int first_cycle, int last_cycle, double step_a
   auto scene = make_scene("step");
   Bridge bridge(*dev.session, *scene);
   sim::MockDeviceTruth truth(*sim::mock_of(dev));
-  bridge.set_force_truth(&truth);
+  eval::TruthScorer scorer(truth, sim::mock_of(dev)->layout().fluid_cell_count(), BridgeOptions{});
+  bridge.set_tick_watcher(&scorer);
   bridge.set_perf_clock(&clock);
   scene->set_start(clock.now());
   EXPECT_EQ(bridge.enable(), ResultCode::ok);
@@ -64,7 +66,7 @@ std::vector<StepWindow> run_steps(int first_cycle, int last_cycle, double step_a
   std::vector<double> finger(layout.fluid_cell_count());
   std::vector<double> true_N(layout.fluid_cell_count());
   // The finger presses the centre fluid cell alone (scene.hpp).
-  scene->finger(step_at_s, layout, finger);
+  mrskin::eval::press_scene_finger(*scene, step_at_s, layout, finger);
   const auto centre =
       static_cast<std::size_t>(std::max_element(finger.begin(), finger.end()) - finger.begin());
   std::vector<double> ideal_A(layout.valve_count(), 0.0);
@@ -91,7 +93,7 @@ std::vector<StepWindow> run_steps(int first_cycle, int last_cycle, double step_a
         }
       }
     }
-    scene->finger(t_s, layout, finger);
+    mrskin::eval::press_scene_finger(*scene, t_s, layout, finger);
     sim::mock_of(dev)->set_finger_indentation(finger);
     sim::mock_of(dev)->step(clock.now());
     if (actuation == Actuation::ideal && in_window >= 0) {

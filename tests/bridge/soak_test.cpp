@@ -31,6 +31,7 @@
 #include "mrskin/bridge/scene.hpp"
 #include "mrskin/driver/device.hpp"
 #include "mrskin/driver/session.hpp"
+#include "mrskin/eval/truth_scorer.hpp"
 #include "mrskin/sim/mock_device.hpp"
 #include "mrskin/sim/open_mock.hpp"
 #include "mrskin/sim/plant.hpp"
@@ -169,7 +170,7 @@ class SceneSchedule final : public SlaveSource {
   }
   void finger(TimePoint now, const GridLayout& layout, std::span<double> indentation_m) const noexcept {
     const Scene& s = *scenes_[current_];
-    s.finger(to_seconds(now - s.start()), layout, indentation_m);
+    mrskin::eval::press_scene_finger(s, to_seconds(now - s.start()), layout, indentation_m);
   }
   bool latest(TimePoint now, SlaveSample& out) noexcept override {
     return scenes_[current_]->latest(now, out);
@@ -395,7 +396,8 @@ TEST(BridgeSoak, BridgeTicksAgainstACheapPlant) {
   SceneSchedule schedule({"sweep"});
   Bridge loop(session, schedule);
   sim::MockDeviceTruth truth(*mock);
-  loop.set_force_truth(&truth);
+  eval::TruthScorer scorer(truth, mock->layout().fluid_cell_count(), BridgeOptions{});
+  loop.set_tick_watcher(&scorer);
   loop.set_perf_clock(&clock);  // deterministic: no wall time in the loop
   ASSERT_EQ(loop.enable(), ResultCode::ok);
   const SoakOutcome r =
@@ -413,7 +415,8 @@ TEST(BridgeSoak, ClosedLoopOnTheMock) {
   SceneSchedule schedule(names);
   Bridge loop(*dev.session, schedule);
   sim::MockDeviceTruth truth(*sim::mock_of(dev));
-  loop.set_force_truth(&truth);
+  eval::TruthScorer scorer(truth, sim::mock_of(dev)->layout().fluid_cell_count(), BridgeOptions{});
+  loop.set_tick_watcher(&scorer);
   loop.set_perf_clock(&clock);
   ASSERT_EQ(loop.enable(), ResultCode::ok);
   const SoakOutcome r = soak("mock", *sim::mock_of(dev), *dev.session, loop, schedule, clock, ticks,

@@ -9,6 +9,7 @@
 
 #include "mrskin/bridge/bridge.hpp"
 #include "mrskin/driver/device.hpp"
+#include "mrskin/eval/truth_scorer.hpp"
 #include "mrskin/sim/open_mock.hpp"
 
 namespace mrskin::bridge {
@@ -28,7 +29,8 @@ TEST(Threaded, LibraryLoopAndMockThreadRunTogether) {
   std::vector<double> finger(sim::mock_of(dev)->layout().fluid_cell_count());
   const TimePoint end = clock.now() + std::chrono::milliseconds(300);
   while (clock.now() < end) {
-    scene->finger(to_seconds(clock.now() - scene->start()), sim::mock_of(dev)->layout(), finger);
+    mrskin::eval::press_scene_finger(*scene, to_seconds(clock.now() - scene->start()),
+                                     sim::mock_of(dev)->layout(), finger);
     sim::mock_of(dev)->set_finger_indentation(finger);
     std::this_thread::sleep_for(std::chrono::milliseconds(1));
     (void)loop.live_ticks();

@@ -6,6 +6,7 @@
 
 #include "mrskin/bridge/bridge.hpp"
 #include "mrskin/driver/device.hpp"
+#include "mrskin/eval/truth_scorer.hpp"
 #include "mrskin/sim/open_mock.hpp"
 #include "scene_rig.hpp"
 
@@ -56,7 +57,8 @@ TEST(WalkingSkeleton, HeartbeatLossReleasesValves) {
   std::vector<double> finger(sim::mock_of(dev)->layout().fluid_cell_count());
   std::vector<double> currents(sim::mock_of(dev)->layout().valve_count());
   auto tick = [&](bool host_alive) {
-    scene->finger(to_seconds(clock.now() - scene->start()), sim::mock_of(dev)->layout(), finger);
+    mrskin::eval::press_scene_finger(*scene, to_seconds(clock.now() - scene->start()),
+                                     sim::mock_of(dev)->layout(), finger);
     sim::mock_of(dev)->set_finger_indentation(finger);
     sim::mock_of(dev)->step(clock.now());
     if (host_alive) {
@@ -98,7 +100,8 @@ TEST(WalkingSkeleton, EmergencyStopReleasesEveryValveWithinOneTickThenEnableResu
   std::vector<double> finger(sim::mock_of(dev)->layout().fluid_cell_count());
   std::vector<double> currents(sim::mock_of(dev)->layout().valve_count());
   auto tick = [&] {
-    scene->finger(to_seconds(clock.now() - scene->start()), sim::mock_of(dev)->layout(), finger);
+    mrskin::eval::press_scene_finger(*scene, to_seconds(clock.now() - scene->start()),
+                                     sim::mock_of(dev)->layout(), finger);
     sim::mock_of(dev)->set_finger_indentation(finger);
     sim::mock_of(dev)->step(clock.now());
     (void)loop.step(clock.now());

@@ -1,13 +1,14 @@
 #!/bin/sh
 # The simulation is a library of its own: the driver and bridge libraries define none of its
-# classes nor the inverse's offline reference (libmrskin_model_reference, tests and bench only),
-# and a console linked against mrskin::bridge alone needs no libmrskin_sim.
+# classes (the mock, its plant, its truth, the fingertip), nor the scorer and the scenes' finger
+# (libmrskin_eval), nor the inverse's offline reference (libmrskin_model_reference, tests and
+# bench only); a console linked against mrskin::bridge alone needs no libmrskin_sim.
 # usage: library_split.sh NM READELF LIBDRIVER LIBBRIDGE LIBSIM CONSOLE SIM_CONSOLE
 set -eu
 nm=$1 readelf=$2 driver=$3 bridge=$4 sim=$5 console=$6 sim_console=$7
 # Classes of the simulation and the offline reference (defined symbols only: T, W, V, D, B, R in
 # nm's listing).
-forbidden='mrskin::sim::|MockDevice|NetworkPlant|MockDeviceTruth|parse_mock_uri|solve_inverse_exact|exact_rendered_forces_N'
+forbidden='mrskin::sim::|mrskin::eval::|MockDevice|NetworkPlant|MockDeviceTruth|parse_mock_uri|TruthScorer|fingertip|finger\(|solve_inverse_exact|exact_rendered_forces_N'
 status=0
 for lib in "$driver" "$bridge"; do
   if ! symbols=$("$nm" -DC --defined-only "$lib"); then
@@ -27,8 +28,8 @@ if ! "$nm" -DC --defined-only "$sim" | grep -q 'mrskin::sim::MockDevice::'; then
   status=1
 fi
 needed=$("$readelf" -d "$console" | grep NEEDED)
-if echo "$needed" | grep -q 'libmrskin_sim'; then
-  echo "FAIL: $(basename "$console") (linked against mrskin::bridge only) needs libmrskin_sim:"
+if echo "$needed" | grep -qE 'libmrskin_(sim|eval)'; then
+  echo "FAIL: $(basename "$console") (linked against mrskin::bridge only) needs libmrskin_sim or libmrskin_eval:"
   echo "$needed"
   status=1
 fi
@@ -39,5 +40,5 @@ fi
 "$console" || status=1
 # A console linked with mrskin::sim that registers the scheme opens mock://.
 "$sim_console" || status=1
-[ "$status" -eq 0 ] && echo "library split: driver and bridge carry no simulation; a bridge-only console needs no libmrskin_sim; a sim console opens mock://"
+[ "$status" -eq 0 ] && echo "library split: driver and bridge carry no simulation, scorer or reference; a bridge-only console needs no libmrskin_sim or libmrskin_eval; a sim console opens mock://"
 exit "$status"

@@ -6,6 +6,7 @@
 
 #include "mrskin/bridge/bridge.hpp"
 #include "mrskin/driver/device.hpp"
+#include "mrskin/eval/truth_scorer.hpp"
 #include "mrskin/sim/open_mock.hpp"
 
 int main() {
@@ -21,7 +22,8 @@ int main() {
     bridge::Bridge loop(*dev.session, *scene);
     const std::shared_ptr<sim::MockDevice> mock = sim::mock_of(dev);  // the simulated finger's side
     sim::MockDeviceTruth truth(*mock);
-    loop.set_force_truth(&truth);
+    eval::TruthScorer scorer(truth, mock->layout().fluid_cell_count(), bridge::BridgeOptions{});
+    loop.set_tick_watcher(&scorer);
     loop.set_perf_clock(&clock);
     scene->set_start(clock.now());
     (void)loop.enable();
@@ -29,7 +31,7 @@ int main() {
     std::vector<double> finger(mock->layout().fluid_cell_count());
     int faults = 0;
     for (int k = 0; k < 3500; ++k) {  // the console's 1 kHz loop
-      scene->finger(to_seconds(clock.now()), mock->layout(), finger);
+      mrskin::eval::press_scene_finger(*scene, to_seconds(clock.now()), mock->layout(), finger);
       mock->set_finger_indentation(finger);
       mock->step(clock.now());
       if (loop.step(clock.now()) != ResultCode::ok) {

@@ -13,6 +13,7 @@
 
 #include "json_text.hpp"
 #include "mrskin/driver/atomic_raise.hpp"
+#include "mrskin/eval/truth_scorer.hpp"
 #include "mrskin/sim/open_mock.hpp"
 
 namespace mrskin::bridged {
@@ -111,13 +112,22 @@ Daemon::~Daemon() {
   }
 }
 
+// On mock://, a scorer of the new bridge against the unit's truth (nullptr otherwise).
+std::unique_ptr<eval::TruthScorer> Daemon::make_scorer(Bridge& b, const bridge::BridgeOptions& options) {
+  if (!truth_) {
+    return nullptr;
+  }
+  auto scorer = std::make_unique<eval::TruthScorer>(*truth_, mock_->layout().fluid_cell_count(), options);
+  b.set_tick_watcher(scorer.get());
+  return scorer;
+}
+
 void Daemon::build_bridge(const Settings& s) {
   auto watched = std::make_unique<WatchedSource>(*source_.source, recorder_.get());
   auto b = std::make_unique<Bridge>(*dev_.session, *watched, bridge_options(s));
-  if (truth_) {
-    b->set_force_truth(&*truth_);
-  }
-  bridge_ = std::move(b);  // the old bridge goes before the source wrapper it read
+  std::unique_ptr<eval::TruthScorer> scorer = make_scorer(*b, bridge_options(s));
+  bridge_ = std::move(b);  // the old bridge goes before the source wrapper it read, and its scorer
+  scorer_ = std::move(scorer);
   watched_ = std::move(watched);
 }
 
@@ -557,7 +567,7 @@ std::unique_ptr<bridge::Scene> open_finger_scene(const Settings& s) {
 void Daemon::drive_finger() {
   bridge::Scene* script = finger_scene_ ? finger_scene_.get() : source_.scene;
   if (mock_ && script != nullptr) {
-    script->finger(to_seconds(clock_.now() - t0_), mock_->layout(), finger_);
+    mrskin::eval::press_scene_finger(*script, to_seconds(clock_.now() - t0_), mock_->layout(), finger_);
     mock_->set_finger_indentation(finger_);
   }
 }
@@ -848,15 +858,14 @@ bool Daemon::apply_reload(const Settings& next, const ReloadPlan& plan, std::vec
     loop_->stop();  // only the loop: the recording and the skin's topics go on across a reload
   }
   if (b) {
-    if (truth_) {
-      b->set_force_truth(&*truth_);
-    }
+    std::unique_ptr<eval::TruthScorer> scorer = make_scorer(*b, bridge_options(next));
     if (const unsigned char halt = operator_halt_.load(); halt != 0) {
       b->request(static_cast<Bridge::Request>(halt));  // a reload never re-enables
     }
     ticks_base_.fetch_add(bridge_->live_ticks());
     ticks_.store(0);
-    bridge_ = std::move(b);  // old bridge first, then the wrapper and the source it read
+    bridge_ = std::move(b);  // old bridge first, then its scorer, the wrapper and the source it read
+    scorer_ = std::move(scorer);
     watched_ = std::move(watched);
     {
       const std::lock_guard<std::mutex> lock(shown_mutex_);  // stream_warning() on the control thread

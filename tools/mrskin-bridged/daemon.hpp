@@ -29,6 +29,7 @@
 #include "mrskin/bridge/scene.hpp"
 #include "mrskin/bridge/sources.hpp"
 #include "mrskin/driver/device.hpp"
+#include "mrskin/eval/truth_scorer.hpp"
 
 namespace mrskin::bridged {
 
@@ -142,6 +143,7 @@ class Daemon final : public bridge::Tickable, public ControlBackend {
   [[nodiscard]] ReloadPlan plan_reload(const Settings& next) const;
   bool apply_reload(const Settings& next, const ReloadPlan& plan, std::vector<std::string>& log);
   void build_bridge(const Settings& s);  // setup, before the loop runs
+  std::unique_ptr<eval::TruthScorer> make_scorer(bridge::Bridge& b, const bridge::BridgeOptions& options);
   void publish(TimePoint now) noexcept;
   void publish_grid(TimePoint now) noexcept;
   void publish_topics() noexcept;  // the skin topics' thread
@@ -153,6 +155,9 @@ class Daemon final : public bridge::Tickable, public ControlBackend {
   OpenedDevice dev_;
   std::shared_ptr<sim::MockDevice> mock_;  // set for mock:// (the simulated unit behind dev_)
   std::optional<sim::MockDeviceTruth> truth_;
+  // Scores the bridge against truth_ (mock:// only); a new bridge gets a new one. Declared
+  // before bridge_, which calls it: destroyed after it.
+  std::unique_ptr<eval::TruthScorer> scorer_;
   // One waiter for the daemon's life, shared by every RealtimeLoop it builds (one runs at a
   // time) and woken by the stream sources' arrival hook: declared before the sources, so it
   // outlives their I/O threads, and never destroyed with a loop on a reload.

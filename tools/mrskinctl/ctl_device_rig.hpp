@@ -35,8 +35,6 @@
 
 namespace mrskin::ctl {
 
-// Set by SIGINT/SIGTERM while a Rig is alive; the command stops and releases the unit.
-// NOLINTNEXTLINE(cppcoreguidelines-avoid-non-const-global-variables): a signal handler's flag
 // The options every command on a free device takes.
 inline void add_device_options(CLI::App* sub, std::string& uri, bool& realtime) {
   sub->add_option("--device", uri, "device URI")->capture_default_str();
@@ -69,8 +67,8 @@ inline void add_lease_option(CLI::App* sub, LeaseOption& lease) {
   lease.option = o;
 }
 
-// SIGINT/SIGTERM set it; the command loops poll it. Constant-initialised: no guard, safe to
-// touch from the handler.
+// Set by SIGINT/SIGTERM while a Rig is alive; the command loops poll it, stop and release the
+// unit. A function-local static, constant-initialised: no guard, safe to touch from the handler.
 inline volatile std::sig_atomic_t& interrupted_flag() noexcept {
   static volatile std::sig_atomic_t flag = 0;
   return flag;

@@ -109,8 +109,48 @@ struct SensorFaultEvent {
   double at_s = 0.0;                                         // since the bridge's first tick
 };
 
-// Ground truth for scoring (mrskin::sim::MockDeviceTruth on the mock); optional.
+// Ground truth for scoring (mrskin::sim::MockDeviceTruth on the mock; mrskin::eval::TruthScorer).
 using ForceTruth = mrskin::ForceTruth;
+
+// What a watcher sees of a rendered tick, right after it: valid during TickWatcher::on_tick only.
+class TickView {
+ public:
+  TickView() = default;
+  TickView(const TickView&) = delete;
+  TickView& operator=(const TickView&) = delete;
+  TickView(TickView&&) = delete;
+  TickView& operator=(TickView&&) = delete;
+  virtual ~TickView() = default;
+  [[nodiscard]] virtual double since_start_s() const noexcept = 0;  // since the bridge's first tick
+  [[nodiscard]] virtual double period_s() const noexcept = 0;       // 1 / rate_hz
+  // Per cell: the observer's force estimate; the law at the observed state, capped at
+  // max_force_N; that law clamped into the envelope of this tick's solve (loaded cells, else 0).
+  [[nodiscard]] virtual std::span<const double> observed_force_N() const noexcept = 0;
+  [[nodiscard]] virtual std::span<const double> tissue_N() const noexcept = 0;
+  [[nodiscard]] virtual std::span<const double> target_N() const noexcept = 0;
+  // Per cell: the inverse's last solve (role, clamps, envelope).
+  [[nodiscard]] virtual std::span<const model::CellSolution> solve() const noexcept = 0;
+  // Every valve of the cell at or below 2 % of the unit's full current: its floor is the
+  // observer's force (docs/bridge.md, "the envelope's floor").
+  [[nodiscard]] virtual bool valves_open(std::size_t cell) const noexcept = 0;
+  // The law rendered on the cell, at another state (for instance the truth's finger).
+  [[nodiscard]] virtual double law_force_N(std::size_t cell, double depth_m,
+                                           double rate_m_per_s) const noexcept = 0;
+};
+
+// Watches every rendered tick (not the halted ones) from the tick's thread, after the frame is
+// sent: scoring against a truth, recording. Must not allocate, block or throw; writes what it
+// measures into stats (the tick's time includes it).
+class TickWatcher {
+ public:
+  TickWatcher() = default;
+  TickWatcher(const TickWatcher&) = delete;
+  TickWatcher& operator=(const TickWatcher&) = delete;
+  TickWatcher(TickWatcher&&) = delete;
+  TickWatcher& operator=(TickWatcher&&) = delete;
+  virtual ~TickWatcher() = default;
+  virtual void on_tick(const TickView& tick, BridgeStats& stats) noexcept = 0;
+};
 
 class Bridge {
  public:
@@ -123,7 +163,9 @@ class Bridge {
   Bridge& operator=(Bridge&&) = delete;
   ~Bridge();
 
-  void set_force_truth(const ForceTruth* truth) noexcept;
+  // Between ticks: the watcher called after each rendered tick (nullptr: none); it must outlive
+  // its use. With one, live_rms_error_N() follows stats().force_rms_error_N().
+  void set_tick_watcher(TickWatcher* watcher) noexcept;
   // Enables the device (call before the first step).
   ResultCode enable() noexcept;
 

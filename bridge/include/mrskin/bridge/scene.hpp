@@ -57,14 +57,23 @@ struct SlaveTruth {
 class Scene : public SlaveSource {
  public:
   [[nodiscard]] virtual std::string_view name() const noexcept = 0;
-  // Finger indentation per fluid cell of layout at scene time t_s, m.
-  virtual void finger(double t_s, const GridLayout& layout,
-                      std::span<double> indentation_m) const noexcept = 0;
+  // The mapping the scene was made with (the slave's tissue frame onto the skin).
+  [[nodiscard]] virtual const WorkspaceMapping& mapping() const noexcept = 0;
   [[nodiscard]] virtual double cycle_s() const noexcept = 0;
   // The scene's true tissue law at a point of the slave's tissue frame. By value: the tumour
   // blends two laws across the inclusion's rim, so there is no stored model to refer to.
   [[nodiscard]] virtual TissueModel tissue_at(double x_m, double y_m) const noexcept = 0;
   [[nodiscard]] virtual SlaveTruth slave_truth(double t_s) const noexcept = 0;
+  // Where the slave's contact maps on a rows x cols skin at scene time t_s (cell units), and its
+  // depth, m: what a simulated finger presses to follow the slave (mrskin::eval::press_scene_finger).
+  struct SkinContact {
+    CellPoint at{};
+    double depth_m = 0.0;
+  };
+  [[nodiscard]] SkinContact skin_contact(double t_s, int rows, int cols) const noexcept {
+    const SlaveTruth s = slave_truth(t_s);
+    return {mapping().to_cell(s.contact_x_m, s.contact_y_m, rows, cols), s.indentation_m};
+  }
   void set_start(TimePoint t0) noexcept { start_ = t0; }
   [[nodiscard]] TimePoint start() const noexcept { return start_; }
 
@@ -73,11 +82,10 @@ class Scene : public SlaveSource {
 };
 
 // ---- built-in scenes -------------------------------------------------------------------------
-// Every scene's finger presses the skin where the mapping puts the slave's contact point, with
-// the slave's indentation below the skin's rest: a fingertip pad, full depth at its centre and
-// falling as 1 - r^2 / (1.2 cell pitches)^2, so on a fluid cell of the 5x5 it presses that cell
-// alone. Workspace positions below are measured from the mapping's origin (the point rendered at
-// the skin's centre); mirroring, rotation and scale then move the finger with the slave. Each
+// Every scene's finger (on the mock: mrskin::eval::press_scene_finger) presses the skin where the
+// mapping puts the slave's contact point, with the slave's indentation below the skin's rest.
+// Workspace positions below are measured from the mapping's origin (the point rendered at the
+// skin's centre); mirroring, rotation and scale then move the finger with the slave. Each
 // cycle starts and ends out of contact and repeats; force stays in 0-2 N, depth in 0-5 mm.
 // Except demo, the slave stream is sampled at 1 kHz (stamps on whole milliseconds from the
 // start; no sample before it) with 5 mN RMS Gaussian force noise in contact (a fixed seed per

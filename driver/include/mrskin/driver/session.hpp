@@ -192,6 +192,8 @@ class DeviceSession {
   // measured state (docs/api.md): the valve currents become 0 A, the targets of the cells the
   // host has targeted become TargetSeeder::seed() of the latest telemetry, and both are sent
   // right after the state request, so no stale command is resumed. The firmware does the same.
+  // Each request_*() state request is repeated every handshake_retry (at most 10 times) until
+  // a status confirms the state, or a new FAULT overrides it: a lossy link cannot eat an enable.
   ResultCode request_enable() noexcept;
   ResultCode request_disable() noexcept;
   ResultCode request_pause() noexcept;
@@ -199,8 +201,6 @@ class DeviceSession {
   // Protocol 1.1: asks a disabled device to degauss its cores with a decaying alternating
   // current (bipolar coil drivers only); degaussing() is true while it runs.
   ResultCode request_degauss() noexcept;
-  // A state request is repeated every handshake_retry (at most 10 times) until a status
-  // confirms the state, or a new FAULT overrides it: a lossy link cannot eat an enable.
   // Stops heartbeats (used to test the device's watchdog).
   void suppress_heartbeat(bool suppress) noexcept;
 

@@ -84,9 +84,8 @@ struct ObserverOptions {
   // ~0.5 mm/s RMS on the 5 x 5), m/s.
   double hold_rate_m_per_s = 1.5e-3;
   // Network model: skip the step while its inputs are unchanged, its forces moved less than 1 uN
-  // in the last one and no link flows more than 0.1 nL/s (5x5 idle tick 64.5k -> 24.8k
-  // instructions). The flow test matters: on forces alone a released skin that still refills
-  // looked settled, and freezing it cost the demo 0.031 -> 0.046 N RMS.
+  // in the last one and no link flows more than 0.1 nL/s. The flow test matters: on forces alone
+  // a released skin that still refills looks settled (docs/bridge.md, "What the tuning measured").
   bool skip_settled_network = true;
   // The steel's hysteresis (the profile's coercivity, the plant's play operator, tabulated):
   // after any current a valve keeps a remanent yield at 0 A. Off: the anhysteretic yield curve.
