@@ -3,14 +3,18 @@
 #include <gtest/gtest.h>
 #include <unistd.h>
 
+#include <atomic>
+#include <chrono>
 #include <cstdlib>
 #include <filesystem>
 #include <fstream>
 #include <numbers>
 #include <string>
+#include <thread>
 
 #include "config.hpp"
 #include "control_server.hpp"
+#include "session_gate.hpp"
 
 namespace {
 
@@ -277,3 +281,52 @@ TEST(ControlRequest, ReadsJsonAndNamesWhatIsWrong) {
 }
 
 }  // namespace
+
+// The session's hand-off between the tick and the control thread: while a reader holds the gate
+// the tick skips, and a reader cannot get in while the tick is inside.
+TEST(SessionGate, TheTickAndAReaderNeverHoldTheSessionTogether) {
+  using mrskin::bridged::SessionGate;
+  using namespace std::chrono_literals;
+  SessionGate gate;
+  ASSERT_TRUE(gate.try_tick());
+  EXPECT_FALSE(gate.try_read(5ms));  // the tick is in: the reader gives up at its deadline
+  gate.end_tick();
+  ASSERT_TRUE(gate.try_read(5ms));
+  EXPECT_FALSE(gate.try_tick());  // a reader is in: the tick skips
+  EXPECT_FALSE(gate.try_tick());
+  EXPECT_EQ(gate.gated_ticks(), 2U);
+  gate.end_read();
+  EXPECT_TRUE(gate.try_tick());
+  gate.end_tick();
+
+  // Two threads, bounded: the tick and a reader count how often each is inside; never both.
+  std::atomic<int> inside{0};
+  std::atomic<bool> overlap{false};
+  std::atomic<bool> stop{false};
+  std::thread tick([&] {
+    for (int k = 0; k < 20000 && !stop.load(); ++k) {
+      if (gate.try_tick()) {
+        if (inside.fetch_add(1) != 0) {
+          overlap.store(true);
+        }
+        inside.fetch_sub(1);
+        gate.end_tick();
+      }
+    }
+  });
+  int reads = 0;
+  for (int k = 0; k < 200; ++k) {
+    if (gate.try_read(50ms)) {
+      if (inside.fetch_add(1) != 0) {
+        overlap.store(true);
+      }
+      inside.fetch_sub(1);
+      gate.end_read();
+      ++reads;
+    }
+  }
+  stop.store(true);
+  tick.join();
+  EXPECT_FALSE(overlap.load());
+  EXPECT_GT(reads, 0);
+}

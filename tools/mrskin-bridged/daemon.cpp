@@ -179,12 +179,8 @@ void Daemon::stop() noexcept {
 }
 
 ResultCode Daemon::tick(TimePoint now) noexcept {
-  // SessionGate, tick side (Dekker with seq_cst): announce, then step only if no reader is in.
-  in_tick_.store(true, std::memory_order_seq_cst);
-  if (reader_.load(std::memory_order_seq_cst)) {
-    in_tick_.store(false, std::memory_order_seq_cst);
-    gated_ticks_.fetch_add(1, std::memory_order_relaxed);
-    return ResultCode::ok;
+  if (!gate_.try_tick()) {
+    return ResultCode::ok;  // the control thread holds the session (a fault dump, a lease)
   }
   if (const unsigned char r = pending_.exchange(0, std::memory_order_acq_rel); r != 0) {
     bridge_->request(static_cast<Bridge::Request>(r));
@@ -197,7 +193,7 @@ ResultCode Daemon::tick(TimePoint now) noexcept {
     (void)sensor_faults_.try_push(fault);  // 64 behind: the bridge's count still has it
   }
   publish(now);
-  in_tick_.store(false, std::memory_order_seq_cst);
+  gate_.end_tick();
   return rc;
 }
 
@@ -482,15 +478,9 @@ std::string Daemon::lease_begin() {
     }
     std::this_thread::sleep_for(std::chrono::milliseconds(1));
   }
-  // SessionGate, reader side, held until lease_end(): the tick skips its step meanwhile.
-  reader_.store(true, std::memory_order_seq_cst);
-  const auto tick_out = std::chrono::steady_clock::now() + std::chrono::milliseconds(200);
-  while (in_tick_.load(std::memory_order_seq_cst)) {
-    if (std::chrono::steady_clock::now() > tick_out) {
-      reader_.store(false, std::memory_order_seq_cst);
-      return "the tick did not yield; try again";
-    }
-    std::this_thread::yield();
+  // The gate held until lease_end(): the tick skips its step meanwhile.
+  if (!gate_.try_read(std::chrono::milliseconds(200))) {
+    return "the tick did not yield; try again";
   }
   leased_.store(true);
   return {};
@@ -502,19 +492,13 @@ Transport* Daemon::leased_transport() noexcept {
 
 void Daemon::lease_end() noexcept {
   leased_.store(false);
-  reader_.store(false, std::memory_order_seq_cst);
+  gate_.end_read();
 }
 
 std::string Daemon::fault_members() {
-  // SessionGate, reader side: once in, the tick skips its step (at most a tick or two) until out.
-  reader_.store(true, std::memory_order_seq_cst);
-  const auto give_up = std::chrono::steady_clock::now() + std::chrono::milliseconds(200);
-  while (in_tick_.load(std::memory_order_seq_cst)) {
-    if (std::chrono::steady_clock::now() > give_up) {
-      reader_.store(false, std::memory_order_seq_cst);
-      return R"("error":"the tick did not yield; try again")";
-    }
-    std::this_thread::yield();
+  // The gate: once in, the tick skips its step (at most a tick or two) until end_read().
+  if (!gate_.try_read(std::chrono::milliseconds(200))) {
+    return R"("error":"the tick did not yield; try again")";
   }
   const DeviceSession& s = *dev_.session;
   const DeviceState state = s.state();
@@ -532,7 +516,7 @@ std::string Daemon::fault_members() {
   } catch (...) {
     failed = std::current_exception();
   }
-  reader_.store(false, std::memory_order_seq_cst);
+  gate_.end_read();
   if (failed) {
     return R"("error":"out of memory while copying the ring log")";
   }

@@ -5,7 +5,7 @@
 // Threads: the main thread (signals, status, reload), the tick (RealtimeLoop), the control socket
 // thread. Only the tick touches the Bridge and the DeviceSession while the loop runs. It publishes
 // small values through atomics after every step; the control thread reads the session itself only
-// inside SessionGate (fault dump), which makes the tick skip its step meanwhile.
+// inside the SessionGate (fault dump), which makes the tick skip its step meanwhile.
 #pragma once
 
 #include <array>
@@ -30,6 +30,7 @@
 #include "mrskin/bridge/sources.hpp"
 #include "mrskin/driver/device.hpp"
 #include "mrskin/eval/truth_scorer.hpp"
+#include "session_gate.hpp"
 
 namespace mrskin::bridged {
 
@@ -176,10 +177,8 @@ class Daemon final : public bridge::Tickable, public ControlBackend {
   // Control -> tick: the operator's request, forwarded to the current Bridge at the next tick.
   std::atomic<unsigned char> pending_{0};
   std::atomic<unsigned char> operator_halt_{0};  // last request: 0 enable, 2 disable, 3 estop
-  // SessionGate: the control thread reads the session while the tick stays out of it.
-  std::atomic<bool> in_tick_{false};
-  std::atomic<bool> reader_{false};
-  std::atomic<std::uint64_t> gated_ticks_{0};
+  // The control thread reads the session while the tick stays out of it (session_gate.hpp).
+  SessionGate gate_;
   std::atomic<bool> leased_{false};  // control thread: it holds the gate for a client's session
 
   // Published by the tick after every step.
