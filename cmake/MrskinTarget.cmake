@@ -1,6 +1,8 @@
 # mrskin_add_library(NAME <short> SOURCES ... PUBLIC_DEPS ... PRIVATE_DEPS ...)
 # Builds libmrskin_<short>.so with version and soname, exports it as mrskin::<short>
-# and installs its public headers from <dir>/include.
+# and installs its public headers from <dir>/include. Symbols are hidden unless their declaration
+# carries the library's MRSKIN_<NAME>_API (mrskin/<name>/export.hpp): the ABI is what the headers
+# export, not every function a source file defines.
 function(mrskin_add_library)
   cmake_parse_arguments(ARG "" "NAME" "SOURCES;PUBLIC_DEPS;PRIVATE_DEPS" ${ARGN})
   set(target mrskin_${ARG_NAME})
@@ -9,7 +11,9 @@ function(mrskin_add_library)
   set_target_properties(${target} PROPERTIES
     VERSION ${PROJECT_VERSION}
     SOVERSION ${PROJECT_VERSION_MAJOR}.${PROJECT_VERSION_MINOR}
-    EXPORT_NAME ${ARG_NAME})
+    EXPORT_NAME ${ARG_NAME}
+    CXX_VISIBILITY_PRESET hidden
+    VISIBILITY_INLINES_HIDDEN ON)
   target_include_directories(${target} PUBLIC
     $<BUILD_INTERFACE:${CMAKE_CURRENT_SOURCE_DIR}/include>
     $<INSTALL_INTERFACE:${CMAKE_INSTALL_INCLUDEDIR}>)

@@ -30,7 +30,7 @@ TissueEstimatorOptions default_estimator_options() noexcept {
   return o;
 }
 
-class Bridge::Impl {
+class __attribute__((visibility("hidden"))) Bridge::Impl {
  public:
   // The public functions, as documented in bridge.hpp (they forward here).
   Impl(DeviceSession& session, SlaveSource& source, BridgeOptions options);

@@ -17,7 +17,7 @@
 
 namespace mrskin {
 
-class DeviceSession::Impl {
+class __attribute__((visibility("hidden"))) DeviceSession::Impl {
  public:
   // The public functions, as documented in session.hpp (they forward here).
   Impl(std::unique_ptr<Transport> transport, Clock& clock, SessionOptions options);

@@ -45,7 +45,7 @@ builtin_interfaces_msg_dds__Time_ ros_time(std::int64_t ns) noexcept {
 
 }  // namespace
 
-struct SkinPublisher::Impl {
+struct __attribute__((visibility("hidden"))) SkinPublisher::Impl {
   explicit Impl(const SkinTopicsOptions& o)
       : ns(dds::absolute_ros_name(o.ns, "skin namespace")), participant(make(o.domain)) {
     const dds_entity_t p = participant.get();
@@ -140,7 +140,7 @@ std::uint64_t SkinPublisher::failures() const noexcept {
 }
 const std::string& SkinPublisher::ns() const noexcept { return impl_->ns; }
 
-struct FollowerPublisher::Impl {
+struct __attribute__((visibility("hidden"))) FollowerPublisher::Impl {
   Impl(const std::string& arm, int domain)
       : wrench_topic(dds::absolute_ros_name(arm, "arm") + "/measured_cf"),
         pose_topic(dds::absolute_ros_name(arm, "arm") + "/measured_cp"),

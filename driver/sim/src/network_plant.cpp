@@ -46,7 +46,7 @@ model::DeviceProfile perturbed_profile(const model::DeviceProfile& nominal, doub
   return p;
 }
 
-struct NetworkPlant::Impl {
+struct __attribute__((visibility("hidden"))) NetworkPlant::Impl {
   Impl(const model::DeviceProfile& nominal, const NetworkPlantOptions& o)
       : options(o),
         truth(perturbed_profile(nominal, o.perturbation, o.seed)),

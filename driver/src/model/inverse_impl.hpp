@@ -223,7 +223,7 @@ namespace mrskin::model {
 using namespace inverse_detail;
 
 // Hidden: its functions are called directly (and inlined) within the library, never through the PLT.
-struct [[gnu::visibility("hidden")]] CellInverse::Impl {
+struct __attribute__((visibility("hidden"))) CellInverse::Impl {
   struct Type {  // one per distinct outlet count among magnetised branches
     BranchShape shape;
     Hermite psi;                     // q G N / (P - s t) over z = (P - s t) / (P - (s - 1) t)

@@ -135,7 +135,7 @@ namespace mrskin::model {
 using namespace network_detail;
 
 // Hidden: its functions are called directly (and inlined) within the library, never through the PLT.
-struct [[gnu::visibility("hidden")]] NetworkSimulation::Impl {
+struct __attribute__((visibility("hidden"))) NetworkSimulation::Impl {
   Impl(DeviceModel m, const NetworkOptions& o);
   // Construction steps (network_build.cpp), in this order; each throws InvalidArgument naming
   // origin for a profile or option it cannot use.

@@ -21,7 +21,7 @@ struct Entry {
 
 }  // namespace
 
-struct CellObserver::Impl {
+struct __attribute__((visibility("hidden"))) CellObserver::Impl {
   Impl(const DeviceModel& m, const ObserverOptions& o) : model(m), options(o) {
     const DeviceProfile& p = m.profile();
     const GridLayout& grid = m.layout();

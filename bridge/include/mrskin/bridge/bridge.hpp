@@ -10,6 +10,7 @@
 #include <span>
 #include <string>
 
+#include "mrskin/bridge/export.hpp"
 #include "mrskin/bridge/loop.hpp"
 #include "mrskin/bridge/mapping.hpp"
 #include "mrskin/bridge/scene.hpp"
@@ -27,7 +28,7 @@ namespace mrskin::bridge {
 
 // The estimator's defaults for the bridge: Hunt-Crossley fitted online, a soft prior (rendered
 // until the fit is confident), hold 0.1 s then fade over 0.2 s when the stream stops.
-TissueEstimatorOptions default_estimator_options() noexcept;
+MRSKIN_BRIDGE_API TissueEstimatorOptions default_estimator_options() noexcept;
 
 struct BridgeOptions {
   double rate_hz = 1000.0;
@@ -97,7 +98,7 @@ struct BridgeTuning {
 };
 
 // Writes the tuning into options (the rest of options unchanged).
-void apply_tuning(const BridgeTuning& tuning, BridgeOptions& options) noexcept;
+MRSKIN_BRIDGE_API void apply_tuning(const BridgeTuning& tuning, BridgeOptions& options) noexcept;
 
 // A sensor found faulty, as the tick reports it (Bridge::take_sensor_fault).
 struct SensorFaultEvent {
@@ -113,7 +114,7 @@ struct SensorFaultEvent {
 using ForceTruth = mrskin::ForceTruth;
 
 // What a watcher sees of a rendered tick, right after it: valid during TickWatcher::on_tick only.
-class TickView {
+class MRSKIN_BRIDGE_API TickView {
  public:
   TickView() = default;
   TickView(const TickView&) = delete;
@@ -141,7 +142,7 @@ class TickView {
 // Watches every rendered tick (not the halted ones) from the tick's thread, after the frame is
 // sent: scoring against a truth, recording. Must not allocate, block or throw; writes what it
 // measures into stats (the tick's time includes it).
-class TickWatcher {
+class MRSKIN_BRIDGE_API TickWatcher {
  public:
   TickWatcher() = default;
   TickWatcher(const TickWatcher&) = delete;
@@ -152,7 +153,7 @@ class TickWatcher {
   virtual void on_tick(const TickView& tick, BridgeStats& stats) noexcept = 0;
 };
 
-class Bridge {
+class MRSKIN_BRIDGE_API Bridge {
  public:
   // Setup: allocates everything the tick needs. Throws InvalidArgument on bad options or when
   // the session has no profile (opened without reading the device's configuration).

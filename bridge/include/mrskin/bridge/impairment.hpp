@@ -9,6 +9,7 @@
 #include <random>
 #include <vector>
 
+#include "mrskin/bridge/export.hpp"
 #include "mrskin/bridge/scene.hpp"
 
 namespace mrskin::bridge {
@@ -29,7 +30,7 @@ struct ImpairmentStats {
   std::uint64_t overflowed = 0;  // more in flight than capacity: dropped
 };
 
-class ImpairedSource final : public SlaveSource {
+class MRSKIN_BRIDGE_API ImpairedSource final : public SlaveSource {
  public:
   // Throws InvalidArgument for a negative delay, jitter above delay, loss outside [0, 1) or zero
   // capacity.

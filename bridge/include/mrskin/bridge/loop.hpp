@@ -12,6 +12,7 @@
 #include <string>
 #include <thread>
 
+#include "mrskin/bridge/export.hpp"
 #include "mrskin/driver/clock.hpp"
 #include "mrskin/driver/errors.hpp"
 #include "mrskin/driver/histogram.hpp"
@@ -19,7 +20,7 @@
 namespace mrskin::bridge {
 
 // What the loop runs. tick(now) gets the loop clock's time at wake-up.
-class Tickable {
+class MRSKIN_BRIDGE_API Tickable {
  public:
   Tickable() = default;
   Tickable(const Tickable&) = delete;
@@ -34,7 +35,7 @@ using TickFunction = ResultCode (*)(void* context, TimePoint now) noexcept;
 
 // How the loop waits between ticks: until a deadline on the loop's clock, or earlier when
 // notified. Waits come from the loop thread only; notify() from any thread.
-class Waiter {
+class MRSKIN_BRIDGE_API Waiter {
  public:
   enum class Wake : std::uint8_t { deadline, notified };
   Waiter() = default;
@@ -54,7 +55,7 @@ class Waiter {
 // For MonotonicClock: a one-shot timerfd armed at the absolute deadline on CLOCK_MONOTONIC
 // and an eventfd for notify(), polled together. notify() is one write(2): lock-free and
 // async-signal-safe. Throws Error when the descriptors cannot be made.
-class MonotonicWaiter final : public Waiter {
+class MRSKIN_BRIDGE_API MonotonicWaiter final : public Waiter {
  public:
   MonotonicWaiter();
   MonotonicWaiter(const MonotonicWaiter&) = delete;
@@ -75,7 +76,7 @@ class MonotonicWaiter final : public Waiter {
 // Any clock: clock.sleep_until(deadline). A notification pending when the wait begins wakes
 // at once; one arriving during the sleep waits for the deadline. On a SimulatedClock the sleep
 // jumps the clock, which makes a loop stepped with run_once() exactly repeatable.
-class SleepWaiter final : public Waiter {
+class MRSKIN_BRIDGE_API SleepWaiter final : public Waiter {
  public:
   explicit SleepWaiter(Clock& clock) noexcept : clock_(clock) {}
   Wake wait_until(TimePoint deadline) noexcept override;
@@ -88,7 +89,7 @@ class SleepWaiter final : public Waiter {
 };
 
 // The scheduling the loop thread actually has.
-struct SchedulerState {
+struct MRSKIN_BRIDGE_API SchedulerState {
   int policy = 0;              // SCHED_OTHER, SCHED_FIFO, ... as sched_getscheduler(2)
   int priority = 0;            // sched_priority (0 unless real-time)
   bool memory_locked = false;  // mlockall(MCL_CURRENT | MCL_FUTURE) succeeded
@@ -98,7 +99,7 @@ struct SchedulerState {
 
 // The OS calls of the real-time set-up, a seam so tests can refuse them. Each returns 0 or
 // an errno value, for the calling thread (memory locking is process-wide).
-class RealtimeOs {
+class MRSKIN_BRIDGE_API RealtimeOs {
  public:
   RealtimeOs() = default;
   RealtimeOs(const RealtimeOs&) = delete;
@@ -113,7 +114,7 @@ class RealtimeOs {
   virtual int lock_memory() noexcept;
   virtual void query(int& policy, int& priority) noexcept;
 };
-RealtimeOs& system_realtime_os() noexcept;
+MRSKIN_BRIDGE_API RealtimeOs& system_realtime_os() noexcept;
 
 struct LoopOptions {
   double rate_hz = 1000.0;   // 1 Hz .. 20 kHz
@@ -141,9 +142,10 @@ struct LoopStats {
 // Applies what options ask (SCHED_FIFO at options.priority, mlockall) to the calling thread and
 // returns what it obtained. warning gets one message naming what was refused and how to allow
 // it (limits.d or setcap), or stays empty. Setup only: allocates.
-SchedulerState apply_realtime(const LoopOptions& options, RealtimeOs& os, std::string& warning);
+MRSKIN_BRIDGE_API SchedulerState apply_realtime(const LoopOptions& options, RealtimeOs& os,
+                                                std::string& warning);
 
-class RealtimeLoop {
+class MRSKIN_BRIDGE_API RealtimeLoop {
  public:
   // Throws InvalidArgument for a rate outside 1 Hz .. 20 kHz or a priority outside 1..99.
   RealtimeLoop(Clock& clock, Tickable& tickable, LoopOptions options = {});
@@ -221,6 +223,6 @@ class RealtimeLoop {
 // Scheduler baseline (what cyclictest measures), to print beside a benchmark's tick percentiles
 // taken in the same run: an empty tick at options.rate_hz on a MonotonicClock for at least
 // `ticks` ticks, with the loop's own set-up; stats().wake_latency is the baseline.
-LoopStats measure_baseline(const LoopOptions& options, std::uint64_t ticks);
+MRSKIN_BRIDGE_API LoopStats measure_baseline(const LoopOptions& options, std::uint64_t ticks);
 
 }  // namespace mrskin::bridge

@@ -20,6 +20,8 @@
 #include <string>
 #include <string_view>
 
+#include "mrskin/bridge/export.hpp"
+
 namespace mrskin::bridge {
 
 struct SkinTopicsOptions {
@@ -40,9 +42,9 @@ struct SkinFrame {
 
 // True when ROS 2 accepts name as a topic or namespace: tokens of [A-Za-z0-9_], not starting
 // with a digit, joined by '/', absolute or relative.
-bool valid_ros_name(std::string_view name) noexcept;
+MRSKIN_BRIDGE_API bool valid_ros_name(std::string_view name) noexcept;
 
-class SkinPublisher {
+class MRSKIN_BRIDGE_API SkinPublisher {
  public:
   // Joins the DDS domain (configured by CYCLONEDDS_URI) and creates the writers. Throws
   // InvalidArgument for a bad namespace or domain, mrskin::Error when DDS cannot start.
@@ -77,7 +79,7 @@ struct FollowerSample {
   std::array<double, 4> orientation_xyzw{0.0, 0.0, 0.0, 1.0};
 };
 
-class FollowerPublisher {
+class MRSKIN_BRIDGE_API FollowerPublisher {
  public:
   // arm: a ROS 2 namespace (PSM1, /dvrk/PSM1). Throws InvalidArgument for a bad name or domain,
   // mrskin::Error when DDS cannot start.

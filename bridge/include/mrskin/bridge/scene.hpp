@@ -6,6 +6,7 @@
 #include <span>
 #include <string_view>
 
+#include "mrskin/bridge/export.hpp"
 #include "mrskin/bridge/mapping.hpp"
 #include "mrskin/bridge/tissue.hpp"
 #include "mrskin/driver/clock.hpp"
@@ -31,7 +32,7 @@ struct SlaveSample {
 };
 
 // Produces the latest slave sample; called from the tick thread, never blocks.
-class SlaveSource {
+class MRSKIN_BRIDGE_API SlaveSource {
  public:
   SlaveSource() = default;
   SlaveSource(const SlaveSource&) = delete;
@@ -54,7 +55,7 @@ struct SlaveTruth {
 };
 
 // A scene scripts both sides from t = 0 (its start time).
-class Scene : public SlaveSource {
+class MRSKIN_BRIDGE_API Scene : public SlaveSource {
  public:
   [[nodiscard]] virtual std::string_view name() const noexcept = 0;
   // The mapping the scene was made with (the slave's tissue frame onto the skin).
@@ -123,7 +124,8 @@ class Scene : public SlaveSource {
 //
 // Names: scene_names(); "scene://NAME" is accepted too. Throws InvalidArgument (listing the
 // names) for an unknown name, and for a mapping that is not valid().
-std::unique_ptr<Scene> make_scene(std::string_view name, const WorkspaceMapping& mapping = {});
-std::span<const std::string_view> scene_names() noexcept;
+MRSKIN_BRIDGE_API std::unique_ptr<Scene> make_scene(std::string_view name,
+                                                    const WorkspaceMapping& mapping = {});
+MRSKIN_BRIDGE_API std::span<const std::string_view> scene_names() noexcept;
 
 }  // namespace mrskin::bridge

@@ -23,13 +23,14 @@
 #include <span>
 #include <vector>
 
+#include "mrskin/bridge/export.hpp"
 #include "mrskin/driver/layout.hpp"
 #include "mrskin/driver/model/profile.hpp"
 
 namespace mrskin::bridge {
 
 enum class SensorFault : std::uint8_t { none = 0, stuck = 1, noisy = 2, offset = 3 };
-const char* to_string(SensorFault fault) noexcept;
+MRSKIN_BRIDGE_API const char* to_string(SensorFault fault) noexcept;
 
 struct SensorFaultOptions {
   bool enabled = true;
@@ -43,7 +44,7 @@ struct SensorFaultOptions {
   double offset_window_readings = 40.0;
 };
 
-class SensorFaultMonitor {
+class MRSKIN_BRIDGE_API SensorFaultMonitor {
  public:
   static constexpr std::size_t npos = std::numeric_limits<std::size_t>::max();
 

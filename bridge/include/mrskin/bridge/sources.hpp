@@ -18,6 +18,7 @@
 #include <vector>
 
 #include "mrskin/bridge/drop_reason.hpp"
+#include "mrskin/bridge/export.hpp"
 #include "mrskin/bridge/scene.hpp"
 #include "mrskin/driver/clock.hpp"
 #include "mrskin/driver/spsc_queue.hpp"
@@ -98,7 +99,7 @@ struct SourceEvent {
 using ArrivalHook = void (*)(void* context) noexcept;
 
 // A source with counters. stats() may be read from any thread.
-class StreamSource : public SlaveSource {
+class MRSKIN_BRIDGE_API StreamSource : public SlaveSource {
  public:
   [[nodiscard]] virtual SourceStats stats() const noexcept = 0;
   // Set before samples flow (not synchronised with an I/O thread already pushing).
@@ -119,16 +120,19 @@ class StreamSource : public SlaveSource {
 // Query options (after '?'): udp/igtl*: queue=N; igtl*: force_device, pose_device, map_device,
 // pose_tool (NAME or *), rpy_deg=ROLL,PITCH,YAW (the robot's frame, docs/sources.md); replay:
 // speed=max|1, loop=0|1.
-std::unique_ptr<SlaveSource> make_source(std::string_view uri, const SourceOptions& options = {},
-                                         Clock* clock = nullptr);
+MRSKIN_BRIDGE_API std::unique_ptr<SlaveSource> make_source(std::string_view uri,
+                                                           const SourceOptions& options = {},
+                                                           Clock* clock = nullptr);
 // The same for udp://, replay://, igtl:// and igtl-listen:// only, with the counters in reach.
-std::unique_ptr<StreamSource> open_stream(std::string_view uri, const SourceOptions& options = {},
-                                          Clock* clock = nullptr);
+MRSKIN_BRIDGE_API std::unique_ptr<StreamSource> open_stream(std::string_view uri,
+                                                            const SourceOptions& options = {},
+                                                            Clock* clock = nullptr);
 // The robot's frame from roll, pitch and yaw in degrees (R = Rz(yaw) Ry(pitch) Rx(roll)), for
 // SourceOptions::robot_to_tissue. Throws InvalidArgument for a value that is not finite.
-std::array<double, 9> rotation_from_rpy_deg(double roll_deg, double pitch_deg, double yaw_deg);
+MRSKIN_BRIDGE_API std::array<double, 9> rotation_from_rpy_deg(double roll_deg, double pitch_deg,
+                                                              double yaw_deg);
 // Every scheme make_source accepts, for messages and --help.
-std::span<const std::string_view> source_schemes() noexcept;
+MRSKIN_BRIDGE_API std::span<const std::string_view> source_schemes() noexcept;
 
 // ---- UDP datagram, format version 1 (docs/sources.md) ----------------------------------------
 struct UdpSample {
@@ -143,14 +147,15 @@ struct UdpSample {
 inline constexpr std::size_t kUdpDatagramBytes = 68;
 inline constexpr std::uint16_t kUdpVersion = 1;
 // Little-endian, CRC-32C over bytes 0..63 at offset 64.
-std::array<std::uint8_t, kUdpDatagramBytes> encode_udp_sample(const UdpSample& sample) noexcept;
+MRSKIN_BRIDGE_API std::array<std::uint8_t, kUdpDatagramBytes> encode_udp_sample(
+    const UdpSample& sample) noexcept;
 // CRC-32C (Castagnoli, reflected, init and final xor 0xFFFFFFFF); "123456789" -> 0xE3069283.
-std::uint32_t crc32c(std::span<const std::uint8_t> data) noexcept;
+MRSKIN_BRIDGE_API std::uint32_t crc32c(std::span<const std::uint8_t> data) noexcept;
 
 // ---- recording --------------------------------------------------------------------------------
 // Records the samples the daemon uses to a replay file (format v1, docs/sources.md). record() is
 // for the tick thread: wait-free, no allocation; a writer thread writes the file.
-class SampleRecorder {
+class MRSKIN_BRIDGE_API SampleRecorder {
  public:
   // Throws mrskin::Error when the file cannot be created.
   explicit SampleRecorder(const std::string& path, std::size_t capacity = 4096);

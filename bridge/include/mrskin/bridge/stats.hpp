@@ -6,6 +6,7 @@
 #include <string>
 
 #include "mrskin/bridge/drop_reason.hpp"
+#include "mrskin/bridge/export.hpp"
 #include "mrskin/driver/histogram.hpp"
 
 namespace mrskin::bridge {
@@ -14,7 +15,7 @@ using mrskin::DurationHistogram;
 
 // Relative errors from 0 to 100 % in 0.1 % bins (the last bin holds everything above): a fixed
 // array, so the tick can fill it.
-class RelativeErrorHistogram {
+class MRSKIN_BRIDGE_API RelativeErrorHistogram {
  public:
   void add(double relative) noexcept;
   // Upper edge of the bin holding quantile q; 0 when empty.
@@ -30,7 +31,7 @@ class RelativeErrorHistogram {
 
 // Forces from 1 mN to 100 N in bins 1 % wide (smaller forces in the first bin, larger in the
 // last), with the exact maximum: a fixed array, so the tick can fill it.
-class ForceHistogram {
+class MRSKIN_BRIDGE_API ForceHistogram {
  public:
   void add(double force_N) noexcept;
   // Upper edge of the bin holding quantile q (0 for the first bin, the exact maximum for the
@@ -48,7 +49,7 @@ class ForceHistogram {
   double max_N_ = 0.0;
 };
 
-struct BridgeStats {
+struct MRSKIN_BRIDGE_API BridgeStats {
   std::uint64_t ticks = 0;
   std::uint64_t overruns = 0;         // ticks whose work exceeded the period
   std::uint64_t skipped_periods = 0;  // periods skipped to catch up (never burst)
@@ -130,6 +131,6 @@ struct BridgeStats {
 inline constexpr int kStatisticsFormatVersion = 1;
 
 // JSON text of the statistics (allocates: call off the tick thread). Every key: docs/statistics.md.
-std::string to_json(const BridgeStats& stats, double tick_period_s);
+MRSKIN_BRIDGE_API std::string to_json(const BridgeStats& stats, double tick_period_s);
 
 }  // namespace mrskin::bridge

@@ -12,6 +12,7 @@
 #include <span>
 #include <string_view>
 
+#include "mrskin/bridge/export.hpp"
 #include "mrskin/driver/model/inverse.hpp"
 
 namespace mrskin::bridge {
@@ -22,11 +23,11 @@ enum class TissueKind : unsigned char {
   hertz,          // Hunt-Crossley with n = 3/2 (sphere on a half-space)
   exponential,    // F = a (e^(beta x) - 1) + b x'
 };
-const char* to_string(TissueKind kind) noexcept;
+MRSKIN_BRIDGE_API const char* to_string(TissueKind kind) noexcept;
 
 // A tissue law in the indentation x below the tissue's surface and its rate x'. Force is zero
 // out of contact (x <= 0) and never negative: tissue cannot pull on the instrument.
-struct TissueModel {
+struct MRSKIN_BRIDGE_API TissueModel {
   TissueKind kind = TissueKind::kelvin_voigt;
   double stiffness_N_per_m = 0.0;     // k; unit N/m^n for hunt_crossley and hertz
   double exponent = 1.0;              // n: 1 for kelvin_voigt, 1.5 for hertz
@@ -80,10 +81,10 @@ struct TissuePreset {
 };
 // Paper Table 2 (hand, neck, abdomen, thigh, back) and the stomach curve (stomach, and its
 // linear secant stomach_linear). Derivations in tissue.cpp and docs/tissue.md.
-std::span<const TissuePreset> tissue_presets() noexcept;
-std::span<const std::string_view> preset_names() noexcept;
-const TissueModel* find_preset(std::string_view name) noexcept;  // nullptr when unknown
-const TissuePreset* find_tissue_preset(std::string_view name) noexcept;
+MRSKIN_BRIDGE_API std::span<const TissuePreset> tissue_presets() noexcept;
+MRSKIN_BRIDGE_API std::span<const std::string_view> preset_names() noexcept;
+MRSKIN_BRIDGE_API const TissueModel* find_preset(std::string_view name) noexcept;  // nullptr when unknown
+MRSKIN_BRIDGE_API const TissuePreset* find_tissue_preset(std::string_view name) noexcept;
 
 // ---- online estimation -----------------------------------------------------------------------
 // One slave sample. stamp_s is on the caller's clock (the same clock as estimate()'s now_s).
@@ -101,7 +102,7 @@ struct TissueSample {
 //   safe     beyond: scale 0, zero force (valves released).
 // A fresh sample restores scale 1 at once; PassiveTissueUpdate makes that rise passive.
 enum class TissueFreshness : unsigned char { no_data, fresh, holding, fading, safe };
-const char* to_string(TissueFreshness f) noexcept;
+MRSKIN_BRIDGE_API const char* to_string(TissueFreshness f) noexcept;
 
 struct TissueEstimatorOptions {
   TissueKind kind = TissueKind::hunt_crossley;  // the law to fit
@@ -169,7 +170,7 @@ struct TissueEstimatorStats {
 // so the damping regressor is the derivative of a known signal, taken as a difference quotient
 // at the interval's midpoint (force and x^n averaged over the interval), and all three signals
 // pass through the same low-pass. Out-of-contact samples refresh freshness but do not update.
-class TissueEstimator {
+class MRSKIN_BRIDGE_API TissueEstimator {
  public:
   static constexpr std::size_t kMaxBank = 32;
   explicit TissueEstimator(const TissueEstimatorOptions& options);  // throws InvalidArgument
@@ -253,7 +254,7 @@ class TissueEstimator {
 // x)) at zero force and zero stored energy, so a full release restores the true surface. Damping
 // terms change freely: they only dissipate. A law arriving while the applied one is zero (first
 // contact, or after the stale fade) therefore starts from zero force at the current depth.
-class PassiveTissueUpdate {
+class MRSKIN_BRIDGE_API PassiveTissueUpdate {
  public:
   explicit PassiveTissueUpdate(double tank_max_J = 0.5e-3) noexcept
       : tank_max_J_(tank_max_J > 0.0 && tank_max_J < 1.0 ? tank_max_J : 0.0) {}
@@ -295,12 +296,12 @@ struct PassivityStats {
 
 // Totals over cells: energies and counts summed, min_energy_J the lowest of any cell (a cell's
 // deficit is not offset by another cell's surplus), damping the largest.
-void accumulate(PassivityStats& total, const PassivityStats& cell) noexcept;
+MRSKIN_BRIDGE_API void accumulate(PassivityStats& total, const PassivityStats& cell) noexcept;
 
 // Hannaford-Ryu time-domain passivity observer at one port: one fluid cell, force on the finger
 // and the finger's indentation. Each sample adds the trapezoid (F_k + F_{k-1}) / 2 (x_k - x_{k-1}),
 // which needs no rate estimate.
-class PassivityObserver {
+class MRSKIN_BRIDGE_API PassivityObserver {
  public:
   explicit PassivityObserver(double tolerance_J = 1e-6) noexcept : tolerance_J_(tolerance_J) {}
   void observe(double force_N, double indentation_m) noexcept;

@@ -6,13 +6,15 @@
 #include <chrono>
 #include <cstdint>
 
+#include "mrskin/driver/export.hpp"
+
 namespace mrskin {
 
 using Duration = std::chrono::nanoseconds;
 // A time point is the duration since the clock's own epoch.
 using TimePoint = std::chrono::nanoseconds;
 
-class Clock {
+class MRSKIN_DRIVER_API Clock {
  public:
   Clock() = default;
   Clock(const Clock&) = delete;
@@ -27,14 +29,14 @@ class Clock {
 };
 
 // CLOCK_MONOTONIC.
-class MonotonicClock final : public Clock {
+class MRSKIN_DRIVER_API MonotonicClock final : public Clock {
  public:
   [[nodiscard]] TimePoint now() const noexcept override;
   void sleep_until(TimePoint t) noexcept override;
 };
 
 // Advanced by hand; thread-safe reads. sleep_until() moves time forward to t.
-class SimulatedClock final : public Clock {
+class MRSKIN_DRIVER_API SimulatedClock final : public Clock {
  public:
   explicit SimulatedClock(TimePoint start = TimePoint{0}) noexcept : now_ns_(start.count()) {}
   [[nodiscard]] TimePoint now() const noexcept override {

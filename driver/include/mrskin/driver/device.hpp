@@ -19,6 +19,7 @@
 #include <string_view>
 
 #include "mrskin/driver/clock.hpp"
+#include "mrskin/driver/export.hpp"
 #include "mrskin/driver/session.hpp"
 
 namespace mrskin {
@@ -33,7 +34,7 @@ struct OpenOptions {
 // Advisory ownership of one device: an flock()ed file under $XDG_RUNTIME_DIR (or /tmp)
 // holding the owner's PID. A mock device lives inside its process, so its lock name
 // carries the PID: two sessions on one mock:// name in one process are refused.
-class DeviceLock {
+class MRSKIN_DRIVER_API DeviceLock {
  public:
   // Throws DeviceBusy naming the owning process.
   explicit DeviceLock(std::string_view uri);
@@ -52,7 +53,7 @@ class DeviceLock {
 
 // An in-process simulated unit behind a session (mrskin::sim's MockDevice). The driver only
 // keeps it alive; mrskin::sim::mock_of() gives it back to the simulation's users.
-class SimulatedUnit {
+class MRSKIN_DRIVER_API SimulatedUnit {
  public:
   SimulatedUnit() = default;
   SimulatedUnit(const SimulatedUnit&) = delete;
@@ -76,8 +77,9 @@ struct OpenedDevice {
 using DeviceOpener = OpenedDevice (*)(std::string_view uri, Clock& clock, const OpenOptions& options,
                                       const SessionOptions& session_options);
 // Registers (or replaces) the opener of `scheme` (without "://"). Setup only (it takes a lock).
-void register_device_scheme(std::string_view scheme, DeviceOpener opener);
+MRSKIN_DRIVER_API void register_device_scheme(std::string_view scheme, DeviceOpener opener);
 
-OpenedDevice open_device(std::string_view uri, Clock& clock, const OpenOptions& options = {});
+MRSKIN_DRIVER_API OpenedDevice open_device(std::string_view uri, Clock& clock,
+                                           const OpenOptions& options = {});
 
 }  // namespace mrskin

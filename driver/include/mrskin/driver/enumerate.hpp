@@ -8,6 +8,7 @@
 #include <vector>
 
 #include "mrskin/driver/clock.hpp"
+#include "mrskin/driver/export.hpp"
 
 namespace mrskin {
 
@@ -23,12 +24,13 @@ struct DeviceListing {
 };
 
 // hidraw nodes with the unit's VID:PID (hidapi, hidraw backend).
-std::vector<DeviceListing> list_hid_devices();
+MRSKIN_DRIVER_API std::vector<DeviceListing> list_hid_devices();
 // USB devices with the unit's VID:PID (libusb).
-std::vector<DeviceListing> list_usb_devices();
+MRSKIN_DRIVER_API std::vector<DeviceListing> list_usb_devices();
 // Every CAN interface that exists, probed for nodes 1..15 with an identify request; waits
 // at most timeout per interface. An interface that is down or a kernel without CAN gives
 // one entry with the problem and the command that fixes it.
-std::vector<DeviceListing> list_can_devices(Duration timeout = std::chrono::milliseconds(100));
+MRSKIN_DRIVER_API std::vector<DeviceListing> list_can_devices(
+    Duration timeout = std::chrono::milliseconds(100));
 
 }  // namespace mrskin

@@ -5,45 +5,47 @@
 #include <stdexcept>
 #include <string>
 
+#include "mrskin/driver/export.hpp"
+
 namespace mrskin {
 
-class Error : public std::runtime_error {
+class MRSKIN_DRIVER_API Error : public std::runtime_error {
  public:
   using std::runtime_error::runtime_error;
 };
 // A URI, option or profile value that cannot be used.
-class InvalidArgument : public Error {
+class MRSKIN_DRIVER_API InvalidArgument : public Error {
  public:
   using Error::Error;
 };
 // A profile name that is in none of the profile directories; the message lists the search path
 // and the names available there.
-class ProfileNotFound : public InvalidArgument {
+class MRSKIN_DRIVER_API ProfileNotFound : public InvalidArgument {
  public:
   using InvalidArgument::InvalidArgument;
 };
 // No device answers at the given address.
-class DeviceNotFound : public Error {
+class MRSKIN_DRIVER_API DeviceNotFound : public Error {
  public:
   using Error::Error;
 };
 // The OS refused access (udev rule, group, capability).
-class PermissionDenied : public Error {
+class MRSKIN_DRIVER_API PermissionDenied : public Error {
  public:
   using Error::Error;
 };
 // The device speaks another protocol version; the message names both.
-class ProtocolMismatch : public Error {
+class MRSKIN_DRIVER_API ProtocolMismatch : public Error {
  public:
   using Error::Error;
 };
 // Another process (or another session in this one) owns the device.
-class DeviceBusy : public Error {
+class MRSKIN_DRIVER_API DeviceBusy : public Error {
  public:
   using Error::Error;
 };
 // The device did not answer in time during setup.
-class Timeout : public Error {
+class MRSKIN_DRIVER_API Timeout : public Error {
  public:
   using Error::Error;
 };

@@ -5,9 +5,11 @@
 
 #include <span>
 
+#include "mrskin/driver/export.hpp"
+
 namespace mrskin {
 
-class ForceTruth {
+class MRSKIN_DRIVER_API ForceTruth {
  public:
   ForceTruth() = default;
   ForceTruth(const ForceTruth&) = delete;

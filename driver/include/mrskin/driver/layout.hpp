@@ -5,6 +5,8 @@
 #include <cstddef>
 #include <vector>
 
+#include "mrskin/driver/export.hpp"
+
 namespace mrskin {
 
 struct GridCell {
@@ -12,7 +14,7 @@ struct GridCell {
   int col = 0;
 };
 
-class GridLayout {
+class MRSKIN_DRIVER_API GridLayout {
  public:
   GridLayout(int rows, int cols);  // throws InvalidArgument for rows or cols outside 1..255
 

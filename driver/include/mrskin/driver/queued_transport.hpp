@@ -12,12 +12,13 @@
 #include <string>
 #include <string_view>
 
+#include "mrskin/driver/export.hpp"
 #include "mrskin/driver/spsc_queue.hpp"
 #include "mrskin/driver/transport.hpp"
 
 namespace mrskin {
 
-class QueuedTransport : public Transport {
+class MRSKIN_DRIVER_API QueuedTransport : public Transport {
  public:
   // Queue capacities in datagrams. Throws Error when eventfd() fails.
   QueuedTransport(std::string uri, std::size_t send_capacity, std::size_t receive_capacity);

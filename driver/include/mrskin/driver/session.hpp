@@ -15,6 +15,7 @@
 
 #include "mrskin/driver/clock.hpp"
 #include "mrskin/driver/errors.hpp"
+#include "mrskin/driver/export.hpp"
 #include "mrskin/driver/histogram.hpp"
 #include "mrskin/driver/model/profile.hpp"
 #include "mrskin/driver/transport.hpp"
@@ -24,8 +25,8 @@
 namespace mrskin {
 
 enum class DeviceState : std::uint8_t { disabled = 0, enabled = 1, paused = 2, fault = 3 };
-const char* to_string(DeviceState s) noexcept;
-const char* fault_name(std::uint8_t fault_code) noexcept;
+MRSKIN_DRIVER_API const char* to_string(DeviceState s) noexcept;
+MRSKIN_DRIVER_API const char* fault_name(std::uint8_t fault_code) noexcept;
 
 // What the device said about itself, in SI units, plus its configuration memory.
 struct DeviceInfo {
@@ -126,7 +127,7 @@ struct LogEntry {
 // on that cell, or else 0. The seeded target is offset = measured displacement, stiffness 0,
 // ceiling = measured force, and the validity given. Built at setup (allocates); the rest is
 // noexcept and allocation-free (one instance per thread: the fit uses the seeder's scratch).
-class TargetSeeder {
+class MRSKIN_DRIVER_API TargetSeeder {
  public:
   TargetSeeder() = default;
   explicit TargetSeeder(const model::DeviceProfile& profile);
@@ -161,7 +162,7 @@ struct TelemetryView {
 };
 using TelemetryCallback = void (*)(void* context, const TelemetryView& view) noexcept;
 
-class DeviceSession {
+class MRSKIN_DRIVER_API DeviceSession {
  public:
   // Runs the handshake on transport. Throws ProtocolMismatch (both versions named),
   // Timeout, DeviceNotFound when the transport is down, or InvalidArgument when the profile

@@ -13,6 +13,7 @@
 
 #include "mrskin/driver/clock.hpp"
 #include "mrskin/driver/errors.hpp"
+#include "mrskin/driver/export.hpp"
 
 namespace mrskin {
 
@@ -54,7 +55,7 @@ struct TransportCounters {
   std::uint64_t bus_off = 0;           // CAN bus-off events
 };
 
-class Transport {
+class MRSKIN_DRIVER_API Transport {
  public:
   Transport() = default;
   Transport(const Transport&) = delete;

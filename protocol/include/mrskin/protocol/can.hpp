@@ -20,6 +20,7 @@
 #include <span>
 
 #include "mrskin/protocol/errors.hpp"
+#include "mrskin/protocol/export.hpp"
 #include "mrskin/protocol/messages.hpp"
 #include "mrskin/protocol/packet.hpp"
 
@@ -72,12 +73,14 @@ struct CanEncodeResult {
 // per block (ValveCurrents and Telemetry need first % 4 == 0; Telemetry's device time goes
 // in a separate TimeSync frame that the caller sends first). Identity and configuration
 // are packets segmented over several frames; sequence numbers their packet.
-CanEncodeResult encode_can(const Message& message, std::uint8_t node, std::uint8_t counter,
-                           std::uint8_t sequence, std::span<CanFrame> out) noexcept;
+MRSKIN_PROTOCOL_API CanEncodeResult encode_can(const Message& message, std::uint8_t node,
+                                               std::uint8_t counter, std::uint8_t sequence,
+                                               std::span<CanFrame> out) noexcept;
 
 // Encodes a message as one CAN FD frame carrying a packet.
-CanEncodeResult encode_canfd(const Message& message, std::uint8_t node, Direction direction,
-                             std::uint8_t sequence, CanFrame& out) noexcept;
+MRSKIN_PROTOCOL_API CanEncodeResult encode_canfd(const Message& message, std::uint8_t node,
+                                                 Direction direction, std::uint8_t sequence,
+                                                 CanFrame& out) noexcept;
 
 struct CanDecoded {
   Error error = Error::ok;
@@ -90,7 +93,7 @@ struct CanDecoded {
 
 // Decodes frames addressed to one node; keeps the state of one segmented transfer per
 // direction. No allocation; frames for other nodes give wrong_node.
-class CanDecoder {
+class MRSKIN_PROTOCOL_API CanDecoder {
  public:
   explicit CanDecoder(std::uint8_t node) noexcept : node_(node) {}
   CanDecoded decode(const CanFrame& frame) noexcept;
@@ -110,6 +113,6 @@ class CanDecoder {
 
 // Bits on the wire of a classic or FD data frame (11-bit id) with worst-case stuffing,
 // including interframe space. Classic 8-byte frame: 135 bits.
-std::size_t can_frame_bits_worst_case(std::size_t data_bytes, bool fd) noexcept;
+MRSKIN_PROTOCOL_API std::size_t can_frame_bits_worst_case(std::size_t data_bytes, bool fd) noexcept;
 
 }  // namespace mrskin::protocol

@@ -8,6 +8,8 @@
 #include <cstdint>
 #include <variant>
 
+#include "mrskin/protocol/export.hpp"
+
 namespace mrskin::protocol {
 
 inline constexpr std::uint8_t kVersionMajor = 1;
@@ -187,6 +189,6 @@ struct ConfigAck {
 using Message = std::variant<IdentifyRequest, Identity, ValveCurrents, CellTargets, Telemetry, TimeSync,
                              Status, Heartbeat, StateRequest, ConfigRead, ConfigData, ConfigWrite, ConfigAck>;
 
-MessageType type_of(const Message& m) noexcept;
+MRSKIN_PROTOCOL_API MessageType type_of(const Message& m) noexcept;
 
 }  // namespace mrskin::protocol

@@ -10,6 +10,7 @@
 #include <span>
 
 #include "mrskin/protocol/errors.hpp"
+#include "mrskin/protocol/export.hpp"
 #include "mrskin/protocol/messages.hpp"
 
 namespace mrskin::protocol {
@@ -38,24 +39,24 @@ struct PacketDecoded {
 };
 
 // Writes the packet into out (at least its length). Fields are range-checked.
-EncodeResult encode_packet(const Message& message, std::uint8_t sequence,
-                           std::span<std::uint8_t> out) noexcept;
+MRSKIN_PROTOCOL_API EncodeResult encode_packet(const Message& message, std::uint8_t sequence,
+                                               std::span<std::uint8_t> out) noexcept;
 
 // Encodes into a full 64-byte HID report, zero padded.
-EncodeResult encode_hid_report(const Message& message, std::uint8_t sequence,
-                               std::span<std::uint8_t, kHidReportBytes> report) noexcept;
+MRSKIN_PROTOCOL_API EncodeResult encode_hid_report(const Message& message, std::uint8_t sequence,
+                                                   std::span<std::uint8_t, kHidReportBytes> report) noexcept;
 
 // Decodes a packet at the start of in; in may carry trailing padding up to 64 bytes.
-PacketDecoded decode_packet(std::span<const std::uint8_t> in) noexcept;
+MRSKIN_PROTOCOL_API PacketDecoded decode_packet(std::span<const std::uint8_t> in) noexcept;
 
 // Smallest CAN FD data length (0-8, 12, 16, 20, 24, 32, 48, 64) holding n bytes.
-std::size_t canfd_padded_length(std::size_t n) noexcept;
+MRSKIN_PROTOCOL_API std::size_t canfd_padded_length(std::size_t n) noexcept;
 
 // Payload length of a message in packet framing, or 0 when it is malformed.
-std::size_t packet_payload_length(const Message& message) noexcept;
+MRSKIN_PROTOCOL_API std::size_t packet_payload_length(const Message& message) noexcept;
 
 // Detects gaps in a modular counter (8-bit sequences, 4-bit CAN counters).
-class CounterTracker {
+class MRSKIN_PROTOCOL_API CounterTracker {
  public:
   explicit CounterTracker(std::uint8_t modulus = 0) noexcept : modulus_(modulus) {}
   // Returns ok for the first value and for last+1; counter_gap otherwise (value is taken).

@@ -5,6 +5,7 @@
 #include <cstdint>
 
 #include "mrskin/protocol/errors.hpp"
+#include "mrskin/protocol/export.hpp"
 #include "mrskin/protocol/messages.hpp"
 
 namespace mrskin::protocol {
@@ -21,18 +22,19 @@ struct Quantized {
 };
 
 // Rounds value/lsb to the nearest count in [0, max_counts].
-Quantized<std::uint16_t> quantize_unsigned(double value, double lsb, std::uint16_t max_counts) noexcept;
+MRSKIN_PROTOCOL_API Quantized<std::uint16_t> quantize_unsigned(double value, double lsb,
+                                                               std::uint16_t max_counts) noexcept;
 // Rounds value/lsb to the nearest count in [min_counts, max_counts].
-Quantized<std::int16_t> quantize_signed(double value, double lsb, std::int16_t min_counts,
-                                        std::int16_t max_counts) noexcept;
+MRSKIN_PROTOCOL_API Quantized<std::int16_t> quantize_signed(double value, double lsb, std::int16_t min_counts,
+                                                            std::int16_t max_counts) noexcept;
 
 // Coil current in amperes, with the LSB and maximum the device declared in its Identity.
-Quantized<std::uint16_t> quantize_current(double current_A, const Identity& id) noexcept;
-double current_from_counts(std::uint16_t counts, const Identity& id) noexcept;
+MRSKIN_PROTOCOL_API Quantized<std::uint16_t> quantize_current(double current_A, const Identity& id) noexcept;
+MRSKIN_PROTOCOL_API double current_from_counts(std::uint16_t counts, const Identity& id) noexcept;
 
 // Sensor reading in its SI unit.
-double sensor_from_counts(std::int16_t counts, const Identity& id) noexcept;
-Quantized<std::int16_t> quantize_sensor(double value, const Identity& id) noexcept;
+MRSKIN_PROTOCOL_API double sensor_from_counts(std::int16_t counts, const Identity& id) noexcept;
+MRSKIN_PROTOCOL_API Quantized<std::int16_t> quantize_sensor(double value, const Identity& id) noexcept;
 
 struct CellTargetSi {
   double stiffness_N_per_m = 0.0;
@@ -40,7 +42,7 @@ struct CellTargetSi {
   double ceiling_N = 0.0;
   double validity_s = 0.0;
 };
-Quantized<CellTarget> quantize_cell_target(const CellTargetSi& si) noexcept;
-CellTargetSi cell_target_to_si(const CellTarget& t) noexcept;
+MRSKIN_PROTOCOL_API Quantized<CellTarget> quantize_cell_target(const CellTargetSi& si) noexcept;
+MRSKIN_PROTOCOL_API CellTargetSi cell_target_to_si(const CellTarget& t) noexcept;
 
 }  // namespace mrskin::protocol

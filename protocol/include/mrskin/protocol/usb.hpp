@@ -10,6 +10,8 @@
 #include <string>
 #include <string_view>
 
+#include "mrskin/protocol/export.hpp"
+
 namespace mrskin::protocol {
 
 inline constexpr std::uint16_t kUsbVendorId = 0x1209;   // pid.codes
@@ -39,8 +41,8 @@ inline constexpr std::array<std::uint8_t, 27> kHidReportDescriptor = {
 };
 
 // "0000BEEF" for serial 0xBEEF.
-std::string format_usb_serial(std::uint32_t serial);
+MRSKIN_PROTOCOL_API std::string format_usb_serial(std::uint32_t serial);
 // Inverse of format_usb_serial; nullopt unless exactly 8 hex digits (either case).
-std::optional<std::uint32_t> parse_usb_serial(std::string_view text) noexcept;
+MRSKIN_PROTOCOL_API std::optional<std::uint32_t> parse_usb_serial(std::string_view text) noexcept;
 
 }  // namespace mrskin::protocol

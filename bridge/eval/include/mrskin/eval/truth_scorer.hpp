@@ -11,6 +11,7 @@
 #include "mrskin/bridge/scene.hpp"
 #include "mrskin/driver/force_truth.hpp"
 #include "mrskin/driver/layout.hpp"
+#include "mrskin/eval/export.hpp"
 
 namespace mrskin::eval {
 
@@ -18,7 +19,7 @@ namespace mrskin::eval {
 // force against the target where the true finger presses or holds (force_* and relative_error),
 // against the law at the finger's true state (true_state_*), and where it retreats (release_*);
 // docs/bridge.md, "Scoring", and docs/statistics.md. Allocation-free after construction.
-class TruthScorer final : public bridge::TickWatcher {
+class MRSKIN_EVAL_API TruthScorer final : public bridge::TickWatcher {
  public:
   // truth and options outlive the scorer; options are the bridge's (contact threshold, range).
   TruthScorer(const ForceTruth& truth, std::size_t fluid_cells, const bridge::BridgeOptions& options);
@@ -37,7 +38,7 @@ class TruthScorer final : public bridge::TickWatcher {
 
 // The simulated finger following the scene at scene time t_s: a fingertip (sim::press_fingertip)
 // where the scene's mapping puts the slave's contact, as deep as the slave's indentation.
-void press_scene_finger(const bridge::Scene& scene, double t_s, const GridLayout& layout,
-                        std::span<double> indentation_m) noexcept;
+MRSKIN_EVAL_API void press_scene_finger(const bridge::Scene& scene, double t_s, const GridLayout& layout,
+                                        std::span<double> indentation_m) noexcept;
 
 }  // namespace mrskin::eval

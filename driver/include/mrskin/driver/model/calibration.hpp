@@ -24,6 +24,7 @@
 #include <string_view>
 #include <vector>
 
+#include "mrskin/driver/export.hpp"
 #include "mrskin/driver/model/profile.hpp"
 
 namespace mrskin::model {
@@ -57,18 +58,18 @@ struct Calibration {
 // key: scales must be in [0.5, 2], a per-valve list must have one entry per valve of the
 // profile (valves = 0 skips that check), sensor offsets finite, one per sensor (sensors = 0
 // skips that check).
-Calibration parse_calibration(std::string_view text, const std::string& origin, std::size_t valves = 0,
-                              std::size_t sensors = 0);
-std::string format_calibration(const Calibration& c);
+MRSKIN_DRIVER_API Calibration parse_calibration(std::string_view text, const std::string& origin,
+                                                std::size_t valves = 0, std::size_t sensors = 0);
+MRSKIN_DRIVER_API std::string format_calibration(const Calibration& c);
 
 // The nominal profile with the calibration's scales applied (per-valve gains are not part of
 // a profile: the observer and the inverse take them separately).
-DeviceProfile apply_calibration(const DeviceProfile& nominal, const Calibration& c);
+MRSKIN_DRIVER_API DeviceProfile apply_calibration(const DeviceProfile& nominal, const Calibration& c);
 
 // What a factory measures on a unit whose true parameters are `truth` (built to `nominal`),
 // each ratio off by a seeded relative measurement error of spread `measurement_error`.
-Calibration measure_calibration(const DeviceProfile& nominal, const DeviceProfile& truth,
-                                std::span<const double> valve_gain, double measurement_error,
-                                std::uint64_t seed);
+MRSKIN_DRIVER_API Calibration measure_calibration(const DeviceProfile& nominal, const DeviceProfile& truth,
+                                                  std::span<const double> valve_gain,
+                                                  double measurement_error, std::uint64_t seed);
 
 }  // namespace mrskin::model

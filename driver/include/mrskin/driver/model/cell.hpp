@@ -31,6 +31,7 @@
 
 #include <cstdint>
 
+#include "mrskin/driver/export.hpp"
 #include "mrskin/driver/model/common.hpp"
 #include "mrskin/driver/model/membrane.hpp"
 
@@ -50,16 +51,17 @@ struct ContactPatch {
 
 // Builds the patch (quadrature at setup; no allocation). degenerate for radii <= 0 or
 // a finger smaller than 1 % of the cell.
-Result<ContactPatch> contact_patch(const MembraneParams& m, double cell_radius_m,
-                                   double finger_radius_m) noexcept;
+MRSKIN_DRIVER_API Result<ContactPatch> contact_patch(const MembraneParams& m, double cell_radius_m,
+                                                     double finger_radius_m) noexcept;
 
 // Membrane force on the pad at depth d (no fluid pressure), N.
-Result<double> pad_membrane_force_N(const ContactPatch& p, double indentation_m) noexcept;
+MRSKIN_DRIVER_API Result<double> pad_membrane_force_N(const ContactPatch& p, double indentation_m) noexcept;
 // Pressure of the free annulus holding a bulge volume s, Pa, and its inverse.
-double bulge_pressure_Pa(const ContactPatch& p, double bulge_volume_m3) noexcept;
-Result<double> bulge_volume_m3(const ContactPatch& p, double pressure_Pa) noexcept;
+MRSKIN_DRIVER_API double bulge_pressure_Pa(const ContactPatch& p, double bulge_volume_m3) noexcept;
+MRSKIN_DRIVER_API Result<double> bulge_volume_m3(const ContactPatch& p, double pressure_Pa) noexcept;
 // Elastic energy stored in the cell's membrane, J.
-Result<double> stored_energy_J(const ContactPatch& p, double indentation_m, double bulge_volume_m3) noexcept;
+MRSKIN_DRIVER_API Result<double> stored_energy_J(const ContactPatch& p, double indentation_m,
+                                                 double bulge_volume_m3) noexcept;
 
 enum class CellMode : unsigned char {
   bulging,    // loading, valves below their threshold: the cell's own membrane takes the volume
@@ -68,7 +70,7 @@ enum class CellMode : unsigned char {
   refilling,  // unloading, fluid returning through the valves
   released,   // unloading faster than the membrane and p0 can follow: no contact force
 };
-const char* to_string(CellMode m) noexcept;
+MRSKIN_DRIVER_API const char* to_string(CellMode m) noexcept;
 
 struct CellLoad {
   double force_N = 0.0;              // contact force on the finger

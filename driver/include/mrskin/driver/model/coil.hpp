@@ -10,6 +10,7 @@
 // commands (the eddy lag with a first-order hold on I).
 #pragma once
 
+#include "mrskin/driver/export.hpp"
 #include "mrskin/driver/model/common.hpp"
 
 namespace mrskin::model {
@@ -31,16 +32,17 @@ struct CoilState {
 
 // Advances the coil by dt under a constant command in [-max_current_A, max_current_A] (negative:
 // a bipolar driver reversing the field, as a degauss does; hosts command 0..max).
-Result<CoilState> coil_step(const CoilParams& c, const CoilState& s, double command_A, double dt_s) noexcept;
+MRSKIN_DRIVER_API Result<CoilState> coil_step(const CoilParams& c, const CoilState& s, double command_A,
+                                              double dt_s) noexcept;
 
 // Current-loop time constant 1 / (2 pi f_bw), s.
-double current_loop_time_constant_s(const CoilParams& c) noexcept;
+MRSKIN_DRIVER_API double current_loop_time_constant_s(const CoilParams& c) noexcept;
 // The profile's coil time constant used for settling figures: current loop + eddy lag, s.
-double coil_time_constant_s(const CoilParams& c) noexcept;
+MRSKIN_DRIVER_API double coil_time_constant_s(const CoilParams& c) noexcept;
 // Open-loop L/R, s (what a voltage driver would give).
-double open_loop_time_constant_s(const CoilParams& c) noexcept;
+MRSKIN_DRIVER_API double open_loop_time_constant_s(const CoilParams& c) noexcept;
 
 // Empty string when the parameters make sense, otherwise "field: reason".
-const char* check_coil(const CoilParams& c) noexcept;
+MRSKIN_DRIVER_API const char* check_coil(const CoilParams& c) noexcept;
 
 }  // namespace mrskin::model

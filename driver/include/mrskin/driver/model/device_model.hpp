@@ -10,13 +10,14 @@
 #include <span>
 #include <vector>
 
+#include "mrskin/driver/export.hpp"
 #include "mrskin/driver/layout.hpp"
 #include "mrskin/driver/model/cell.hpp"
 #include "mrskin/driver/model/profile.hpp"
 
 namespace mrskin::model {
 
-class DeviceModel {
+class MRSKIN_DRIVER_API DeviceModel {
  public:
   explicit DeviceModel(DeviceProfile profile);
 

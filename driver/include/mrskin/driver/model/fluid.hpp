@@ -8,6 +8,7 @@
 // C = 1.0 for a hydrocarbon carrier, 1.16 for water, 0.95 for silicone oil.
 #pragma once
 
+#include "mrskin/driver/export.hpp"
 #include "mrskin/driver/model/common.hpp"
 
 namespace mrskin::model {
@@ -27,21 +28,24 @@ struct FluidParams {
 };
 
 // Yield stress at field magnitude |H|, Pa (even in H).
-Result<double> yield_stress_Pa(const FluidParams& f, double field_A_per_m) noexcept;
+MRSKIN_DRIVER_API Result<double> yield_stress_Pa(const FluidParams& f, double field_A_per_m) noexcept;
 // Flux density in the fluid at field H, T (odd in H).
-Result<double> fluid_flux_density_T(const FluidParams& f, double field_A_per_m) noexcept;
+MRSKIN_DRIVER_API Result<double> fluid_flux_density_T(const FluidParams& f, double field_A_per_m) noexcept;
 // d tau_y / dH at H, Pa per (A/m), and dB/dH, H/m.
-double yield_stress_slope_Pa_per_A_per_m(const FluidParams& f, double field_A_per_m) noexcept;
-double fluid_permeability_H_per_m(const FluidParams& f, double field_A_per_m) noexcept;
+MRSKIN_DRIVER_API double yield_stress_slope_Pa_per_A_per_m(const FluidParams& f,
+                                                           double field_A_per_m) noexcept;
+MRSKIN_DRIVER_API double fluid_permeability_H_per_m(const FluidParams& f, double field_A_per_m) noexcept;
 // The field that gives a flux density B in the fluid (inverse of the B(H) fit), A/m.
-Result<double> fluid_field_for_flux_density_A_per_m(const FluidParams& f, double flux_density_T) noexcept;
+MRSKIN_DRIVER_API Result<double> fluid_field_for_flux_density_A_per_m(const FluidParams& f,
+                                                                      double flux_density_T) noexcept;
 // The field that gives a yield stress (inverse of the tau_y fit), A/m; out_of_range at or above
 // the saturated yield stress.
-Result<double> field_for_yield_stress_A_per_m(const FluidParams& f, double yield_stress_Pa) noexcept;
+MRSKIN_DRIVER_API Result<double> field_for_yield_stress_A_per_m(const FluidParams& f,
+                                                                double yield_stress_Pa) noexcept;
 // The saturated yield stress C * 271700 * phi^1.5239, Pa.
-double saturated_yield_stress_Pa(const FluidParams& f) noexcept;
+MRSKIN_DRIVER_API double saturated_yield_stress_Pa(const FluidParams& f) noexcept;
 
 // Empty string when the parameters make sense, otherwise "field: reason".
-const char* check_fluid(const FluidParams& f) noexcept;
+MRSKIN_DRIVER_API const char* check_fluid(const FluidParams& f) noexcept;
 
 }  // namespace mrskin::model

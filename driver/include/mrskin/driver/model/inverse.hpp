@@ -41,6 +41,7 @@
 #include <span>
 #include <vector>
 
+#include "mrskin/driver/export.hpp"
 #include "mrskin/driver/model/common.hpp"
 #include "mrskin/driver/model/device_model.hpp"
 
@@ -73,7 +74,7 @@ enum class CellRole : unsigned char {
   holding,     // |rate| within the hold tolerance (or zero): the valves hold at their threshold
   loading,     // rate > 0: flow through the valves
 };
-const char* to_string(CellRole r) noexcept;
+MRSKIN_DRIVER_API const char* to_string(CellRole r) noexcept;
 
 struct CellSolution {
   CellRole role = CellRole::no_contact;
@@ -118,7 +119,7 @@ struct InverseOptions {
   double regularisation = 1.0e-8;
 };
 
-class CellInverse {
+class MRSKIN_DRIVER_API CellInverse {
  public:
   // Throws mrskin::InvalidArgument when the profile's hydraulic graph has a branch whose
   // passages are magnetised by different coils, or the coil cannot raise the yield stress.
@@ -173,11 +174,13 @@ class CellInverse {
 
 // The impedance law alone at a state (no envelope): k x^n + b x' + lambda x^n x', clamped to
 // [0, force_ceiling_N]; 0 while x <= 0. No validation (solve() validates).
-double impedance_force_N(const CellImpedanceTarget& target, const CellState& state) noexcept;
+MRSKIN_DRIVER_API double impedance_force_N(const CellImpedanceTarget& target,
+                                           const CellState& state) noexcept;
 
 // The role solve() gives a cell at a state: no contact at indentation <= 0, expired when now is
 // past its target's valid_until_s, then by rate against +-hold_rate_tolerance_m_per_s. The offline
 // reference (driver/reference/) classifies with it.
-CellRole classify_cell(const CellState& state, bool expired, double hold_rate_tolerance_m_per_s) noexcept;
+MRSKIN_DRIVER_API CellRole classify_cell(const CellState& state, bool expired,
+                                         double hold_rate_tolerance_m_per_s) noexcept;
 
 }  // namespace mrskin::model

@@ -15,6 +15,7 @@
 // single Preisach hysteron. With H_c = 0 the circuit is anhysteretic and stateless.
 #pragma once
 
+#include "mrskin/driver/export.hpp"
 #include "mrskin/driver/model/common.hpp"
 #include "mrskin/driver/model/fluid.hpp"
 
@@ -52,20 +53,23 @@ struct HysteresisState {
 };
 
 // Steel anhysteretic curve and its slope.
-double steel_flux_density_T(const SteelParams& s, double field_A_per_m) noexcept;
-double steel_permeability_H_per_m(const SteelParams& s, double field_A_per_m) noexcept;
+MRSKIN_DRIVER_API double steel_flux_density_T(const SteelParams& s, double field_A_per_m) noexcept;
+MRSKIN_DRIVER_API double steel_permeability_H_per_m(const SteelParams& s, double field_A_per_m) noexcept;
 
 // Anhysteretic operating point at a coil current (any sign), A.
-Result<GapField> gap_field(const MagneticCircuitParams& m, const FluidParams& f, double current_A) noexcept;
+MRSKIN_DRIVER_API Result<GapField> gap_field(const MagneticCircuitParams& m, const FluidParams& f,
+                                             double current_A) noexcept;
 // With hysteresis: updates `state` (the play) to the new operating point.
-Result<GapField> gap_field_hysteretic(const MagneticCircuitParams& m, const FluidParams& f, double current_A,
-                                      HysteresisState& state) noexcept;
+MRSKIN_DRIVER_API Result<GapField> gap_field_hysteretic(const MagneticCircuitParams& m, const FluidParams& f,
+                                                        double current_A, HysteresisState& state) noexcept;
 
 // Small-signal reluctance at zero field, 1/H (A-turn per Wb), and the inductance N^2 / R it gives.
-double zero_field_reluctance_per_H(const MagneticCircuitParams& m, const FluidParams& f) noexcept;
-double zero_field_inductance_H(const MagneticCircuitParams& m, const FluidParams& f) noexcept;
+MRSKIN_DRIVER_API double zero_field_reluctance_per_H(const MagneticCircuitParams& m,
+                                                     const FluidParams& f) noexcept;
+MRSKIN_DRIVER_API double zero_field_inductance_H(const MagneticCircuitParams& m,
+                                                 const FluidParams& f) noexcept;
 
 // Empty string when the parameters make sense, otherwise "field: reason".
-const char* check_magnetic(const MagneticCircuitParams& m) noexcept;
+MRSKIN_DRIVER_API const char* check_magnetic(const MagneticCircuitParams& m) noexcept;
 
 }  // namespace mrskin::model

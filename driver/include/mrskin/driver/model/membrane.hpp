@@ -24,6 +24,7 @@
 // form is an interpolation (within ~20 % of the von Karman plate solution).
 #pragma once
 
+#include "mrskin/driver/export.hpp"
 #include "mrskin/driver/model/common.hpp"
 
 namespace mrskin::model {
@@ -37,18 +38,19 @@ struct MembraneParams {
 };
 
 enum class DeflectionRegime : unsigned char { bending, transition, membrane };
-const char* to_string(DeflectionRegime r) noexcept;
-DeflectionRegime deflection_regime(const MembraneParams& m, double deflection_m) noexcept;
+MRSKIN_DRIVER_API const char* to_string(DeflectionRegime r) noexcept;
+MRSKIN_DRIVER_API DeflectionRegime deflection_regime(const MembraneParams& m, double deflection_m) noexcept;
 
 // Plate bending stiffness D = E t^3 / (12 (1 - nu^2)), N m.
-double bending_stiffness_N_m(const MembraneParams& m) noexcept;
+MRSKIN_DRIVER_API double bending_stiffness_N_m(const MembraneParams& m) noexcept;
 // q(nu) of the point-load law.
-double point_load_q(double poisson_ratio) noexcept;
+MRSKIN_DRIVER_API double point_load_q(double poisson_ratio) noexcept;
 
 // Uniform pressure on a clamped circular sheet.
-Result<double> disk_pressure_Pa(const MembraneParams& m, double radius_m,
-                                double centre_deflection_m) noexcept;
-Result<double> disk_deflection_m(const MembraneParams& m, double radius_m, double pressure_Pa) noexcept;
+MRSKIN_DRIVER_API Result<double> disk_pressure_Pa(const MembraneParams& m, double radius_m,
+                                                  double centre_deflection_m) noexcept;
+MRSKIN_DRIVER_API Result<double> disk_deflection_m(const MembraneParams& m, double radius_m,
+                                                   double pressure_Pa) noexcept;
 
 struct LoadSplit {
   double total = 0.0;
@@ -57,20 +59,23 @@ struct LoadSplit {
   double stretching = 0.0;
 };
 // Central load through a contact of radius c < a on a clamped circular sheet, N.
-Result<LoadSplit> point_load_force_N(const MembraneParams& m, double radius_m, double contact_radius_m,
-                                     double centre_deflection_m) noexcept;
+MRSKIN_DRIVER_API Result<LoadSplit> point_load_force_N(const MembraneParams& m, double radius_m,
+                                                       double contact_radius_m,
+                                                       double centre_deflection_m) noexcept;
 // Strip of span l, pressure for a mid-span deflection, Pa.
-Result<double> strip_pressure_Pa(const MembraneParams& m, double span_m, double centre_deflection_m) noexcept;
-Result<double> strip_deflection_m(const MembraneParams& m, double span_m, double pressure_Pa) noexcept;
+MRSKIN_DRIVER_API Result<double> strip_pressure_Pa(const MembraneParams& m, double span_m,
+                                                   double centre_deflection_m) noexcept;
+MRSKIN_DRIVER_API Result<double> strip_deflection_m(const MembraneParams& m, double span_m,
+                                                    double pressure_Pa) noexcept;
 
 // The paper's Eq. 6 verbatim: deflection of a simply supported beam of length l under a
 // total load p A, at x:  D(x) = p A l^3 / (24 E I) ((x/l)^4 - 2 (x/l)^3 + x/l).
 // Status::out_of_regime (value still given) when the mid-span deflection exceeds 0.3 t.
-Result<double> paper_eq6_deflection_m(double pressure_Pa, double area_m2, double length_m,
-                                      double youngs_modulus_Pa, double second_moment_m4, double x_m,
-                                      double thickness_m) noexcept;
+MRSKIN_DRIVER_API Result<double> paper_eq6_deflection_m(double pressure_Pa, double area_m2, double length_m,
+                                                        double youngs_modulus_Pa, double second_moment_m4,
+                                                        double x_m, double thickness_m) noexcept;
 
 // Empty string when the parameters make sense, otherwise "field: reason".
-const char* check_membrane(const MembraneParams& m) noexcept;
+MRSKIN_DRIVER_API const char* check_membrane(const MembraneParams& m) noexcept;
 
 }  // namespace mrskin::model

@@ -29,6 +29,7 @@
 #include <memory>
 #include <span>
 
+#include "mrskin/driver/export.hpp"
 #include "mrskin/driver/model/common.hpp"
 #include "mrskin/driver/model/device_model.hpp"
 
@@ -47,7 +48,7 @@ enum class Stepper : unsigned char {
   // unstable above dt ~ 2 C_ch / sum G, ~5e-6 s on the 5x5).
   explicit_euler,
 };
-const char* to_string(Stepper s) noexcept;
+MRSKIN_DRIVER_API const char* to_string(Stepper s) noexcept;
 
 struct NetworkOptions {
   Stepper stepper = Stepper::implicit_exact;
@@ -109,7 +110,7 @@ struct NetworkEnergy {
   double stored_initial_J = 0.0;
 };
 
-class NetworkSimulation {
+class MRSKIN_DRIVER_API NetworkSimulation {
  public:
   // Builds the network of the model's profile. Starts at rest: every pressure p0, no contact.
   NetworkSimulation(const DeviceModel& model, const NetworkOptions& options);

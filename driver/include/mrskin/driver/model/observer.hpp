@@ -34,6 +34,7 @@
 #include <memory>
 #include <span>
 
+#include "mrskin/driver/export.hpp"
 #include "mrskin/driver/model/common.hpp"
 #include "mrskin/driver/model/device_model.hpp"
 #include "mrskin/driver/model/network.hpp"
@@ -92,7 +93,7 @@ struct ObserverOptions {
   bool steel_hysteresis = true;
 };
 
-class CellObserver {
+class MRSKIN_DRIVER_API CellObserver {
  public:
   // The nominal model (not copied: it must outlive the observer). Throws InvalidArgument when the
   // profile has no displacement sensor.

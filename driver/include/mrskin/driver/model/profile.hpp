@@ -13,6 +13,7 @@
 #include <string_view>
 #include <vector>
 
+#include "mrskin/driver/export.hpp"
 #include "mrskin/driver/model/coil.hpp"
 #include "mrskin/driver/model/fluid.hpp"
 #include "mrskin/driver/model/magnetic.hpp"
@@ -22,9 +23,9 @@
 namespace mrskin::model {
 
 enum class SensorQuantity : unsigned char { displacement, force, pressure };
-const char* to_string(SensorQuantity q) noexcept;
+MRSKIN_DRIVER_API const char* to_string(SensorQuantity q) noexcept;
 // The SI unit of a quantity ("m", "N", "Pa").
-const char* unit_of(SensorQuantity q) noexcept;
+MRSKIN_DRIVER_API const char* unit_of(SensorQuantity q) noexcept;
 
 enum class PlaceKind : unsigned char { fluid_cell, valve, reservoir };
 
@@ -65,7 +66,7 @@ struct DesignPoint {
   int col = 2;
 };
 
-struct DeviceProfile {
+struct MRSKIN_DRIVER_API DeviceProfile {
   std::string name;
   std::string description;
   std::string origin;  // file it was read from, or "<text>"
@@ -91,19 +92,19 @@ struct DeviceProfile {
 };
 
 // Parses and validates a profile; throws InvalidArgument.
-DeviceProfile parse_profile(std::string_view toml_text, const std::string& origin);
+MRSKIN_DRIVER_API DeviceProfile parse_profile(std::string_view toml_text, const std::string& origin);
 // Reads a file, or finds a profile by name ("mr-skin-5x5") in the search path.
-DeviceProfile load_profile(const std::string& path_or_name);
+MRSKIN_DRIVER_API DeviceProfile load_profile(const std::string& path_or_name);
 // The default profile: the paper's 5 x 5 ("mr-skin-5x5").
-DeviceProfile default_profile();
+MRSKIN_DRIVER_API DeviceProfile default_profile();
 inline constexpr const char* kDefaultProfileName = "mr-skin-5x5";
 
 // Directories searched for a profile name, in order: $MRSKIN_PROFILE_PATH (colon-separated),
 // the source tree's driver/profiles (when it still exists: a build tree), the installed
 // share/mrskin/profiles.
-std::vector<std::string> profile_search_path();
+MRSKIN_DRIVER_API std::vector<std::string> profile_search_path();
 // The file a name resolves to; throws InvalidArgument listing where it looked.
-std::string find_profile(const std::string& name);
+MRSKIN_DRIVER_API std::string find_profile(const std::string& name);
 
 // A device profile found by name or path, with the text it was read from.
 struct LoadedProfile {
@@ -115,8 +116,8 @@ struct LoadedProfile {
 // profile_search_path(), or a file path (containing '/' or ending in .toml). Throws
 // ProfileNotFound (listing the search path and the names found there) or InvalidArgument (a
 // file that cannot be read or parsed).
-LoadedProfile load_profile_with_text(std::string_view name_or_path);
+MRSKIN_DRIVER_API LoadedProfile load_profile_with_text(std::string_view name_or_path);
 // The profile names (file stems) in the search path, sorted, without duplicates.
-std::vector<std::string> available_profile_names();
+MRSKIN_DRIVER_API std::vector<std::string> available_profile_names();
 
 }  // namespace mrskin::model

@@ -25,6 +25,7 @@
 // i.e. the excess of turbulent over laminar friction. At the MR skin's flows Re ~ 2.
 #pragma once
 
+#include "mrskin/driver/export.hpp"
 #include "mrskin/driver/model/common.hpp"
 
 namespace mrskin::model {
@@ -38,13 +39,14 @@ struct ValveGeometry {
   double mean_diameter_m = 0.0;  // annulus only
 };
 
-ValveGeometry slot_geometry(double gap_m, double width_m, double length_m) noexcept;
-ValveGeometry annulus_geometry(double gap_m, double mean_diameter_m, double length_m) noexcept;
+MRSKIN_DRIVER_API ValveGeometry slot_geometry(double gap_m, double width_m, double length_m) noexcept;
+MRSKIN_DRIVER_API ValveGeometry annulus_geometry(double gap_m, double mean_diameter_m,
+                                                 double length_m) noexcept;
 // Empty string when the geometry makes sense, otherwise "field: reason".
-const char* check_valve_geometry(const ValveGeometry& g) noexcept;
+MRSKIN_DRIVER_API const char* check_valve_geometry(const ValveGeometry& g) noexcept;
 
 enum class ValveMethod : unsigned char { exact, wereley_pang, fast };
-const char* to_string(ValveMethod m) noexcept;
+MRSKIN_DRIVER_API const char* to_string(ValveMethod m) noexcept;
 
 // Flow and its derivative dQ/d(dp) (the valve's incremental conductance, m^3/(s Pa)).
 struct FlowPoint {
@@ -52,7 +54,7 @@ struct FlowPoint {
   double conductance_m3_per_s_Pa = 0.0;
 };
 
-class ValveLaw {
+class MRSKIN_DRIVER_API ValveLaw {
  public:
   // Throws mrskin::InvalidArgument naming the bad field.
   ValveLaw(const ValveGeometry& g, double viscosity_Pa_s, double density_kg_per_m3);
@@ -110,12 +112,13 @@ class ValveLaw {
 // differ from the exact law, which in the same variables reads
 //   Q = (pi d / (24 mu)) (l / dp)^2 [8 tau^3 - 6 h^2 (dp / l)^2 tau + 2 h^3 (dp / l)^3].
 // At the device's numbers it predicts negative flow.
-Result<double> paper_eq3_flow_m3_per_s(double dp_Pa, double yield_stress_Pa, double gap_m, double length_m,
-                                       double mean_diameter_m, double viscosity_Pa_s) noexcept;
+MRSKIN_DRIVER_API Result<double> paper_eq3_flow_m3_per_s(double dp_Pa, double yield_stress_Pa, double gap_m,
+                                                         double length_m, double mean_diameter_m,
+                                                         double viscosity_Pa_s) noexcept;
 
 // Dimensionless inverse shared by all geometries: for r = dp_N / dp_y > 0, the exact
 // x = dp / dp_y = 1 / zeta >= 1 (safeguarded Newton), and the fast path's c(r) = x - r.
-Result<double> bingham_pressure_ratio(double r) noexcept;
-double bingham_excess_fast(double r) noexcept;
+MRSKIN_DRIVER_API Result<double> bingham_pressure_ratio(double r) noexcept;
+MRSKIN_DRIVER_API double bingham_excess_fast(double r) noexcept;
 
 }  // namespace mrskin::model

@@ -26,6 +26,7 @@
 
 #include "mrskin/driver/clock.hpp"
 #include "mrskin/driver/enumerate.hpp"
+#include "mrskin/driver/export.hpp"
 #include "mrskin/driver/transport.hpp"
 #include "mrskin/protocol/can.hpp"
 #include "mrskin/protocol/packet.hpp"
@@ -38,9 +39,9 @@ struct CanUri {
   bool fd = false;
 };
 // Throws InvalidArgument naming the bad part.
-CanUri parse_can_uri(std::string_view uri);
+MRSKIN_DRIVER_API CanUri parse_can_uri(std::string_view uri);
 // "can://can0?node=3" or "can://can0?node=3&fd=1".
-std::string format_can_uri(const CanUri& uri);
+MRSKIN_DRIVER_API std::string format_can_uri(const CanUri& uri);
 
 // --- packets <-> frames ----------------------------------------------------------------------
 // host: sends host->device packets, receives device->host frames (the transport).
@@ -65,7 +66,7 @@ enum class CanRole : std::uint8_t { host, device };
 //    than the last, plus the loss it knows of (the samples or statuses a rolling-counter gap
 //    skipped, or one for a frame that failed its CRC or a block without its TimeSync), so
 //    the session's gap counter sees it.
-class CanPacketCodec {
+class MRSKIN_DRIVER_API CanPacketCodec {
  public:
   // Frames one packet may need: a 64-byte segmented packet (10), 27 currents off a block
   // boundary (8 blocks), a TimeSync and 7 sensor blocks.
@@ -141,7 +142,7 @@ struct CanIdFilters {
   std::array<CanIdFilter, 8> filters{};
   std::size_t count = 0;
 };
-CanIdFilters can_receive_filters(CanRole role, std::uint8_t node) noexcept;
+MRSKIN_DRIVER_API CanIdFilters can_receive_filters(CanRole role, std::uint8_t node) noexcept;
 
 // --- the transport -----------------------------------------------------------------------------
 struct CanTransportOptions {
@@ -163,7 +164,8 @@ struct CanTransportOptions {
 // whose MTU is not 72: says how to raise it), DeviceNotFound (no such interface: lists those
 // that exist and how to create one; interface down: the command that brings it up; a kernel
 // without CAN: says so, and that modprobe can_raw loads it), PermissionDenied, Error.
-std::unique_ptr<Transport> open_can_transport(std::string_view uri, const CanTransportOptions& options = {});
+MRSKIN_DRIVER_API std::unique_ptr<Transport> open_can_transport(std::string_view uri,
+                                                                const CanTransportOptions& options = {});
 
 // What the CAN transport counted beyond TransportCounters. Any thread.
 struct CanTransportStats {
@@ -178,6 +180,6 @@ struct CanTransportStats {
   std::uint64_t dropped_packets = 0;
 };
 // nullopt when transport does not come from open_can_transport().
-std::optional<CanTransportStats> can_transport_stats(const Transport& transport) noexcept;
+MRSKIN_DRIVER_API std::optional<CanTransportStats> can_transport_stats(const Transport& transport) noexcept;
 
 }  // namespace mrskin

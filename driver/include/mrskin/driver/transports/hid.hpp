@@ -19,6 +19,7 @@
 
 #include "mrskin/driver/clock.hpp"
 #include "mrskin/driver/enumerate.hpp"
+#include "mrskin/driver/export.hpp"
 #include "mrskin/driver/transport.hpp"
 #include "mrskin/protocol/usb.hpp"
 
@@ -30,9 +31,9 @@ struct HidUri {
   std::string serial;  // "" = any unit, else 8 upper-case hex digits
 };
 // Throws InvalidArgument naming the bad part.
-HidUri parse_hid_uri(std::string_view uri);
+MRSKIN_DRIVER_API HidUri parse_hid_uri(std::string_view uri);
 // "hid://1209:4d52" or "hid://1209:4d52?serial=0000BEEF".
-std::string format_hid_uri(const HidUri& uri);
+MRSKIN_DRIVER_API std::string format_hid_uri(const HidUri& uri);
 
 // --- the OS seam ---------------------------------------------------------------------------
 // One hidraw node as hid_enumerate() lists it.
@@ -52,7 +53,7 @@ struct HidIoResult {
 
 // One open hidraw node (hid_device). Closed by its destructor. hidapi keeps a device's last
 // error inside it without a lock, so the transport opens one per thread.
-class HidDevice {
+class MRSKIN_DRIVER_API HidDevice {
  public:
   HidDevice() = default;
   HidDevice(const HidDevice&) = delete;
@@ -66,7 +67,7 @@ class HidDevice {
   virtual HidIoResult read_timeout(std::span<std::uint8_t> data, int timeout_ms) noexcept = 0;
 };
 
-class HidApi {
+class MRSKIN_DRIVER_API HidApi {
  public:
   HidApi() = default;
   HidApi(const HidApi&) = delete;
@@ -89,7 +90,7 @@ class HidApi {
 };
 
 // hidapi itself (hidraw backend). hid_init/hid_exit are reference-counted across instances.
-std::shared_ptr<HidApi> make_system_hid_api();
+MRSKIN_DRIVER_API std::shared_ptr<HidApi> make_system_hid_api();
 
 // --- the transport -------------------------------------------------------------------------
 struct HidTransportOptions {
@@ -115,16 +116,18 @@ struct HidTransportOptions {
 // Opens the unit (hid_init, hid_enumerate, hid_open_path) and starts its reader and writer
 // threads. Throws InvalidArgument (bad URI), DeviceNotFound (no matching unit: says what was
 // searched), PermissionDenied (EACCES: names the node, the udev rule and the group), Error.
-std::unique_ptr<Transport> open_hid_transport(std::string_view uri, const HidTransportOptions& options = {});
-std::unique_ptr<Transport> open_hid_transport(std::string_view uri, const HidTransportOptions& options,
-                                              std::shared_ptr<HidApi> api);
+MRSKIN_DRIVER_API std::unique_ptr<Transport> open_hid_transport(std::string_view uri,
+                                                                const HidTransportOptions& options = {});
+MRSKIN_DRIVER_API std::unique_ptr<Transport> open_hid_transport(std::string_view uri,
+                                                                const HidTransportOptions& options,
+                                                                std::shared_ptr<HidApi> api);
 
 // What is wrong with the link now, in words with the fix ("" when nothing): a unit that came
 // back but cannot be opened (permission denied after permission_retry, another error).
 // Allocates; not for the tick thread. transport must come from open_hid_transport().
-std::string hid_transport_problem(const Transport& transport);
+MRSKIN_DRIVER_API std::string hid_transport_problem(const Transport& transport);
 
 // list_hid_devices() on a given seam.
-std::vector<DeviceListing> list_hid_devices(HidApi& api);
+MRSKIN_DRIVER_API std::vector<DeviceListing> list_hid_devices(HidApi& api);
 
 }  // namespace mrskin

@@ -19,6 +19,7 @@
 
 #include "mrskin/driver/clock.hpp"
 #include "mrskin/driver/enumerate.hpp"
+#include "mrskin/driver/export.hpp"
 #include "mrskin/driver/transport.hpp"
 #include "mrskin/protocol/usb.hpp"
 
@@ -30,7 +31,7 @@ struct UsbUri {
   std::string serial;  // 8 upper-case hex digits, or "" for any unit
 };
 // usb:// alone means the default VID:PID. Throws InvalidArgument naming the bad part.
-UsbUri parse_usb_uri(std::string_view uri);
+MRSKIN_DRIVER_API UsbUri parse_usb_uri(std::string_view uri);
 
 struct UsbTransportOptions {
   std::size_t in_transfers = 4;   // IN transfers kept submitted
@@ -52,6 +53,7 @@ struct UsbTransportOptions {
 // is open on return. Throws InvalidArgument (URI), DeviceNotFound (no such unit, or no USB
 // at all), PermissionDenied (names the /dev/bus/usb node, the udev rule and the group),
 // DeviceBusy (another program or driver holds the interface) or Error.
-std::unique_ptr<Transport> open_usb_transport(std::string_view uri, const UsbTransportOptions& options = {});
+MRSKIN_DRIVER_API std::unique_ptr<Transport> open_usb_transport(std::string_view uri,
+                                                                const UsbTransportOptions& options = {});
 
 }  // namespace mrskin

@@ -5,6 +5,7 @@
 #include <span>
 
 #include "mrskin/driver/layout.hpp"
+#include "mrskin/sim/export.hpp"
 
 namespace mrskin::sim {
 
@@ -14,7 +15,7 @@ inline constexpr double kFingertipRadius_cells = 1.2;
 // Each fluid cell's indentation, m, under a fingertip centred at (row, col) in cell units (any
 // real position, off the grid too) pressed depth_m deep at its centre: depth_m (1 - r^2 / R^2)
 // out to R = kFingertipRadius_cells, 0 beyond. Writes min(size, fluid cells) values.
-void press_fingertip(const GridLayout& layout, double row, double col, double depth_m,
-                     std::span<double> indentation_m) noexcept;
+MRSKIN_SIM_API void press_fingertip(const GridLayout& layout, double row, double col, double depth_m,
+                                    std::span<double> indentation_m) noexcept;
 
 }  // namespace mrskin::sim

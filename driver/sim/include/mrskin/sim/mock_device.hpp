@@ -26,12 +26,13 @@
 #include "mrskin/driver/spsc_queue.hpp"
 #include "mrskin/driver/transport.hpp"
 #include "mrskin/protocol/messages.hpp"
+#include "mrskin/sim/export.hpp"
 #include "mrskin/sim/plant.hpp"
 
 namespace mrskin::sim {
 
 // Faults the mock injects, seeded like everything else (mock://?faults=...).
-struct MockFaults {
+struct MRSKIN_SIM_API MockFaults {
   double drop_probability = 0.0;         // each datagram, each direction
   double duplicate_probability = 0.0;    // each datagram, each direction
   double corrupt_probability = 0.0;      // one bit flipped, each datagram, each direction
@@ -96,7 +97,7 @@ struct MockOptions {
   double degauss_ratio = 0.85;   // amplitude ratio between half-cycles, from max_current_A
 };
 
-class MockDevice final : public SimulatedUnit {
+class MRSKIN_SIM_API MockDevice final : public SimulatedUnit {
  public:
   // A unit built to profile, whose configuration memory holds profile_text (read back by the
   // host during the handshake) and a versioned calibration. The plant has one sensor per
@@ -275,7 +276,7 @@ class MockDevice final : public SimulatedUnit {
 
 // The mock device's ground truth for the bridge's scoring: its plant's contact forces and the
 // finger it was given.
-class MockDeviceTruth final : public ForceTruth {
+class MRSKIN_SIM_API MockDeviceTruth final : public ForceTruth {
  public:
   explicit MockDeviceTruth(const MockDevice& mock) noexcept : mock_(mock) {}
   void true_forces(std::span<double> out_N) const noexcept override { mock_.true_contact_forces(out_N); }

@@ -19,6 +19,7 @@
 
 #include "mrskin/driver/model/network.hpp"
 #include "mrskin/driver/model/profile.hpp"
+#include "mrskin/sim/export.hpp"
 #include "mrskin/sim/plant.hpp"
 
 namespace mrskin::sim {
@@ -34,10 +35,10 @@ struct NetworkPlantOptions {
 };
 
 // The perturbed profile the plant runs on (exposed so tests can show the spread).
-model::DeviceProfile perturbed_profile(const model::DeviceProfile& nominal, double perturbation,
-                                       std::uint64_t seed);
+MRSKIN_SIM_API model::DeviceProfile perturbed_profile(const model::DeviceProfile& nominal,
+                                                      double perturbation, std::uint64_t seed);
 
-class NetworkPlant final : public Plant {
+class MRSKIN_SIM_API NetworkPlant final : public Plant {
  public:
   // Throws InvalidArgument for a profile the network cannot simulate.
   NetworkPlant(const model::DeviceProfile& nominal, const NetworkPlantOptions& options);

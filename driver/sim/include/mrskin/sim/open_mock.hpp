@@ -9,6 +9,7 @@
 #include <string_view>
 
 #include "mrskin/driver/device.hpp"
+#include "mrskin/sim/export.hpp"
 #include "mrskin/sim/mock_device.hpp"
 
 namespace mrskin::sim {
@@ -19,12 +20,12 @@ struct MockUri {
 };
 // Parses a mock:// URI; throws InvalidArgument naming the bad parameter. The profile is not
 // loaded here (model::load_profile_with_text does that).
-MockUri parse_mock_uri(std::string_view uri);
+MRSKIN_SIM_API MockUri parse_mock_uri(std::string_view uri);
 
 // Makes open_device() open mock:// URIs. Idempotent; setup only.
-void register_mock_scheme();
+MRSKIN_SIM_API void register_mock_scheme();
 
 // The mock behind a device opened with mock://; null for any other device.
-std::shared_ptr<MockDevice> mock_of(const OpenedDevice& device) noexcept;
+MRSKIN_SIM_API std::shared_ptr<MockDevice> mock_of(const OpenedDevice& device) noexcept;
 
 }  // namespace mrskin::sim

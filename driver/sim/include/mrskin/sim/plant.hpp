@@ -5,9 +5,11 @@
 #include <cstddef>
 #include <span>
 
+#include "mrskin/sim/export.hpp"
+
 namespace mrskin::sim {
 
-class Plant {
+class MRSKIN_SIM_API Plant {
  public:
   Plant() = default;
   Plant(const Plant&) = delete;

@@ -1,0 +1,6 @@
+#pragma once
+
+// libmrskin_driver is built with hidden visibility: a symbol is part of its ABI only when its
+// declaration carries MRSKIN_DRIVER_API (docs/api.md, "ABI and SONAME"). ELF needs the same
+// attribute when building and when using the library.
+#define MRSKIN_DRIVER_API __attribute__((visibility("default")))
