@@ -11,6 +11,7 @@
 #include "mrskin/driver/atomic_raise.hpp"
 #include "mrskin/driver/model/calibration.hpp"
 #include "mrskin/driver/model/device_model.hpp"
+#include "mrskin/driver/relaxed_counter.hpp"
 #include "mrskin/driver/spsc_queue.hpp"
 #include "render_stage.hpp"
 #include "tick_record.hpp"
@@ -57,9 +58,7 @@ class __attribute__((visibility("hidden"))) Bridge::Impl {
   }
   [[nodiscard]] const LoopStats* loop_stats() const noexcept { return loop_ ? &loop_->stats() : nullptr; }
   [[nodiscard]] const BridgeStats& stats() const noexcept { return stats_; }
-  [[nodiscard]] std::uint64_t live_ticks() const noexcept {
-    return live_ticks_.load(std::memory_order_relaxed);
-  }
+  [[nodiscard]] std::uint64_t live_ticks() const noexcept { return live_ticks_.value(); }
   [[nodiscard]] double live_rms_error_N() const noexcept {
     return live_rms_N_.load(std::memory_order_relaxed);
   }
@@ -72,9 +71,7 @@ class __attribute__((visibility("hidden"))) Bridge::Impl {
   [[nodiscard]] const model::CellInverse& inverse() const noexcept { return *inverse_; }
   [[nodiscard]] const SensorFaultMonitor& sensor_fault_monitor() const noexcept { return *sensor_faults_; }
   bool take_sensor_fault(SensorFaultEvent& out) noexcept { return sensor_fault_events_.try_pop(out); }
-  [[nodiscard]] std::uint64_t live_sensor_faults() const noexcept {
-    return live_sensor_faults_.load(std::memory_order_relaxed);
-  }
+  [[nodiscard]] std::uint64_t live_sensor_faults() const noexcept { return live_sensor_faults_.value(); }
   [[nodiscard]] double tick_period_s() const noexcept { return 1.0 / options_.rate_hz; }
   void set_perf_clock(const Clock* clock) noexcept { perf_clock_ = clock; }
 
@@ -147,7 +144,7 @@ class __attribute__((visibility("hidden"))) Bridge::Impl {
   // The sensors' watch across ticks.
   std::unique_ptr<SensorFaultMonitor> sensor_faults_;
   SpscQueue<SensorFaultEvent> sensor_fault_events_{64};
-  std::atomic<std::uint64_t> live_sensor_faults_{0};
+  RelaxedCounter live_sensor_faults_;
   std::uint64_t telemetry_seen_ = 0;  // the session's telemetry count at the last tick
   std::uint64_t link_gaps_seen_ = 0;  // ...and its timeouts and reconnects
   bool watched_last_tick_ = false;    // false: a gap (halted, observer error) before this tick
@@ -158,7 +155,7 @@ class __attribute__((visibility("hidden"))) Bridge::Impl {
   TimePoint start_{};
   bool started_ = false;
   BridgeStats stats_;
-  std::atomic<std::uint64_t> live_ticks_{0};
+  RelaxedCounter live_ticks_;
   std::atomic<double> live_rms_N_{0.0};
   std::atomic<double> live_stiffness_{0.0};
   Clock* loop_clock_ = nullptr;
@@ -284,7 +281,7 @@ void Bridge::Impl::watch_sensors(TimePoint now) noexcept {
   e.at_s = to_seconds(now - start_);
   e.healthy_left = sensor_faults_->healthy_count();
   (void)sensor_fault_events_.try_push(e);
-  live_sensor_faults_.store(stats_.sensor_faults, std::memory_order_relaxed);
+  live_sensor_faults_.set(stats_.sensor_faults);
   if (e.unobservable_cell != SensorFaultMonitor::npos && !sensor_halt_) {
     sensor_halt_ = true;
     ++stats_.sensor_fault_halts;
@@ -294,7 +291,7 @@ void Bridge::Impl::watch_sensors(TimePoint now) noexcept {
 
 void Bridge::Impl::count_tick() noexcept {
   ++stats_.ticks;
-  live_ticks_.store(stats_.ticks, std::memory_order_relaxed);
+  live_ticks_.set(stats_.ticks);
 }
 
 // Observe: the readings less their zero through the observer, and the sensors' watch on them.

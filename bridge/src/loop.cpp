@@ -303,7 +303,7 @@ void RealtimeLoop::reset_run() noexcept {
   grid_started_ = false;
   k_ = 0;
   live_ticks_.store(0, std::memory_order_relaxed);
-  live_overruns_.store(0, std::memory_order_relaxed);
+  live_overruns_.set(0);
   stop_requested_.store(false, std::memory_order_release);
   waiter_->clear();
 }
@@ -378,7 +378,7 @@ bool RealtimeLoop::run_once() noexcept {
     stats_.skipped_periods += k - k_;
     k_ = k;
     next_ = deadline(k_);
-    live_overruns_.store(stats_.overruns, std::memory_order_relaxed);
+    live_overruns_.set(stats_.overruns);
   }
   // Last: a watcher that sees the count knows the tick's bookkeeping is done.
   live_ticks_.store(stats_.ticks, std::memory_order_release);

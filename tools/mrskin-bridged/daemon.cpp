@@ -203,11 +203,11 @@ void Daemon::publish(TimePoint now) noexcept {
   state_.store(static_cast<std::uint8_t>(s.state()), std::memory_order_relaxed);
   fault_code_.store(s.fault_code(), std::memory_order_relaxed);
   last_fault_code_.store(s.last_fault_code(), std::memory_order_relaxed);
-  faults_.store(c.faults, std::memory_order_relaxed);
+  faults_.set(c.faults);
   halted_.store(bridge_->halted(), std::memory_order_relaxed);
   connected_.store(s.connected(), std::memory_order_relaxed);
   valves_released_.store(s.valves_released(), std::memory_order_relaxed);
-  ticks_.store(bridge_->live_ticks(), std::memory_order_relaxed);
+  ticks_.set(bridge_->live_ticks());
   rms_N_.store(bridge_->live_rms_error_N(), std::memory_order_relaxed);
   stiffness_.store(bridge_->live_stiffness_N_per_m(), std::memory_order_relaxed);
   double peak_N = 0.0;
@@ -220,16 +220,16 @@ void Daemon::publish(TimePoint now) noexcept {
     peak_A = std::max(peak_A, a);
   }
   peak_current_A_.store(peak_A, std::memory_order_relaxed);
-  sent_.store(c.sent, std::memory_order_relaxed);
-  received_.store(c.received, std::memory_order_relaxed);
-  identity_changes_.store(c.identity_changes, std::memory_order_relaxed);
-  crc_errors_.store(c.crc_errors, std::memory_order_relaxed);
-  decode_errors_.store(c.decode_errors, std::memory_order_relaxed);
-  sequence_gaps_.store(c.sequence_gaps, std::memory_order_relaxed);
-  link_duplicates_.store(c.duplicates, std::memory_order_relaxed);
-  telemetry_timeouts_.store(c.telemetry_timeouts, std::memory_order_relaxed);
-  disconnects_.store(c.disconnects, std::memory_order_relaxed);
-  reconnects_.store(c.reconnects, std::memory_order_relaxed);
+  sent_.set(c.sent);
+  received_.set(c.received);
+  identity_changes_.set(c.identity_changes);
+  crc_errors_.set(c.crc_errors);
+  decode_errors_.set(c.decode_errors);
+  sequence_gaps_.set(c.sequence_gaps);
+  link_duplicates_.set(c.duplicates);
+  telemetry_timeouts_.set(c.telemetry_timeouts);
+  disconnects_.set(c.disconnects);
+  reconnects_.set(c.reconnects);
   if (c.last_round_trip_ns > max_round_trip_ns_.load(std::memory_order_relaxed)) {
     max_round_trip_ns_.store(c.last_round_trip_ns, std::memory_order_relaxed);  // one writer: the tick
   }
@@ -341,7 +341,7 @@ std::string Daemon::grid_members() {
       R"("fault":"{}","last_fault":"{}","faults":{},"valves_released":{},"connected":{},"rows":{},"cols":{},)"
       R"("max_current_a":{},"force_range_n":{},"sensor_unit":"{}",)",
       fault_name(fault_code_.load(std::memory_order_relaxed)),
-      fault_name(last_fault_code_.load(std::memory_order_relaxed)), faults_.load(std::memory_order_relaxed),
+      fault_name(last_fault_code_.load(std::memory_order_relaxed)), faults_.value(),
       valves_released_.load(std::memory_order_relaxed), connected_.load(std::memory_order_relaxed), rows_,
       cols_, json_number(max_current_A_), json_number(force_range_N_), sensor_unit_);
   const double hottest_C = mock_ ? mock_->max_coil_temperature_C() : NAN;
@@ -426,23 +426,22 @@ std::string Daemon::status_members() {
       R"("undecodable":{},"crc":{},"telemetry_timeouts":{},"disconnects":{},"reconnects":{}}},)"
       R"("sensor_faults":[{}])",
       to_string(state), fault_name(fault_code_.load(std::memory_order_relaxed)),
-      fault_name(last_fault_code_.load(std::memory_order_relaxed)), faults_.load(std::memory_order_relaxed),
+      fault_name(last_fault_code_.load(std::memory_order_relaxed)), faults_.value(),
       halted_.load(std::memory_order_relaxed),
       halt == 3   ? "estop"
       : halt == 2 ? "disable"
                   : "enable",
       valves_released_.load(std::memory_order_relaxed), connected_.load(std::memory_order_relaxed),
-      stream_state(now_ns), ticks_base_.load() + ticks_.load(std::memory_order_relaxed),
+      stream_state(now_ns), ticks_base_.load() + ticks_.value(),
       json_number(rms_N_.load(std::memory_order_relaxed)),
       json_number(stiffness_.load(std::memory_order_relaxed)),
       json_number(peak_target_N_.load(std::memory_order_relaxed)),
       json_number(peak_current_A_.load(std::memory_order_relaxed)), json_number(shown.rate_hz),
       json_escape(shown.device), json_escape(shown.source),
-      json_number(static_cast<double>(now_ns - t0_.count()) * 1e-9), sent_.load(std::memory_order_relaxed),
-      received_.load(std::memory_order_relaxed), reloads_.load(), ::getpid(), leased_.load(),
-      json_escape(stream_warning()), topics_members(), sequence_gaps_.load(), link_duplicates_.load(),
-      decode_errors_.load(), crc_errors_.load(), telemetry_timeouts_.load(), disconnects_.load(),
-      reconnects_.load(), faulty);
+      json_number(static_cast<double>(now_ns - t0_.count()) * 1e-9), sent_.value(), received_.value(),
+      reloads_.load(), ::getpid(), leased_.load(), json_escape(stream_warning()), topics_members(),
+      sequence_gaps_.value(), link_duplicates_.value(), decode_errors_.value(), crc_errors_.value(),
+      telemetry_timeouts_.value(), disconnects_.value(), reconnects_.value(), faulty);
 }
 
 std::string Daemon::topics_members() const {
@@ -461,7 +460,7 @@ std::string Daemon::telemetry_members() {
                      json_number(static_cast<double>(now_ns - t0_.count()) * 1e-9),
                      to_string(static_cast<DeviceState>(state_.load(std::memory_order_relaxed))),
                      halted_.load(std::memory_order_relaxed), stream_state(now_ns),
-                     ticks_base_.load() + ticks_.load(std::memory_order_relaxed), json_number(rms_N_.load()),
+                     ticks_base_.load() + ticks_.value(), json_number(rms_N_.load()),
                      json_number(stiffness_.load()), json_number(peak_target_N_.load()),
                      json_number(peak_current_A_.load()));
 }
@@ -571,8 +570,8 @@ std::vector<Daemon::HealthEvent> Daemon::take_health_events() {
   std::vector<HealthEvent> out;
   const TimePoint now = clock_.now();
   const std::array<std::uint64_t, 7> link{
-      crc_errors_.load(),         decode_errors_.load(), sequence_gaps_.load(), link_duplicates_.load(),
-      telemetry_timeouts_.load(), disconnects_.load(),   reconnects_.load()};
+      crc_errors_.value(),         decode_errors_.value(), sequence_gaps_.value(), link_duplicates_.value(),
+      telemetry_timeouts_.value(), disconnects_.value(),   reconnects_.value()};
   const double period_s = seen_.at.count() == 0 ? to_seconds(now - t0_) : to_seconds(now - seen_.at);
   std::array<std::uint64_t, 7> d{};
   for (std::size_t k = 0; k < d.size(); ++k) {
@@ -617,7 +616,7 @@ std::vector<Daemon::HealthEvent> Daemon::take_health_events() {
   if (state == fault_state && (seen_.state != fault_state || fault != seen_.fault)) {
     const bool asked = operator_halt_.load(std::memory_order_relaxed) == 3;
     out.push_back({!asked, fmt::format("device FAULT: {}{} (faults so far: {})", fault_name(fault),
-                                       asked ? ", as the operator asked" : "", faults_.load())});
+                                       asked ? ", as the operator asked" : "", faults_.value())});
   } else if (state != fault_state && seen_.state == fault_state) {
     out.push_back({false, fmt::format("device left FAULT: {}", to_string(static_cast<DeviceState>(state)))});
   }
@@ -693,7 +692,7 @@ std::string Daemon::status_line() const {
   std::string line = fmt::format(
       "t={:6.2f} s  ticks={:<7} state={:<8} stiffness={:6.1f} N/m  peak target={:5.3f} N  rms error={:6.4f} "
       "N",
-      static_cast<double>(now_ns - t0_.count()) * 1e-9, ticks_base_.load() + ticks_.load(), to_string(state),
+      static_cast<double>(now_ns - t0_.count()) * 1e-9, ticks_base_.load() + ticks_.value(), to_string(state),
       stiffness_.load(), peak_target_N_.load(), rms_N_.load());
   if (state == DeviceState::fault) {
     line += fmt::format("  fault: {}", fault_name(fault_code_.load()));
@@ -718,7 +717,7 @@ std::string Daemon::status_line() const {
 }
 
 bool Daemon::device_lost(double for_s) const noexcept {
-  if (identity_changes_.load(std::memory_order_relaxed) > 0) {
+  if (identity_changes_.value() > 0) {
     return true;  // another unit answered: this session cannot carry on
   }
   const std::int64_t since = disconnected_since_ns_.load(std::memory_order_relaxed);
@@ -847,7 +846,7 @@ bool Daemon::apply_reload(const Settings& next, const ReloadPlan& plan, std::vec
       b->request(static_cast<Bridge::Request>(halt));  // a reload never re-enables
     }
     ticks_base_.fetch_add(bridge_->live_ticks());
-    ticks_.store(0);
+    ticks_.set(0);
     bridge_ = std::move(b);  // old bridge first, then its scorer, the wrapper and the source it read
     scorer_ = std::move(scorer);
     watched_ = std::move(watched);

@@ -29,6 +29,7 @@
 #include "mrskin/bridge/scene.hpp"
 #include "mrskin/bridge/sources.hpp"
 #include "mrskin/driver/device.hpp"
+#include "mrskin/driver/relaxed_counter.hpp"
 #include "mrskin/eval/truth_scorer.hpp"
 #include "session_gate.hpp"
 
@@ -185,27 +186,27 @@ class Daemon final : public bridge::Tickable, public ControlBackend {
   std::atomic<std::uint8_t> state_{0};
   std::atomic<std::uint8_t> fault_code_{0};
   std::atomic<std::uint8_t> last_fault_code_{0};
-  std::atomic<std::uint64_t> faults_{0};
+  RelaxedCounter faults_;
   std::atomic<bool> halted_{false};
   std::atomic<bool> connected_{true};
   std::atomic<bool> valves_released_{true};
-  std::atomic<std::uint64_t> ticks_{0};       // this bridge's ticks
+  RelaxedCounter ticks_;                      // this bridge's ticks
   std::atomic<std::uint64_t> ticks_base_{0};  // earlier bridges' (reloads)
   std::atomic<double> rms_N_{0.0};
   std::atomic<double> stiffness_{0.0};
   std::atomic<double> peak_target_N_{0.0};
   std::atomic<double> peak_current_A_{0.0};
-  std::atomic<std::uint64_t> sent_{0};
-  std::atomic<std::uint64_t> received_{0};
-  std::atomic<std::uint64_t> identity_changes_{0};
+  RelaxedCounter sent_;
+  RelaxedCounter received_;
+  RelaxedCounter identity_changes_;
   // Link errors by kind (SessionCounters), for the log and the status.
-  std::atomic<std::uint64_t> crc_errors_{0};
-  std::atomic<std::uint64_t> decode_errors_{0};
-  std::atomic<std::uint64_t> sequence_gaps_{0};
-  std::atomic<std::uint64_t> link_duplicates_{0};
-  std::atomic<std::uint64_t> telemetry_timeouts_{0};
-  std::atomic<std::uint64_t> disconnects_{0};
-  std::atomic<std::uint64_t> reconnects_{0};
+  RelaxedCounter crc_errors_;
+  RelaxedCounter decode_errors_;
+  RelaxedCounter sequence_gaps_;
+  RelaxedCounter link_duplicates_;
+  RelaxedCounter telemetry_timeouts_;
+  RelaxedCounter disconnects_;
+  RelaxedCounter reconnects_;
   // The longest heartbeat round trip since the main thread last looked (it exchanges 0 in), ns.
   std::atomic<std::int64_t> max_round_trip_ns_{0};
   // Main thread: what take_health_events() last reported.

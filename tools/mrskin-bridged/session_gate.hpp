@@ -10,6 +10,8 @@
 #include <cstdint>
 #include <thread>
 
+#include "mrskin/driver/relaxed_counter.hpp"
+
 namespace mrskin::bridged {
 
 class SessionGate {
@@ -20,7 +22,7 @@ class SessionGate {
     in_tick_.store(true, std::memory_order_seq_cst);
     if (reader_.load(std::memory_order_seq_cst)) {
       in_tick_.store(false, std::memory_order_seq_cst);
-      gated_ticks_.fetch_add(1, std::memory_order_relaxed);
+      gated_ticks_.bump();
       return false;
     }
     return true;
@@ -44,14 +46,12 @@ class SessionGate {
   void end_read() noexcept { reader_.store(false, std::memory_order_seq_cst); }
 
   // Ticks skipped because a reader held the session.
-  [[nodiscard]] std::uint64_t gated_ticks() const noexcept {
-    return gated_ticks_.load(std::memory_order_relaxed);
-  }
+  [[nodiscard]] std::uint64_t gated_ticks() const noexcept { return gated_ticks_.value(); }
 
  private:
   std::atomic<bool> in_tick_{false};
   std::atomic<bool> reader_{false};
-  std::atomic<std::uint64_t> gated_ticks_{0};
+  RelaxedCounter gated_ticks_;
 };
 
 }  // namespace mrskin::bridged

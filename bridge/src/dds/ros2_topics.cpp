@@ -1,12 +1,12 @@
 #include "mrskin/bridge/ros2_topics.hpp"
 
 #include <array>
-#include <atomic>
 #include <string>
 #include <vector>
 
 #include "entities.hpp"
 #include "mrskin/driver/errors.hpp"
+#include "mrskin/driver/relaxed_counter.hpp"
 #include "ros2_messages.h"
 
 namespace mrskin::bridge {
@@ -91,8 +91,8 @@ struct __attribute__((visibility("hidden"))) SkinPublisher::Impl {
   std::array<char, 4> col_label{'c', 'o', 'l', '\0'};
   std::string state_text;
   std::string frame_id;
-  std::atomic<std::uint64_t> published{0};
-  std::atomic<std::uint64_t> failures{0};
+  RelaxedCounter published;
+  RelaxedCounter failures;
 };
 
 bool valid_ros_name(std::string_view name) noexcept { return dds::valid_ros_name(name); }
@@ -121,7 +121,7 @@ bool SkinPublisher::publish(const SkinFrame& f) noexcept {
   if (!f.true_N.empty()) {
     ok = d.write_array(d.arrays[2], f.rows, f.cols, f.true_N) && ok;
   }
-  (ok ? d.published : d.failures).fetch_add(1, std::memory_order_relaxed);
+  (ok ? d.published : d.failures).bump();
   return ok;
 }
 
@@ -132,12 +132,8 @@ int SkinPublisher::subscribers() const noexcept {
              : 0;
 }
 
-std::uint64_t SkinPublisher::published() const noexcept {
-  return impl_->published.load(std::memory_order_relaxed);
-}
-std::uint64_t SkinPublisher::failures() const noexcept {
-  return impl_->failures.load(std::memory_order_relaxed);
-}
+std::uint64_t SkinPublisher::published() const noexcept { return impl_->published.value(); }
+std::uint64_t SkinPublisher::failures() const noexcept { return impl_->failures.value(); }
 const std::string& SkinPublisher::ns() const noexcept { return impl_->ns; }
 
 struct __attribute__((visibility("hidden"))) FollowerPublisher::Impl {

@@ -21,17 +21,16 @@
 namespace mrskin::bridge::sources {
 
 SourceStats AtomicStats::snapshot() const noexcept {
-  constexpr auto r = std::memory_order_relaxed;
   SourceStats s;
-  s.accepted = accepted.load(r);
+  s.accepted = accepted.value();
   for (std::size_t i = 0; i < kDropReasonCount; ++i) {
-    s.drops.at(i) = drops.at(i).load(r);
+    s.drops.at(i) = drops.at(i).value();
   }
-  s.poses = poses.load(r);
-  s.restarts = restarts.load(r);
-  s.connections = connections.load(r);
-  s.disconnects = disconnects.load(r);
-  s.connect_failures = connect_failures.load(r);
+  s.poses = poses.value();
+  s.restarts = restarts.value();
+  s.connections = connections.value();
+  s.disconnects = disconnects.value();
+  s.connect_failures = connect_failures.value();
   return s;
 }
 
@@ -147,7 +146,7 @@ void QueuedSource::notify() noexcept {
 }
 
 void QueuedSource::publish(const SlaveSample& s) noexcept {
-  stats_.accepted.fetch_add(1, std::memory_order_relaxed);
+  stats_.accepted.bump();
   enqueue(s);
 }
 
@@ -187,7 +186,7 @@ bool admit(OrderGate& gate, std::int64_t robot_ns, ClockMapper& mapper, AtomicSt
       });
       return false;
     case OrderGate::Verdict::restart:
-      stats.restarts.fetch_add(1, std::memory_order_relaxed);
+      stats.restarts.bump();
       mapper.reset();
       return true;
     case OrderGate::Verdict::accept:

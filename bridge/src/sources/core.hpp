@@ -14,24 +14,23 @@
 #include <vector>
 
 #include "mrskin/bridge/sources.hpp"
+#include "mrskin/driver/relaxed_counter.hpp"
 
 namespace mrskin::bridge::sources {
 
 // The counters, written by an I/O thread (or a loader) and read from any thread.
 struct AtomicStats {
-  std::atomic<std::uint64_t> accepted{0};
-  std::array<std::atomic<std::uint64_t>, kDropReasonCount> drops{};  // by DropReason
-  std::atomic<std::uint64_t> poses{0};
-  std::atomic<std::uint64_t> restarts{0};
-  std::atomic<std::uint64_t> connections{0};
-  std::atomic<std::uint64_t> disconnects{0};
-  std::atomic<std::uint64_t> connect_failures{0};
+  RelaxedCounter accepted;
+  std::array<RelaxedCounter, kDropReasonCount> drops{};  // by DropReason
+  RelaxedCounter poses;
+  RelaxedCounter restarts;
+  RelaxedCounter connections;
+  RelaxedCounter disconnects;
+  RelaxedCounter connect_failures;
   // Counts a drop; true for the first of its reason (the caller then says why, once).
-  bool count(DropReason reason) noexcept {
-    return drops.at(static_cast<std::size_t>(reason)).fetch_add(1, std::memory_order_relaxed) == 0;
-  }
+  bool count(DropReason reason) noexcept { return drops.at(static_cast<std::size_t>(reason)).bump() == 0; }
   [[nodiscard]] std::uint64_t count_of(DropReason reason) const noexcept {
-    return drops.at(static_cast<std::size_t>(reason)).load(std::memory_order_relaxed);
+    return drops.at(static_cast<std::size_t>(reason)).value();
   }
   [[nodiscard]] SourceStats snapshot() const noexcept;
 };

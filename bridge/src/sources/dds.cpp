@@ -148,11 +148,11 @@ class DdsSource final : public QueuedSource {
       return;
     }
     if (st.current_count > c.matched) {
-      stats_.connections.fetch_add(std::uint64_t{st.current_count - c.matched}, std::memory_order_relaxed);
+      stats_.connections.bump(std::uint64_t{st.current_count - c.matched});
       note(false,
            [&] { return fmt::format("dds: a publisher matched on {} ({} now)", c.topic, st.current_count); });
     } else {
-      stats_.disconnects.fetch_add(std::uint64_t{c.matched - st.current_count}, std::memory_order_relaxed);
+      stats_.disconnects.bump(std::uint64_t{c.matched - st.current_count});
       end(c, fmt::format("a publisher went away ({} left)", st.current_count));
     }
     c.matched = st.current_count;
@@ -258,7 +258,7 @@ class DdsSource final : public QueuedSource {
       return;
     }
     where_ = check;
-    stats_.poses.fetch_add(1, std::memory_order_relaxed);
+    stats_.poses.bump();
   }
 
   void wrench(const WrenchStamped& m, TimePoint arrival) noexcept {

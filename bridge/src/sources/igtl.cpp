@@ -383,7 +383,7 @@ class IgtlSource final : public QueuedSource {
       }
       if (conn.valid()) {
         backoff_s = options_.reconnect_min_s;
-        stats_.connections.fetch_add(1, std::memory_order_relaxed);
+        stats_.connections.bump();
         note(false, [&] {
           return failed == 0
                      ? fmt::format("{}: connected to the robot", name())
@@ -394,10 +394,10 @@ class IgtlSource final : public QueuedSource {
         if (session(conn.get(), false) == End::stop) {
           return;
         }
-        stats_.disconnects.fetch_add(1, std::memory_order_relaxed);
+        stats_.disconnects.bump();
         note(true, [&] { return fmt::format("{}: the robot closed the connection; reconnecting", name()); });
       } else {
-        stats_.connect_failures.fetch_add(1, std::memory_order_relaxed);
+        stats_.connect_failures.bump();
         ++failed;
         if (why != reported) {
           note(true, [&] {
@@ -507,7 +507,7 @@ class IgtlSource final : public QueuedSource {
         if (!conn.valid()) {
           continue;
         }
-        stats_.connections.fetch_add(1, std::memory_order_relaxed);
+        stats_.connections.bump();
         note(false,
              [&] { return fmt::format("{}: a robot connected from {}", name(), peer_of(conn.get())); });
       }
@@ -515,11 +515,11 @@ class IgtlSource final : public QueuedSource {
       if (end == End::stop) {
         return;
       }
-      stats_.disconnects.fetch_add(1, std::memory_order_relaxed);
+      stats_.disconnects.bump();
       conn.reset();
       if (end == End::replaced) {
         conn = std::move(next_);
-        stats_.connections.fetch_add(1, std::memory_order_relaxed);
+        stats_.connections.bump();
         note(true, [&] {
           return fmt::format("{}: a robot connected from {} and replaces the current one", name(),
                              peer_of(conn.get()));
@@ -741,7 +741,7 @@ class IgtlSource final : public QueuedSource {
       return;
     }
     pose_ = next;
-    stats_.poses.fetch_add(1, std::memory_order_relaxed);
+    stats_.poses.bump();
   }
 
   // A QTDATA or TDATA body without the tool pose_tool names: counted, explained once.

@@ -226,7 +226,7 @@ class ReplaySource final : public StreamSource {
       due = std::max(due, entries_.back().due);
     }
     entries_.push_back(Entry{s, due});
-    stats_.accepted.fetch_add(1, std::memory_order_relaxed);
+    stats_.accepted.bump();
   }
 
   bool next_as_fast_as_possible(TimePoint now, SlaveSample& out) noexcept {
@@ -283,7 +283,7 @@ bool SampleRecorder::record(const SlaveSample& sample) noexcept {
   have_last_ = true;
   last_stamp_ = sample.stamp;
   if (!queue_.try_push(sample)) {
-    dropped_.fetch_add(1, std::memory_order_relaxed);
+    dropped_.bump();
     return false;
   }
   return true;
@@ -316,9 +316,9 @@ void SampleRecorder::run() noexcept {
       try {
         fmt::print(file_, "{} {} {} {} {} {} {}\n", (s.stamp - origin).count(), (received - origin).count(),
                    s.force_N, s.indentation_m, s.contact_x_m, s.contact_y_m, s.tip_radius_m);
-        written_.fetch_add(1, std::memory_order_relaxed);
+        written_.bump();
       } catch (...) {  // a full disk: count it, keep draining
-        dropped_.fetch_add(1, std::memory_order_relaxed);
+        dropped_.bump();
       }
     }
     if (any) {

@@ -168,7 +168,7 @@ void UdpSource::handle(std::span<const std::uint8_t> d, std::size_t length, Time
       });
       return;
     case OrderGate::Verdict::restart:
-      stats_.restarts.fetch_add(1, std::memory_order_relaxed);
+      stats_.restarts.bump();
       mapper_.reset();
       break;
     case OrderGate::Verdict::accept:

@@ -312,7 +312,7 @@ void MockDevice::set_link_up(bool up) noexcept {
 }
 
 MockDevice::FaultCounters MockDevice::fault_counters() const noexcept {
-  return {dropped_.load(), duplicated_.load(), corrupted_.load(), reordered_.load(), congested_.load()};
+  return {dropped_.value(), duplicated_.value(), corrupted_.value(), reordered_.value(), congested_.value()};
 }
 
 void MockDevice::finger_indentation(std::span<double> out_m) const noexcept {
@@ -350,30 +350,30 @@ bool MockDevice::chance(double probability) noexcept {
 void MockDevice::emit(const Datagram& d, TimePoint now) noexcept {
   const MockFaults& f = options_.faults;
   if (chance(f.drop_probability)) {
-    dropped_.fetch_add(1, std::memory_order_relaxed);
+    dropped_.bump();
     return;
   }
   Datagram out = d;
   if (chance(f.corrupt_probability) && out.length > 0) {
     const std::uint64_t bit = splitmix(fault_rng_) % (static_cast<std::uint64_t>(out.length) * 8U);
     out.bytes[bit / 8U] = static_cast<std::uint8_t>(out.bytes[bit / 8U] ^ (1U << (bit % 8U)));
-    corrupted_.fetch_add(1, std::memory_order_relaxed);
+    corrupted_.bump();
   }
   const int copies = chance(f.duplicate_probability) ? 2 : 1;
   if (copies == 2) {
-    duplicated_.fetch_add(1, std::memory_order_relaxed);
+    duplicated_.bump();
   }
   for (int c = 0; c < copies; ++c) {
     if (!holding_ && chance(f.reorder_probability)) {
       held_ = out;  // goes out after the next datagram
       holding_ = true;
-      reordered_.fetch_add(1, std::memory_order_relaxed);
+      reordered_.bump();
       continue;
     }
     for (int k = 0; k < (holding_ ? 2 : 1); ++k) {
       const Datagram& next = k == 0 ? out : held_;
       if (delay_count_ == delay_line_.size()) {
-        dropped_.fetch_add(1, std::memory_order_relaxed);  // line full: a bus would lose it too
+        dropped_.bump();  // line full: a bus would lose it too
         continue;
       }
       Delayed& slot = delay_line_[(delay_head_ + delay_count_) % delay_line_.size()];
@@ -399,7 +399,7 @@ void MockDevice::flush_delayed(TimePoint now) noexcept {
                            slot.datagram.bytes[1] == static_cast<std::uint8_t>(proto::MessageType::telemetry);
     const bool room = to_host_.size_approx() + (telemetry ? kAnswerReserve : 0) < to_host_.capacity();
     if (!room || !to_host_.try_push(slot.datagram)) {
-      congested_.fetch_add(1, std::memory_order_relaxed);
+      congested_.bump();
     }
     delay_head_ = (delay_head_ + 1) % delay_line_.size();
     --delay_count_;
@@ -513,17 +513,17 @@ void MockDevice::handle_host_input(TimePoint now) noexcept {
       continue;  // bus-off: the node hears nothing
     }
     if (chance(f.drop_probability)) {
-      dropped_.fetch_add(1, std::memory_order_relaxed);
+      dropped_.bump();
       continue;
     }
     if (chance(f.corrupt_probability) && d.length > 0) {
       const std::uint64_t bit = splitmix(fault_rng_) % (static_cast<std::uint64_t>(d.length) * 8U);
       d.bytes[bit / 8U] = static_cast<std::uint8_t>(d.bytes[bit / 8U] ^ (1U << (bit % 8U)));
-      corrupted_.fetch_add(1, std::memory_order_relaxed);
+      corrupted_.bump();
     }
     handle(d.bytes.data(), d.length, now);
     if (chance(f.duplicate_probability)) {
-      duplicated_.fetch_add(1, std::memory_order_relaxed);
+      duplicated_.bump();
       handle(d.bytes.data(), d.length, now);
     }
   }

@@ -17,6 +17,7 @@
 #include "can_socket_api.hpp"
 #include "event_fd.hpp"
 #include "mrskin/driver/queued_transport.hpp"
+#include "mrskin/driver/relaxed_counter.hpp"
 
 namespace mrskin {
 namespace proto = mrskin::protocol;
@@ -148,14 +149,13 @@ class CanTransport final : public QueuedTransport {
   }
 
   [[nodiscard]] CanTransportStats stats() const noexcept {
-    const auto r = [](const std::atomic<std::uint64_t>& c) { return c.load(std::memory_order_relaxed); };
     CanTransportStats s;
-    s.frames_written = r(stats_.frames_written);
-    s.frames_read = r(stats_.frames_read);
-    s.enobufs = r(stats_.enobufs);
-    s.send_buffer_full = r(stats_.send_buffer_full);
-    s.foreign_frames = r(stats_.foreign_frames);
-    s.dropped_packets = r(stats_.dropped_packets);
+    s.frames_written = stats_.frames_written.value();
+    s.frames_read = stats_.frames_read.value();
+    s.enobufs = stats_.enobufs.value();
+    s.send_buffer_full = stats_.send_buffer_full.value();
+    s.foreign_frames = stats_.foreign_frames.value();
+    s.dropped_packets = stats_.dropped_packets.value();
     return s;
   }
 
@@ -192,7 +192,7 @@ class CanTransport final : public QueuedTransport {
       }};
       const int ready = api_->poll(fds, wait_ == Wait::backoff ? enobufs_backoff_ : Duration{-1});
       if (ready < 0 && ready != -EINTR) {
-        bump(counters_.io_errors);
+        counters_.io_errors.bump();
         wait_for_stop(reopen_min_);  // poll itself failed (ENOMEM): do not spin
       }
       if (stop_.load(std::memory_order_acquire)) {
@@ -232,18 +232,18 @@ class CanTransport final : public QueuedTransport {
         return false;
       }
       if (n < 0) {
-        bump(counters_.io_errors);
+        counters_.io_errors.bump();
         return true;
       }
       handle_frame(static_cast<std::size_t>(n));
-      bump(stats_.frames_read);  // after the frame is handled: tests wait on it
+      stats_.frames_read.bump();  // after the frame is handled: tests wait on it
     }
     return true;
   }
 
   void handle_frame(std::size_t size) noexcept {
     if (size != CAN_MTU && size != CANFD_MTU) {
-      bump(counters_.malformed);
+      counters_.malformed.bump();
       return;
     }
     canfd_frame raw{};
@@ -254,18 +254,18 @@ class CanTransport final : public QueuedTransport {
     }
     if ((raw.can_id & (CAN_EFF_FLAG | CAN_RTR_FLAG)) != 0 ||
         raw.len > (size == CANFD_MTU ? CANFD_MAX_DLEN : CAN_MAX_DLEN)) {
-      bump(counters_.malformed);
-      bump(stats_.foreign_frames);
+      counters_.malformed.bump();
+      stats_.foreign_frames.bump();
       return;
     }
     const CanPacketCodec::Decoded d = codec_.decode(from_wire(raw, size == CANFD_MTU));
     if (d.error == proto::Error::wrong_node || d.error == proto::Error::unknown_type) {
-      bump(counters_.malformed);
-      bump(stats_.foreign_frames);
+      counters_.malformed.bump();
+      stats_.foreign_frames.bump();
       return;
     }
     if (d.error != proto::Error::ok) {
-      bump(counters_.malformed);
+      counters_.malformed.bump();
       return;
     }
     if (state() == TransportState::bus_off) {
@@ -277,7 +277,7 @@ class CanTransport final : public QueuedTransport {
   }
 
   void handle_error_frame(const canfd_frame& raw) noexcept {
-    bump(counters_.error_frames);
+    counters_.error_frames.bump();
     if ((raw.can_id & CAN_ERR_BUSOFF) != 0) {
       if (state() == TransportState::open) {
         set_state(TransportState::bus_off);
@@ -307,13 +307,13 @@ class CanTransport final : public QueuedTransport {
         const CanPacketCodec::Encoded e =
             codec_.encode(std::span<const std::uint8_t>(d.bytes.data(), d.length), frames_);
         if (e.error != proto::Error::ok) {
-          bump(stats_.dropped_packets);
+          stats_.dropped_packets.bump();
           continue;
         }
         next_frame_ = 0;
         frame_count_ = e.frames;
         if (e.frames == 0) {
-          bump(stats_.dropped_packets);  // nothing on this framing (a classic heartbeat echo)
+          stats_.dropped_packets.bump();  // nothing on this framing (a classic heartbeat echo)
           continue;
         }
       }
@@ -323,22 +323,22 @@ class CanTransport final : public QueuedTransport {
       std::memcpy(tx_raw_.data(), &raw, size);
       const long n = api_->write_frame(socket_, std::span<const std::byte>(tx_raw_.data(), size));
       if (n >= 0) {
-        bump(stats_.frames_written);
+        stats_.frames_written.bump();
         wait_ = Wait::nothing;
         enobufs_backoff_ = Duration{0};
         if (++next_frame_ == frame_count_) {
-          bump(counters_.sent);
+          counters_.sent.bump();
         }
         continue;
       }
       if (n == -EAGAIN || n == -EWOULDBLOCK) {
-        bump(stats_.send_buffer_full);
+        stats_.send_buffer_full.bump();
         wait_ = Wait::writable;
         return;
       }
       if (n == -ENOBUFS) {
         // The interface's queue is full: keep the frame and try again shortly.
-        bump(stats_.enobufs);
+        stats_.enobufs.bump();
         wait_ = Wait::backoff;
         enobufs_backoff_ = std::clamp(enobufs_backoff_ * 2, enobufs_min_, enobufs_max_);
         return;
@@ -350,8 +350,8 @@ class CanTransport final : public QueuedTransport {
         lose_link();
         return;
       }
-      bump(counters_.io_errors);  // this frame cannot go out (EINVAL, EMSGSIZE): drop its packet
-      bump(stats_.dropped_packets);
+      counters_.io_errors.bump();  // this frame cannot go out (EINVAL, EMSGSIZE): drop its packet
+      stats_.dropped_packets.bump();
       next_frame_ = frame_count_ = 0;
     }
   }
@@ -372,12 +372,12 @@ class CanTransport final : public QueuedTransport {
   }
 
   struct Stats {
-    std::atomic<std::uint64_t> frames_written{0};
-    std::atomic<std::uint64_t> frames_read{0};
-    std::atomic<std::uint64_t> enobufs{0};
-    std::atomic<std::uint64_t> send_buffer_full{0};
-    std::atomic<std::uint64_t> foreign_frames{0};
-    std::atomic<std::uint64_t> dropped_packets{0};
+    RelaxedCounter frames_written;
+    RelaxedCounter frames_read;
+    RelaxedCounter enobufs;
+    RelaxedCounter send_buffer_full;
+    RelaxedCounter foreign_frames;
+    RelaxedCounter dropped_packets;
   };
 
   CanUri uri_;

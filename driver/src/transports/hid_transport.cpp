@@ -330,7 +330,7 @@ class HidTransport final : public QueuedTransport {
       } else if (read_failure_means_gone(r.error) || ++errors >= options_.errors_before_reopen) {
         lose();
       } else {
-        bump(counters_.io_errors);
+        counters_.io_errors.bump();
       }
     }
   }
@@ -342,7 +342,7 @@ class HidTransport final : public QueuedTransport {
     std::copy_n(d.bytes.begin(), d.length, report_.begin() + 1);
     const HidIoResult r = writer_->write(report_);
     if (r.result == static_cast<int>(kWriteBytes)) {
-      bump(counters_.sent);
+      counters_.sent.bump();
       errors = 0;
       return;
     }
@@ -350,7 +350,7 @@ class HidTransport final : public QueuedTransport {
       writer_failed_.store(true, std::memory_order_release);
       return;
     }
-    bump(r.result < 0 && r.error == ETIMEDOUT ? counters_.timeouts : counters_.io_errors);
+    (r.result < 0 && r.error == ETIMEDOUT ? counters_.timeouts : counters_.io_errors).bump();
     if (++errors >= options_.errors_before_reopen) {
       writer_failed_.store(true, std::memory_order_release);
     }

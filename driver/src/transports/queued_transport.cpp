@@ -85,7 +85,7 @@ ResultCode QueuedTransport::send(std::span<const std::uint8_t> bytes) noexcept {
   std::memcpy(d.bytes.data(), bytes.data(), bytes.size());
   d.length = static_cast<std::uint8_t>(bytes.size());
   if (!outgoing_.try_push(d)) {
-    bump(counters_.send_would_block);
+    counters_.send_would_block.bump();
     return ResultCode::would_block;
   }
   signal_event(send_event_fd_);
@@ -94,7 +94,7 @@ ResultCode QueuedTransport::send(std::span<const std::uint8_t> bytes) noexcept {
 
 ResultCode QueuedTransport::receive(Datagram& out) noexcept {
   if (incoming_.try_pop(out)) {
-    bump(counters_.received);
+    counters_.received.bump();
     return ResultCode::ok;
   }
   return state() == TransportState::open ? ResultCode::would_block : ResultCode::disconnected;
@@ -120,19 +120,18 @@ ResultCode QueuedTransport::receive_for(Datagram& out, Duration timeout) noexcep
 }
 
 TransportCounters QueuedTransport::counters() const noexcept {
-  const auto r = [](const std::atomic<std::uint64_t>& c) { return c.load(std::memory_order_relaxed); };
   TransportCounters c;
-  c.sent = r(counters_.sent);
-  c.received = r(counters_.received);
-  c.send_would_block = r(counters_.send_would_block);
-  c.receive_overruns = r(counters_.receive_overruns);
-  c.timeouts = r(counters_.timeouts);
-  c.io_errors = r(counters_.io_errors);
-  c.disconnects = r(counters_.disconnects);
-  c.reopens = r(counters_.reopens);
-  c.malformed = r(counters_.malformed);
-  c.error_frames = r(counters_.error_frames);
-  c.bus_off = r(counters_.bus_off);
+  c.sent = counters_.sent.value();
+  c.received = counters_.received.value();
+  c.send_would_block = counters_.send_would_block.value();
+  c.receive_overruns = counters_.receive_overruns.value();
+  c.timeouts = counters_.timeouts.value();
+  c.io_errors = counters_.io_errors.value();
+  c.disconnects = counters_.disconnects.value();
+  c.reopens = counters_.reopens.value();
+  c.malformed = counters_.malformed.value();
+  c.error_frames = counters_.error_frames.value();
+  c.bus_off = counters_.bus_off.value();
   return c;
 }
 
@@ -147,7 +146,7 @@ bool QueuedTransport::take_outgoing(Datagram& out) noexcept {
 
 void QueuedTransport::deliver(const Datagram& d) noexcept {
   if (!incoming_.try_push(d)) {
-    bump(counters_.receive_overruns);
+    counters_.receive_overruns.bump();
     return;
   }
   signal_event(receive_event_fd_);
@@ -166,16 +165,14 @@ void QueuedTransport::set_state(TransportState s) noexcept {
     return;
   }
   if (s == TransportState::open) {
-    if (counters_.disconnects.load(std::memory_order_relaxed) +
-            counters_.bus_off.load(std::memory_order_relaxed) >
-        0) {
-      bump(counters_.reopens);  // the first open is not a reopen
+    if (counters_.disconnects.value() + counters_.bus_off.value() > 0) {
+      counters_.reopens.bump();  // the first open is not a reopen
     }
   } else if (old == TransportState::open) {
     if (s == TransportState::bus_off) {
-      bump(counters_.bus_off);
+      counters_.bus_off.bump();
     } else {
-      bump(counters_.disconnects);
+      counters_.disconnects.bump();
     }
   }
   signal_event(receive_event_fd_);

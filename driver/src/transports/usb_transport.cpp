@@ -573,7 +573,7 @@ bool UsbTransport::submit_in() noexcept {
                                    static_cast<int>(s.buffer.size()), &UsbTransport::on_transfer, &s, 0);
     if (const int rc = api_->submit_transfer(s.transfer); rc != LIBUSB_SUCCESS) {
       if (rc != LIBUSB_ERROR_NO_DEVICE) {
-        bump(counters_.io_errors);
+        counters_.io_errors.bump();
       }
       return false;
     }
@@ -598,7 +598,7 @@ void UsbTransport::on_hotplug(void* user, libusb_device* device, bool arrived) n
 }
 
 void UsbTransport::note_error() noexcept {
-  bump(counters_.io_errors);
+  counters_.io_errors.bump();
   if (++consecutive_errors_ >= options_.max_consecutive_errors) {
     lost_.store(true, std::memory_order_relaxed);  // a reopen is the remaining cure
   }
@@ -614,7 +614,7 @@ void UsbTransport::completed(Slot& slot) noexcept {
     case LIBUSB_TRANSFER_COMPLETED:
       consecutive_errors_ = 0;
       if (!slot.in) {
-        bump(counters_.sent);
+        counters_.sent.bump();
       } else if (t.actual_length > 0) {
         // The report as it came: no report-ID byte on libusb; decoding ignores the padding.
         Datagram d;
@@ -622,12 +622,12 @@ void UsbTransport::completed(Slot& slot) noexcept {
         std::memcpy(d.bytes.data(), t.buffer, d.length);
         deliver(d);
       } else {
-        bump(counters_.malformed);  // an empty report is not a packet
+        counters_.malformed.bump();  // an empty report is not a packet
       }
       break;
     case LIBUSB_TRANSFER_TIMED_OUT:
       if (!slot.in) {
-        bump(counters_.timeouts);
+        counters_.timeouts.bump();
       }
       break;
     case LIBUSB_TRANSFER_CANCELLED:
@@ -733,7 +733,7 @@ void UsbTransport::clear_halts() noexcept {
     if (rc == LIBUSB_ERROR_NO_DEVICE) {
       lost_.store(true, std::memory_order_relaxed);
     } else if (rc != LIBUSB_SUCCESS) {
-      bump(counters_.io_errors);
+      counters_.io_errors.bump();
     }
   }
 }

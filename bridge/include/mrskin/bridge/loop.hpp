@@ -16,6 +16,7 @@
 #include "mrskin/driver/clock.hpp"
 #include "mrskin/driver/errors.hpp"
 #include "mrskin/driver/histogram.hpp"
+#include "mrskin/driver/relaxed_counter.hpp"
 
 namespace mrskin::bridge {
 
@@ -180,9 +181,7 @@ class MRSKIN_BRIDGE_API RealtimeLoop {
   [[nodiscard]] std::uint64_t live_ticks() const noexcept {
     return live_ticks_.load(std::memory_order_acquire);
   }
-  [[nodiscard]] std::uint64_t live_overruns() const noexcept {
-    return live_overruns_.load(std::memory_order_relaxed);
-  }
+  [[nodiscard]] std::uint64_t live_overruns() const noexcept { return live_overruns_.value(); }
   [[nodiscard]] Duration period() const noexcept;
   // The k-th deadline of the current run's grid (k = 0 is the first tick).
   [[nodiscard]] TimePoint deadline(std::uint64_t k) const noexcept;
@@ -209,8 +208,8 @@ class MRSKIN_BRIDGE_API RealtimeLoop {
   TimePoint run_start_{};  // the first tick: the tick budget counts from here
   TimePoint last_tick_{};
   LoopStats stats_;
-  std::atomic<std::uint64_t> live_ticks_{0};
-  std::atomic<std::uint64_t> live_overruns_{0};
+  std::atomic<std::uint64_t> live_ticks_{0};  // release: a watcher that sees it sees the tick's stats
+  RelaxedCounter live_overruns_;
   std::atomic<bool> stop_requested_{false};
   std::atomic<bool> running_{false};
   std::atomic<bool> setup_done_{false};

@@ -21,6 +21,7 @@
 #include "mrskin/bridge/export.hpp"
 #include "mrskin/bridge/scene.hpp"
 #include "mrskin/driver/clock.hpp"
+#include "mrskin/driver/relaxed_counter.hpp"
 #include "mrskin/driver/spsc_queue.hpp"
 
 namespace mrskin::bridge {
@@ -170,16 +171,16 @@ class MRSKIN_BRIDGE_API SampleRecorder {
   // Writes what is queued, closes the file and joins the writer. Idempotent; call it once the
   // tick no longer records.
   void close() noexcept;
-  [[nodiscard]] std::uint64_t written() const noexcept { return written_.load(std::memory_order_relaxed); }
-  [[nodiscard]] std::uint64_t dropped() const noexcept { return dropped_.load(std::memory_order_relaxed); }
+  [[nodiscard]] std::uint64_t written() const noexcept { return written_.value(); }
+  [[nodiscard]] std::uint64_t dropped() const noexcept { return dropped_.value(); }
 
  private:
   void run() noexcept;
   SpscQueue<SlaveSample> queue_;
   std::FILE* file_ = nullptr;
   std::atomic<bool> stop_{false};
-  std::atomic<std::uint64_t> written_{0};
-  std::atomic<std::uint64_t> dropped_{0};
+  RelaxedCounter written_;
+  RelaxedCounter dropped_;
   TimePoint last_stamp_{};
   bool have_last_ = false;
   std::thread writer_;

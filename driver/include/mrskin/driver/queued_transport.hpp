@@ -13,6 +13,7 @@
 #include <string_view>
 
 #include "mrskin/driver/export.hpp"
+#include "mrskin/driver/relaxed_counter.hpp"
 #include "mrskin/driver/spsc_queue.hpp"
 #include "mrskin/driver/transport.hpp"
 
@@ -52,19 +53,18 @@ class MRSKIN_DRIVER_API QueuedTransport : public Transport {
   void set_state(TransportState s) noexcept;
 
   struct AtomicCounters {
-    std::atomic<std::uint64_t> sent{0};
-    std::atomic<std::uint64_t> received{0};
-    std::atomic<std::uint64_t> send_would_block{0};
-    std::atomic<std::uint64_t> receive_overruns{0};
-    std::atomic<std::uint64_t> timeouts{0};
-    std::atomic<std::uint64_t> io_errors{0};
-    std::atomic<std::uint64_t> disconnects{0};
-    std::atomic<std::uint64_t> reopens{0};
-    std::atomic<std::uint64_t> malformed{0};
-    std::atomic<std::uint64_t> error_frames{0};
-    std::atomic<std::uint64_t> bus_off{0};
+    RelaxedCounter sent;
+    RelaxedCounter received;
+    RelaxedCounter send_would_block;
+    RelaxedCounter receive_overruns;
+    RelaxedCounter timeouts;
+    RelaxedCounter io_errors;
+    RelaxedCounter disconnects;
+    RelaxedCounter reopens;
+    RelaxedCounter malformed;
+    RelaxedCounter error_frames;
+    RelaxedCounter bus_off;
   };
-  static void bump(std::atomic<std::uint64_t>& c) noexcept { c.fetch_add(1, std::memory_order_relaxed); }
   AtomicCounters counters_;
 
  private:

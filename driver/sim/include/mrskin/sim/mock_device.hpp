@@ -22,6 +22,7 @@
 #include "mrskin/driver/model/inverse.hpp"
 #include "mrskin/driver/model/observer.hpp"
 #include "mrskin/driver/model/profile.hpp"
+#include "mrskin/driver/relaxed_counter.hpp"
 #include "mrskin/driver/session.hpp"
 #include "mrskin/driver/spsc_queue.hpp"
 #include "mrskin/driver/transport.hpp"
@@ -239,11 +240,11 @@ class MRSKIN_SIM_API MockDevice final : public SimulatedUnit {
   std::vector<std::uint8_t> calibration_pending_;  // a write in progress
   std::vector<std::uint8_t> profile_blob_;
   std::atomic<double> max_coil_C_{25.0};
-  std::atomic<std::uint64_t> dropped_{0};
-  std::atomic<std::uint64_t> duplicated_{0};
-  std::atomic<std::uint64_t> corrupted_{0};
-  std::atomic<std::uint64_t> reordered_{0};
-  std::atomic<std::uint64_t> congested_{0};
+  RelaxedCounter dropped_;
+  RelaxedCounter duplicated_;
+  RelaxedCounter corrupted_;
+  RelaxedCounter reordered_;
+  RelaxedCounter congested_;
   std::atomic<std::int64_t> skipped_ns_{0};
   std::uint64_t fault_rng_;
   TimePoint start_{};
