@@ -10,6 +10,7 @@
 #include <sstream>
 #include <string>
 
+#include "mock_device_impl.hpp"
 #include "mrskin/driver/errors.hpp"
 #include "mrskin/driver/model/calibration.hpp"
 #include "mrskin/protocol/packet.hpp"
@@ -97,9 +98,9 @@ bool MockFaults::any() const noexcept {
 }
 
 // Host end of the in-process link: pushes into the device's queue, pops from the host's.
-class MockDevice::HostTransport final : public Transport {
+class MockDevice::Impl::HostTransport final : public Transport {
  public:
-  HostTransport(MockDevice& device, bool synchronous) : device_(device), synchronous_(synchronous) {}
+  HostTransport(Impl& device, bool synchronous) : device_(device), synchronous_(synchronous) {}
   ResultCode send(std::span<const std::uint8_t> bytes) noexcept override {
     if (!device_.link_up_.load(std::memory_order_acquire)) {
       return ResultCode::disconnected;
@@ -132,11 +133,11 @@ class MockDevice::HostTransport final : public Transport {
   [[nodiscard]] std::string_view uri() const noexcept override { return "mock://"; }
 
  private:
-  MockDevice& device_;
+  Impl& device_;
   bool synchronous_;
 };
 
-MockDevice::MockDevice(const model::DeviceProfile& profile, std::string_view profile_text,
+MockDevice::Impl::Impl(const model::DeviceProfile& profile, std::string_view profile_text,
                        const MockOptions& options, std::unique_ptr<Plant> plant)
     : profile_(profile),
       layout_(profile.rows, profile.cols),
@@ -246,6 +247,10 @@ MockDevice::MockDevice(const model::DeviceProfile& profile, std::string_view pro
   render_states_.assign(layout_.fluid_cell_count(), model::CellState{});
 }
 
+MockDevice::MockDevice(const model::DeviceProfile& profile, std::string_view profile_text,
+                       const MockOptions& options, std::unique_ptr<Plant> plant)
+    : impl_(std::make_unique<Impl>(profile, profile_text, options, std::move(plant))) {}
+
 std::shared_ptr<MockDevice> MockDevice::make(const MockOptions& options, const model::LoadedProfile& loaded) {
   NetworkPlantOptions plant_options;
   plant_options.perturbation = options.perturbation;
@@ -263,8 +268,8 @@ std::shared_ptr<MockDevice> MockDevice::make(const MockOptions& options, const m
   calibration.serial = options.serial;
   calibration.profile = loaded.profile.name;
   auto device = std::make_shared<MockDevice>(loaded.profile, loaded.text, options, std::move(plant));
-  device->calibration_blob_ = to_bytes(model::format_calibration(calibration));
-  device->calibration_blob_.reserve(kConfigCapacity);
+  device->impl_->calibration_blob_ = to_bytes(model::format_calibration(calibration));
+  device->impl_->calibration_blob_.reserve(kConfigCapacity);
   return device;
 }
 
@@ -273,15 +278,82 @@ std::shared_ptr<MockDevice> MockDevice::make(const MockOptions& options,
   return make(options, model::load_profile_with_text(profile_name_or_path));
 }
 
-MockDevice::~MockDevice() { stop(); }
+MockDevice::Impl::~Impl() { stop(); }
+
+MockDevice::~MockDevice() = default;
 
 std::unique_ptr<Transport> MockDevice::connect(bool synchronous, const Clock* clock) {
-  synchronous_.store(synchronous, std::memory_order_release);
-  sync_clock_ = clock;
-  return std::make_unique<HostTransport>(*this, synchronous);
+  impl_->synchronous_.store(synchronous, std::memory_order_release);
+  impl_->sync_clock_ = clock;
+  return std::make_unique<Impl::HostTransport>(*impl_, synchronous);
 }
 
-void MockDevice::start(Clock& clock) {
+void MockDevice::step(TimePoint now) noexcept { impl_->step(now); }
+void MockDevice::start(Clock& clock) { impl_->start(clock); }
+void MockDevice::stop() noexcept { impl_->stop(); }
+void MockDevice::set_link_up(bool up) noexcept { impl_->set_link_up(up); }
+
+const GridLayout& MockDevice::layout() const noexcept { return impl_->layout_; }
+const model::DeviceProfile& MockDevice::profile() const noexcept { return impl_->profile_; }
+std::uint8_t MockDevice::state() const noexcept { return impl_->state_.load(std::memory_order_acquire); }
+std::uint8_t MockDevice::fault() const noexcept { return impl_->fault_.load(std::memory_order_acquire); }
+bool MockDevice::link_up() const noexcept { return impl_->link_up_.load(std::memory_order_acquire); }
+double MockDevice::skipped_time_s() const noexcept {
+  return static_cast<double>(impl_->skipped_ns_.load(std::memory_order_relaxed)) * 1e-9;
+}
+double MockDevice::max_coil_temperature_C() const noexcept {
+  return impl_->max_coil_C_.load(std::memory_order_relaxed);
+}
+bool MockDevice::rendering_targets() const noexcept { return impl_->rendering_targets_; }
+std::span<const double> MockDevice::commanded_currents() const noexcept { return impl_->commanded_A_; }
+
+MockDevice::HeldTarget MockDevice::held_target(std::size_t cell) const noexcept {
+  const std::vector<HeldTarget>& held = impl_->targets_held_;
+  return cell < held.size() ? held[cell] : HeldTarget{};
+}
+
+MockDevice::FaultCounters MockDevice::fault_counters() const noexcept {
+  const Impl& m = *impl_;
+  return {m.dropped_.value(), m.duplicated_.value(), m.corrupted_.value(), m.reordered_.value(),
+          m.congested_.value()};
+}
+
+void MockDevice::finger_indentation(std::span<double> out_m) const noexcept {
+  const auto& finger_m = impl_->finger_m_;
+  const std::size_t n = std::min(out_m.size(), finger_m.size());
+  for (std::size_t i = 0; i < n; ++i) {
+    out_m[i] = finger_m[i].load(std::memory_order_relaxed);
+  }
+}
+
+void MockDevice::set_finger_indentation(std::span<const double> indentation_m) noexcept {
+  auto& finger_m = impl_->finger_m_;
+  const std::size_t n = std::min(indentation_m.size(), finger_m.size());
+  for (std::size_t i = 0; i < n; ++i) {
+    finger_m[i].store(indentation_m[i], std::memory_order_relaxed);
+  }
+}
+
+void MockDevice::true_contact_forces(std::span<double> out_N) const noexcept {
+  const auto& truth_N = impl_->truth_N_;
+  const std::size_t n = std::min(out_N.size(), truth_N.size());
+  for (std::size_t i = 0; i < n; ++i) {
+    out_N[i] = truth_N[i].load(std::memory_order_relaxed);
+  }
+}
+
+void MockDevice::applied_currents(std::span<double> out_A) const noexcept {
+  const auto& applied_A = impl_->applied_A_;
+  const std::size_t n = std::min(out_A.size(), applied_A.size());
+  for (std::size_t i = 0; i < n; ++i) {
+    out_A[i] = applied_A[i].load(std::memory_order_relaxed);
+  }
+}
+
+static_assert(sizeof(MockDevice) == sizeof(SimulatedUnit) + sizeof(void*),
+              "MockDevice is its base and one pointer: its state lives in MockDevice::Impl");
+
+void MockDevice::Impl::start(Clock& clock) {
   if (running_.exchange(true)) {
     return;
   }
@@ -296,13 +368,13 @@ void MockDevice::start(Clock& clock) {
   });
 }
 
-void MockDevice::stop() noexcept {
+void MockDevice::Impl::stop() noexcept {
   if (running_.exchange(false) && thread_.joinable()) {
     thread_.join();
   }
 }
 
-void MockDevice::set_link_up(bool up) noexcept {
+void MockDevice::Impl::set_link_up(bool up) noexcept {
   const bool was = link_up_.exchange(up, std::memory_order_acq_rel);
   if (up && !was) {
     // A re-plugged unit boots: DISABLED, valves released, nothing queued.
@@ -311,43 +383,11 @@ void MockDevice::set_link_up(bool up) noexcept {
   }
 }
 
-MockDevice::FaultCounters MockDevice::fault_counters() const noexcept {
-  return {dropped_.value(), duplicated_.value(), corrupted_.value(), reordered_.value(), congested_.value()};
-}
-
-void MockDevice::finger_indentation(std::span<double> out_m) const noexcept {
-  const std::size_t n = std::min(out_m.size(), finger_m_.size());
-  for (std::size_t i = 0; i < n; ++i) {
-    out_m[i] = finger_m_[i].load(std::memory_order_relaxed);
-  }
-}
-
-void MockDevice::set_finger_indentation(std::span<const double> indentation_m) noexcept {
-  const std::size_t n = std::min(indentation_m.size(), finger_m_.size());
-  for (std::size_t i = 0; i < n; ++i) {
-    finger_m_[i].store(indentation_m[i], std::memory_order_relaxed);
-  }
-}
-
-void MockDevice::true_contact_forces(std::span<double> out_N) const noexcept {
-  const std::size_t n = std::min(out_N.size(), truth_N_.size());
-  for (std::size_t i = 0; i < n; ++i) {
-    out_N[i] = truth_N_[i].load(std::memory_order_relaxed);
-  }
-}
-
-void MockDevice::applied_currents(std::span<double> out_A) const noexcept {
-  const std::size_t n = std::min(out_A.size(), applied_A_.size());
-  for (std::size_t i = 0; i < n; ++i) {
-    out_A[i] = applied_A_[i].load(std::memory_order_relaxed);
-  }
-}
-
-bool MockDevice::chance(double probability) noexcept {
+bool MockDevice::Impl::chance(double probability) noexcept {
   return probability > 0.0 && unit_random(fault_rng_) < probability;
 }
 
-void MockDevice::emit(const Datagram& d, TimePoint now) noexcept {
+void MockDevice::Impl::emit(const Datagram& d, TimePoint now) noexcept {
   const MockFaults& f = options_.faults;
   if (chance(f.drop_probability)) {
     dropped_.bump();
@@ -386,7 +426,7 @@ void MockDevice::emit(const Datagram& d, TimePoint now) noexcept {
   flush_delayed(now);
 }
 
-void MockDevice::flush_delayed(TimePoint now) noexcept {
+void MockDevice::Impl::flush_delayed(TimePoint now) noexcept {
   while (delay_count_ > 0) {
     const Delayed& slot = delay_line_[delay_head_];
     if (slot.due > now) {
@@ -406,7 +446,7 @@ void MockDevice::flush_delayed(TimePoint now) noexcept {
   }
 }
 
-void MockDevice::send_message(const proto::Message& message) noexcept {
+void MockDevice::Impl::send_message(const proto::Message& message) noexcept {
   if (!link_up_.load(std::memory_order_acquire) || bus_off_until_ > last_step_) {
     return;
   }
@@ -420,7 +460,7 @@ void MockDevice::send_message(const proto::Message& message) noexcept {
   emit(d, last_step_);
 }
 
-void MockDevice::send_status() noexcept {
+void MockDevice::Impl::send_status() noexcept {
   proto::Status s;
   s.state = state_.load(std::memory_order_relaxed);
   s.fault = fault_.load(std::memory_order_relaxed);
@@ -440,7 +480,7 @@ void MockDevice::send_status() noexcept {
   send_message(s);
 }
 
-void MockDevice::release_valves() noexcept {
+void MockDevice::Impl::release_valves() noexcept {
   rendering_targets_ = false;
   degaussing_ = false;  // a fault, a disable or a lost host ends a degauss too
   std::fill(commanded_A_.begin(), commanded_A_.end(), 0.0);
@@ -451,7 +491,7 @@ void MockDevice::release_valves() noexcept {
   }
 }
 
-void MockDevice::reseed(TimePoint now) noexcept {
+void MockDevice::Impl::reseed(TimePoint now) noexcept {
   // The host's last currents and targets predate this enable: currents restart at zero and
   // each cell's target is re-seeded from the last reading sent (TargetSeeder), its validity
   // starting now.
@@ -463,7 +503,7 @@ void MockDevice::reseed(TimePoint now) noexcept {
   }
 }
 
-void MockDevice::render_targets(TimePoint now) noexcept {
+void MockDevice::Impl::render_targets(TimePoint now) noexcept {
   // The firmware's local impedance loop: what it reported to the host is all it measures.
   constexpr model::ContactThresholds kContact{};  // the bridge's defaults
   if (render_observer_->update(reported_, commanded_A_, options_.telemetry_period_s) != model::Status::ok) {
@@ -494,18 +534,14 @@ void MockDevice::render_targets(TimePoint now) noexcept {
   }
 }
 
-MockDevice::HeldTarget MockDevice::held_target(std::size_t cell) const noexcept {
-  return cell < targets_held_.size() ? targets_held_[cell] : HeldTarget{};
-}
-
-void MockDevice::enter_fault(proto::FaultCode code) noexcept {
+void MockDevice::Impl::enter_fault(proto::FaultCode code) noexcept {
   state_.store(static_cast<std::uint8_t>(proto::DeviceState::fault));
   fault_.store(static_cast<std::uint8_t>(code));  // latched until an explicit enable
   release_valves();
   send_status();
 }
 
-void MockDevice::handle_host_input(TimePoint now) noexcept {
+void MockDevice::Impl::handle_host_input(TimePoint now) noexcept {
   Datagram d;
   const MockFaults& f = options_.faults;
   while (to_device_.try_pop(d)) {
@@ -529,7 +565,7 @@ void MockDevice::handle_host_input(TimePoint now) noexcept {
   }
 }
 
-void MockDevice::handle_config(const proto::Message& message) noexcept {
+void MockDevice::Impl::handle_config(const proto::Message& message) noexcept {
   auto blob_for = [this](std::uint16_t key) -> std::vector<std::uint8_t>* {
     switch (static_cast<proto::ConfigKey>(key)) {
       case proto::ConfigKey::profile:
@@ -594,7 +630,7 @@ void MockDevice::handle_config(const proto::Message& message) noexcept {
   }
 }
 
-void MockDevice::handle(const std::uint8_t* bytes, std::size_t length, TimePoint now) noexcept {
+void MockDevice::Impl::handle(const std::uint8_t* bytes, std::size_t length, TimePoint now) noexcept {
   const proto::PacketDecoded p = proto::decode_packet(std::span<const std::uint8_t>(bytes, length));
   if (p.error != proto::Error::ok) {
     return;  // a unit drops what it cannot parse; the host sees no answer
@@ -690,7 +726,7 @@ void MockDevice::handle(const std::uint8_t* bytes, std::size_t length, TimePoint
   }
 }
 
-void MockDevice::update_coils(double dt_s) noexcept {
+void MockDevice::Impl::update_coils(double dt_s) noexcept {
   const MockFaults& f = options_.faults;
   const double max_step_A = max_current_A_ * dt_s / options_.slew_time_s;
   const bool heating = f.overheat_for_s < 0.0 || to_seconds(last_step_ - start_) < f.overheat_for_s;
@@ -742,7 +778,7 @@ void MockDevice::update_coils(double dt_s) noexcept {
   }
 }
 
-void MockDevice::emit_telemetry(TimePoint now) noexcept {
+void MockDevice::Impl::emit_telemetry(TimePoint now) noexcept {
   plant_->read_sensors(sensor_si_);
   const MockFaults& f = options_.faults;
   const auto time_us =
@@ -774,7 +810,7 @@ void MockDevice::emit_telemetry(TimePoint now) noexcept {
   }
 }
 
-void MockDevice::apply_link_faults(TimePoint now) noexcept {
+void MockDevice::Impl::apply_link_faults(TimePoint now) noexcept {
   const MockFaults& f = options_.faults;
   const double t_s = to_seconds(now - start_);
   if (f.disconnect_at_s >= 0.0 && !disconnect_done_ && t_s >= f.disconnect_at_s) {
@@ -793,7 +829,7 @@ void MockDevice::apply_link_faults(TimePoint now) noexcept {
   }
 }
 
-void MockDevice::step(TimePoint now) noexcept {
+void MockDevice::Impl::step(TimePoint now) noexcept {
   if (!started_) {
     started_ = true;
     start_ = now;

@@ -5,26 +5,18 @@
 // timestamps, and faults injected on demand.
 #pragma once
 
-#include <atomic>
+#include <cstddef>
 #include <cstdint>
 #include <memory>
 #include <span>
 #include <string>
 #include <string_view>
-#include <thread>
-#include <vector>
 
 #include "mrskin/driver/clock.hpp"
 #include "mrskin/driver/device.hpp"
 #include "mrskin/driver/force_truth.hpp"
 #include "mrskin/driver/layout.hpp"
-#include "mrskin/driver/model/device_model.hpp"
-#include "mrskin/driver/model/inverse.hpp"
-#include "mrskin/driver/model/observer.hpp"
 #include "mrskin/driver/model/profile.hpp"
-#include "mrskin/driver/relaxed_counter.hpp"
-#include "mrskin/driver/session.hpp"
-#include "mrskin/driver/spsc_queue.hpp"
 #include "mrskin/driver/transport.hpp"
 #include "mrskin/protocol/messages.hpp"
 #include "mrskin/sim/export.hpp"
@@ -140,23 +132,19 @@ class MRSKIN_SIM_API MockDevice final : public SimulatedUnit {
   // Coil currents the plant sees now, A.
   void applied_currents(std::span<double> out_A) const noexcept;
 
-  [[nodiscard]] const GridLayout& layout() const noexcept { return layout_; }
+  [[nodiscard]] const GridLayout& layout() const noexcept;
   // The profile the unit was built to (as stored in its configuration memory).
-  [[nodiscard]] const model::DeviceProfile& profile() const noexcept { return profile_; }
-  [[nodiscard]] std::uint8_t state() const noexcept { return state_.load(std::memory_order_acquire); }
-  [[nodiscard]] std::uint8_t fault() const noexcept { return fault_.load(std::memory_order_acquire); }
+  [[nodiscard]] const model::DeviceProfile& profile() const noexcept;
+  [[nodiscard]] std::uint8_t state() const noexcept;
+  [[nodiscard]] std::uint8_t fault() const noexcept;
   // Pulls (false) or re-plugs (true) the cable. A re-plugged unit boots DISABLED.
   void set_link_up(bool up) noexcept;
-  [[nodiscard]] bool link_up() const noexcept { return link_up_.load(std::memory_order_acquire); }
+  [[nodiscard]] bool link_up() const noexcept;
   // Simulated time skipped because step() fell further behind than max_catch_up_s, s; any
   // thread. Zero when stepped at least every max_catch_up_s (every test rig).
-  [[nodiscard]] double skipped_time_s() const noexcept {
-    return static_cast<double>(skipped_ns_.load(std::memory_order_relaxed)) * 1e-9;
-  }
+  [[nodiscard]] double skipped_time_s() const noexcept;
   // Hottest coil temperature, deg C; callable from any thread.
-  [[nodiscard]] double max_coil_temperature_C() const noexcept {
-    return max_coil_C_.load(std::memory_order_relaxed);
-  }
+  [[nodiscard]] double max_coil_temperature_C() const noexcept;
   // Datagrams the fault injector dropped, duplicated, corrupted, reordered (both directions),
   // and the device->host datagrams the link lost because the host was not reading.
   struct FaultCounters {
@@ -178,101 +166,15 @@ class MRSKIN_SIM_API MockDevice final : public SimulatedUnit {
     TimePoint validity_start{};
   };
   [[nodiscard]] HeldTarget held_target(std::size_t cell) const noexcept;
-  [[nodiscard]] bool rendering_targets() const noexcept { return rendering_targets_; }
+  [[nodiscard]] bool rendering_targets() const noexcept;
   // Currents the host commanded (before slew limit and derating), A.
-  [[nodiscard]] std::span<const double> commanded_currents() const noexcept { return commanded_A_; }
+  [[nodiscard]] std::span<const double> commanded_currents() const noexcept;
 
  private:
-  class HostTransport;
-  friend class HostTransport;
-  void handle_host_input(TimePoint now) noexcept;
-  void handle(const std::uint8_t* bytes, std::size_t length, TimePoint now) noexcept;
-  void send_message(const protocol::Message& message) noexcept;
-  void send_status() noexcept;
-  void release_valves() noexcept;
-  void emit_telemetry(TimePoint now) noexcept;
-  void emit(const Datagram& d, TimePoint now) noexcept;
-  void flush_delayed(TimePoint now) noexcept;
-  void update_coils(double dt_s) noexcept;
-  void enter_fault(protocol::FaultCode code) noexcept;
-  void apply_link_faults(TimePoint now) noexcept;
-  bool chance(double probability) noexcept;
-  void handle_config(const protocol::Message& message) noexcept;
-  void reseed(TimePoint now) noexcept;
-  void render_targets(TimePoint now) noexcept;
-
-  model::DeviceProfile profile_;
-  GridLayout layout_;
-  MockOptions options_;
-  double max_current_A_ = 0.0;
-  double current_lsb_A_ = 0.0;
-  double sensor_lsb_ = 0.0;           // the sensors' resolution, in their SI unit
-  std::vector<double> sensor_noise_;  // standard deviation per sensor, SI
-  double coil_resistance_ohm_ = 0.0;
-  TargetSeeder seeder_;
-  std::vector<HeldTarget> targets_held_;
-  // Target rendering: the nominal model (the firmware knows no more than the host).
-  std::unique_ptr<model::DeviceModel> render_model_;
-  std::unique_ptr<model::CellObserver> render_observer_;
-  std::unique_ptr<model::CellInverse> render_inverse_;
-  std::vector<model::CellImpedanceTarget> render_targets_;
-  std::vector<model::CellState> render_states_;
-  bool rendering_targets_ = false;
-  std::vector<double> reported_;  // last telemetry sent, SI (what the host saw)
-  std::unique_ptr<Plant> plant_;
-  SpscQueue<Datagram> to_device_{256};
-  SpscQueue<Datagram> to_host_{1024};
-  std::vector<double> commanded_A_;
-  std::vector<double> coil_A_;   // after slew limit and derating
-  std::vector<double> plant_A_;  // what the plant's field sees (coil_A_ less a leak fault)
-  std::vector<double> coil_C_;
-  std::vector<double> stuck_value_;
-  struct Delayed {
-    TimePoint due{};
-    Datagram datagram{};
-  };
-  std::vector<Delayed> delay_line_;  // ring, preallocated
-  std::size_t delay_head_ = 0;
-  std::size_t delay_count_ = 0;
-  Datagram held_{};  // reorder: the datagram held back
-  bool holding_ = false;
-  std::vector<std::uint8_t> calibration_blob_;
-  std::vector<std::uint8_t> calibration_pending_;  // a write in progress
-  std::vector<std::uint8_t> profile_blob_;
-  std::atomic<double> max_coil_C_{25.0};
-  RelaxedCounter dropped_;
-  RelaxedCounter duplicated_;
-  RelaxedCounter corrupted_;
-  RelaxedCounter reordered_;
-  RelaxedCounter congested_;
-  std::atomic<std::int64_t> skipped_ns_{0};
-  std::uint64_t fault_rng_;
-  TimePoint start_{};
-  TimePoint bus_off_until_{};
-  bool bus_off_done_ = false;
-  bool disconnect_done_ = false;
-  bool derated_ = false;
-  bool degaussing_ = false;
-  double degauss_elapsed_s_ = 0.0;
-  std::vector<double> sensor_si_;
-  std::vector<std::atomic<double>> finger_m_;
-  std::vector<std::atomic<double>> truth_N_;
-  std::vector<std::atomic<double>> applied_A_;
-  std::vector<double> scratch_;
-  std::atomic<std::uint8_t> state_{0};
-  std::atomic<std::uint8_t> fault_{0};
-  std::atomic<bool> link_up_{true};
-  std::atomic<bool> synchronous_{false};
-  const Clock* sync_clock_ = nullptr;
-  std::atomic<bool> running_{false};
-  std::thread thread_;
-  TimePoint last_step_{};
-  TimePoint last_heartbeat_{};
-  TimePoint next_telemetry_{};
-  TimePoint next_status_{};
-  bool started_ = false;
-  std::uint8_t tx_sequence_ = 0;
-  std::uint64_t noise_state_;
+  // The firmware's state and logic (mock_device_impl.hpp): a new member there leaves this
+  // class's layout, and a console built against it, unchanged.
+  struct Impl;
+  std::unique_ptr<Impl> impl_;
 };
 
 // The mock device's ground truth for the bridge's scoring: its plant's contact forces and the

@@ -1,0 +1,139 @@
+// MockDevice's firmware state and logic behind its one pointer (mock_device.hpp). Private to
+// libmrskin_sim: mock_device.cpp defines it.
+#pragma once
+
+#include <atomic>
+#include <cstddef>
+#include <cstdint>
+#include <memory>
+#include <string_view>
+#include <thread>
+#include <vector>
+
+#include "mrskin/driver/clock.hpp"
+#include "mrskin/driver/layout.hpp"
+#include "mrskin/driver/model/device_model.hpp"
+#include "mrskin/driver/model/inverse.hpp"
+#include "mrskin/driver/model/observer.hpp"
+#include "mrskin/driver/model/profile.hpp"
+#include "mrskin/driver/relaxed_counter.hpp"
+#include "mrskin/driver/session.hpp"
+#include "mrskin/driver/spsc_queue.hpp"
+#include "mrskin/driver/transport.hpp"
+#include "mrskin/protocol/messages.hpp"
+#include "mrskin/sim/mock_device.hpp"
+#include "mrskin/sim/plant.hpp"
+
+namespace mrskin::sim {
+
+// Hidden explicitly: a nested class otherwise takes its exported parent's visibility.
+struct __attribute__((visibility("hidden"))) MockDevice::Impl {
+  // Validates the profile and the faults against the plant (MockDevice's constructor).
+  Impl(const model::DeviceProfile& profile, std::string_view profile_text, const MockOptions& options,
+       std::unique_ptr<Plant> plant);
+  Impl(const Impl&) = delete;
+  Impl& operator=(const Impl&) = delete;
+  Impl(Impl&&) = delete;
+  Impl& operator=(Impl&&) = delete;
+  ~Impl();
+
+  // Host end of the in-process link (MockDevice::connect).
+  class HostTransport;
+
+  // The public functions that do more than read a member, as documented in mock_device.hpp.
+  void step(TimePoint now) noexcept;
+  void start(Clock& clock);
+  void stop() noexcept;
+  void set_link_up(bool up) noexcept;
+
+  void handle_host_input(TimePoint now) noexcept;
+  void handle(const std::uint8_t* bytes, std::size_t length, TimePoint now) noexcept;
+  void send_message(const protocol::Message& message) noexcept;
+  void send_status() noexcept;
+  void release_valves() noexcept;
+  void emit_telemetry(TimePoint now) noexcept;
+  void emit(const Datagram& d, TimePoint now) noexcept;
+  void flush_delayed(TimePoint now) noexcept;
+  void update_coils(double dt_s) noexcept;
+  void enter_fault(protocol::FaultCode code) noexcept;
+  void apply_link_faults(TimePoint now) noexcept;
+  bool chance(double probability) noexcept;
+  void handle_config(const protocol::Message& message) noexcept;
+  void reseed(TimePoint now) noexcept;
+  void render_targets(TimePoint now) noexcept;
+
+  model::DeviceProfile profile_;
+  GridLayout layout_;
+  MockOptions options_;
+  double max_current_A_ = 0.0;
+  double current_lsb_A_ = 0.0;
+  double sensor_lsb_ = 0.0;           // the sensors' resolution, in their SI unit
+  std::vector<double> sensor_noise_;  // standard deviation per sensor, SI
+  double coil_resistance_ohm_ = 0.0;
+  TargetSeeder seeder_;
+  std::vector<HeldTarget> targets_held_;
+  // Target rendering: the nominal model (the firmware knows no more than the host).
+  std::unique_ptr<model::DeviceModel> render_model_;
+  std::unique_ptr<model::CellObserver> render_observer_;
+  std::unique_ptr<model::CellInverse> render_inverse_;
+  std::vector<model::CellImpedanceTarget> render_targets_;
+  std::vector<model::CellState> render_states_;
+  bool rendering_targets_ = false;
+  std::vector<double> reported_;  // last telemetry sent, SI (what the host saw)
+  std::unique_ptr<Plant> plant_;
+  SpscQueue<Datagram> to_device_{256};
+  SpscQueue<Datagram> to_host_{1024};
+  std::vector<double> commanded_A_;
+  std::vector<double> coil_A_;   // after slew limit and derating
+  std::vector<double> plant_A_;  // what the plant's field sees (coil_A_ less a leak fault)
+  std::vector<double> coil_C_;
+  std::vector<double> stuck_value_;
+  struct Delayed {
+    TimePoint due{};
+    Datagram datagram{};
+  };
+  std::vector<Delayed> delay_line_;  // ring, preallocated
+  std::size_t delay_head_ = 0;
+  std::size_t delay_count_ = 0;
+  Datagram held_{};  // reorder: the datagram held back
+  bool holding_ = false;
+  std::vector<std::uint8_t> calibration_blob_;
+  std::vector<std::uint8_t> calibration_pending_;  // a write in progress
+  std::vector<std::uint8_t> profile_blob_;
+  std::atomic<double> max_coil_C_{25.0};
+  RelaxedCounter dropped_;
+  RelaxedCounter duplicated_;
+  RelaxedCounter corrupted_;
+  RelaxedCounter reordered_;
+  RelaxedCounter congested_;
+  std::atomic<std::int64_t> skipped_ns_{0};
+  std::uint64_t fault_rng_;
+  TimePoint start_{};
+  TimePoint bus_off_until_{};
+  bool bus_off_done_ = false;
+  bool disconnect_done_ = false;
+  bool derated_ = false;
+  bool degaussing_ = false;
+  double degauss_elapsed_s_ = 0.0;
+  std::vector<double> sensor_si_;
+  std::vector<std::atomic<double>> finger_m_;
+  std::vector<std::atomic<double>> truth_N_;
+  std::vector<std::atomic<double>> applied_A_;
+  std::vector<double> scratch_;
+  std::atomic<std::uint8_t> state_{0};
+  std::atomic<std::uint8_t> fault_{0};
+  std::atomic<bool> link_up_{true};
+  std::atomic<bool> synchronous_{false};
+  const Clock* sync_clock_ = nullptr;
+  std::atomic<bool> running_{false};
+  std::thread thread_;
+  TimePoint last_step_{};
+  TimePoint last_heartbeat_{};
+  TimePoint next_telemetry_{};
+  TimePoint next_status_{};
+  bool started_ = false;
+  std::uint8_t tx_sequence_ = 0;
+  std::uint64_t noise_state_;
+};
+
+}  // namespace mrskin::sim
