@@ -213,7 +213,7 @@ struct __attribute__((visibility("hidden"))) NetworkSimulation::Impl {
   [[nodiscard]] double s_of(double depth, double gain) const noexcept { return s_rest + area * depth + gain; }
   Status link_law(std::size_t l, double x, bool regularised, double& flow, double& cond) const noexcept;
   Status resolve_cell(std::size_t i, double e1, bool dg, Eval& ev) const noexcept;
-  Status evaluate(Eval & ev, double dt, bool dg, bool regularised) const noexcept;
+  Status evaluate(Eval& ev, double dt, bool dg, bool regularised) const noexcept;
   bool assemble_and_factorize(const Eval& ev, double dt) noexcept;
   Status newton(double dt, bool regularised) noexcept;
   Status one_solve(double dt) noexcept;
