@@ -14,9 +14,17 @@
 
 #include <algorithm>
 #include <array>
+#include <atomic>
 #include <cerrno>
 #include <cmath>
+#include <cstdint>
+#include <memory>
+#include <mutex>
+#include <string>
 #include <system_error>
+#include <thread>
+
+#include "mrskin/driver/relaxed_counter.hpp"
 
 namespace mrskin::bridge {
 
@@ -253,10 +261,70 @@ SchedulerState apply_realtime(const LoopOptions& options, RealtimeOs& os, std::s
 
 // --- the loop -----------------------------------------------------------------------------
 
-RealtimeLoop::RealtimeLoop(Clock& clock, Tickable& tickable, LoopOptions options)
-    : RealtimeLoop(clock, &RealtimeLoop::call_tickable, &tickable, options) {}
+namespace {
 
-RealtimeLoop::RealtimeLoop(Clock& clock, TickFunction tick, void* context, LoopOptions options)
+ResultCode call_tickable(void* context, TimePoint now) noexcept {
+  return static_cast<Tickable*>(context)->tick(now);
+}
+
+}  // namespace
+
+// The loop's state, behind RealtimeLoop's one pointer (docs/api.md, "ABI").
+class __attribute__((visibility("hidden"))) RealtimeLoop::Impl {
+ public:
+  Impl(Clock& clock, TickFunction tick, void* context, LoopOptions options);
+  Impl(const Impl&) = delete;
+  Impl& operator=(const Impl&) = delete;
+  Impl(Impl&&) = delete;
+  Impl& operator=(Impl&&) = delete;
+  ~Impl();
+
+  std::string start();
+  void stop() noexcept;
+  [[nodiscard]] bool running() const noexcept { return running_.load(std::memory_order_acquire); }
+  void notify() noexcept { waiter_->notify(); }
+  bool run_once() noexcept;
+  [[nodiscard]] const LoopStats& stats() const noexcept { return stats_; }
+  [[nodiscard]] std::uint64_t live_ticks() const noexcept {
+    return live_ticks_.load(std::memory_order_acquire);
+  }
+  [[nodiscard]] std::uint64_t live_overruns() const noexcept { return live_overruns_.value(); }
+  [[nodiscard]] Duration period() const noexcept;
+  [[nodiscard]] TimePoint deadline(std::uint64_t k) const noexcept;
+  [[nodiscard]] bool early_tick_allowed(TimePoint woke) const noexcept;
+
+ private:
+  void thread_main() noexcept;
+  void reset_run() noexcept;
+
+  Clock& clock_;
+  TickFunction tick_;
+  void* context_;
+  LoopOptions options_;
+  double period_ns_;
+  std::unique_ptr<Waiter> own_waiter_;  // when options.waiter was nullptr
+  Waiter* waiter_;
+  RealtimeOs* os_;
+  // Grid of the current run.
+  bool grid_started_ = false;
+  TimePoint start_{};  // the grid's origin: the run's start, or the last early tick
+  std::uint64_t k_ = 0;
+  TimePoint next_{};
+  TimePoint run_start_{};  // the first tick: the tick budget counts from here
+  TimePoint last_tick_{};
+  LoopStats stats_;
+  std::atomic<std::uint64_t> live_ticks_{0};  // release: a watcher that sees it sees the tick's stats
+  RelaxedCounter live_overruns_;
+  std::atomic<bool> stop_requested_{false};
+  std::atomic<bool> running_{false};
+  std::atomic<bool> setup_done_{false};
+  std::string setup_warning_;
+  bool warned_ = false;
+  std::mutex control_;  // start/stop from several control threads
+  std::thread thread_;
+};
+
+RealtimeLoop::Impl::Impl(Clock& clock, TickFunction tick, void* context, LoopOptions options)
     : clock_(clock),
       tick_(tick),
       context_(context),
@@ -285,20 +353,16 @@ RealtimeLoop::RealtimeLoop(Clock& clock, TickFunction tick, void* context, LoopO
   }
 }
 
-RealtimeLoop::~RealtimeLoop() { stop(); }
+RealtimeLoop::Impl::~Impl() { stop(); }
 
-ResultCode RealtimeLoop::call_tickable(void* context, TimePoint now) noexcept {
-  return static_cast<Tickable*>(context)->tick(now);
-}
+Duration RealtimeLoop::Impl::period() const noexcept { return Duration{std::llround(period_ns_)}; }
 
-Duration RealtimeLoop::period() const noexcept { return Duration{std::llround(period_ns_)}; }
-
-TimePoint RealtimeLoop::deadline(std::uint64_t k) const noexcept {
+TimePoint RealtimeLoop::Impl::deadline(std::uint64_t k) const noexcept {
   // From k, not by adding a rounded period: a non-integral period (3 kHz) does not drift either.
   return start_ + Duration{std::llround(static_cast<double>(k) * period_ns_)};
 }
 
-void RealtimeLoop::reset_run() noexcept {
+void RealtimeLoop::Impl::reset_run() noexcept {
   stats_ = LoopStats{};
   grid_started_ = false;
   k_ = 0;
@@ -308,7 +372,7 @@ void RealtimeLoop::reset_run() noexcept {
   waiter_->clear();
 }
 
-bool RealtimeLoop::early_tick_allowed(TimePoint woke) const noexcept {
+bool RealtimeLoop::Impl::early_tick_allowed(TimePoint woke) const noexcept {
   // At least half a period after the last tick, and never more than one tick ahead of the
   // configured rate since the run began: early wakes never raise the tick rate.
   const auto since_last = static_cast<double>((woke - last_tick_).count());
@@ -317,7 +381,7 @@ bool RealtimeLoop::early_tick_allowed(TimePoint woke) const noexcept {
          static_cast<double>(stats_.ticks + 1) <= std::floor(elapsed / period_ns_) + 2.0;
 }
 
-bool RealtimeLoop::run_once() noexcept {
+bool RealtimeLoop::Impl::run_once() noexcept {
   if (stop_requested_.load(std::memory_order_acquire)) {
     return false;
   }
@@ -385,7 +449,7 @@ bool RealtimeLoop::run_once() noexcept {
   return true;
 }
 
-void RealtimeLoop::thread_main() noexcept {
+void RealtimeLoop::Impl::thread_main() noexcept {
   try {
     stats_.scheduler = apply_realtime(options_, *os_, setup_warning_);
   } catch (...) {  // out of memory for the warning text: run anyway, without it
@@ -397,7 +461,7 @@ void RealtimeLoop::thread_main() noexcept {
   }
 }
 
-std::string RealtimeLoop::start() {
+std::string RealtimeLoop::Impl::start() {
   const std::lock_guard lock(control_);
   if (thread_.joinable()) {
     if (running_.load(std::memory_order_acquire)) {
@@ -417,7 +481,7 @@ std::string RealtimeLoop::start() {
   return setup_warning_;
 }
 
-void RealtimeLoop::stop() noexcept {
+void RealtimeLoop::Impl::stop() noexcept {
   const std::lock_guard lock(control_);
   stop_requested_.store(true, std::memory_order_release);
   waiter_->notify();
@@ -426,6 +490,30 @@ void RealtimeLoop::stop() noexcept {
   }
   running_.store(false, std::memory_order_release);
 }
+
+// --- the public face: one pointer to the state ---------------------------------------------
+
+RealtimeLoop::RealtimeLoop(Clock& clock, Tickable& tickable, LoopOptions options)
+    : impl_(std::make_unique<Impl>(clock, &call_tickable, &tickable, options)) {}
+RealtimeLoop::RealtimeLoop(Clock& clock, TickFunction tick, void* context, LoopOptions options)
+    : impl_(std::make_unique<Impl>(clock, tick, context, options)) {}
+RealtimeLoop::~RealtimeLoop() = default;
+std::string RealtimeLoop::start() { return impl_->start(); }
+void RealtimeLoop::stop() noexcept { impl_->stop(); }
+bool RealtimeLoop::running() const noexcept { return impl_->running(); }
+void RealtimeLoop::notify() noexcept { impl_->notify(); }
+bool RealtimeLoop::run_once() noexcept { return impl_->run_once(); }
+const LoopStats& RealtimeLoop::stats() const noexcept { return impl_->stats(); }
+std::uint64_t RealtimeLoop::live_ticks() const noexcept { return impl_->live_ticks(); }
+std::uint64_t RealtimeLoop::live_overruns() const noexcept { return impl_->live_overruns(); }
+Duration RealtimeLoop::period() const noexcept { return impl_->period(); }
+TimePoint RealtimeLoop::deadline(std::uint64_t k) const noexcept { return impl_->deadline(k); }
+bool RealtimeLoop::early_tick_allowed(TimePoint woke) const noexcept {
+  return impl_->early_tick_allowed(woke);
+}
+
+static_assert(sizeof(RealtimeLoop) == sizeof(void*),
+              "RealtimeLoop is one pointer: its state lives in RealtimeLoop::Impl");
 
 // --- baseline -----------------------------------------------------------------------------
 

@@ -2,6 +2,8 @@
 
 #include <algorithm>
 #include <cmath>
+#include <memory>
+#include <vector>
 
 #include "mrskin/driver/errors.hpp"
 
@@ -43,8 +45,60 @@ std::size_t stuck_run_for(double noise_std, double resolution, double p) {
 
 }  // namespace
 
-SensorFaultMonitor::SensorFaultMonitor(const model::DeviceProfile& profile, const GridLayout& layout,
-                                       const SensorFaultOptions& options)
+// The monitor's state, behind SensorFaultMonitor's one pointer (docs/api.md, "ABI").
+class __attribute__((visibility("hidden"))) SensorFaultMonitor::Impl {
+ public:
+  Impl(const model::DeviceProfile& profile, const GridLayout& layout, const SensorFaultOptions& options);
+
+  std::size_t update(std::span<const double> readings, std::span<const double> residual_sigma) noexcept;
+  void reset() noexcept;
+  void restart_history() noexcept;
+  [[nodiscard]] SensorFault fault(std::size_t sensor) const noexcept {
+    return sensor < fault_.size() ? fault_[sensor] : SensorFault::none;
+  }
+  [[nodiscard]] std::size_t faulty_count() const noexcept { return faulty_; }
+  [[nodiscard]] std::size_t healthy_count() const noexcept { return healthy_; }
+  [[nodiscard]] std::size_t unobservable_cell() const noexcept { return unobservable_; }
+  [[nodiscard]] std::span<const std::size_t> cells_of_sensor(std::size_t sensor) const noexcept;
+  [[nodiscard]] std::size_t stuck_run_readings(std::size_t sensor) const noexcept {
+    return sensor < stuck_run_.size() ? stuck_run_[sensor] : npos;
+  }
+  [[nodiscard]] double noise_ratio(std::size_t sensor) const noexcept {
+    return sensor < noise_ratio_.size() ? noise_ratio_[sensor] : 0.0;
+  }
+  [[nodiscard]] double mean_residual_sigma(std::size_t sensor) const noexcept {
+    return sensor < mean_residual_.size() ? mean_residual_[sensor] : 0.0;
+  }
+  [[nodiscard]] double evidence(std::size_t sensor) const noexcept {
+    return sensor < evidence_.size() ? evidence_[sensor] : 0.0;
+  }
+
+ private:
+  void latch(std::size_t sensor, SensorFault fault, double evidence) noexcept;
+
+  SensorFaultOptions options_;
+  std::vector<unsigned char> watched_;  // displacement sensors
+  std::vector<double> sigma_;           // noise and quantisation, in the reading's unit
+  std::vector<std::size_t> stuck_run_;
+  std::vector<std::size_t> cells_begin_;
+  std::vector<std::size_t> cells_;
+  std::vector<std::size_t> readers_of_cell_;  // healthy displacement sensors reading each cell
+  std::vector<SensorFault> fault_;
+  std::vector<double> evidence_;
+  // Per sensor: the reading's history and the tests' running figures.
+  std::vector<double> last_;
+  std::vector<double> before_last_;
+  std::vector<std::size_t> seen_;  // readings so far (up to 2: the second difference needs 3)
+  std::vector<std::size_t> run_;
+  std::vector<double> noise_ratio_;
+  std::vector<double> mean_residual_;
+  std::size_t faulty_ = 0;
+  std::size_t healthy_ = 0;
+  std::size_t unobservable_ = npos;
+};
+
+SensorFaultMonitor::Impl::Impl(const model::DeviceProfile& profile, const GridLayout& layout,
+                               const SensorFaultOptions& options)
     : options_(options) {
   if (!(options.false_alarm_probability > 0.0 && options.false_alarm_probability < 1.0) ||
       !(options.noise_ratio_limit > 1.0) || !(options.noise_window_readings >= 1.0) ||
@@ -91,14 +145,14 @@ SensorFaultMonitor::SensorFaultMonitor(const model::DeviceProfile& profile, cons
   healthy_ = static_cast<std::size_t>(std::count(watched_.begin(), watched_.end(), 1));
 }
 
-std::span<const std::size_t> SensorFaultMonitor::cells_of_sensor(std::size_t sensor) const noexcept {
+std::span<const std::size_t> SensorFaultMonitor::Impl::cells_of_sensor(std::size_t sensor) const noexcept {
   if (sensor + 1 >= cells_begin_.size()) {
     return {};
   }
   return {cells_.data() + cells_begin_[sensor], cells_begin_[sensor + 1] - cells_begin_[sensor]};
 }
 
-void SensorFaultMonitor::reset() noexcept {
+void SensorFaultMonitor::Impl::reset() noexcept {
   for (std::size_t k = 0; k < fault_.size(); ++k) {
     if (fault_[k] != SensorFault::none) {
       for (std::size_t e = cells_begin_[k]; e < cells_begin_[k + 1]; ++e) {
@@ -117,14 +171,14 @@ void SensorFaultMonitor::reset() noexcept {
   unobservable_ = npos;
 }
 
-void SensorFaultMonitor::restart_history() noexcept {
+void SensorFaultMonitor::Impl::restart_history() noexcept {
   std::fill(seen_.begin(), seen_.end(), 0);
   std::fill(run_.begin(), run_.end(), 0);
   std::fill(noise_ratio_.begin(), noise_ratio_.end(), 0.0);
   std::fill(mean_residual_.begin(), mean_residual_.end(), 0.0);
 }
 
-void SensorFaultMonitor::latch(std::size_t sensor, SensorFault fault, double evidence) noexcept {
+void SensorFaultMonitor::Impl::latch(std::size_t sensor, SensorFault fault, double evidence) noexcept {
   fault_[sensor] = fault;
   evidence_[sensor] = evidence;
   ++faulty_;
@@ -140,8 +194,8 @@ void SensorFaultMonitor::latch(std::size_t sensor, SensorFault fault, double evi
   std::fill(mean_residual_.begin(), mean_residual_.end(), 0.0);
 }
 
-std::size_t SensorFaultMonitor::update(std::span<const double> readings,
-                                       std::span<const double> residual_sigma) noexcept {
+std::size_t SensorFaultMonitor::Impl::update(std::span<const double> readings,
+                                             std::span<const double> residual_sigma) noexcept {
   if (!options_.enabled || readings.size() != fault_.size() || residual_sigma.size() != fault_.size()) {
     return npos;
   }
@@ -207,5 +261,45 @@ std::size_t SensorFaultMonitor::update(std::span<const double> readings,
   }
   return found;
 }
+
+// --- the public face: one pointer to the state ---------------------------------------------
+
+SensorFaultMonitor::SensorFaultMonitor(const model::DeviceProfile& profile, const GridLayout& layout,
+                                       const SensorFaultOptions& options)
+    : impl_(std::make_unique<Impl>(profile, layout, options)) {}
+SensorFaultMonitor::SensorFaultMonitor(const SensorFaultMonitor& other)
+    : impl_(std::make_unique<Impl>(*other.impl_)) {}
+SensorFaultMonitor& SensorFaultMonitor::operator=(const SensorFaultMonitor& other) {
+  return *this = SensorFaultMonitor(other);
+}
+SensorFaultMonitor::SensorFaultMonitor(SensorFaultMonitor&&) noexcept = default;
+SensorFaultMonitor& SensorFaultMonitor::operator=(SensorFaultMonitor&&) noexcept = default;
+SensorFaultMonitor::~SensorFaultMonitor() = default;
+std::size_t SensorFaultMonitor::update(std::span<const double> readings,
+                                       std::span<const double> residual_sigma) noexcept {
+  return impl_->update(readings, residual_sigma);
+}
+void SensorFaultMonitor::reset() noexcept { impl_->reset(); }
+void SensorFaultMonitor::restart_history() noexcept { impl_->restart_history(); }
+SensorFault SensorFaultMonitor::fault(std::size_t sensor) const noexcept { return impl_->fault(sensor); }
+std::size_t SensorFaultMonitor::faulty_count() const noexcept { return impl_->faulty_count(); }
+std::size_t SensorFaultMonitor::healthy_count() const noexcept { return impl_->healthy_count(); }
+std::size_t SensorFaultMonitor::unobservable_cell() const noexcept { return impl_->unobservable_cell(); }
+std::span<const std::size_t> SensorFaultMonitor::cells_of_sensor(std::size_t sensor) const noexcept {
+  return impl_->cells_of_sensor(sensor);
+}
+std::size_t SensorFaultMonitor::stuck_run_readings(std::size_t sensor) const noexcept {
+  return impl_->stuck_run_readings(sensor);
+}
+double SensorFaultMonitor::noise_ratio(std::size_t sensor) const noexcept {
+  return impl_->noise_ratio(sensor);
+}
+double SensorFaultMonitor::mean_residual_sigma(std::size_t sensor) const noexcept {
+  return impl_->mean_residual_sigma(sensor);
+}
+double SensorFaultMonitor::evidence(std::size_t sensor) const noexcept { return impl_->evidence(sensor); }
+
+static_assert(sizeof(SensorFaultMonitor) == sizeof(void*),
+              "SensorFaultMonitor is one pointer: its state lives in SensorFaultMonitor::Impl");
 
 }  // namespace mrskin::bridge

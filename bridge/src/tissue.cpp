@@ -1,8 +1,10 @@
 #include "mrskin/bridge/tissue.hpp"
 
 #include <algorithm>
+#include <array>
 #include <cmath>
 #include <limits>
+#include <memory>
 #include <string>
 
 #include "mrskin/driver/errors.hpp"
@@ -332,7 +334,69 @@ void require(bool ok, const std::string& what) {
 
 }  // namespace
 
-TissueEstimator::TissueEstimator(const TissueEstimatorOptions& options) : options_(options) {
+// The estimator's state, behind TissueEstimator's one pointer (docs/api.md, "ABI").
+class __attribute__((visibility("hidden"))) TissueEstimator::Impl {
+ public:
+  explicit Impl(const TissueEstimatorOptions& options);
+  bool push(const TissueSample& sample) noexcept;
+  [[nodiscard]] TissueEstimate estimate(double now_s) const noexcept;
+  void end_stream(double now_s) noexcept;
+  [[nodiscard]] TissueModel raw_fit() const noexcept;
+  [[nodiscard]] double confidence() const noexcept;
+  [[nodiscard]] const TissueEstimatorStats& stats() const noexcept { return stats_; }
+  [[nodiscard]] const TissueEstimatorOptions& options() const noexcept { return options_; }
+  void set_stale_policy(double hold_s, double fade_s);
+  void reset() noexcept;
+
+ private:
+  struct Member {
+    double shape = 1.0;  // n, or beta (1/m)
+    std::array<double, 2> theta{};
+    std::array<double, 4> p{};  // symmetric 2x2, row-major
+    double phi1_f = 0.0;        // filtered regressors
+    double phi2_f = 0.0;
+    double g1_prev = 0.0;  // elastic regressor at the previous sample
+    double g2_prev = 0.0;  // antiderivative behind the damping regressor, previous sample
+    double err2 = 0.0;     // forgotten sum of squared prediction errors
+  };
+  void regressors(const Member& m, double xs, double& g1, double& g2) const noexcept;
+  // push()'s steps, defined inline below (its only caller): a sample admitted, each member's
+  // least squares step, then the moments, the best member and the confident law.
+  inline bool admit(const TissueSample& sample) noexcept;
+  inline void update_member(Member& m, std::size_t j, double alpha, double d2) noexcept;
+  inline void update_fit(double indentation_m) noexcept;
+  // Every member's regressors at xs into g1_/g2_: the Hunt-Crossley bank's exponents are evenly
+  // spaced, so x^n climbs by one factor x^dn per member (two pow calls, not one each).
+  void bank_regressors(double xs) noexcept;
+  [[nodiscard]] TissueModel to_model(const Member& m) const noexcept;
+  void restart_pair(double xs) noexcept;
+
+  bool stream_ended_ = false;
+  double ended_at_s_ = 0.0;
+  TissueEstimatorOptions options_;
+  std::array<Member, kMaxBank> bank_{};
+  std::array<double, kMaxBank> g1_{};
+  std::array<double, kMaxBank> g2_{};
+  std::size_t bank_size_ = 1;
+  std::size_t best_ = 0;
+  TissueEstimatorStats stats_{};
+  bool have_sample_ = false;
+  bool have_pair_ = false;  // previous sample in contact and recent: differences are valid
+  bool filter_primed_ = false;
+  bool confident_ = false;
+  double last_stamp_s_ = 0.0;
+  double last_force_N_ = 0.0;
+  double force_f_ = 0.0;
+  // Forgotten moments of the filtered force and of the depth (for R^2 and excitation).
+  double weight_ = 0.0;
+  double force_sum_ = 0.0;
+  double force_sq_sum_ = 0.0;
+  double depth_sum_ = 0.0;
+  double depth_sq_sum_ = 0.0;
+  TissueModel last_good_{};
+};
+
+TissueEstimator::Impl::Impl(const TissueEstimatorOptions& options) : options_(options) {
   const TissueEstimatorOptions& o = options_;
   require(o.forgetting > 0.5 && o.forgetting <= 1.0,
           "forgetting must be in (0.5, 1]; 0.995 keeps ~200 samples");
@@ -373,7 +437,7 @@ TissueEstimator::TissueEstimator(const TissueEstimatorOptions& options) : option
   reset();
 }
 
-void TissueEstimator::set_stale_policy(double hold_s, double fade_s) {
+void TissueEstimator::Impl::set_stale_policy(double hold_s, double fade_s) {
   if (!(hold_s >= options_.fresh_s && std::isfinite(hold_s) && fade_s > 0.0 && std::isfinite(fade_s))) {
     throw InvalidArgument("stale policy needs fresh_s <= hold_s and fade_s > 0 (finite, seconds)");
   }
@@ -381,7 +445,7 @@ void TissueEstimator::set_stale_policy(double hold_s, double fade_s) {
   options_.fade_s = fade_s;
 }
 
-void TissueEstimator::reset() noexcept {
+void TissueEstimator::Impl::reset() noexcept {
   const TissueEstimatorOptions& o = options_;
   const double xr = o.reference_depth_m;
   const double vr = o.reference_rate_m_per_s;
@@ -426,7 +490,7 @@ void TissueEstimator::reset() noexcept {
 
 // g1: the elastic regressor at normalised depth xs; g2: the signal whose time derivative (times
 // x_ref / v_ref) is the damping regressor.
-void TissueEstimator::regressors(const Member& m, double xs, double& g1, double& g2) const noexcept {
+void TissueEstimator::Impl::regressors(const Member& m, double xs, double& g1, double& g2) const noexcept {
   switch (options_.kind) {
     case TissueKind::kelvin_voigt:
       g1 = xs;
@@ -447,7 +511,7 @@ void TissueEstimator::regressors(const Member& m, double xs, double& g1, double&
   }
 }
 
-TissueModel TissueEstimator::to_model(const Member& member) const noexcept {
+TissueModel TissueEstimator::Impl::to_model(const Member& member) const noexcept {
   const double xr = options_.reference_depth_m;
   const double vr = options_.reference_rate_m_per_s;
   // The regression runs unconstrained (a projected RLS estimate is no longer the least-squares
@@ -473,7 +537,7 @@ TissueModel TissueEstimator::to_model(const Member& member) const noexcept {
   return {};
 }
 
-void TissueEstimator::bank_regressors(double xs) noexcept {
+void TissueEstimator::Impl::bank_regressors(double xs) noexcept {
   if (options_.kind == TissueKind::hunt_crossley && bank_size_ > 1) {
     double g1 = pow_n(xs, bank_[0].shape);
     const double factor = std::pow(xs, bank_[1].shape - bank_[0].shape);
@@ -489,7 +553,7 @@ void TissueEstimator::bank_regressors(double xs) noexcept {
   }
 }
 
-void TissueEstimator::restart_pair(double xs) noexcept {
+void TissueEstimator::Impl::restart_pair(double xs) noexcept {
   bank_regressors(xs);
   for (std::size_t j = 0; j < bank_size_; ++j) {
     bank_[j].g1_prev = g1_[j];
@@ -500,7 +564,7 @@ void TissueEstimator::restart_pair(double xs) noexcept {
 }
 
 // Refuses (and counts) a sample that is not finite, out of range, a duplicate or out of order.
-inline bool TissueEstimator::admit(const TissueSample& sample) noexcept {
+inline bool TissueEstimator::Impl::admit(const TissueSample& sample) noexcept {
   const TissueEstimatorOptions& o = options_;
   if (!finite(sample.stamp_s) || !finite(sample.force_N) || !finite(sample.indentation_m)) {
     ++stats_.rejected_non_finite;
@@ -522,7 +586,7 @@ inline bool TissueEstimator::admit(const TissueSample& sample) noexcept {
 }
 
 // One bank member's recursive least squares step on this sample's filtered regressors.
-inline void TissueEstimator::update_member(Member& m, std::size_t j, double alpha, double d2) noexcept {
+inline void TissueEstimator::Impl::update_member(Member& m, std::size_t j, double alpha, double d2) noexcept {
   const TissueEstimatorOptions& o = options_;
   const double mu = o.forgetting;
   const double g1 = g1_[j];
@@ -580,7 +644,7 @@ inline void TissueEstimator::update_member(Member& m, std::size_t j, double alph
 
 // The forgotten moments of force and depth, the best member (smallest forgotten prediction error,
 // with 2 % hysteresis against flicker between neighbours), and the law once it is confident.
-inline void TissueEstimator::update_fit(double indentation_m) noexcept {
+inline void TissueEstimator::Impl::update_fit(double indentation_m) noexcept {
   const TissueEstimatorOptions& o = options_;
   const double mu = o.forgetting;
   weight_ = mu * weight_ + 1.0;
@@ -608,7 +672,7 @@ inline void TissueEstimator::update_fit(double indentation_m) noexcept {
   }
 }
 
-bool TissueEstimator::push(const TissueSample& sample) noexcept {
+bool TissueEstimator::Impl::push(const TissueSample& sample) noexcept {
   if (!admit(sample)) {
     return false;
   }
@@ -647,7 +711,7 @@ bool TissueEstimator::push(const TissueSample& sample) noexcept {
   return true;
 }
 
-double TissueEstimator::confidence() const noexcept {
+double TissueEstimator::Impl::confidence() const noexcept {
   if (!(weight_ > 0.0)) {
     return 0.0;
   }
@@ -662,16 +726,16 @@ double TissueEstimator::confidence() const noexcept {
   return finite(c) ? c : 0.0;
 }
 
-void TissueEstimator::end_stream(double now_s) noexcept {
+void TissueEstimator::Impl::end_stream(double now_s) noexcept {
   if (have_sample_ && !stream_ended_ && finite(now_s)) {
     stream_ended_ = true;
     ended_at_s_ = now_s;
   }
 }
 
-TissueModel TissueEstimator::raw_fit() const noexcept { return to_model(bank_[best_]); }
+TissueModel TissueEstimator::Impl::raw_fit() const noexcept { return to_model(bank_[best_]); }
 
-TissueEstimate TissueEstimator::estimate(double now_s) const noexcept {
+TissueEstimate TissueEstimator::Impl::estimate(double now_s) const noexcept {
   TissueEstimate out;
   out.confidence = confidence();
   out.fitted = confident_;
@@ -703,6 +767,33 @@ TissueEstimate TissueEstimator::estimate(double now_s) const noexcept {
   out.model = last_good_.scaled(out.scale);
   return out;
 }
+
+// ---- TissueEstimator: the public face, one pointer to the state ----------------------------
+
+TissueEstimator::TissueEstimator(const TissueEstimatorOptions& options)
+    : impl_(std::make_unique<Impl>(options)) {}
+TissueEstimator::TissueEstimator(const TissueEstimator& other)
+    : impl_(std::make_unique<Impl>(*other.impl_)) {}
+TissueEstimator& TissueEstimator::operator=(const TissueEstimator& other) {
+  return *this = TissueEstimator(other);
+}
+TissueEstimator::TissueEstimator(TissueEstimator&&) noexcept = default;
+TissueEstimator& TissueEstimator::operator=(TissueEstimator&&) noexcept = default;
+TissueEstimator::~TissueEstimator() = default;
+bool TissueEstimator::push(const TissueSample& sample) noexcept { return impl_->push(sample); }
+TissueEstimate TissueEstimator::estimate(double now_s) const noexcept { return impl_->estimate(now_s); }
+void TissueEstimator::end_stream(double now_s) noexcept { impl_->end_stream(now_s); }
+TissueModel TissueEstimator::raw_fit() const noexcept { return impl_->raw_fit(); }
+double TissueEstimator::confidence() const noexcept { return impl_->confidence(); }
+const TissueEstimatorStats& TissueEstimator::stats() const noexcept { return impl_->stats(); }
+const TissueEstimatorOptions& TissueEstimator::options() const noexcept { return impl_->options(); }
+void TissueEstimator::set_stale_policy(double hold_s, double fade_s) {
+  impl_->set_stale_policy(hold_s, fade_s);
+}
+void TissueEstimator::reset() noexcept { impl_->reset(); }
+
+static_assert(sizeof(TissueEstimator) == sizeof(void*),
+              "TissueEstimator is one pointer: its state lives in TissueEstimator::Impl");
 
 // ---- passive parameter changes -------------------------------------------------------------------
 

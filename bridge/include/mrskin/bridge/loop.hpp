@@ -8,15 +8,12 @@
 #include <atomic>
 #include <cstdint>
 #include <memory>
-#include <mutex>
 #include <string>
-#include <thread>
 
 #include "mrskin/bridge/export.hpp"
 #include "mrskin/driver/clock.hpp"
 #include "mrskin/driver/errors.hpp"
 #include "mrskin/driver/histogram.hpp"
-#include "mrskin/driver/relaxed_counter.hpp"
 
 namespace mrskin::bridge {
 
@@ -165,11 +162,11 @@ class MRSKIN_BRIDGE_API RealtimeLoop {
   // Control thread: wakes the loop, joins it. Idempotent; the destructor calls it. From the
   // tick itself it only asks the loop to end (the next start() or the destructor joins).
   void stop() noexcept;
-  [[nodiscard]] bool running() const noexcept { return running_.load(std::memory_order_acquire); }
+  [[nodiscard]] bool running() const noexcept;
 
   // Any thread (the I/O side when a sample arrives): wake the loop for a tick now. The periodic
   // grid does not move. Notifications before the wake coalesce into one tick.
-  void notify() noexcept { waiter_->notify(); }
+  void notify() noexcept;
 
   // Without start(): one wait and tick on the calling thread (no scheduling set-up). Returns
   // false, doing nothing, once stop() was requested (until start()). For tests and callers
@@ -177,46 +174,19 @@ class MRSKIN_BRIDGE_API RealtimeLoop {
   bool run_once() noexcept;
 
   // After stop(), or from inside the tick. live_*() from any thread.
-  [[nodiscard]] const LoopStats& stats() const noexcept { return stats_; }
-  [[nodiscard]] std::uint64_t live_ticks() const noexcept {
-    return live_ticks_.load(std::memory_order_acquire);
-  }
-  [[nodiscard]] std::uint64_t live_overruns() const noexcept { return live_overruns_.value(); }
+  [[nodiscard]] const LoopStats& stats() const noexcept;
+  [[nodiscard]] std::uint64_t live_ticks() const noexcept;
+  [[nodiscard]] std::uint64_t live_overruns() const noexcept;
   [[nodiscard]] Duration period() const noexcept;
   // The k-th deadline of the current run's grid (k = 0 is the first tick).
   [[nodiscard]] TimePoint deadline(std::uint64_t k) const noexcept;
   [[nodiscard]] bool early_tick_allowed(TimePoint woke) const noexcept;
 
  private:
-  static ResultCode call_tickable(void* context, TimePoint now) noexcept;
-  void thread_main() noexcept;
-  void reset_run() noexcept;
-
-  Clock& clock_;
-  TickFunction tick_;
-  void* context_;
-  LoopOptions options_;
-  double period_ns_;
-  std::unique_ptr<Waiter> own_waiter_;  // when options.waiter was nullptr
-  Waiter* waiter_;
-  RealtimeOs* os_;
-  // Grid of the current run.
-  bool grid_started_ = false;
-  TimePoint start_{};  // the grid's origin: the run's start, or the last early tick
-  std::uint64_t k_ = 0;
-  TimePoint next_{};
-  TimePoint run_start_{};  // the first tick: the tick budget counts from here
-  TimePoint last_tick_{};
-  LoopStats stats_;
-  std::atomic<std::uint64_t> live_ticks_{0};  // release: a watcher that sees it sees the tick's stats
-  RelaxedCounter live_overruns_;
-  std::atomic<bool> stop_requested_{false};
-  std::atomic<bool> running_{false};
-  std::atomic<bool> setup_done_{false};
-  std::string setup_warning_;
-  bool warned_ = false;
-  std::mutex control_;  // start/stop from several control threads
-  std::thread thread_;
+  // Everything else lives behind one pointer: a console linked against this header keeps its
+  // ABI when the loop's state changes (docs/api.md, "ABI").
+  class Impl;
+  std::unique_ptr<Impl> impl_;
 };
 
 // Scheduler baseline (what cyclictest measures), to print beside a benchmark's tick percentiles

@@ -20,8 +20,8 @@
 #include <cstddef>
 #include <cstdint>
 #include <limits>
+#include <memory>
 #include <span>
-#include <vector>
 
 #include "mrskin/bridge/export.hpp"
 #include "mrskin/driver/layout.hpp"
@@ -51,6 +51,13 @@ class MRSKIN_BRIDGE_API SensorFaultMonitor {
   // Setup: throws InvalidArgument on options out of range.
   SensorFaultMonitor(const model::DeviceProfile& profile, const GridLayout& layout,
                      const SensorFaultOptions& options);
+  // Copies are deep (each has its own state); a moved-from monitor can only be assigned to or
+  // destroyed.
+  SensorFaultMonitor(const SensorFaultMonitor& other);
+  SensorFaultMonitor& operator=(const SensorFaultMonitor& other);
+  SensorFaultMonitor(SensorFaultMonitor&& other) noexcept;
+  SensorFaultMonitor& operator=(SensorFaultMonitor&& other) noexcept;
+  ~SensorFaultMonitor();
 
   // One fresh set of readings (SI, the profile's order) and the observer's residuals for them
   // (CellObserver::sensor_residual_sigma()). Returns the sensor that became faulty on this
@@ -62,56 +69,29 @@ class MRSKIN_BRIDGE_API SensorFaultMonitor {
   // the next reading, the latched faults stay.
   void restart_history() noexcept;
 
-  [[nodiscard]] SensorFault fault(std::size_t sensor) const noexcept {
-    return sensor < fault_.size() ? fault_[sensor] : SensorFault::none;
-  }
-  [[nodiscard]] std::size_t faulty_count() const noexcept { return faulty_; }
+  [[nodiscard]] SensorFault fault(std::size_t sensor) const noexcept;
+  [[nodiscard]] std::size_t faulty_count() const noexcept;
   // Displacement sensors watched and not faulty (those the observer's fit still uses).
-  [[nodiscard]] std::size_t healthy_count() const noexcept { return healthy_; }
+  [[nodiscard]] std::size_t healthy_count() const noexcept;
   // The first fluid cell whose last healthy displacement sensor failed, or npos: while every cell
   // the profile reads is read by one, the bridge goes on without the faulty sensors.
-  [[nodiscard]] std::size_t unobservable_cell() const noexcept { return unobservable_; }
+  [[nodiscard]] std::size_t unobservable_cell() const noexcept;
   // The fluid cells a sensor reads (its valve's cells, or its own cell).
   [[nodiscard]] std::span<const std::size_t> cells_of_sensor(std::size_t sensor) const noexcept;
   // The stuck test's run, in readings (npos for a sensor the tests do not watch).
-  [[nodiscard]] std::size_t stuck_run_readings(std::size_t sensor) const noexcept {
-    return sensor < stuck_run_.size() ? stuck_run_[sensor] : npos;
-  }
+  [[nodiscard]] std::size_t stuck_run_readings(std::size_t sensor) const noexcept;
   // The tests' running figures (tick thread): the noise ratio and the mean residual, in sigmas.
-  [[nodiscard]] double noise_ratio(std::size_t sensor) const noexcept {
-    return sensor < noise_ratio_.size() ? noise_ratio_[sensor] : 0.0;
-  }
-  [[nodiscard]] double mean_residual_sigma(std::size_t sensor) const noexcept {
-    return sensor < mean_residual_.size() ? mean_residual_[sensor] : 0.0;
-  }
+  [[nodiscard]] double noise_ratio(std::size_t sensor) const noexcept;
+  [[nodiscard]] double mean_residual_sigma(std::size_t sensor) const noexcept;
   // What the last fault's test measured (for the log): the repeated reading (stuck), the noise
   // ratio (noisy) or the mean residual in sigmas (offset).
-  [[nodiscard]] double evidence(std::size_t sensor) const noexcept {
-    return sensor < evidence_.size() ? evidence_[sensor] : 0.0;
-  }
+  [[nodiscard]] double evidence(std::size_t sensor) const noexcept;
 
  private:
-  void latch(std::size_t sensor, SensorFault fault, double evidence) noexcept;
-
-  SensorFaultOptions options_;
-  std::vector<unsigned char> watched_;  // displacement sensors
-  std::vector<double> sigma_;           // noise and quantisation, in the reading's unit
-  std::vector<std::size_t> stuck_run_;
-  std::vector<std::size_t> cells_begin_;
-  std::vector<std::size_t> cells_;
-  std::vector<std::size_t> readers_of_cell_;  // healthy displacement sensors reading each cell
-  std::vector<SensorFault> fault_;
-  std::vector<double> evidence_;
-  // Per sensor: the reading's history and the tests' running figures.
-  std::vector<double> last_;
-  std::vector<double> before_last_;
-  std::vector<std::size_t> seen_;  // readings so far (up to 2: the second difference needs 3)
-  std::vector<std::size_t> run_;
-  std::vector<double> noise_ratio_;
-  std::vector<double> mean_residual_;
-  std::size_t faulty_ = 0;
-  std::size_t healthy_ = 0;
-  std::size_t unobservable_ = npos;
+  // Everything else lives behind one pointer: a console linked against this header keeps its
+  // ABI when the monitor's state changes (docs/api.md, "ABI").
+  class Impl;
+  std::unique_ptr<Impl> impl_;
 };
 
 }  // namespace mrskin::bridge

@@ -6,9 +6,9 @@
 // take options may throw mrskin::InvalidArgument.
 #pragma once
 
-#include <array>
 #include <cstddef>
 #include <cstdint>
+#include <memory>
 #include <span>
 #include <string_view>
 
@@ -174,6 +174,13 @@ class MRSKIN_BRIDGE_API TissueEstimator {
  public:
   static constexpr std::size_t kMaxBank = 32;
   explicit TissueEstimator(const TissueEstimatorOptions& options);  // throws InvalidArgument
+  // Copies are deep (each has its own state); a moved-from estimator can only be assigned to or
+  // destroyed.
+  TissueEstimator(const TissueEstimator& other);
+  TissueEstimator& operator=(const TissueEstimator& other);
+  TissueEstimator(TissueEstimator&& other) noexcept;
+  TissueEstimator& operator=(TissueEstimator&& other) noexcept;
+  ~TissueEstimator();
   // false when the sample was rejected or repeats the previous stamp (counted in stats()); a
   // source that returns its newest sample every tick can push it every tick.
   bool push(const TissueSample& sample) noexcept;
@@ -184,59 +191,18 @@ class MRSKIN_BRIDGE_API TissueEstimator {
   // The current fit without stale scaling or confidence gating.
   [[nodiscard]] TissueModel raw_fit() const noexcept;
   [[nodiscard]] double confidence() const noexcept;
-  [[nodiscard]] const TissueEstimatorStats& stats() const noexcept { return stats_; }
-  [[nodiscard]] const TissueEstimatorOptions& options() const noexcept { return options_; }
+  [[nodiscard]] const TissueEstimatorStats& stats() const noexcept;
+  [[nodiscard]] const TissueEstimatorOptions& options() const noexcept;
   // A new stale policy (hold, then fade) keeping the fit: setup only (between ticks). Throws
   // InvalidArgument unless fresh_s <= hold_s and fade_s > 0.
   void set_stale_policy(double hold_s, double fade_s);
   void reset() noexcept;
 
  private:
-  struct Member {
-    double shape = 1.0;  // n, or beta (1/m)
-    std::array<double, 2> theta{};
-    std::array<double, 4> p{};  // symmetric 2x2, row-major
-    double phi1_f = 0.0;        // filtered regressors
-    double phi2_f = 0.0;
-    double g1_prev = 0.0;  // elastic regressor at the previous sample
-    double g2_prev = 0.0;  // antiderivative behind the damping regressor, previous sample
-    double err2 = 0.0;     // forgotten sum of squared prediction errors
-  };
-  void regressors(const Member& m, double xs, double& g1, double& g2) const noexcept;
-  // push()'s steps, defined inline in tissue.cpp (its only caller): a sample admitted, each
-  // member's least squares step, then the moments, the best member and the confident law.
-  inline bool admit(const TissueSample& sample) noexcept;
-  inline void update_member(Member& m, std::size_t j, double alpha, double d2) noexcept;
-  inline void update_fit(double indentation_m) noexcept;
-  bool stream_ended_ = false;
-  double ended_at_s_ = 0.0;
-  // Every member's regressors at xs into g1_/g2_: the Hunt-Crossley bank's exponents are evenly
-  // spaced, so x^n climbs by one factor x^dn per member (two pow calls, not one each).
-  void bank_regressors(double xs) noexcept;
-  [[nodiscard]] TissueModel to_model(const Member& m) const noexcept;
-  void restart_pair(double xs) noexcept;
-
-  TissueEstimatorOptions options_;
-  std::array<Member, kMaxBank> bank_{};
-  std::array<double, kMaxBank> g1_{};
-  std::array<double, kMaxBank> g2_{};
-  std::size_t bank_size_ = 1;
-  std::size_t best_ = 0;
-  TissueEstimatorStats stats_{};
-  bool have_sample_ = false;
-  bool have_pair_ = false;  // previous sample in contact and recent: differences are valid
-  bool filter_primed_ = false;
-  bool confident_ = false;
-  double last_stamp_s_ = 0.0;
-  double last_force_N_ = 0.0;
-  double force_f_ = 0.0;
-  // Forgotten moments of the filtered force and of the depth (for R^2 and excitation).
-  double weight_ = 0.0;
-  double force_sum_ = 0.0;
-  double force_sq_sum_ = 0.0;
-  double depth_sum_ = 0.0;
-  double depth_sq_sum_ = 0.0;
-  TissueModel last_good_{};
+  // Everything else lives behind one pointer: a console linked against this header keeps its
+  // ABI when the estimator's state changes (docs/api.md, "ABI").
+  class Impl;
+  std::unique_ptr<Impl> impl_;
 };
 
 // ---- passive parameter changes ---------------------------------------------------------------
