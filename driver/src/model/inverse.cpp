@@ -52,21 +52,21 @@ CellInverse::~CellInverse() = default;
 CellInverse::CellInverse(CellInverse&&) noexcept = default;
 CellInverse& CellInverse::operator=(CellInverse&&) noexcept = default;
 
-std::size_t CellInverse::fluid_cell_count() const noexcept { return impl_->cells; }
-std::size_t CellInverse::valve_count() const noexcept { return impl_->valves; }
+std::size_t CellInverse::fluid_cell_count() const noexcept { return impl_->topo.graph.cells; }
+std::size_t CellInverse::valve_count() const noexcept { return impl_->topo.graph.valves; }
 
 Status CellInverse::solve(std::span<const CellImpedanceTarget> targets, std::span<const CellState> states,
                           double now_s) noexcept {
   return impl_->solve(targets, states, now_s);
 }
 
-std::span<const double> CellInverse::currents_A() const noexcept { return impl_->current; }
-std::span<const double> CellInverse::valve_yield_stress_Pa() const noexcept { return impl_->tau; }
-std::span<const CellSolution> CellInverse::cells() const noexcept { return impl_->out; }
-const InverseReport& CellInverse::report() const noexcept { return impl_->rep; }
+std::span<const double> CellInverse::currents_A() const noexcept { return impl_->levels.current; }
+std::span<const double> CellInverse::valve_yield_stress_Pa() const noexcept { return impl_->levels.tau; }
+std::span<const CellSolution> CellInverse::cells() const noexcept { return impl_->output.cells; }
+const InverseReport& CellInverse::report() const noexcept { return impl_->output.rep; }
 
 void CellInverse::invalidate() noexcept {
-  for (Impl::CellCache& c : impl_->cache) {
+  for (CellCache& c : impl_->memory.cache) {
     c.valid = false;
     c.gn_last = false;
   }
@@ -74,8 +74,8 @@ void CellInverse::invalidate() noexcept {
 
 Result<double> CellInverse::valve_pressure_Pa(std::size_t cell, double flow_m3_per_s,
                                               std::span<const double> valve_yield_Pa) const noexcept {
-  const Impl& m = *impl_;
-  if (cell >= m.cells || valve_yield_Pa.size() != m.valves) {
+  const InverseTopology& m = impl_->topo;
+  if (cell >= m.graph.cells || valve_yield_Pa.size() != m.graph.valves) {
     return failure<double>(Status::out_of_range);
   }
   if (!finite(flow_m3_per_s)) {
@@ -97,7 +97,7 @@ Result<double> CellInverse::valve_pressure_Pa(std::size_t cell, double flow_m3_p
 }
 
 Status CellInverse::set_valve_yield_gain(std::span<const double> gain) noexcept {
-  if (gain.size() != impl_->inv_valve_gain.size()) {
+  if (gain.size() != impl_->levels.inv_gain.size()) {
     return Status::out_of_range;
   }
   for (const double g : gain) {
@@ -106,7 +106,7 @@ Status CellInverse::set_valve_yield_gain(std::span<const double> gain) noexcept 
     }
   }
   for (std::size_t v = 0; v < gain.size(); ++v) {
-    impl_->inv_valve_gain[v] = 1.0 / gain[v];
+    impl_->levels.inv_gain[v] = 1.0 / gain[v];
   }
   return Status::ok;
 }
@@ -118,13 +118,15 @@ Result<double> CellInverse::current_for_yield_stress_A(double yield_stress_Pa) c
   if (yield_stress_Pa < 0.0) {
     return failure<double>(Status::negative);
   }
-  if (yield_stress_Pa > impl_->tau_max) {
+  if (yield_stress_Pa > impl_->topo.tau_max) {
     return failure<double>(Status::out_of_range);
   }
-  return {impl_->current_for_tau(yield_stress_Pa)};
+  return {impl_->topo.current_for_tau(yield_stress_Pa)};
 }
 
-double CellInverse::current_table_max_error_Pa() const noexcept { return impl_->current_table_error; }
-double CellInverse::branch_table_max_relative_error() const noexcept { return impl_->branch_table_error; }
+double CellInverse::current_table_max_error_Pa() const noexcept { return impl_->topo.current_table_error; }
+double CellInverse::branch_table_max_relative_error() const noexcept {
+  return impl_->topo.branch_table_error;
+}
 
 }  // namespace mrskin::model

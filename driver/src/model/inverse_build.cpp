@@ -1,4 +1,5 @@
-// CellInverse: the valve graph, the topology and the tables, made once at construction.
+// CellInverse: the topology (valve graph, constants, tables) made once at construction, and the
+// preallocation of the parts sized by it.
 #include <algorithm>
 #include <cmath>
 #include <cstddef>
@@ -14,7 +15,7 @@
 
 namespace mrskin::model {
 
-CellInverse::Impl::Impl(const DeviceModel& model, const InverseOptions& options) : opt(options) {
+InverseTopology::InverseTopology(const DeviceModel& model, const InverseOptions& options) : opt(options) {
   const DeviceProfile& p = model.profile();
   const std::string& origin = p.origin;
   if (!(opt.hold_rate_tolerance_m_per_s >= 0.0) || !(opt.indentation_tolerance_m >= 0.0) ||
@@ -26,8 +27,8 @@ CellInverse::Impl::Impl(const DeviceModel& model, const InverseOptions& options)
         "InverseOptions: tolerances must be finite and >= 0, force_tolerance_N and regularisation > 0, "
         "max_iterations >= 0");
   }
-  cells = model.layout().fluid_cell_count();
-  valves = model.layout().valve_count();
+  graph.cells = model.layout().fluid_cell_count();
+  graph.valves = model.layout().valve_count();
   const ContactPatch& patch = model.contact();
   area_m2 = patch.effective_area_m2;
   p0_Pa = p.reservoir.initial_pressure_Pa;
@@ -52,77 +53,64 @@ CellInverse::Impl::Impl(const DeviceModel& model, const InverseOptions& options)
   }
   build_graph(model);
   build_tables();
-  for (Branch& b : branches) {
+  for (Branch& b : graph.branches) {
     if (b.valve >= 0) {
-      const Type& ty = types[b.type];
+      const BranchType& ty = types[b.type];
       b.a = ty.shape.a;
       b.psi = ty.psi_linear.data();
     }
   }
   build_current_table(model);
-  for (CellInfo& ci : info) {
+  for (CellInfo& ci : graph.info) {
     if (ci.uniform_type >= 0) {
       ci.full_r_per_flow = newton_k / (ci.branches * t_max);
       ci.full_outlets = types[static_cast<std::size_t>(ci.uniform_type)].shape.m;
     }
   }
-
-  cache.assign(cells, CellCache{});
-  t.assign(valves, t_min);
-  current.assign(valves, 0.0);
-  tau.assign(valves, tau_min);
-  inv_valve_gain.assign(valves, 1.0);
-  out.assign(cells, CellSolution{});
-  derived.assign(2 * cells, Derived{});
-  next_role.assign(cells, CellRole::no_contact);
-  changed_laws.reserve(cells);
-  seen.reserve(cells);
-  loaded_flag.assign(cells, 0);
-  loaded_list.reserve(cells);
-  dirty.reserve(cells);
-  cell_stamp.assign(cells, 0);
-  comp_stamp.assign(cells, 0);
-  part_cells.assign(cells, 0);
-  part_cell_begin.assign(cells + 1, 0);
-  part_valves.assign(valves, 0);
-  part_valve_begin.assign(cells + 1, 0);
-  part_inc_begin.assign(valves + cells + 1, 0);
-  part_inc_row.assign(valve_cells.size(), 0);
-  part_inc_slot.assign(valve_cells.size(), 0);
-  comp_of_cell.assign(cells, 0);
-  valve_comp.assign(valves, -1);
-  part_factor_off.assign(cells + 1, 0);
-  factor_pool.assign(kDenseRows * cells, 0.0);
-  factor_diag.assign(cells, 0.0);
-  factor_age.assign(cells, -1);
-  part_inc_jac.assign(valve_cells.size(), 0.0);
-  part_bound.assign(valves, 0);
-  part_included.assign(cells, 0);
-  inc_row = part_inc_row.data();
-  inc_slot = part_inc_slot.data();
-  row_of.assign(cells, 0);
-  local_of.assign(valves, 0);
-  jac.assign(cell_valves.size(), 0.0);
-  e.assign(cells, 0.0);
-  aim_row.assign(cells, 0.0);
-  one_sided.assign(cells, 0);
-  included.assign(cells, 0);
-  crow.assign(cells, 0.0);
-  t0.assign(valves, 0.0);
-  t1.assign(valves, 0.0);
-  tu.assign(valves, 0.0);
-  bound.assign(valves, 0);
-  excluded_once.assign(cells, 0);
-  predicted.assign(cells, 0.0);
-  mat.assign(kDenseRows * kDenseRows, 0.0);
-  rhs.assign(kDenseRows, 0.0);
-  dual.assign(kDenseRows, 0.0);
-  res.assign(cells, 0.0);
-  best.assign(valves, 0.0);
-  escape.assign(valves, 0);
 }
 
-void CellInverse::Impl::build_graph(const DeviceModel& model) {
+ComponentPartition::ComponentPartition(const ValveGraph& g)
+    : cells(g.cells, 0),
+      cell_begin(g.cells + 1, 0),
+      valves(g.valves, 0),
+      valve_begin(g.cells + 1, 0),
+      inc_begin(g.valves + g.cells + 1, 0),
+      inc_row(g.valve_cells.size(), 0),
+      inc_slot(g.valve_cells.size(), 0),
+      comp_of_cell(g.cells, 0),
+      valve_comp(g.valves, -1),
+      row_of(g.cells, 0),
+      local_of(g.valves, 0),
+      visited(g.cells, 0),
+      components(g.cells) {}
+
+InverseSolver::InverseSolver(const ValveGraph& g)
+    : jac(g.cell_valves.size(), 0.0),
+      e(g.cells, 0.0),
+      aim_row(g.cells, 0.0),
+      one_sided(g.cells, 0),
+      included(g.cells, 0),
+      crow(g.cells, 0.0),
+      t0(g.valves, 0.0),
+      t1(g.valves, 0.0),
+      tu(g.valves, 0.0),
+      bound(g.valves, 0),
+      excluded_once(g.cells, 0),
+      predicted(g.cells, 0.0),
+      mat(kDenseRows * kDenseRows, 0.0),
+      rhs(kDenseRows, 0.0),
+      dual(kDenseRows, 0.0),
+      res(g.cells, 0.0),
+      best(g.valves, 0.0),
+      escape(g.valves, 0) {}
+
+void InverseTopology::build_graph(const DeviceModel& model) {
+  const std::size_t cells = graph.cells;
+  const std::size_t valves = graph.valves;
+  std::vector<Branch>& branches = graph.branches;
+  std::vector<CellInfo>& info = graph.info;
+  std::vector<std::uint32_t>& cell_valves = graph.cell_valves;
+  std::vector<std::uint32_t>& valve_cells = graph.valve_cells;
   const DeviceProfile& p = model.profile();
   const std::vector<HydraulicLink>& links = p.links;
   std::vector<std::vector<std::uint32_t>> chamber_links(valves);
@@ -176,7 +164,7 @@ void CellInverse::Impl::build_graph(const DeviceModel& model) {
         }
         if (type_of_m[static_cast<std::size_t>(m)] < 0) {
           type_of_m[static_cast<std::size_t>(m)] = static_cast<int>(types.size());
-          types.push_back(Type{sh, {}, {}, {}, 0.0});
+          types.push_back(BranchType{sh, {}, {}, {}, 0.0});
         }
         br.type = static_cast<std::uint32_t>(type_of_m[static_cast<std::size_t>(m)]);
         const auto v = static_cast<std::uint32_t>(k.valve);
@@ -209,6 +197,7 @@ void CellInverse::Impl::build_graph(const DeviceModel& model) {
     ci.uniform_type = uniform ? static_cast<std::int32_t>(branches[ci.branch_begin].type) : -1;
     ci.open_resistance = 1.0 / ci.open_conductance;
   }
+  std::vector<std::uint32_t>& valve_cell_begin = graph.valve_cell_begin;
   valve_cell_begin.assign(valves + 1, 0);
   for (std::size_t v = 0; v < valves; ++v) {
     valve_cell_begin[v] = static_cast<std::uint32_t>(valve_cells.size());
@@ -217,15 +206,16 @@ void CellInverse::Impl::build_graph(const DeviceModel& model) {
       const CellInfo& ci = info[cell];
       const auto first = cell_valves.begin() + ci.valve_begin;
       const auto last = cell_valves.begin() + ci.valve_end;
-      valve_cell_slot.push_back(static_cast<std::uint32_t>(std::find(first, last, v) - cell_valves.begin()));
+      graph.valve_cell_slot.push_back(
+          static_cast<std::uint32_t>(std::find(first, last, v) - cell_valves.begin()));
     }
   }
   valve_cell_begin[valves] = static_cast<std::uint32_t>(valve_cells.size());
 }
 
-void CellInverse::Impl::build_tables() {
+void InverseTopology::build_tables() {
   constexpr int kK = kTableSegments;
-  for (Type& ty : types) {
+  for (BranchType& ty : types) {
     const BranchShape& sh = ty.shape;
     ty.psi.y.assign(kK + 1, 0.0);
     ty.psi.dy.assign(kK + 1, 0.0);
@@ -297,7 +287,7 @@ void CellInverse::Impl::build_tables() {
   }
 }
 
-void CellInverse::Impl::build_current_table(const DeviceModel& model) {
+void InverseTopology::build_current_table(const DeviceModel& model) {
   const DeviceProfile& p = model.profile();
   tau_min = model.yield_stress_at_current_Pa(0.0).value;
   tau_max = model.yield_stress_at_current_Pa(max_current).value;
@@ -321,7 +311,7 @@ void CellInverse::Impl::build_current_table(const DeviceModel& model) {
     }
     return 0.5 * (lo + hi);
   };
-  current_table.assign(kCurrentSegments + 1, 0.0);
+  std::vector<double> current_table(kCurrentSegments + 1, 0.0);
   for (int k = 0; k <= kCurrentSegments; ++k) {
     current_table[static_cast<std::size_t>(k)] =
         invert(tau_min + (tau_max - tau_min) * static_cast<double>(k) / kCurrentSegments);

@@ -1,7 +1,8 @@
 // CellInverse's private parts, shared by its sources: the branch law's tables, the checks of its
-// inputs, and the state behind CellInverse (Impl). inverse_build.cpp makes the topology and the
-// tables once; inverse_solve.cpp (the partition into components and each component's solve) and
-// inverse_step.cpp (a component's rows and its bounded, chord and fallback steps) run every tick.
+// inputs, and the parts CellInverse::Impl aggregates. Built once (inverse_build.cpp):
+// InverseTopology with its ValveGraph. Crossing ticks: CellMemory, ValveLevels, ComponentPartition
+// and ChordFactors. Each tick (inverse_solve.cpp, inverse_step.cpp): TickChanges and the
+// InverseSolver's scratch. Each function takes the parts it reads as const, those it writes not.
 #pragma once
 
 #include <algorithm>
@@ -12,6 +13,7 @@
 #include <limits>
 #include <span>
 #include <type_traits>
+#include <utility>
 #include <vector>
 
 #include "mrskin/driver/model/device_model.hpp"
@@ -202,87 +204,138 @@ inline Status check_target(const CellImpedanceTarget& t) noexcept {
 
 // Targets compare without their validity time: refreshing it is not a change of the law.
 // Bitwise equality, on purpose: the cache holds the last call's validated inputs, so a bitwise
-// match needs no new validation (a -0 for a +0, or any NaN, differs and is examined again).
+// match needs no new validation (a -0 for a +0, or any NaN, differs and is examined again). Word
+// by word, stopping at the first difference, rather than memcmp: clang 14 calls the library for
+// it (about 25 instructions a compare, 13 compares a call on the 5 x 5), g++ expands it inline;
+// this form is inline and as cheap in both.
+template <class T>
+inline std::uint64_t word_of(const T& x, std::size_t k) noexcept {
+  std::uint64_t w = 0;
+  std::memcpy(&w, static_cast<const unsigned char*>(static_cast<const void*>(&x)) + k * sizeof w, sizeof w);
+  return w;
+}
+
+template <class T, std::size_t... K>
+inline bool same_words(const T& a, const T& b, std::index_sequence<K...> /*words*/) noexcept {
+  static_assert(std::is_trivially_copyable_v<T> && sizeof(T) % sizeof(std::uint64_t) == 0);
+  static_assert(sizeof...(K) <= sizeof(T) / sizeof(std::uint64_t));
+  return ((word_of(a, K) == word_of(b, K)) && ...);
+}
+
 template <class T>
 inline bool same_bits(const T& a, const T& b) noexcept {
-  static_assert(std::is_trivially_copyable_v<T>);
-  return std::memcmp(&a, &b, sizeof(T)) == 0;  // NOLINT(bugprone-suspicious-memory-comparison)
+  return same_words(a, b, std::make_index_sequence<sizeof(T) / sizeof(std::uint64_t)>{});
 }
 
 // The law without its validity time, bitwise (as above).
 inline bool same_law(const CellImpedanceTarget& a, const CellImpedanceTarget& b) noexcept {
   static_assert(offsetof(CellImpedanceTarget, valid_until_s) == 6 * sizeof(double));
-  return std::memcmp(&a, &b, 6 * sizeof(double)) == 0;
+  return same_words(a, b, std::make_index_sequence<6>{});
 }
 
-}  // namespace mrskin::model::inverse_detail
+// ---- the topology: built once, read-only afterwards -----------------------------------------
 
-namespace mrskin::model {
+struct BranchType {  // one per distinct outlet count among magnetised branches
+  BranchShape shape;
+  Hermite psi;                     // q G N / (P - s t) over z = (P - s t) / (P - (s - 1) t)
+  std::vector<double> psi_linear;  // the same, resampled for the loop
+  Hermite omega;                   // s u / P over sigma = sqrt(kappa G), kappa = N q / P (uniform demand)
+  double omega_slope0 = 0.0;
+};
+struct Branch {
+  std::int32_t valve = -1;  // -1: unmagnetised (Newtonian)
+  std::uint32_t type = 0;
+  std::uint32_t slot = 0;  // index of the valve in its cell's valve list
+  double s = 1.0;
+  double inv_gn = 0.0;          // 1 / (G N): open conductance, m^3/(s Pa)
+  double a = 0.0;               // large-flow intercept of its shape (0 unmagnetised)
+  const double* psi = nullptr;  // its shape's linear flow table
+};
+struct CellInfo {
+  std::uint32_t branch_begin = 0;
+  std::uint32_t branch_end = 0;
+  std::uint32_t valve_begin = 0;  // into cell_valves / jac
+  std::uint32_t valve_end = 0;
+  std::int32_t uniform_type = -1;  // all branches magnetised, one per valve, same shape
+  double branches = 0.0;
+  double s_min = 0.0;             // smallest threshold multiplier (0 with an unmagnetised branch)
+  double open_conductance = 0.0;  // sum of 1 / (G N)
+  double open_resistance = 0.0;   // its inverse
+  double full_r_per_flow = 0.0;   // uniform cells: r = N (Q / branches) / t_max per unit Q
+  double full_outlets = 0.0;      // uniform cells: outlet passages of a branch (m)
+};
 
-// The inverse's sources share these parts by name (only they include this header).
-using namespace inverse_detail;
+// Branch flow at pressure P and valve level tv, with dq/dP and dq/dt.
+struct Flow {
+  double q = 0.0;
+  double dq_dp = 0.0;
+  double dq_dt = 0.0;
+};
+inline Flow branch_flow(const Branch& b, double p, double tv) noexcept {
+  if (tv <= 0.0) {  // also every unmagnetised branch
+    return {p * b.inv_gn, b.inv_gn, -b.a * b.inv_gn};
+  }
+  const double over = p - b.s * tv;
+  if (!(over > 0.0)) {
+    return {};
+  }
+  const double ee = over + tv;
+  const HermiteValue h = linear(b.psi, over / ee);
+  const double k = h.slope * over / (ee * ee);
+  return {h.value * over * b.inv_gn, (k * tv + h.value) * b.inv_gn, (-k * p - b.s * h.value) * b.inv_gn};
+}
+// Flow and dq/dP only (the residual-only rows).
+inline void branch_q(const Branch& b, double p, double tv, double& q, double& dq_dp) noexcept {
+  if (tv <= 0.0) {
+    q += p * b.inv_gn;
+    dq_dp += b.inv_gn;
+    return;
+  }
+  const double over = p - b.s * tv;
+  if (over > 0.0) {
+    const double inv = 1.0 / (over + tv);
+    const double z = over * inv;
+    const HermiteValue h = linear(b.psi, z);
+    q += h.value * over * b.inv_gn;
+    dq_dp += (h.slope * z * inv * tv + h.value) * b.inv_gn;
+  }
+}
 
-// Hidden: its functions are called directly (and inlined) within the library, never through the PLT.
-struct __attribute__((visibility("hidden"))) CellInverse::Impl {
-  struct Type {  // one per distinct outlet count among magnetised branches
-    BranchShape shape;
-    Hermite psi;                     // q G N / (P - s t) over z = (P - s t) / (P - (s - 1) t)
-    std::vector<double> psi_linear;  // the same, resampled for the loop
-    Hermite omega;                   // s u / P over sigma = sqrt(kappa G), kappa = N q / P (uniform demand)
-    double omega_slope0 = 0.0;
-  };
-  struct Branch {
-    std::int32_t valve = -1;  // -1: unmagnetised (Newtonian)
-    std::uint32_t type = 0;
-    std::uint32_t slot = 0;  // index of the valve in its cell's valve list
-    double s = 1.0;
-    double inv_gn = 0.0;          // 1 / (G N): open conductance, m^3/(s Pa)
-    double a = 0.0;               // large-flow intercept of its shape (0 unmagnetised)
-    const double* psi = nullptr;  // its shape's linear flow table
-  };
-  struct CellInfo {
-    std::uint32_t branch_begin = 0;
-    std::uint32_t branch_end = 0;
-    std::uint32_t valve_begin = 0;  // into cell_valves / jac
-    std::uint32_t valve_end = 0;
-    std::int32_t uniform_type = -1;  // all branches magnetised, one per valve, same shape
-    double branches = 0.0;
-    double s_min = 0.0;             // smallest threshold multiplier (0 with an unmagnetised branch)
-    double open_conductance = 0.0;  // sum of 1 / (G N)
-    double open_resistance = 0.0;   // its inverse
-    double full_r_per_flow = 0.0;   // uniform cells: r = N (Q / branches) / t_max per unit Q
-    double full_outlets = 0.0;      // uniform cells: outlet passages of a branch (m)
-  };
-  // What a loaded cell needs, from its target and state (recomputed when it is dirty).
-  struct Derived {
-    CellSolution out;
-    double flow_m3_per_s = 0.0;
-    double aim_Pa = 0.0;     // valves' pressure to reach
-    double lock_Pa = 0.0;    // bulge lock: the cell's pressure cannot exceed it
-    bool one_sided = false;  // aim at the lock: any valve pressure above it renders the same
-    double demand_Pa = 0.0;  // uniform level that renders the aim alone (< 0: not computed yet)
-    double p_open_Pa = 0.0;  // valves' pressure with every valve open
-    double p_full_Pa = 0.0;  // ... at the maximum current (capped at the lock)
-    // x^n expanded about the last base instead of a pow() a tick (see derive).
-    double pow_base_m = 0.0;
-    double pow_value = 0.0;
-    double pow_exponent = 0.0;
-  };
-  struct CellCache {
-    CellImpedanceTarget target;
-    CellState state;
-    bool valid = false;
-    bool gn_last = false;  // solved by Gauss-Newton last time (warm start)
-    CellRole role = CellRole::no_contact;
-    unsigned char sel = 0;  // which of the cell's two Derived slots is current
-    bool expired = false;
-    CellImpedanceTarget raw_target;  // the last call's inputs, bitwise
-    CellState raw_state;
-  };
-
-  InverseOptions opt;
+// Which cell reaches which valve through which branches (CSR both ways), from the layout's links.
+struct ValveGraph {
   std::size_t cells = 0;
   std::size_t valves = 0;
+  std::vector<Branch> branches;
+  std::vector<CellInfo> info;
+  std::vector<std::uint32_t> cell_valves;  // CSR by cell
+  std::vector<std::uint32_t> valve_cell_begin;
+  std::vector<std::uint32_t> valve_cells;      // CSR by valve
+  std::vector<std::uint32_t> valve_cell_slot;  // the valve's slot in that cell's list
+};
+
+// What a loaded cell needs, from its target and state (recomputed when it is dirty).
+struct Derived {
+  CellSolution out;
+  double flow_m3_per_s = 0.0;
+  double aim_Pa = 0.0;     // valves' pressure to reach
+  double lock_Pa = 0.0;    // bulge lock: the cell's pressure cannot exceed it
+  bool one_sided = false;  // aim at the lock: any valve pressure above it renders the same
+  double demand_Pa = 0.0;  // uniform level that renders the aim alone (< 0: not computed yet)
+  double p_open_Pa = 0.0;  // valves' pressure with every valve open
+  double p_full_Pa = 0.0;  // ... at the maximum current (capped at the lock)
+  // x^n expanded about the last base instead of a pow() a tick (see derive).
+  double pow_base_m = 0.0;
+  double pow_value = 0.0;
+  double pow_exponent = 0.0;
+};
+
+// The options, the device's constants, the valve graph and the law's tables, made once at
+// construction (inverse_build.cpp); the laws below only read them.
+struct InverseTopology {
+  InverseTopology(const DeviceModel& model, const InverseOptions& options);
+
+  InverseOptions opt;
+  ValveGraph graph;
   double area_m2 = 0.0;
   double p0_Pa = 0.0;
   double depth_m = 0.0;
@@ -299,131 +352,13 @@ struct __attribute__((visibility("hidden"))) CellInverse::Impl {
   double max_current = 0.0;
   double tol_Pa = 0.0;
   double chord_floor_Pa = 0.0;
-  std::vector<Type> types;
-  std::vector<Branch> branches;
-  std::vector<CellInfo> info;
-  std::vector<std::uint32_t> cell_valves;  // CSR by cell
-  std::vector<std::uint32_t> valve_cell_begin;
-  std::vector<std::uint32_t> valve_cells;      // CSR by valve
-  std::vector<std::uint32_t> valve_cell_slot;  // the valve's slot in that cell's list
-  std::vector<double> current_table;           // I at tau_k = tau_min + k (tau_max - tau_min) / K
-  double current_scale = 0.0;                  // K / (tau_max - tau_min)
-  std::vector<double> current_lerp;            // interleaved (I_k, I_k+1 - I_k)
+  std::vector<BranchType> types;
+  double current_scale = 0.0;        // K / (tau_max - tau_min)
+  std::vector<double> current_lerp;  // interleaved (I_k, I_k+1 - I_k), I_k at tau_min + k / scale
   double inv_yield_k = 0.0;
   double current_table_error = 0.0;
   double branch_table_error = 0.0;
 
-  // State.
-  std::vector<CellCache> cache;
-  std::vector<double> t;  // valve levels, Pa
-  std::vector<double> current;
-  std::vector<double> tau;
-  std::vector<double> inv_valve_gain;  // 1 / the calibrated per-valve yield gain
-  std::vector<CellSolution> out;
-  InverseReport rep;
-
-  // Scratch (preallocated).
-  std::vector<Derived> derived;  // two per cell: current and the one pass 1 fills
-  [[nodiscard]] const Derived& cur(std::size_t cell) const noexcept {
-    return derived[2 * cell + cache[cell].sel];
-  }
-  std::vector<CellRole> next_role;
-  std::vector<std::uint32_t> changed_laws;
-  std::vector<std::uint32_t> seen;         // cells whose inputs differ bitwise from the last call
-  std::vector<unsigned char> loaded_flag;  // per cell: holding or loading (committed)
-  std::vector<std::uint32_t> loaded_list;  // the loaded cells, rebuilt when a dirty cell commits
-  bool roles_changed = false;
-  std::vector<std::uint32_t> dirty;
-  std::vector<std::uint64_t> cell_stamp;
-  std::vector<std::uint64_t> comp_stamp;
-  std::uint64_t stamp = 0;
-  // The partition of the loaded cells into components (CSR), rebuilt when roles change.
-  std::vector<std::uint32_t> part_cells;
-  std::vector<std::uint32_t> part_cell_begin;
-  std::vector<std::uint32_t> part_valves;
-  std::vector<std::uint32_t> part_valve_begin;
-  std::vector<std::uint32_t> part_inc_begin;  // per component: (its valves + 1) offsets
-  std::vector<std::uint32_t> part_inc_row;
-  std::vector<std::uint32_t> part_inc_slot;
-  std::vector<std::uint32_t> comp_of_cell;
-  std::vector<std::int32_t> valve_comp;  // -1: no loaded cell uses the valve
-  // Per component, the last bounded step's factorisation (chord steps reuse it).
-  std::vector<std::uint32_t> part_factor_off;
-  std::vector<double> factor_pool;
-  std::vector<double> factor_diag;
-  std::vector<int> factor_age;  // chord steps since it was made; -1: none valid
-  std::vector<double> part_inc_jac;
-  std::vector<unsigned char> part_bound;
-  std::vector<unsigned char> part_included;
-  std::size_t comp_id = 0;
-  // The component being solved (views into the partition).
-  std::span<const std::uint32_t> comp_cells;
-  std::span<const std::uint32_t> comp_valves;
-  const std::uint32_t* inc_begin = nullptr;  // per component valve, into inc_row / inc_slot
-  const std::uint32_t* inc_row = nullptr;
-  const std::uint32_t* inc_slot = nullptr;
-  std::vector<std::uint32_t> row_of;    // cell -> row in its component
-  std::vector<std::uint32_t> local_of;  // valve -> index in its component
-  std::vector<double> jac;              // per cell-valve slot: d e_i / d t_v
-  std::vector<double> e;                // per row
-  std::vector<double> aim_row;          // per row: the cell's aimed pressure
-  std::vector<unsigned char> one_sided;
-  std::vector<unsigned char> included;
-  std::vector<double> crow;                  // per row: the linear model's right-hand side
-  std::vector<double> t0;                    // per component valve: level at the linearisation
-  std::vector<double> t1;                    // proposal
-  std::vector<double> tu;                    // unconstrained row-space value
-  std::vector<unsigned char> bound;          // 0 free, 1 at t_min, 2 at t_max
-  std::vector<unsigned char> excluded_once;  // per row, within one step
-  std::vector<double> predicted;             // per row: the linear model's residual after a step
-  std::vector<double> mat;                   // kDenseRows^2
-  std::vector<double> rhs;
-  std::vector<double> dual;           // row-space solution
-  std::vector<double> res;            // fallback residuals
-  double damping = 0.0;               // Levenberg-Marquardt mu of the component being solved
-  std::vector<double> best;           // per component valve: best levels found
-  std::vector<std::uint32_t> escape;  // valves to try shutting after a stall
-
-  Impl(const DeviceModel& model, const InverseOptions& options);
-  void build_graph(const DeviceModel& model);
-  void build_tables();
-  void build_current_table(const DeviceModel& model);
-
-  // Branch flow at pressure P and valve level tv, with dq/dP and dq/dt.
-  struct Flow {
-    double q = 0.0;
-    double dq_dp = 0.0;
-    double dq_dt = 0.0;
-  };
-  static Flow branch_flow(const Branch& b, double p, double tv) noexcept {
-    if (tv <= 0.0) {  // also every unmagnetised branch
-      return {p * b.inv_gn, b.inv_gn, -b.a * b.inv_gn};
-    }
-    const double over = p - b.s * tv;
-    if (!(over > 0.0)) {
-      return {};
-    }
-    const double ee = over + tv;
-    const HermiteValue h = linear(b.psi, over / ee);
-    const double k = h.slope * over / (ee * ee);
-    return {h.value * over * b.inv_gn, (k * tv + h.value) * b.inv_gn, (-k * p - b.s * h.value) * b.inv_gn};
-  }
-  // Flow and dq/dP only (the residual-only rows).
-  static void branch_q(const Branch& b, double p, double tv, double& q, double& dq_dp) noexcept {
-    if (tv <= 0.0) {
-      q += p * b.inv_gn;
-      dq_dp += b.inv_gn;
-      return;
-    }
-    const double over = p - b.s * tv;
-    if (over > 0.0) {
-      const double inv = 1.0 / (over + tv);
-      const double z = over * inv;
-      const HermiteValue h = linear(b.psi, z);
-      q += h.value * over * b.inv_gn;
-      dq_dp += (h.slope * z * inv * tv + h.value) * b.inv_gn;
-    }
-  }
   // Pressure of one branch carrying q alone at level tv (fast Bingham law; upper bounds).
   double branch_pressure(const Branch& b, double q, double tv) const noexcept {
     if (b.valve < 0 || tv <= 0.0) {
@@ -442,27 +377,27 @@ struct __attribute__((visibility("hidden"))) CellInverse::Impl {
   // the total flow is convex and increasing in P).
   template <class Level>
   double forward(std::size_t cell, double q, const Level& level) const noexcept {
-    const CellInfo& ci = info[cell];
+    const CellInfo& ci = graph.info[cell];
+    const Branch* bb = graph.branches.data() + ci.branch_begin;
+    const Branch* be = graph.branches.data() + ci.branch_end;
     double hold = std::numeric_limits<double>::infinity();
-    for (std::uint32_t b = ci.branch_begin; b < ci.branch_end; ++b) {
-      const Branch& br = branches[b];
-      hold = std::min(hold, br.valve < 0 ? 0.0 : br.s * level(static_cast<std::size_t>(br.valve)));
+    for (const Branch* br = bb; br != be; ++br) {
+      hold = std::min(hold, br->valve < 0 ? 0.0 : br->s * level(static_cast<std::size_t>(br->valve)));
     }
     if (q <= 0.0) {
       return hold;
     }
     double p = std::numeric_limits<double>::infinity();
-    for (std::uint32_t b = ci.branch_begin; b < ci.branch_end; ++b) {
-      const Branch& br = branches[b];
-      p = std::min(p, branch_pressure(br, q, br.valve < 0 ? 0.0 : level(static_cast<std::size_t>(br.valve))));
+    for (const Branch* br = bb; br != be; ++br) {
+      p = std::min(p,
+                   branch_pressure(*br, q, br->valve < 0 ? 0.0 : level(static_cast<std::size_t>(br->valve))));
     }
     p *= 1.0 + 1e-4;  // the bound uses the fast valve law: step safely above the root
     for (int it = 0; it < 100; ++it) {
       double f = -q;
       double df = 0.0;
-      for (std::uint32_t b = ci.branch_begin; b < ci.branch_end; ++b) {
-        const Branch& br = branches[b];
-        const Flow fl = branch_flow(br, p, br.valve < 0 ? 0.0 : level(static_cast<std::size_t>(br.valve)));
+      for (const Branch* br = bb; br != be; ++br) {
+        const Flow fl = branch_flow(*br, p, br->valve < 0 ? 0.0 : level(static_cast<std::size_t>(br->valve)));
         f += fl.q;
         df += fl.dq_dp;
       }
@@ -489,7 +424,7 @@ struct __attribute__((visibility("hidden"))) CellInverse::Impl {
     return t_max * phi;
   }
   double uniform_pressure(std::size_t cell, double q, double level) const noexcept {
-    const CellInfo& ci = info[cell];
+    const CellInfo& ci = graph.info[cell];
     if (q <= 0.0) {
       return ci.s_min * level;
     }
@@ -497,13 +432,13 @@ struct __attribute__((visibility("hidden"))) CellInverse::Impl {
       return q / ci.open_conductance;
     }
     if (ci.uniform_type >= 0) {
-      return branch_pressure(branches[ci.branch_begin], q / ci.branches, level);
+      return branch_pressure(graph.branches[ci.branch_begin], q / ci.branches, level);
     }
     return forward(cell, q, [level](std::size_t) { return level; });
   }
   // Uniform level that gives pressure p at flow q (p between the open and the full pressure).
   double demand(std::size_t cell, double q, double p) const noexcept {
-    const CellInfo& ci = info[cell];
+    const CellInfo& ci = graph.info[cell];
     if (!(p > 0.0)) {
       return t_min;
     }
@@ -511,7 +446,7 @@ struct __attribute__((visibility("hidden"))) CellInverse::Impl {
       return ci.s_min > 0.0 ? p / ci.s_min : t_min;
     }
     if (ci.uniform_type >= 0) {
-      const Type& ty = types[static_cast<std::size_t>(ci.uniform_type)];
+      const BranchType& ty = types[static_cast<std::size_t>(ci.uniform_type)];
       const double kappa = newton_k * (q / ci.branches) / p;
       const double sigma = std::sqrt(kappa * ty.shape.g);
       if (!(sigma < 1.0)) {
@@ -527,7 +462,8 @@ struct __attribute__((visibility("hidden"))) CellInverse::Impl {
       const double mid = 0.5 * (lo + hi);
       double f = -q;
       for (std::uint32_t b = ci.branch_begin; b < ci.branch_end; ++b) {
-        f += branch_flow(branches[b], p, branches[b].valve < 0 ? 0.0 : mid).q;
+        const Branch& br = graph.branches[b];
+        f += branch_flow(br, p, br.valve < 0 ? 0.0 : mid).q;
       }
       (f > 0.0 ? lo : hi) = mid;
     }
@@ -540,57 +476,205 @@ struct __attribute__((visibility("hidden"))) CellInverse::Impl {
     const double* p = current_lerp.data() + 2 * static_cast<std::ptrdiff_t>(k);
     return p[0] + (u - k) * p[1];
   }
-
+  // A cell's envelope, aim and law at a target and state (prev: its last derivation, for x^n).
   Status derive(std::size_t cell, const CellImpedanceTarget& g, const CellState& s, CellRole role,
                 const Derived& prev, Derived& d) const noexcept;
+
+ private:
+  void build_graph(const DeviceModel& model);
+  void build_tables();
+  void build_current_table(const DeviceModel& model);
+};
+
+// ---- what crosses ticks ----------------------------------------------------------------------
+
+struct CellCache {
+  CellImpedanceTarget target;
+  CellState state;
+  bool valid = false;
+  bool gn_last = false;  // solved by Gauss-Newton last time (warm start)
+  CellRole role = CellRole::no_contact;
+  unsigned char sel = 0;  // which of the cell's two Derived slots is current
+  bool expired = false;
+  CellImpedanceTarget raw_target;  // the last call's inputs, bitwise
+  CellState raw_state;
+};
+
+// Each cell's last inputs, their derivations and its committed role: what lets a tick redo only
+// the cells that changed. examine derives into the spare slot, commit makes it current.
+struct CellMemory {
+  explicit CellMemory(std::size_t cells) : cache(cells), derived(2 * cells), loaded(cells, 0) {
+    loaded_list.reserve(cells);
+  }
+
+  std::vector<CellCache> cache;
+  std::vector<Derived> derived;            // two per cell: current and spare
+  std::vector<unsigned char> loaded;       // per cell: holding or loading (committed)
+  std::vector<std::uint32_t> loaded_list;  // the loaded cells, rebuilt when roles change
+
+  [[nodiscard]] const Derived& cur(std::size_t cell) const noexcept {
+    return derived[2 * cell + cache[cell].sel];
+  }
+  Derived& spare(std::size_t cell) noexcept { return derived[2 * cell + (1 - cache[cell].sel)]; }
   // A loaded cell's uniform demand, computed on first use after its targets changed.
-  double demand_of(std::size_t cell) noexcept {
+  double demand_of(const InverseTopology& topo, std::size_t cell) noexcept {
     Derived& d = derived[2 * cell + cache[cell].sel];
     if (d.demand_Pa < 0.0) {
       if (d.aim_Pa <= d.p_open_Pa) {
-        d.demand_Pa = t_min;  // the floor (or a lock at or below it)
+        d.demand_Pa = topo.t_min;  // the floor (or a lock at or below it)
       } else if (d.aim_Pa >= d.p_full_Pa && !d.one_sided) {
-        d.demand_Pa = t_max;  // the ceiling: exactly the maximum current
+        d.demand_Pa = topo.t_max;  // the ceiling: exactly the maximum current
       } else {
-        d.demand_Pa = std::clamp(demand(cell, d.flow_m3_per_s, d.aim_Pa), t_min, t_max);
+        d.demand_Pa = std::clamp(topo.demand(cell, d.flow_m3_per_s, d.aim_Pa), topo.t_min, topo.t_max);
       }
     }
     return d.demand_Pa;
   }
-  Status solve(std::span<const CellImpedanceTarget> targets, std::span<const CellState> states,
-               double now_s) noexcept;
-  Status examine(std::span<const CellImpedanceTarget> targets, std::span<const CellState> states,
-                 double now_s) noexcept;
-  bool commit(std::span<const CellImpedanceTarget> targets, std::span<const CellState> states,
-              double now_s) noexcept;
-  void resolve_dirty() noexcept;
-  void summarise() noexcept;
-  void rebuild_partition() noexcept;
-  void solve_component(std::size_t comp) noexcept;
-  void select_component(std::size_t comp) noexcept;
-  double max_demand(std::size_t k) noexcept;  // the largest demand of component valve k's cells
-  bool demands_conflict() noexcept;
-  void solve_conflict(bool warm) noexcept;
-  bool track(bool& converged) noexcept;
-  double restart_cold(double merit, bool& converged) noexcept;
-  void escape_stall(double merit, bool& converged) noexcept;
-  // From the current levels, with the rows already evaluated there (merit: their merit).
-  double gauss_newton(double start_damping, bool& converged, double merit) noexcept;
-  // Fills e and jac for the component's rows; returns the merit. relinearise: a flowing row far
-  // from its aim is linearised at its true pressure (a forward solve) instead of at the aim.
-  // jacobian: also fill jac (else residuals only).
-  double evaluate_rows(bool relinearise = true, bool jacobian = true) noexcept;
-  void bounded_step() noexcept;  // t0 (+ rows) -> t1
-  void start_step(double shrink) noexcept;
-  void assemble_step_system(double diag, double keep) noexcept;
-  void factorize_and_solve_step(double diag) noexcept;
-  bool move_bounds(double keep, double eps) noexcept;
-  void predict_step() noexcept;
-  bool switch_one_sided_rows() noexcept;
-  void save_factor(double diag) noexcept;
-  bool chord_step() noexcept;
-  void fallback_step() noexcept;
-  void write_valves() noexcept;
+  // After the partition is rebuilt: cells that left a component keep no stale warm start; the
+  // loaded list again.
+  void roles_rebuilt() noexcept {
+    for (std::size_t i = 0; i < cache.size(); ++i) {
+      if (loaded[i] == 0) {
+        cache[i].gn_last = false;
+      }
+    }
+    loaded_list.clear();
+    for (std::size_t i = 0; i < cache.size(); ++i) {
+      if (loaded[i] != 0) {
+        loaded_list.push_back(static_cast<std::uint32_t>(i));
+      }
+    }
+  }
+};
+
+// The valves' levels and what is sent for them: written by the solver (t) and when the valves
+// of a component are written out (tau, current).
+struct ValveLevels {
+  explicit ValveLevels(const InverseTopology& topo)
+      : t(topo.graph.valves, topo.t_min),
+        current(topo.graph.valves, 0.0),
+        tau(topo.graph.valves, topo.tau_min),
+        inv_gain(topo.graph.valves, 1.0) {}
+
+  std::vector<double> t;  // valve levels, Pa
+  std::vector<double> current;
+  std::vector<double> tau;
+  std::vector<double> inv_gain;  // 1 / the calibrated per-valve yield gain (setup only)
+
+  // A valve no loaded cell needs, to its floor; true when it changed.
+  bool release(const InverseTopology& topo, std::uint32_t v) noexcept {
+    if (t[v] == topo.t_min && current[v] == 0.0) {
+      return false;
+    }
+    t[v] = topo.t_min;
+    tau[v] = topo.tau_min;
+    current[v] = 0.0;
+    return true;
+  }
+  // Levels clamped into range, with their yield stresses and currents.
+  void write(const InverseTopology& topo, std::span<const std::uint32_t> valves) noexcept {
+    double* tp = t.data();
+    for (const std::uint32_t v : valves) {
+      const double level = std::clamp(tp[v], topo.t_min, topo.t_max);
+      tp[v] = level;
+      const double ta = level * topo.inv_yield_k;
+      tau[v] = ta;
+      current[v] = topo.current_for_tau(ta * inv_gain[v]);
+    }
+  }
+};
+
+// One component of the partition as the solver sees it: views into ComponentPartition.
+struct Component {
+  std::size_t id = 0;
+  std::uint32_t first_cell = 0;   // offset of its cells in the partition
+  std::uint32_t first_valve = 0;  // ... of its valves
+  std::span<const std::uint32_t> cells;
+  std::span<const std::uint32_t> valves;
+  const std::uint32_t* inc_begin = nullptr;  // per component valve, into inc_row / inc_slot
+  const std::uint32_t* inc_row = nullptr;    // the row of each incident loaded cell
+  const std::uint32_t* inc_slot = nullptr;   // its Jacobian slot
+  const std::uint32_t* local_of = nullptr;   // valve -> index in its component
+};
+
+// The loaded cells' components (joined by shared valves) with their incidence: for each valve,
+// the rows and Jacobian slots of its loaded cells. Rebuilt only when a cell starts or stops
+// being loaded (inverse_solve.cpp).
+struct ComponentPartition {
+  explicit ComponentPartition(const ValveGraph& g);
+
+  std::size_t count = 0;
+  std::vector<std::uint32_t> cells;  // CSR by component
+  std::vector<std::uint32_t> cell_begin;
+  std::vector<std::uint32_t> valves;
+  std::vector<std::uint32_t> valve_begin;
+  std::vector<std::uint32_t> inc_begin;  // per component: (its valves + 1) offsets
+  std::vector<std::uint32_t> inc_row;
+  std::vector<std::uint32_t> inc_slot;
+  std::vector<std::uint32_t> comp_of_cell;
+  std::vector<std::int32_t> valve_comp;  // -1: no loaded cell uses the valve
+  std::vector<std::uint32_t> row_of;     // cell -> row in its component
+  std::vector<std::uint32_t> local_of;   // valve -> index in its component
+  std::vector<std::uint64_t> visited;    // per cell: the rebuild that placed it
+  std::uint64_t rebuilds = 0;
+
+  std::vector<Component> components;  // the views of each, made by rebuild
+
+  void rebuild(const ValveGraph& g, std::span<const unsigned char> loaded) noexcept;
+};
+
+// Per component, the last bounded step's factorisation with its Jacobian, bounds and rows:
+// chord steps on later ticks reuse it. Reset with the partition.
+struct ChordFactors {
+  explicit ChordFactors(const ValveGraph& g)
+      : offset(g.cells + 1, 0),
+        pool(kDenseRows * g.cells, 0.0),
+        age(g.cells, -1),
+        inc_jac(g.valve_cells.size(), 0.0),
+        bound(g.valves, 0),
+        included(g.cells, 0) {}
+
+  std::vector<std::uint32_t> offset;  // per component, into pool
+  std::vector<double> pool;
+  std::vector<int> age;  // chord steps since it was made; -1: none valid
+  std::vector<double> inc_jac;
+  std::vector<unsigned char> bound;
+  std::vector<unsigned char> included;
+
+  void reset(const ComponentPartition& part) noexcept {
+    for (std::size_t c = 0; c < part.count; ++c) {
+      const std::uint32_t rows = part.cell_begin[c + 1] - part.cell_begin[c];
+      offset[c + 1] = offset[c] + (rows <= kDenseRows ? rows * rows : 0);
+      age[c] = -1;
+    }
+  }
+};
+
+// ---- each tick -------------------------------------------------------------------------------
+
+// What one call's inputs change: examine fills it, commit and the re-solve read it.
+struct TickChanges {
+  explicit TickChanges(std::size_t cells) : next_role(cells, CellRole::no_contact), solved(cells, 0) {
+    changed_laws.reserve(cells);
+    seen.reserve(cells);
+    dirty.reserve(cells);
+  }
+
+  std::vector<CellRole> next_role;
+  std::vector<std::uint32_t> changed_laws;
+  std::vector<std::uint32_t> seen;  // cells whose inputs differ bitwise from the last call
+  std::vector<std::uint32_t> dirty;
+  std::vector<std::uint64_t> solved;  // per component: the re-solve that last solved it
+  std::uint64_t resolves = 0;
+};
+
+// The per-cell solutions and the report of the last call.
+struct InverseOutput {
+  explicit InverseOutput(std::size_t cell_count) : cells(cell_count) {}
+
+  std::vector<CellSolution> cells;
+  InverseReport rep;
+
   Status fail(Status s, std::size_t cell) noexcept {
     rep.status = s;
     rep.error_cell = cell;
@@ -602,6 +686,118 @@ struct __attribute__((visibility("hidden"))) CellInverse::Impl {
     rep.iterations = 0;
     return s;
   }
+};
+
+// The work of one component's solve, folded into the report at its end.
+struct ComponentWork {
+  bool converged = true;
+  bool predicted = false;  // residuals are a tracked step's prediction
+  std::size_t rows = 0;    // rows evaluated
+  int iterations = 0;
+};
+
+// One component's Gauss-Newton (inverse_solve.cpp) and its rows and steps (inverse_step.cpp),
+// with scratch preallocated for the largest component. Reads the topology and the cells'
+// derivations; writes the component's levels, chord factors, its cells' residuals and warm-start
+// flags (and their demands, on first use) and the report's work counters.
+class InverseSolver {
+ public:
+  explicit InverseSolver(const ValveGraph& g);
+
+  void solve(const InverseTopology& topo, const Component& comp, CellMemory& memory, ChordFactors& factors,
+             ValveLevels& levels, InverseOutput& output) noexcept;
+
+ private:
+  std::vector<double> jac;  // per cell-valve slot: d e_i / d t_v
+  std::vector<double> e;    // per row
+  std::vector<double> aim_row;
+  std::vector<unsigned char> one_sided;
+  std::vector<unsigned char> included;
+  std::vector<double> crow;                  // per row: the linear model's right-hand side
+  std::vector<double> t0;                    // per component valve: level at the linearisation
+  std::vector<double> t1;                    // proposal
+  std::vector<double> tu;                    // unconstrained row-space value
+  std::vector<unsigned char> bound;          // 0 free, 1 at t_min, 2 at t_max
+  std::vector<unsigned char> excluded_once;  // per row, within one step
+  std::vector<double> predicted;             // per row: the linear model's residual after a step
+  std::vector<double> mat;                   // kDenseRows^2
+  std::vector<double> rhs;
+  std::vector<double> dual;           // row-space solution
+  std::vector<double> res;            // fallback residuals
+  std::vector<double> best;           // per component valve: best levels found
+  std::vector<std::uint32_t> escape;  // valves to try shutting after a stall
+  ComponentWork work;                 // of the component being solved
+
+  bool demands_conflict(const InverseTopology& topo, const Component& comp, CellMemory& memory) noexcept;
+  void solve_conflict(const InverseTopology& topo, const Component& comp, CellMemory& memory,
+                      ChordFactors& factors, ValveLevels& levels, InverseOutput& output, bool warm) noexcept;
+  bool track(const InverseTopology& topo, const Component& comp, const CellMemory& memory,
+             ChordFactors& factors, ValveLevels& levels, bool& converged) noexcept;
+  double restart_cold(const InverseTopology& topo, const Component& comp, CellMemory& memory,
+                      ChordFactors& factors, ValveLevels& levels, double merit, bool& converged) noexcept;
+  void escape_stall(const InverseTopology& topo, const Component& comp, const CellMemory& memory,
+                    ChordFactors& factors, ValveLevels& levels, double merit, bool& converged) noexcept;
+  // From the current levels, with the rows already evaluated there (merit: their merit).
+  double gauss_newton(const InverseTopology& topo, const Component& comp, const CellMemory& memory,
+                      ChordFactors& factors, ValveLevels& levels, double start_damping, bool& converged,
+                      double merit) noexcept;
+  // What evaluate_rows fills: the residuals alone; also the Jacobian, linearised at the aim; or
+  // also relinearised, where a flowing row far from its aim is linearised at its true pressure (a
+  // forward solve) instead.
+  enum class Rows : unsigned char { residuals, at_aim, relinearised };
+  // Fills e (and jac) for the component's rows; returns the merit.
+  double evaluate_rows(const InverseTopology& topo, const Component& comp, const CellMemory& memory,
+                       const ValveLevels& levels, Rows rows = Rows::relinearised) noexcept;
+  // t0 (+ rows) -> t1.
+  void bounded_step(const InverseTopology& topo, const Component& comp, const ValveLevels& levels,
+                    double damping, ChordFactors& factors) noexcept;
+  void start_step(const InverseTopology& topo, const Component& comp, const ValveLevels& levels,
+                  double shrink) noexcept;
+  void assemble_step_system(const InverseTopology& topo, const Component& comp, double diag,
+                            double keep) noexcept;
+  void factorize_and_solve_step(std::size_t nr, double diag) noexcept;
+  bool move_bounds(const InverseTopology& topo, const Component& comp, double keep, double eps) noexcept;
+  void predict_step(const InverseTopology& topo, const Component& comp) noexcept;
+  bool switch_one_sided_rows(double tol_Pa, std::size_t nr) noexcept;
+  void save_factor(const Component& comp, ChordFactors& factors) noexcept;
+  bool chord_step(const InverseTopology& topo, const Component& comp, const ValveLevels& levels,
+                  ChordFactors& factors) noexcept;
+  void fallback_step(const InverseTopology& topo, const Component& comp, const ValveLevels& levels,
+                     double damping) noexcept;
+};
+
+}  // namespace mrskin::model::inverse_detail
+
+namespace mrskin::model {
+
+// The inverse's sources share these parts by name (only they include this header).
+using namespace inverse_detail;
+
+// One of each part; solve() runs them in order. Hidden: its functions are called directly (and
+// inlined) within the library, never through the PLT.
+struct __attribute__((visibility("hidden"))) CellInverse::Impl {
+  Impl(const DeviceModel& model, const InverseOptions& options)
+      : topo(model, options),
+        memory(topo.graph.cells),
+        levels(topo),
+        partition(topo.graph),
+        factors(topo.graph),
+        changes(topo.graph.cells),
+        solver(topo.graph),
+        output(topo.graph.cells) {}
+
+  const InverseTopology topo;
+  CellMemory memory;
+  ValveLevels levels;
+  ComponentPartition partition;
+  ChordFactors factors;
+  TickChanges changes;
+  InverseSolver solver;
+  InverseOutput output;
+
+  Status solve(std::span<const CellImpedanceTarget> targets, std::span<const CellState> states,
+               double now_s) noexcept;
+  void resolve_dirty() noexcept;
 };
 
 }  // namespace mrskin::model

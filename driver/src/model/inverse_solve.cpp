@@ -1,5 +1,5 @@
-// CellInverse: each tick's solve, the partition of the loaded cells into components, and a
-// component's Gauss-Newton.
+// CellInverse: each tick's solve (examine the inputs, commit them, re-solve the components they
+// touch), the partition of the loaded cells into components, and a component's Gauss-Newton.
 #include <algorithm>
 #include <cmath>
 #include <cstddef>
@@ -15,8 +15,8 @@
 
 namespace mrskin::model {
 
-Status CellInverse::Impl::derive(std::size_t cell, const CellImpedanceTarget& g, const CellState& s,
-                                 CellRole role, const Derived& prev, Derived& d) const noexcept {
+Status InverseTopology::derive(std::size_t cell, const CellImpedanceTarget& g, const CellState& s,
+                               CellRole role, const Derived& prev, Derived& d) const noexcept {
   if (!is_loaded(role)) {
     d = Derived{};
     d.out.role = role;
@@ -29,7 +29,7 @@ Status CellInverse::Impl::derive(std::size_t cell, const CellImpedanceTarget& g,
   const double fm = (membrane_linear_N_per_m + membrane_cubic_N_per_m3 * dd * dd) * dd;
   const double vol = area_m2 * dd;
   const double lock = (bulge_linear + bulge_cubic * vol * vol) * vol;
-  const CellInfo& ci = info[cell];
+  const CellInfo& ci = graph.info[cell];
   const double p_open =
       std::min(lock, t_min > 0.0 ? uniform_pressure(cell, q, t_min) : q * ci.open_resistance);
   const double p_full =
@@ -89,57 +89,48 @@ Status CellInverse::Impl::derive(std::size_t cell, const CellImpedanceTarget& g,
   return Status::ok;
 }
 
-Status CellInverse::Impl::solve(std::span<const CellImpedanceTarget> targets,
-                                std::span<const CellState> states, double now_s) noexcept {
-  if (targets.size() != cells || states.size() != cells) {
-    return fail(Status::out_of_range, 0);
-  }
-  if (!finite(now_s)) {
-    return fail(Status::not_finite, 0);
-  }
-  if (const Status st = examine(targets, states, now_s); st != Status::ok) {
-    return st;
-  }
-  if (commit(targets, states, now_s)) {
-    resolve_dirty();
-    summarise();
-  }
-  return Status::ok;
-}
+namespace {
+
+struct Verdict {
+  Status status = Status::ok;
+  std::size_t cell = 0;
+};
 
 // Pass 1: validates everything and works out what changed (dirty cells derived into their spare
-// slot); nothing cached is touched, so a failure leaves the last solve standing.
-Status CellInverse::Impl::examine(std::span<const CellImpedanceTarget> targets,
-                                  std::span<const CellState> states, double now_s) noexcept {
-  dirty.clear();
-  changed_laws.clear();
-  seen.clear();
-  for (std::size_t i = 0; i < cells; ++i) {
+// slot); nothing else cached is touched, so a failure leaves the last solve standing.
+Verdict examine(const InverseTopology& topo, CellMemory& memory, TickChanges& changes,
+                std::span<const CellImpedanceTarget> targets, std::span<const CellState> states,
+                double now_s) noexcept {
+  const InverseOptions& opt = topo.opt;
+  changes.dirty.clear();
+  changes.changed_laws.clear();
+  changes.seen.clear();
+  for (std::size_t i = 0; i < topo.graph.cells; ++i) {
     const CellState& s = states[i];
     const CellImpedanceTarget& g = targets[i];
-    const CellCache& cc = cache[i];
+    const CellCache& cc = memory.cache[i];
     // Inputs bitwise as last time (validated then): only the clock can change the role.
     const bool expired = now_s > g.valid_until_s;
     if (cc.valid && same_bits(g, cc.raw_target) && same_bits(s, cc.raw_state) && expired == cc.expired) {
       continue;
     }
-    seen.push_back(static_cast<std::uint32_t>(i));
-    if (const Status st = check_state(s, depth_m); st != Status::ok) {
-      return fail(st, i);
+    changes.seen.push_back(static_cast<std::uint32_t>(i));
+    if (const Status st = check_state(s, topo.depth_m); st != Status::ok) {
+      return {st, i};
     }
     const bool changed = !cc.valid || !same_law(g, cc.target);
     if (changed) {
       if (const Status st = check_target(g); st != Status::ok) {
-        return fail(st, i);
+        return {st, i};
       }
     } else if (!finite(g.valid_until_s)) {
-      return fail(Status::not_finite, i);
+      return {Status::not_finite, i};
     }
     if (changed) {
-      changed_laws.push_back(static_cast<std::uint32_t>(i));
+      changes.changed_laws.push_back(static_cast<std::uint32_t>(i));
     }
     const CellRole role = classify(s, expired, opt.hold_rate_tolerance_m_per_s);
-    next_role[i] = role;
+    changes.next_role[i] = role;
     bool is_dirty = !cc.valid || role != cc.role;
     if (is_loaded(role) && !is_dirty) {
       is_dirty = changed ||
@@ -147,102 +138,71 @@ Status CellInverse::Impl::examine(std::span<const CellImpedanceTarget> targets,
                  std::fabs(s.rate_m_per_s - cc.state.rate_m_per_s) > opt.rate_tolerance_m_per_s;
     }
     if (is_dirty) {
-      if (const Status st = derive(i, g, s, role, derived[2 * i + cc.sel], derived[2 * i + (1 - cc.sel)]);
-          st != Status::ok) {
-        return fail(st, i);
+      if (const Status st = topo.derive(i, g, s, role, memory.cur(i), memory.spare(i)); st != Status::ok) {
+        return {st, i};
       }
-      dirty.push_back(static_cast<std::uint32_t>(i));
+      changes.dirty.push_back(static_cast<std::uint32_t>(i));
     }
   }
-  return Status::ok;
+  return {};
 }
 
-// Pass 2: commits the inputs and the dirty cells' derivations; false when nothing is dirty (the
+enum class Committed { nothing, cells, roles };  // roles: a cell started or stopped being loaded
+
+// Pass 2: commits the inputs and the dirty cells' derivations; nothing when no cell is dirty (the
 // cached currents stand).
-bool CellInverse::Impl::commit(std::span<const CellImpedanceTarget> targets,
-                               std::span<const CellState> states, double now_s) noexcept {
+Committed commit(const TickChanges& changes, CellMemory& memory, InverseOutput& output,
+                 std::span<const CellImpedanceTarget> targets, std::span<const CellState> states,
+                 double now_s) noexcept {
+  InverseReport& rep = output.rep;
   rep.status = Status::ok;
   rep.error_cell = 0;
-  rep.dirty_cells = dirty.size();
+  rep.dirty_cells = changes.dirty.size();
   rep.cell_updates = 0;
   rep.valve_updates = 0;
   rep.components_solved = 0;
   rep.iterations = 0;
-  for (const std::uint32_t i : changed_laws) {
-    cache[i].target = targets[i];
+  for (const std::uint32_t i : changes.changed_laws) {
+    memory.cache[i].target = targets[i];
   }
-  for (const std::uint32_t i : seen) {
-    CellCache& cc = cache[i];
+  for (const std::uint32_t i : changes.seen) {
+    CellCache& cc = memory.cache[i];
     cc.raw_target = targets[i];
     cc.raw_state = states[i];
     cc.expired = now_s > targets[i].valid_until_s;
   }
-  if (dirty.empty()) {
+  if (changes.dirty.empty()) {
     rep.from_cache = true;
-    return false;
+    return Committed::nothing;
   }
   rep.from_cache = false;
   rep.converged = true;
   rep.residual_predicted = false;
-  for (const std::uint32_t i : dirty) {
-    CellCache& cc = cache[i];
+  bool roles_changed = false;
+  for (const std::uint32_t i : changes.dirty) {
+    CellCache& cc = memory.cache[i];
     cc.state = states[i];  // (the target was committed above if it changed)
     cc.valid = true;
-    cc.role = next_role[i];
+    cc.role = changes.next_role[i];
     const unsigned char now_loaded = is_loaded(cc.role) ? 1 : 0;
-    roles_changed = roles_changed || now_loaded != loaded_flag[i];
-    loaded_flag[i] = now_loaded;
+    roles_changed = roles_changed || now_loaded != memory.loaded[i];
+    memory.loaded[i] = now_loaded;
     cc.sel = static_cast<unsigned char>(1 - cc.sel);  // the slot derived in pass 1 becomes current
-    out[i] = cur(i).out;
+    output.cells[i] = memory.cur(i).out;
     ++rep.cell_updates;
   }
-  return true;
-}
-
-// Re-solves every component that holds a dirty cell or one of its valves; releases the valves of
-// dirty cells that no loaded cell needs.
-void CellInverse::Impl::resolve_dirty() noexcept {
-  if (roles_changed) {
-    rebuild_partition();
-    roles_changed = false;
-  }
-  ++stamp;
-  for (const std::uint32_t i : dirty) {
-    if (loaded_flag[i] != 0) {
-      const std::uint32_t c = comp_of_cell[i];
-      if (comp_stamp[c] != stamp) {
-        comp_stamp[c] = stamp;
-        solve_component(c);
-      }
-      continue;
-    }
-    const CellInfo& ci = info[i];
-    for (std::uint32_t k = ci.valve_begin; k < ci.valve_end; ++k) {
-      const std::uint32_t v = cell_valves[k];
-      const std::int32_t c = valve_comp[v];
-      if (c < 0) {
-        if (t[v] != t_min || current[v] != 0.0) {
-          t[v] = t_min;
-          tau[v] = tau_min;
-          current[v] = 0.0;
-          ++rep.valve_updates;
-        }
-      } else if (comp_stamp[static_cast<std::size_t>(c)] != stamp) {
-        comp_stamp[static_cast<std::size_t>(c)] = stamp;
-        solve_component(static_cast<std::size_t>(c));
-      }
-    }
-  }
+  return roles_changed ? Committed::roles : Committed::cells;
 }
 
 // The report's summary over the loaded cells.
-void CellInverse::Impl::summarise() noexcept {
-  rep.loaded_cells = loaded_list.size();
+void summarise(std::span<const std::uint32_t> loaded, InverseOutput& output) noexcept {
+  InverseReport& rep = output.rep;
+  rep.loaded_cells = loaded.size();
   rep.clamped_cells = 0;
   double sum2 = 0.0;
   double worst = 0.0;
-  for (const std::uint32_t i : loaded_list) {
-    const CellSolution& o = out[i];
+  for (const std::uint32_t i : loaded) {
+    const CellSolution& o = output.cells[i];
     rep.clamped_cells += (o.clamped_low || o.clamped_high) ? 1 : 0;
     sum2 += o.residual_N * o.residual_N;
     worst = std::max(worst, std::fabs(o.residual_N));
@@ -251,142 +211,197 @@ void CellInverse::Impl::summarise() noexcept {
   rep.max_residual_N = worst;
 }
 
-// The loaded cells' components (joined by shared valves) with their incidence: for each valve,
-// the rows and Jacobian slots of its loaded cells. Rebuilt only when a cell starts or stops
-// being loaded.
+// The largest demand of component valve k's cells.
+double max_demand(const InverseTopology& topo, const Component& comp, CellMemory& memory,
+                  std::size_t k) noexcept {
+  double level = topo.t_min;
+  for (std::uint32_t j = comp.inc_begin[k]; j < comp.inc_begin[k + 1]; ++j) {
+    level = std::max(level, memory.demand_of(topo, comp.cells[comp.inc_row[j]]));
+  }
+  return level;
+}
 
-void CellInverse::Impl::rebuild_partition() noexcept {
-  ++stamp;
+}  // namespace
+
+Status CellInverse::Impl::solve(std::span<const CellImpedanceTarget> targets,
+                                std::span<const CellState> states, double now_s) noexcept {
+  if (targets.size() != topo.graph.cells || states.size() != topo.graph.cells) {
+    return output.fail(Status::out_of_range, 0);
+  }
+  if (!finite(now_s)) {
+    return output.fail(Status::not_finite, 0);
+  }
+  if (const Verdict v = examine(topo, memory, changes, targets, states, now_s); v.status != Status::ok) {
+    return output.fail(v.status, v.cell);
+  }
+  const Committed committed = commit(changes, memory, output, targets, states, now_s);
+  if (committed == Committed::nothing) {
+    return Status::ok;
+  }
+  if (committed == Committed::roles) {
+    partition.rebuild(topo.graph, memory.loaded);
+    factors.reset(partition);
+    memory.roles_rebuilt();
+  }
+  resolve_dirty();
+  summarise(memory.loaded_list, output);
+  return Status::ok;
+}
+
+// Re-solves every component that holds a dirty cell or one of its valves; releases the valves of
+// dirty cells that no loaded cell needs.
+void CellInverse::Impl::resolve_dirty() noexcept {
+  InverseReport& rep = output.rep;
+  const std::uint64_t pass = ++changes.resolves;
+  // The pass check stays out of the call: most dirty cells share a component already solved.
+  const auto solve = [&](std::size_t c) {
+    changes.solved[c] = pass;
+    const Component& comp = partition.components[c];
+    ++rep.components_solved;
+    solver.solve(topo, comp, memory, factors, levels, output);
+    levels.write(topo, comp.valves);
+    rep.valve_updates += comp.valves.size();
+  };
+  for (const std::uint32_t i : changes.dirty) {
+    if (memory.loaded[i] != 0) {
+      if (const std::uint32_t c = partition.comp_of_cell[i]; changes.solved[c] != pass) {
+        solve(c);
+      }
+      continue;
+    }
+    const CellInfo& ci = topo.graph.info[i];
+    for (std::uint32_t k = ci.valve_begin; k < ci.valve_end; ++k) {
+      const std::uint32_t v = topo.graph.cell_valves[k];
+      const std::int32_t c = partition.valve_comp[v];
+      if (c < 0) {
+        rep.valve_updates += levels.release(topo, v) ? 1 : 0;
+      } else if (changes.solved[static_cast<std::size_t>(c)] != pass) {
+        solve(static_cast<std::size_t>(c));
+      }
+    }
+  }
+}
+
+void ComponentPartition::rebuild(const ValveGraph& g, std::span<const unsigned char> loaded) noexcept {
+  const std::uint64_t stamp = ++rebuilds;
   std::size_t nc = 0;
   std::uint32_t ncell = 0;
   std::uint32_t nval = 0;
   std::uint32_t ninc = 0;
   std::uint32_t nbeg = 0;
-  part_cell_begin[0] = 0;
-  part_valve_begin[0] = 0;
-  for (std::size_t v = 0; v < valves; ++v) {
+  cell_begin[0] = 0;
+  valve_begin[0] = 0;
+  for (std::size_t v = 0; v < g.valves; ++v) {
     valve_comp[v] = -1;
   }
-  for (std::size_t seed = 0; seed < cells; ++seed) {
-    if (loaded_flag[seed] == 0 || cell_stamp[seed] == stamp) {
+  for (std::size_t seed = 0; seed < g.cells; ++seed) {
+    if (loaded[seed] == 0 || visited[seed] == stamp) {
       continue;
     }
     const std::uint32_t first_cell = ncell;
-    cell_stamp[seed] = stamp;
+    visited[seed] = stamp;
     row_of[seed] = 0;
     comp_of_cell[seed] = static_cast<std::uint32_t>(nc);
-    part_cells[ncell++] = static_cast<std::uint32_t>(seed);
+    cells[ncell++] = static_cast<std::uint32_t>(seed);
     const std::uint32_t first_valve = nval;
-    part_inc_begin[nbeg++] = ninc;
+    inc_begin[nbeg++] = ninc;
     for (std::uint32_t head = first_cell; head < ncell; ++head) {
-      const CellInfo& ci = info[part_cells[head]];
+      const CellInfo& ci = g.info[cells[head]];
       for (std::uint32_t k = ci.valve_begin; k < ci.valve_end; ++k) {
-        const std::uint32_t v = cell_valves[k];
+        const std::uint32_t v = g.cell_valves[k];
         if (valve_comp[v] >= 0) {
           continue;
         }
         valve_comp[v] = static_cast<std::int32_t>(nc);
         local_of[v] = nval - first_valve;
-        part_valves[nval++] = v;
-        for (std::uint32_t j = valve_cell_begin[v]; j < valve_cell_begin[v + 1]; ++j) {
-          const std::uint32_t other = valve_cells[j];
-          if (loaded_flag[other] == 0) {
+        valves[nval++] = v;
+        for (std::uint32_t j = g.valve_cell_begin[v]; j < g.valve_cell_begin[v + 1]; ++j) {
+          const std::uint32_t other = g.valve_cells[j];
+          if (loaded[other] == 0) {
             continue;
           }
-          if (cell_stamp[other] != stamp) {
-            cell_stamp[other] = stamp;
+          if (visited[other] != stamp) {
+            visited[other] = stamp;
             row_of[other] = ncell - first_cell;
             comp_of_cell[other] = static_cast<std::uint32_t>(nc);
-            part_cells[ncell++] = other;
+            cells[ncell++] = other;
           }
-          part_inc_row[ninc] = row_of[other];
-          part_inc_slot[ninc] = valve_cell_slot[j];
+          inc_row[ninc] = row_of[other];
+          inc_slot[ninc] = g.valve_cell_slot[j];
           ++ninc;
         }
-        part_inc_begin[nbeg++] = ninc;
+        inc_begin[nbeg++] = ninc;
       }
     }
-    const std::uint32_t rows = ncell - first_cell;
-    part_factor_off[nc + 1] = part_factor_off[nc] + (rows <= kDenseRows ? rows * rows : 0);
-    factor_age[nc] = -1;
     ++nc;
-    part_cell_begin[nc] = ncell;
-    part_valve_begin[nc] = nval;
+    cell_begin[nc] = ncell;
+    valve_begin[nc] = nval;
   }
-  // Cells that left a component keep no stale warm start.
-  for (std::size_t i = 0; i < cells; ++i) {
-    if (loaded_flag[i] == 0) {
-      cache[i].gn_last = false;
-    }
-  }
-  loaded_list.clear();
-  for (std::size_t i = 0; i < cells; ++i) {
-    if (loaded_flag[i] != 0) {
-      loaded_list.push_back(static_cast<std::uint32_t>(i));
-    }
+  count = nc;
+  for (std::size_t c = 0; c < count; ++c) {
+    Component& k = components[c];
+    k.id = c;
+    k.first_cell = cell_begin[c];
+    k.first_valve = valve_begin[c];
+    k.cells = std::span<const std::uint32_t>(cells.data() + cell_begin[c], cell_begin[c + 1] - cell_begin[c]);
+    k.valves =
+        std::span<const std::uint32_t>(valves.data() + valve_begin[c], valve_begin[c + 1] - valve_begin[c]);
+    k.inc_begin = inc_begin.data() + valve_begin[c] + c;
+    k.inc_row = inc_row.data();
+    k.inc_slot = inc_slot.data();
+    k.local_of = local_of.data();
   }
 }
 
-void CellInverse::Impl::solve_component(std::size_t comp) noexcept {
-  select_component(comp);
+void InverseSolver::solve(const InverseTopology& topo, const Component& comp, CellMemory& memory,
+                          ChordFactors& factors, ValveLevels& levels, InverseOutput& output) noexcept {
+  double* const t = levels.t.data();
+  work = ComponentWork{};
   // Each valve takes the largest uniform demand of its loaded cells: exact when no cell has a
   // valve raised above its own demand. Otherwise Gauss-Newton, warm-started from the last solve
   // when every cell of the component was solved that way then.
   bool warm = true;
-  for (const std::uint32_t cell : comp_cells) {
-    warm = warm && cache[cell].gn_last;
+  for (const std::uint32_t cell : comp.cells) {
+    warm = warm && memory.cache[cell].gn_last;
   }
-  const bool conflict = warm || demands_conflict();  // a warm component keeps tracking
+  const bool conflict = warm || demands_conflict(topo, comp, memory);  // a warm component keeps tracking
   if (!conflict || !warm) {
-    for (std::size_t k = 0; k < comp_valves.size(); ++k) {
-      t[comp_valves[k]] = t1[k];
+    for (std::size_t k = 0; k < comp.valves.size(); ++k) {
+      t[comp.valves[k]] = t1[k];
     }
   }
-  for (const std::uint32_t cell : comp_cells) {
-    out[cell].residual_N = 0.0;
+  for (const std::uint32_t cell : comp.cells) {
+    output.cells[cell].residual_N = 0.0;
   }
   if (conflict) {
-    solve_conflict(warm);
+    solve_conflict(topo, comp, memory, factors, levels, output, warm);
   }
-  for (const std::uint32_t cell : comp_cells) {
-    cache[cell].gn_last = conflict;
+  for (const std::uint32_t cell : comp.cells) {
+    memory.cache[cell].gn_last = conflict;
   }
-  write_valves();
-}
-
-void CellInverse::Impl::select_component(std::size_t comp) noexcept {
-  comp_id = comp;
-  comp_cells = std::span<const std::uint32_t>(part_cells.data() + part_cell_begin[comp],
-                                              part_cell_begin[comp + 1] - part_cell_begin[comp]);
-  comp_valves = std::span<const std::uint32_t>(part_valves.data() + part_valve_begin[comp],
-                                               part_valve_begin[comp + 1] - part_valve_begin[comp]);
-  inc_begin = part_inc_begin.data() + part_valve_begin[comp] + comp;
-  ++rep.components_solved;
-}
-
-double CellInverse::Impl::max_demand(std::size_t k) noexcept {
-  double level = t_min;
-  for (std::uint32_t j = inc_begin[k]; j < inc_begin[k + 1]; ++j) {
-    level = std::max(level, demand_of(comp_cells[inc_row[j]]));
-  }
-  return level;
+  InverseReport& rep = output.rep;
+  rep.cell_updates += work.rows;
+  rep.iterations += work.iterations;
+  rep.converged = rep.converged && work.converged;
+  rep.residual_predicted = rep.residual_predicted || work.predicted;
 }
 
 // Every valve at its cells' largest demand (into t1): true when some cell then renders too much.
 // A flowing cell with any valve raised does; a holding cell only when every valve is raised (its
 // weakest branch sets its pressure).
-bool CellInverse::Impl::demands_conflict() noexcept {
-  for (std::size_t k = 0; k < comp_valves.size(); ++k) {
-    t1[k] = max_demand(k);
+bool InverseSolver::demands_conflict(const InverseTopology& topo, const Component& comp,
+                                     CellMemory& memory) noexcept {
+  for (std::size_t k = 0; k < comp.valves.size(); ++k) {
+    t1[k] = max_demand(topo, comp, memory, k);
   }
   bool conflict = false;
-  for (const std::uint32_t cell : comp_cells) {
-    const CellInfo& ci = info[cell];
-    const Derived& d = cur(cell);
+  for (const std::uint32_t cell : comp.cells) {
+    const CellInfo& ci = topo.graph.info[cell];
+    const Derived& d = memory.cur(cell);
     bool any = false;
     bool all = true;
     for (std::uint32_t k = ci.valve_begin; k < ci.valve_end; ++k) {
-      const bool raised = t1[local_of[cell_valves[k]]] > demand_of(cell);
+      const bool raised = t1[comp.local_of[topo.graph.cell_valves[k]]] > memory.demand_of(topo, cell);
       any = any || raised;
       all = all && raised;
     }
@@ -397,177 +412,195 @@ bool CellInverse::Impl::demands_conflict() noexcept {
 
 // Gauss-Newton on a component whose demands conflict: tracking when warm and near, else the full
 // solve, a cold restart when the warm one leads nowhere, and escapes from a symmetric stall.
-void CellInverse::Impl::solve_conflict(bool warm) noexcept {
+void InverseSolver::solve_conflict(const InverseTopology& topo, const Component& comp, CellMemory& memory,
+                                   ChordFactors& factors, ValveLevels& levels, InverseOutput& output,
+                                   bool warm) noexcept {
   bool converged = false;
   bool tracked = false;
   // Warm: residuals only first (a chord step reuses the saved Jacobian).
-  double merit = evaluate_rows(!warm, !warm);
-  if (warm && comp_cells.size() <= kDenseRows) {
-    tracked = track(converged);
+  double merit = evaluate_rows(topo, comp, memory, levels, warm ? Rows::residuals : Rows::relinearised);
+  if (warm && comp.cells.size() <= kDenseRows) {
+    tracked = track(topo, comp, memory, factors, levels, converged);
   }
   if (!tracked) {
     if (warm) {
-      merit = evaluate_rows();  // far from the aim: relinearise where needed
+      merit = evaluate_rows(topo, comp, memory, levels);  // far from the aim: relinearise where needed
     }
-    merit = gauss_newton(warm ? kMinDamping : kStartDamping, converged, merit);
+    merit = gauss_newton(topo, comp, memory, factors, levels, warm ? kMinDamping : kStartDamping, converged,
+                         merit);
     if (!converged && warm) {
-      merit = restart_cold(merit, converged);
+      merit = restart_cold(topo, comp, memory, factors, levels, merit, converged);
       warm = false;  // and the escapes below if still short
     }
   }
   if (!converged && !warm) {
-    escape_stall(merit, converged);
+    escape_stall(topo, comp, memory, factors, levels, merit, converged);
   }
   double worst = 0.0;
-  for (std::size_t r = 0; r < comp_cells.size(); ++r) {
+  for (std::size_t r = 0; r < comp.cells.size(); ++r) {
     const double er = one_sided[r] != 0 && e[r] > 0.0 ? 0.0 : e[r];
-    out[comp_cells[r]].residual_N = area_m2 * er;
+    output.cells[comp.cells[r]].residual_N = topo.area_m2 * er;
     worst = std::max(worst, std::fabs(er));
   }
-  converged = converged || worst <= tol_Pa;
-  rep.converged = rep.converged && converged;
+  work.converged = converged || worst <= topo.tol_Pa;
 }
 
 // Tracking: the last solve's levels with this tick's targets. A small error takes one damped
 // step, unverified: its residuals are the linear model's prediction, and the next tick's rows
-// check it. False when the error is too large to track.
-bool CellInverse::Impl::track(bool& converged) noexcept {
+// check it. False when the error is too large to track. Inline into its one caller: the warm
+// path pays no call passing the parts.
+inline bool InverseSolver::track(const InverseTopology& topo, const Component& comp, const CellMemory& memory,
+                                 ChordFactors& factors, ValveLevels& levels, bool& converged) noexcept {
+  double* const t = levels.t.data();
+  const std::size_t nr = comp.cells.size();
   double worst = 0.0;
   bool near = true;
-  for (std::size_t r = 0; r < comp_cells.size(); ++r) {
+  for (std::size_t r = 0; r < nr; ++r) {
     const double er = one_sided[r] != 0 && e[r] > 0.0 ? 0.0 : std::fabs(e[r]);
     worst = std::max(worst, er);
-    near = near && er <= kTrackReach * (aim_row[r] + tol_Pa);
+    near = near && er <= kTrackReach * (aim_row[r] + topo.tol_Pa);
   }
-  if (worst <= tol_Pa) {
+  if (worst <= topo.tol_Pa) {
     converged = true;
     return true;
   }
   if (!near) {
     return false;
   }
-  damping = kMinDamping;
   // A small correction reuses the last factorisation (a chord step: J frozen); a larger one, an
   // old factor or a changed active set refactorises.
-  bool chord = factor_age[comp_id] >= 0 && factor_age[comp_id] < kChordAge;
-  for (std::size_t r = 0; r < comp_cells.size() && chord; ++r) {
-    chord = std::fabs(e[r]) <= kChordReach * aim_row[r] + chord_floor_Pa;
+  const int age = factors.age[comp.id];
+  bool chord = age >= 0 && age < kChordAge;
+  for (std::size_t r = 0; r < nr && chord; ++r) {
+    chord = std::fabs(e[r]) <= kChordReach * aim_row[r] + topo.chord_floor_Pa;
   }
-  if (!chord || !chord_step()) {
-    evaluate_rows(false, true);
-    bounded_step();
+  if (!chord || !chord_step(topo, comp, levels, factors)) {
+    evaluate_rows(topo, comp, memory, levels, Rows::at_aim);
+    bounded_step(topo, comp, levels, kMinDamping, factors);
   }
-  ++rep.iterations;
+  ++work.iterations;
   double worst_pred = 0.0;
-  for (std::size_t k = 0; k < comp_valves.size(); ++k) {
-    t[comp_valves[k]] = t1[k];
+  for (std::size_t k = 0; k < comp.valves.size(); ++k) {
+    t[comp.valves[k]] = t1[k];
   }
-  for (std::size_t r = 0; r < comp_cells.size(); ++r) {
+  for (std::size_t r = 0; r < nr; ++r) {
     e[r] = predicted[r];
     worst_pred = std::max(worst_pred, one_sided[r] != 0 && e[r] > 0.0 ? 0.0 : std::fabs(e[r]));
   }
-  converged = worst_pred <= tol_Pa;
-  rep.residual_predicted = true;
+  converged = worst_pred <= topo.tol_Pa;
+  work.predicted = true;
   return true;
 }
 
 // The last solve's levels led nowhere (e.g. a press turned into a hold, where the weakest valve
 // rules): starts again from the demands, as a cold solve would, and keeps the better of the two.
-double CellInverse::Impl::restart_cold(double merit, bool& converged) noexcept {
-  for (std::size_t k = 0; k < comp_valves.size(); ++k) {
-    const double level = max_demand(k);
-    best[k] = t[comp_valves[k]];
-    t[comp_valves[k]] = level;
+double InverseSolver::restart_cold(const InverseTopology& topo, const Component& comp, CellMemory& memory,
+                                   ChordFactors& factors, ValveLevels& levels, double merit,
+                                   bool& converged) noexcept {
+  double* const t = levels.t.data();
+  for (std::size_t k = 0; k < comp.valves.size(); ++k) {
+    const double level = max_demand(topo, comp, memory, k);
+    best[k] = t[comp.valves[k]];
+    t[comp.valves[k]] = level;
   }
   bool cold_converged = false;
-  const double cold = gauss_newton(kStartDamping, cold_converged, evaluate_rows());
+  const double cold = gauss_newton(topo, comp, memory, factors, levels, kStartDamping, cold_converged,
+                                   evaluate_rows(topo, comp, memory, levels));
   if (cold < merit) {
     converged = cold_converged;
     return cold;
   }
-  for (std::size_t k = 0; k < comp_valves.size(); ++k) {
-    t[comp_valves[k]] = best[k];
+  for (std::size_t k = 0; k < comp.valves.size(); ++k) {
+    t[comp.valves[k]] = best[k];
   }
-  return evaluate_rows();
+  return evaluate_rows(topo, comp, memory, levels);
 }
 
 // A cold start can stall where two cells pull a shared valve both ways and symmetry keeps the
 // valves together (e.g. a corner cell that must flow through one of its two valves while its
 // neighbour needs both high). Tries opening or shutting each such valve.
-void CellInverse::Impl::escape_stall(double merit, bool& converged) noexcept {
+void InverseSolver::escape_stall(const InverseTopology& topo, const Component& comp, const CellMemory& memory,
+                                 ChordFactors& factors, ValveLevels& levels, double merit,
+                                 bool& converged) noexcept {
+  double* const t = levels.t.data();
+  const std::span<const std::uint32_t> valves = comp.valves;
   std::size_t candidates = 0;
-  for (std::size_t k = 0; k < comp_valves.size(); ++k) {
-    const std::uint32_t v = comp_valves[k];
+  for (std::size_t k = 0; k < valves.size(); ++k) {
     bool high = false;
     bool low = false;
-    for (std::uint32_t j = inc_begin[k]; j < inc_begin[k + 1]; ++j) {
-      const double er = e[inc_row[j]];
-      high = high || (er > tol_Pa && one_sided[inc_row[j]] == 0);
-      low = low || er < -tol_Pa;
+    for (std::uint32_t j = comp.inc_begin[k]; j < comp.inc_begin[k + 1]; ++j) {
+      const std::uint32_t r = comp.inc_row[j];
+      high = high || (e[r] > topo.tol_Pa && one_sided[r] == 0);
+      low = low || e[r] < -topo.tol_Pa;
     }
     if (high && low) {
       escape[candidates++] = static_cast<std::uint32_t>(k);
     }
-    best[k] = t[v];
+    best[k] = t[valves[k]];
   }
   double best_merit = merit;
   for (std::size_t i = 0; i < 2 * candidates && i < kMaxEscapes && !converged; ++i) {
-    for (std::size_t k = 0; k < comp_valves.size(); ++k) {
-      t[comp_valves[k]] = best[k];
+    for (std::size_t k = 0; k < valves.size(); ++k) {
+      t[valves[k]] = best[k];
     }
-    t[comp_valves[escape[i / 2]]] = i % 2 == 0 ? t_min : t_max;
+    t[valves[escape[i / 2]]] = i % 2 == 0 ? topo.t_min : topo.t_max;
     bool conv_i = false;
-    const double merit_i = gauss_newton(kStartDamping, conv_i, evaluate_rows());
+    const double merit_i = gauss_newton(topo, comp, memory, factors, levels, kStartDamping, conv_i,
+                                        evaluate_rows(topo, comp, memory, levels));
     if (merit_i < best_merit) {
       best_merit = merit_i;
       converged = conv_i;
-      for (std::size_t k = 0; k < comp_valves.size(); ++k) {
-        best[k] = t[comp_valves[k]];
+      for (std::size_t k = 0; k < valves.size(); ++k) {
+        best[k] = t[valves[k]];
       }
     }
   }
   if (candidates > 0) {
-    for (std::size_t k = 0; k < comp_valves.size(); ++k) {
-      t[comp_valves[k]] = best[k];
+    for (std::size_t k = 0; k < valves.size(); ++k) {
+      t[valves[k]] = best[k];
     }
-    evaluate_rows();
+    evaluate_rows(topo, comp, memory, levels);
   }
 }
 
 // Damped Gauss-Newton (Levenberg-Marquardt with backtracking) from the current levels of the
 // component; leaves the rows evaluated at the final levels. Returns the merit.
-double CellInverse::Impl::gauss_newton(double start_damping, bool& converged, double merit) noexcept {
-  damping = start_damping;
+double InverseSolver::gauss_newton(const InverseTopology& topo, const Component& comp,
+                                   const CellMemory& memory, ChordFactors& factors, ValveLevels& levels,
+                                   double start_damping, bool& converged, double merit) noexcept {
+  double* const t = levels.t.data();
+  const std::span<const std::uint32_t> valves = comp.valves;
+  double damping = start_damping;
   converged = false;
   for (int it = 0;; ++it) {
     double worst = 0.0;
-    for (std::size_t r = 0; r < comp_cells.size(); ++r) {
+    for (std::size_t r = 0; r < comp.cells.size(); ++r) {
       worst = std::max(worst, one_sided[r] != 0 && e[r] > 0.0 ? 0.0 : std::fabs(e[r]));
     }
-    if (worst <= tol_Pa) {
+    if (worst <= topo.tol_Pa) {
       converged = true;
       break;
     }
-    if (it >= opt.max_iterations) {
+    if (it >= topo.opt.max_iterations) {
       break;
     }
-    ++rep.iterations;
-    for (std::size_t k = 0; k < comp_valves.size(); ++k) {
-      t0[k] = t[comp_valves[k]];
+    ++work.iterations;
+    for (std::size_t k = 0; k < valves.size(); ++k) {
+      t0[k] = t[valves[k]];
     }
-    if (comp_cells.size() <= kDenseRows) {
-      bounded_step();
+    if (comp.cells.size() <= kDenseRows) {
+      bounded_step(topo, comp, levels, damping, factors);
     } else {
-      fallback_step();
+      fallback_step(topo, comp, levels, damping);
     }
     // Backtrack on the merit (the rows are piecewise smooth: holding cells take a minimum).
     double trial = 1.0;
     double merit_new = merit;
     for (int bt = 0; bt <= kMaxBacktracks; ++bt) {
-      for (std::size_t k = 0; k < comp_valves.size(); ++k) {
-        t[comp_valves[k]] = t0[k] + trial * (t1[k] - t0[k]);
+      for (std::size_t k = 0; k < valves.size(); ++k) {
+        t[valves[k]] = t0[k] + trial * (t1[k] - t0[k]);
       }
-      merit_new = evaluate_rows();
+      merit_new = evaluate_rows(topo, comp, memory, levels);
       if (merit_new <= merit) {
         break;
       }
@@ -575,10 +608,10 @@ double CellInverse::Impl::gauss_newton(double start_damping, bool& converged, do
     }
     damping = trial < 1.0 ? damping * 8.0 : std::max(damping * 0.25, kMinDamping);
     if (!(merit_new <= merit)) {
-      for (std::size_t k = 0; k < comp_valves.size(); ++k) {
-        t[comp_valves[k]] = t0[k];
+      for (std::size_t k = 0; k < valves.size(); ++k) {
+        t[valves[k]] = t0[k];
       }
-      merit = evaluate_rows();
+      merit = evaluate_rows(topo, comp, memory, levels);
       break;  // no descent left at this linearisation: stop here
     }
     const bool stalled = merit - merit_new <= 1e-15 * merit;
@@ -588,21 +621,6 @@ double CellInverse::Impl::gauss_newton(double start_damping, bool& converged, do
     }
   }
   return merit;
-}
-
-void CellInverse::Impl::write_valves() noexcept {
-  const std::uint32_t* vp = comp_valves.data();
-  const std::size_t nv = comp_valves.size();
-  double* tp = t.data();
-  for (std::size_t i = 0; i < nv; ++i) {
-    const std::uint32_t v = vp[i];
-    const double level = std::clamp(tp[v], t_min, t_max);
-    tp[v] = level;
-    const double ta = level * inv_yield_k;
-    tau[v] = ta;
-    current[v] = current_for_tau(ta * inv_valve_gain[v]);
-  }
-  rep.valve_updates += nv;
 }
 
 }  // namespace mrskin::model

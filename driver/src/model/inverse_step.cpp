@@ -14,19 +14,22 @@
 
 namespace mrskin::model {
 
-double CellInverse::Impl::evaluate_rows(bool relinearise, bool jacobian) noexcept {
+double InverseSolver::evaluate_rows(const InverseTopology& topo, const Component& comp,
+                                    const CellMemory& memory, const ValveLevels& levels, Rows rows) noexcept {
+  const bool jacobian = rows != Rows::residuals;
+  const bool relinearise = rows == Rows::relinearised;
   double merit = 0.0;
+  work.rows += comp.cells.size();
   double* jac_p = jac.data();
-  const double* t_p = t.data();
-  for (std::size_t r = 0; r < comp_cells.size(); ++r) {
-    const std::uint32_t cell = comp_cells[r];
-    const Derived& d = cur(cell);
-    const CellInfo& ci = info[cell];
-    const Branch* bb = branches.data() + ci.branch_begin;
-    const Branch* be = branches.data() + ci.branch_end;
+  const double* t_p = levels.t.data();
+  for (std::size_t r = 0; r < comp.cells.size(); ++r) {
+    const std::uint32_t cell = comp.cells[r];
+    const Derived& d = memory.cur(cell);
+    const CellInfo& ci = topo.graph.info[cell];
+    const Branch* bb = topo.graph.branches.data() + ci.branch_begin;
+    const Branch* be = topo.graph.branches.data() + ci.branch_end;
     double* jc = jac_p + ci.valve_begin;
     const std::size_t nvc = ci.valve_end - ci.valve_begin;
-    ++rep.cell_updates;
     one_sided[r] = d.one_sided ? 1 : 0;
     aim_row[r] = d.aim_Pa;
     for (std::size_t k = 0; k < nvc && (jacobian || relinearise); ++k) {
@@ -83,8 +86,8 @@ double CellInverse::Impl::evaluate_rows(bool relinearise, bool jacobian) noexcep
       // Near the aim this is Newton's correction. Far from it, valves that hold at the aim but
       // flow at the true pressure would look inert: linearise at the true pressure instead.
       if (relinearise && !(cond > 1e-9 * ci.open_conductance &&
-                           std::fabs(flow) <= kLinearisationReach * cond * (d.aim_Pa + tol_Pa))) {
-        p = forward(cell, d.flow_m3_per_s, [t_p](std::size_t v) { return t_p[v]; });
+                           std::fabs(flow) <= kLinearisationReach * cond * (d.aim_Pa + topo.tol_Pa))) {
+        p = topo.forward(cell, d.flow_m3_per_s, [t_p](std::size_t v) { return t_p[v]; });
         flow = -d.flow_m3_per_s;
         cond = 0.0;
         for (std::size_t k = 0; k < nvc; ++k) {
@@ -119,34 +122,37 @@ double CellInverse::Impl::evaluate_rows(bool relinearise, bool jacobian) noexcep
 // D = mu + lambda, c = (lambda / D) J t - e; an active set on the bounds and on one-sided rows.
 // The damping is towards the current levels, so that a valve no cell is sensitive to at this
 // linearisation (a branch held shut) stays where it is.
-void CellInverse::Impl::bounded_step() noexcept {
-  const double diag = damping + opt.regularisation;
-  const double shrink = opt.regularisation / diag;
+void InverseSolver::bounded_step(const InverseTopology& topo, const Component& comp,
+                                 const ValveLevels& levels, double damping, ChordFactors& factors) noexcept {
+  const double diag = damping + topo.opt.regularisation;
+  const double shrink = topo.opt.regularisation / diag;
   const double keep = 1.0 - shrink;
-  start_step(shrink);
-  const double eps = 1e-9 * t_max;  // below this a change is round-off: clamp it
+  start_step(topo, comp, levels, shrink);
+  const double eps = 1e-9 * topo.t_max;  // below this a change is round-off: clamp it
   for (int pass = 0; pass < kMaxActiveSetPasses; ++pass) {
-    assemble_step_system(diag, keep);
-    factorize_and_solve_step(diag);
-    bool changed = move_bounds(keep, eps);
-    predict_step();
-    const bool switched = switch_one_sided_rows();
+    assemble_step_system(topo, comp, diag, keep);
+    factorize_and_solve_step(comp.cells.size(), diag);
+    bool changed = move_bounds(topo, comp, keep, eps);
+    predict_step(topo, comp);
+    const bool switched = switch_one_sided_rows(topo.tol_Pa, comp.cells.size());
     changed = changed || switched;
     if (!changed) {
-      save_factor(diag);
+      save_factor(comp, factors);
       break;
     }
-    factor_age[comp_id] = -1;  // the last factorisation is not the final active set's
+    factors.age[comp.id] = -1;  // the last factorisation is not the final active set's
   }
-  for (std::size_t r = 0; r < comp_cells.size(); ++r) {
+  for (std::size_t r = 0; r < comp.cells.size(); ++r) {
     excluded_once[r] = 0;
   }
 }
 
 // The step's right-hand side and the active set it starts from.
-void CellInverse::Impl::start_step(double shrink) noexcept {
-  const std::size_t nr = comp_cells.size();
-  const std::size_t nv = comp_valves.size();
+void InverseSolver::start_step(const InverseTopology& topo, const Component& comp, const ValveLevels& levels,
+                               double shrink) noexcept {
+  const double* const t = levels.t.data();
+  const std::size_t nr = comp.cells.size();
+  const std::size_t nv = comp.valves.size();
   const double* jac_p = jac.data();
   // Each valve's column is its incidence list (1-4 loaded cells): every product below is
   // sparse, O(incidences), never rows x valves.
@@ -156,20 +162,21 @@ void CellInverse::Impl::start_step(double shrink) noexcept {
   }
   // Start from the bounds the levels sit on (the active set rarely changes between steps).
   for (std::size_t k = 0; k < nv; ++k) {
-    const double tv = t[comp_valves[k]];
+    const double tv = t[comp.valves[k]];
     t0[k] = tv;
-    bound[k] = tv <= t_min ? 1 : (tv >= t_max ? 2 : 0);
+    bound[k] = tv <= topo.t_min ? 1 : (tv >= topo.t_max ? 2 : 0);
     const double st = shrink * tv;
-    for (std::uint32_t j = inc_begin[k]; j < inc_begin[k + 1]; ++j) {
-      crow[inc_row[j]] += jac_p[inc_slot[j]] * st;
+    for (std::uint32_t j = comp.inc_begin[k]; j < comp.inc_begin[k + 1]; ++j) {
+      crow[comp.inc_row[j]] += jac_p[comp.inc_slot[j]] * st;
     }
   }
 }
 
 // The row-space system of one active-set pass (mat, rhs).
-void CellInverse::Impl::assemble_step_system(double diag, double keep) noexcept {
-  const std::size_t nr = comp_cells.size();
-  const std::size_t nv = comp_valves.size();
+void InverseSolver::assemble_step_system(const InverseTopology& topo, const Component& comp, double diag,
+                                         double keep) noexcept {
+  const std::size_t nr = comp.cells.size();
+  const std::size_t nv = comp.valves.size();
   const double* jac_p = jac.data();
   // System over all rows; an excluded row gets a unit diagonal and a zero right-hand side.
   for (std::size_t a = 0; a < nr; ++a) {
@@ -181,33 +188,32 @@ void CellInverse::Impl::assemble_step_system(double diag, double keep) noexcept 
     rhs[a] = included[a] != 0 ? crow[a] : 0.0;
   }
   for (std::size_t k = 0; k < nv; ++k) {
-    const std::uint32_t lo = inc_begin[k];
-    const std::uint32_t hi = inc_begin[k + 1];
+    const std::uint32_t lo = comp.inc_begin[k];
+    const std::uint32_t hi = comp.inc_begin[k + 1];
     if (bound[k] != 0) {
-      const double tb = (bound[k] == 1 ? t_min : t_max) - keep * t0[k];
+      const double tb = (bound[k] == 1 ? topo.t_min : topo.t_max) - keep * t0[k];
       for (std::uint32_t j = lo; j < hi; ++j) {
-        rhs[inc_row[j]] -= included[inc_row[j]] != 0 ? jac_p[inc_slot[j]] * tb : 0.0;
+        rhs[comp.inc_row[j]] -= included[comp.inc_row[j]] != 0 ? jac_p[comp.inc_slot[j]] * tb : 0.0;
       }
       continue;
     }
     for (std::uint32_t j1 = lo; j1 < hi; ++j1) {
-      const std::uint32_t a = inc_row[j1];
+      const std::uint32_t a = comp.inc_row[j1];
       if (included[a] == 0) {
         continue;
       }
-      const double ja = jac_p[inc_slot[j1]];
+      const double ja = jac_p[comp.inc_slot[j1]];
       double* ma = &mat[a * nr];
       for (std::uint32_t j2 = lo; j2 < hi; ++j2) {
-        const std::uint32_t b = inc_row[j2];
-        ma[b] += included[b] != 0 ? ja * jac_p[inc_slot[j2]] : 0.0;
+        const std::uint32_t b = comp.inc_row[j2];
+        ma[b] += included[b] != 0 ? ja * jac_p[comp.inc_slot[j2]] : 0.0;
       }
     }
   }
 }
 
 // Cholesky (lower, in place) and the two triangular solves into dual.
-void CellInverse::Impl::factorize_and_solve_step(double diag) noexcept {
-  const std::size_t nr = comp_cells.size();
+void InverseSolver::factorize_and_solve_step(std::size_t nr, double diag) noexcept {
   // The damping keeps it definite.
   for (std::size_t j = 0; j < nr; ++j) {
     double* mj = &mat[j * nr];
@@ -232,25 +238,26 @@ void CellInverse::Impl::factorize_and_solve_step(double diag) noexcept {
 }
 
 // The unconstrained levels (tu) and the bound changes they call for; true when the set changed.
-bool CellInverse::Impl::move_bounds(double keep, double eps) noexcept {
-  const std::size_t nv = comp_valves.size();
+bool InverseSolver::move_bounds(const InverseTopology& topo, const Component& comp, double keep,
+                                double eps) noexcept {
+  const std::size_t nv = comp.valves.size();
   const double* jac_p = jac.data();
   bool changed = false;
   double most = eps;
   std::size_t release = nv;
   for (std::size_t k = 0; k < nv; ++k) {
     double u = keep * t0[k];
-    for (std::uint32_t j = inc_begin[k]; j < inc_begin[k + 1]; ++j) {
-      u += jac_p[inc_slot[j]] * dual[inc_row[j]];
+    for (std::uint32_t j = comp.inc_begin[k]; j < comp.inc_begin[k + 1]; ++j) {
+      u += jac_p[comp.inc_slot[j]] * dual[comp.inc_row[j]];
     }
     tu[k] = u;
     if (bound[k] == 0) {
-      if (u < t_min - eps || u > t_max + eps) {
-        bound[k] = u < t_min ? 1 : 2;
+      if (u < topo.t_min - eps || u > topo.t_max + eps) {
+        bound[k] = u < topo.t_min ? 1 : 2;
         changed = true;
       }
     } else {
-      const double inside = bound[k] == 1 ? u - t_min : t_max - u;
+      const double inside = bound[k] == 1 ? u - topo.t_min : topo.t_max - u;
       if (inside > most) {
         most = inside;
         release = k;
@@ -267,26 +274,26 @@ bool CellInverse::Impl::move_bounds(double keep, double eps) noexcept {
 }
 
 // The proposal t1 within the bounds, and the linear model's residuals after it (predicted).
-void CellInverse::Impl::predict_step() noexcept {
-  const std::size_t nr = comp_cells.size();
-  const std::size_t nv = comp_valves.size();
+void InverseSolver::predict_step(const InverseTopology& topo, const Component& comp) noexcept {
+  const std::size_t nr = comp.cells.size();
+  const std::size_t nv = comp.valves.size();
   const double* jac_p = jac.data();
   for (std::size_t r = 0; r < nr; ++r) {
     predicted[r] = e[r];
   }
   for (std::size_t k = 0; k < nv; ++k) {
-    const double tk = bound[k] == 0 ? std::clamp(tu[k], t_min, t_max) : (bound[k] == 1 ? t_min : t_max);
+    const double tk =
+        bound[k] == 0 ? std::clamp(tu[k], topo.t_min, topo.t_max) : (bound[k] == 1 ? topo.t_min : topo.t_max);
     t1[k] = tk;
     const double dk = tk - t0[k];
-    for (std::uint32_t j = inc_begin[k]; j < inc_begin[k + 1]; ++j) {
-      predicted[inc_row[j]] += jac_p[inc_slot[j]] * dk;
+    for (std::uint32_t j = comp.inc_begin[k]; j < comp.inc_begin[k + 1]; ++j) {
+      predicted[comp.inc_row[j]] += jac_p[comp.inc_slot[j]] * dk;
     }
   }
 }
 
 // True when a one-sided row changed sides.
-bool CellInverse::Impl::switch_one_sided_rows() noexcept {
-  const std::size_t nr = comp_cells.size();
+bool InverseSolver::switch_one_sided_rows(double tol_Pa, std::size_t nr) noexcept {
   bool changed = false;
   // One-sided rows (aim at the lock) count only below their aim. A row changes sides at most
   // twice a step, and only beyond a band (no cycling). States: 0 out, 1 in, 2 out after being
@@ -311,38 +318,38 @@ bool CellInverse::Impl::switch_one_sided_rows() noexcept {
 
 // Keeps the final factorisation of a bounded step with its Jacobian, bounds and rows, for the
 // chord steps of the next ticks.
-void CellInverse::Impl::save_factor(double diag) noexcept {
-  const std::size_t nr = comp_cells.size();
-  const std::size_t nv = comp_valves.size();
-  double* f = factor_pool.data() + part_factor_off[comp_id];
+void InverseSolver::save_factor(const Component& comp, ChordFactors& factors) noexcept {
+  const std::size_t nr = comp.cells.size();
+  const std::size_t nv = comp.valves.size();
+  double* f = factors.pool.data() + factors.offset[comp.id];
   std::copy(mat.data(), mat.data() + nr * nr, f);
-  const std::uint32_t first = inc_begin[0];
-  for (std::uint32_t j = first; j < inc_begin[nv]; ++j) {
-    part_inc_jac[j] = jac[inc_slot[j]];
+  const std::uint32_t first = comp.inc_begin[0];
+  for (std::uint32_t j = first; j < comp.inc_begin[nv]; ++j) {
+    factors.inc_jac[j] = jac[comp.inc_slot[j]];
   }
-  unsigned char* pb = part_bound.data() + part_valve_begin[comp_id];
+  unsigned char* pb = factors.bound.data() + comp.first_valve;
   for (std::size_t k = 0; k < nv; ++k) {
     pb[k] = bound[k];
   }
-  unsigned char* pi = part_included.data() + part_cell_begin[comp_id];
+  unsigned char* pi = factors.included.data() + comp.first_cell;
   for (std::size_t r = 0; r < nr; ++r) {
     pi[r] = included[r] == 1 || included[r] == 3 ? 1 : 0;
   }
-  factor_diag[comp_id] = diag;
-  factor_age[comp_id] = 0;
+  factors.age[comp.id] = 0;
 }
 
 // A chord step: the saved factorisation and Jacobian with this tick's residuals. Returns false
 // (nothing changed) when the saved active set no longer holds, so that the caller refactorises.
-bool CellInverse::Impl::chord_step() noexcept {
+bool InverseSolver::chord_step(const InverseTopology& topo, const Component& comp, const ValveLevels& levels,
+                               ChordFactors& factors) noexcept {
   // Pure damped step (the ridge's pull is left to the refactorising steps): bound valves stay
   // on their bound, z = M^-1 (-e), free valves move by J^T z.
-  const std::size_t nr = comp_cells.size();
-  const std::size_t nv = comp_valves.size();
-  const double* f = factor_pool.data() + part_factor_off[comp_id];
-  const double* ij = part_inc_jac.data();
-  const unsigned char* pb = part_bound.data() + part_valve_begin[comp_id];
-  const unsigned char* pi = part_included.data() + part_cell_begin[comp_id];
+  const std::size_t nr = comp.cells.size();
+  const std::size_t nv = comp.valves.size();
+  const double* f = factors.pool.data() + factors.offset[comp.id];
+  const double* ij = factors.inc_jac.data();
+  const unsigned char* pb = factors.bound.data() + comp.first_valve;
+  const unsigned char* pi = factors.included.data() + comp.first_cell;
   for (std::size_t r = 0; r < nr; ++r) {
     if (one_sided[r] != 0 && (pi[r] != 0) != (e[r] < 0.0)) {
       return false;  // a one-sided row changed sides
@@ -356,76 +363,78 @@ bool CellInverse::Impl::chord_step() noexcept {
     predicted[r] = e[r];
   }
   bool clamped = false;
-  const double* tp = t.data();
-  const std::uint32_t* vp = comp_valves.data();
-  const double eps = 1e-9 * t_max;
+  const double* tp = levels.t.data();
+  const std::uint32_t* vp = comp.valves.data();
+  const double eps = 1e-9 * topo.t_max;
   for (std::size_t k = 0; k < nv; ++k) {
     const double tk = tp[vp[k]];
-    const std::uint32_t lo = inc_begin[k];
-    const std::uint32_t hi = inc_begin[k + 1];
+    const std::uint32_t lo = comp.inc_begin[k];
+    const std::uint32_t hi = comp.inc_begin[k + 1];
     double u = tk;
     for (std::uint32_t j = lo; j < hi; ++j) {
-      u += ij[j] * dual[inc_row[j]];
+      u += ij[j] * dual[comp.inc_row[j]];
     }
     if (pb[k] != 0) {
       // A bound valve the step would pull inside: the active set changed, refactorise.
-      if ((pb[k] == 1 && u > t_min + eps) || (pb[k] == 2 && u < t_max - eps)) {
-        factor_age[comp_id] = -1;
+      if ((pb[k] == 1 && u > topo.t_min + eps) || (pb[k] == 2 && u < topo.t_max - eps)) {
+        factors.age[comp.id] = -1;
         return false;
       }
       t1[k] = tk;
       continue;
     }
-    clamped = clamped || u < t_min || u > t_max;
-    u = std::clamp(u, t_min, t_max);
+    clamped = clamped || u < topo.t_min || u > topo.t_max;
+    u = std::clamp(u, topo.t_min, topo.t_max);
     t1[k] = u;
     const double dk = u - tk;
     for (std::uint32_t j = lo; j < hi; ++j) {
-      predicted[inc_row[j]] += ij[j] * dk;
+      predicted[comp.inc_row[j]] += ij[j] * dk;
     }
   }
   // A valve reached a bound: its step is clamped; refactorise next time.
-  factor_age[comp_id] = clamped ? -1 : factor_age[comp_id] + 1;
+  factors.age[comp.id] = clamped ? -1 : factors.age[comp.id] + 1;
   return true;
 }
 
 // Large components: projected Gauss-Seidel on the same linearised problem (sparse, O(nnz) a sweep).
-void CellInverse::Impl::fallback_step() noexcept {
-  const std::size_t nr = comp_cells.size();
-  const std::size_t nv = comp_valves.size();
+void InverseSolver::fallback_step(const InverseTopology& topo, const Component& comp,
+                                  const ValveLevels& levels, double damping) noexcept {
+  const double* const t = levels.t.data();
+  const std::size_t nr = comp.cells.size();
+  const std::size_t nv = comp.valves.size();
   for (std::size_t r = 0; r < nr; ++r) {
     res[r] = e[r];
     included[r] = one_sided[r] == 0 || e[r] < 0.0 ? 1 : 0;
   }
   for (std::size_t k = 0; k < nv; ++k) {
-    t1[k] = t[comp_valves[k]];
+    t1[k] = t[comp.valves[k]];
   }
-  const double lambda = opt.regularisation;
+  const double lambda = topo.opt.regularisation;
   // Stop sweeping once no valve moves its rows by more than a tenth of the tolerance: a small
   // patch settles in a few sweeps, so its cost follows its size, not the sweep cap.
-  const double settled_Pa = 0.1 * tol_Pa;
+  const double settled_Pa = 0.1 * topo.tol_Pa;
   for (int sweep = 0; sweep < kFallbackSweeps; ++sweep) {
     double moved_Pa = 0.0;
     for (std::size_t k = 0; k < nv; ++k) {
       double a = lambda + damping;
       double g = lambda * t1[k] + damping * (t1[k] - t0[k]);
-      for (std::uint32_t j = inc_begin[k]; j < inc_begin[k + 1]; ++j) {
-        const std::uint32_t r = inc_row[j];
-        const double jv = jac[inc_slot[j]];
+      for (std::uint32_t j = comp.inc_begin[k]; j < comp.inc_begin[k + 1]; ++j) {
+        const std::uint32_t r = comp.inc_row[j];
+        const double jv = jac[comp.inc_slot[j]];
         if (included[r] != 0 || res[r] < 0.0) {
           a += jv * jv;
           g += jv * res[r];
         }
       }
-      const double next_t = std::clamp(t1[k] - g / a, t_min, t_max);
+      const double next_t = std::clamp(t1[k] - g / a, topo.t_min, topo.t_max);
       const double delta = next_t - t1[k];
       if (delta == 0.0) {
         continue;
       }
       t1[k] = next_t;
       moved_Pa = std::max(moved_Pa, std::fabs(delta) * std::sqrt(a));
-      for (std::uint32_t j = inc_begin[k]; j < inc_begin[k + 1]; ++j) {
-        res[inc_row[j]] += jac[inc_slot[j]] * delta;
+      for (std::uint32_t j = comp.inc_begin[k]; j < comp.inc_begin[k + 1]; ++j) {
+        res[comp.inc_row[j]] += jac[comp.inc_slot[j]] * delta;
       }
     }
     if (moved_Pa <= settled_Pa) {
