@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Lint: clang-format (dry run, any difference fails) on the project's C++ sources, no file over
 # 1,000 lines outside tests/, then clang-tidy
-# (.clang-tidy, warnings are errors) over protocol/, driver/, bridge/ and tools/ using the release
+# (.clang-tidy, warnings are errors) over protocol/, driver/, bridge/, tools/ and python/ using the release
 # build's compile_commands.json (configured first if missing). Prints a count of findings per check.
 # Usage: scripts/lint.sh [--format-only | --tidy-only]
 # Env: LINT_BUILD_DIR (default build/release), LINT_JOBS (default nproc).
@@ -29,7 +29,7 @@ pick() { # first existing command
 
 # Tracked and new (not ignored) C++ files of the project.
 mapfile -t sources < <(git ls-files -co --exclude-standard -- \
-  'protocol/*' 'driver/*' 'bridge/*' 'tools/*' 'tests/*' |
+  'protocol/*' 'driver/*' 'bridge/*' 'tools/*' 'python/*' 'tests/*' |
   grep -E '\.(cpp|cc|hpp|h)$' | sort -u | while read -r f; do [[ -f $f ]] && echo "$f"; done)
 
 summarize() { # log: findings per check, each finding (file:line:col + check) counted once
@@ -80,9 +80,9 @@ if [[ $mode != --format-only ]]; then
   tidy=$(pick clang-tidy-14 clang-tidy)
   runner=$(pick run-clang-tidy-14 run-clang-tidy)
   mkdir -p "$logs"
-  echo "== lint: clang-tidy (${jobs} jobs) over protocol/ driver/ bridge/ tools/"
+  echo "== lint: clang-tidy (${jobs} jobs) over protocol/ driver/ bridge/ tools/ python/"
   if ! "$runner" -clang-tidy-binary "$(command -v "$tidy")" -p "$build_dir" -j "$jobs" -quiet \
-    "^${root}/(protocol|driver|bridge|tools)/" >"$logs/tidy.raw.log" 2>&1; then
+    "^${root}/(protocol|driver|bridge|tools|python)/" >"$logs/tidy.raw.log" 2>&1; then
     rc=1
   fi
   # run-clang-tidy-14 always asks for colours; strip them.

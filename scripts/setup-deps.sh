@@ -20,6 +20,8 @@ PACKAGES=(
   qemu-system-x86 busybox-static cpio
   # lint
   clang-format clang-tidy
+  # Python bindings (python/, docs/python.md) and their tests
+  python3-dev pybind11-dev python3-numpy python3-pytest
 )
 
 missing=()
