@@ -1,5 +1,6 @@
 #include "mrskin/driver/model/profile.hpp"
 
+#include <dlfcn.h>
 #include <fmt/format.h>
 #include <toml++/toml.h>
 
@@ -16,11 +17,8 @@
 #include "mrskin/driver/errors.hpp"
 #include "mrskin/driver/layout.hpp"
 
-#ifndef MRSKIN_PROFILE_INSTALL_DIR
-#define MRSKIN_PROFILE_INSTALL_DIR ""
-#endif
-#ifndef MRSKIN_PROFILE_SOURCE_DIR
-#define MRSKIN_PROFILE_SOURCE_DIR ""
+#ifndef MRSKIN_PROFILES_FROM_LIBDIR
+#define MRSKIN_PROFILES_FROM_LIBDIR "../share/mrskin/profiles"
 #endif
 
 namespace mrskin::model {
@@ -633,6 +631,21 @@ DeviceProfile parse_profile(std::string_view toml_text, const std::string& origi
   return p;
 }
 
+namespace {
+// The directory this library was loaded from (dladdr on one of its own functions), so that an
+// install finds its profiles wherever its prefix was moved; "" if the loader cannot say.
+std::string driver_library_dir() {
+  Dl_info info{};
+  // NOLINTNEXTLINE(cppcoreguidelines-pro-type-reinterpret-cast): dladdr takes an address
+  if (::dladdr(reinterpret_cast<const void*>(&driver_library_dir), &info) == 0 || info.dli_fname == nullptr) {
+    return {};
+  }
+  std::error_code ec;
+  const std::filesystem::path lib = std::filesystem::canonical(info.dli_fname, ec);
+  return ec ? std::string() : lib.parent_path().string();
+}
+}  // namespace
+
 std::vector<std::string> profile_search_path() {
   std::vector<std::string> dirs;
   if (const char* env = std::getenv("MRSKIN_PROFILE_PATH"); env != nullptr && *env != '\0') {
@@ -650,10 +663,9 @@ std::vector<std::string> profile_search_path() {
       start = colon + 1;
     }
   }
-  for (const char* d : {MRSKIN_PROFILE_SOURCE_DIR, MRSKIN_PROFILE_INSTALL_DIR}) {
-    if (*d != '\0') {
-      dirs.emplace_back(d);
-    }
+  if (const std::string libdir = driver_library_dir(); !libdir.empty()) {
+    dirs.push_back(libdir + "/" + MRSKIN_PROFILES_FROM_LIBDIR);
+    dirs.push_back(libdir + "/mrskin-profiles");
   }
   return dirs;
 }

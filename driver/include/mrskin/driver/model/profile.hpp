@@ -100,8 +100,9 @@ MRSKIN_DRIVER_API DeviceProfile default_profile();
 inline constexpr const char* kDefaultProfileName = "mr-skin-5x5";
 
 // Directories searched for a profile name, in order: $MRSKIN_PROFILE_PATH (colon-separated),
-// the source tree's driver/profiles (when it still exists: a build tree), the installed
-// share/mrskin/profiles.
+// then relative to the directory the driver library was loaded from: the installed
+// share/mrskin/profiles (wherever the prefix is), then mrskin-profiles beside the library (a
+// build tree's link to driver/profiles).
 MRSKIN_DRIVER_API std::vector<std::string> profile_search_path();
 // The file a name resolves to; throws InvalidArgument listing where it looked.
 MRSKIN_DRIVER_API std::string find_profile(const std::string& name);
