@@ -450,6 +450,9 @@ bool RealtimeLoop::Impl::run_once() noexcept {
 }
 
 void RealtimeLoop::Impl::thread_main() noexcept {
+  // "mrskin-loop" in top -H, ps -L and /proc/PID/task/TID/comm (the service watchdog test finds
+  // the tick thread by it).
+  (void)::pthread_setname_np(::pthread_self(), "mrskin-loop");
   try {
     stats_.scheduler = apply_realtime(options_, *os_, setup_warning_);
   } catch (...) {  // out of memory for the warning text: run anyway, without it

@@ -36,11 +36,20 @@ else
   status=1
 fi
 
-# grep -a: binaries too. The build tree may sit inside the source tree: both are looked for.
+# grep -a: binaries too. The build tree may sit inside the source tree: both are looked for. The
+# systemd unit alone names the install prefix (systemd wants absolute paths; it is generated for
+# the prefix at install time): it may name that one, and must.
+unit=$(find "$prefix" -name mrskin-bridged.service)
+if [ -z "$unit" ] || ! grep -q "^ExecStart=$work/a/$bindir/mrskin-bridged " "$unit"; then
+  echo "FAIL: the installed unit's ExecStart does not name the prefix it was installed to:"
+  grep -s '^ExecStart' "$unit" || echo "  (no mrskin-bridged.service installed)"
+  status=1
+fi
 for path in "$source" "$build" "$work/a"; do
   real=$(cd "$path" 2>/dev/null && pwd -P || echo "$path")
   for p in "$path" "$real"; do
-    if hits=$(grep -rlaF -- "$p" "$prefix"); then
+    if hits=$(grep -rlaF --exclude=mrskin-bridged.service -- "$p" "$prefix") ||
+      { [ "$p" != "$work/a" ] && sed "s|$work/a||g" "$unit" | grep -qF -- "$p" && hits=$unit; }; then
       echo "FAIL: installed files name $p:"
       echo "$hits" | sed "s|^$prefix/|  |"
       status=1

@@ -63,6 +63,7 @@ class ChildProcess {
     }
   }
   void signal(int sig) const { ::kill(pid_, sig); }
+  [[nodiscard]] pid_t pid() const noexcept { return pid_; }
   // The exit code (128 + signal when killed), or -1 when it did not exit within timeout.
   int wait(std::chrono::seconds timeout) {
     const auto end = std::chrono::steady_clock::now() + timeout;

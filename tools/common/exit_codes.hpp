@@ -2,7 +2,8 @@
 // to them with the exception's message (which says what to do).
 #pragma once
 
-#include <cstdio>
+#include <spdlog/spdlog.h>
+
 #include <exception>
 
 #include "mrskin/driver/errors.hpp"
@@ -19,7 +20,8 @@ enum ExitCode : int {
   kUnavailable = 69  // command not in this build (sysexits EX_UNAVAILABLE)
 };
 
-// Call only from a catch block: prints the exception in flight and returns its exit code.
+// Call only from a catch block: logs the exception in flight as an error and returns its exit
+// code.
 inline int exit_code_for_current_exception() noexcept {
   int code = kFailure;
   const char* what = "unknown exception";
@@ -44,9 +46,7 @@ inline int exit_code_for_current_exception() noexcept {
     what = e.what();
   } catch (...) {
   }
-  std::fputs("error: ", stderr);
-  std::fputs(what, stderr);
-  std::fputs("\n", stderr);
+  spdlog::error("{}", what);  // the tool's logger (logging.hpp): journald priority under systemd
   return code;
 }
 

@@ -24,6 +24,7 @@
 #include <system_error>
 
 #include "exit_codes.hpp"
+#include "logging.hpp"
 #include "mrskin/driver/version.hpp"
 #include "suites.hpp"
 
@@ -44,6 +45,8 @@ constexpr std::array<Suite, 3> kSuites = {{
 int run(int argc, char** argv) {
   CLI::App app{"mrskin-model-bench: run time against error of the device model, written as CSV and SVG"};
   app.set_version_flag("--version", std::string(mrskin::library_version()));
+  std::string log_level;
+  mrskin::tools::add_log_level_option(app, log_level);
   BenchOptions o;
   o.out = "model-bench-out";
   std::string suite = "all";
@@ -64,6 +67,7 @@ int run(int argc, char** argv) {
     // --help and --version exit 0; every bad argument is a usage error (2).
     return app.exit(e) == 0 ? mrskin::tools::kOk : mrskin::tools::kUsage;
   }
+  mrskin::tools::set_log_level(log_level);
   std::error_code ec;
   std::filesystem::create_directories(o.out, ec);
   if (ec || !std::filesystem::is_directory(o.out)) {
@@ -85,10 +89,10 @@ int run(int argc, char** argv) {
 }  // namespace
 
 int main(int argc, char** argv) {
+  mrskin::tools::init_logging("mrskin-model-bench");
   try {
     return run(argc, argv);
-  } catch (const std::exception& e) {
-    std::cerr << "mrskin-model-bench: " << e.what() << "\n";
-    return mrskin::tools::kFailure;
+  } catch (...) {
+    return mrskin::tools::exit_code_for_current_exception();
   }
 }

@@ -11,6 +11,7 @@
 #include <numbers>
 #include <string_view>
 
+#include "logging.hpp"
 #include "mrskin/bridge/ros2_topics.hpp"
 
 namespace mrskin::bridged {
@@ -151,8 +152,8 @@ Settings load_settings(const std::string& path) {
   Settings s;
   const Reader r(path);
   r.check_keys(root, "",
-               {"device", "source", "rate_hz", "duration_s", "stats_json", "record", "quiet", "device_lost_s",
-                "mapping", "stream", "bridge", "topics", "control"});
+               {"device", "source", "rate_hz", "duration_s", "stats_json", "record", "quiet", "log_level",
+                "device_lost_s", "mapping", "stream", "bridge", "topics", "control"});
   r.get(root, "", "device", s.device);
   r.get(root, "", "source", s.source);
   r.get_checked(
@@ -163,6 +164,7 @@ Settings load_settings(const std::string& path) {
   r.get(root, "", "stats_json", s.stats_json);
   r.get(root, "", "record", s.record);
   r.get(root, "", "quiet", s.quiet);
+  r.get(root, "", "log_level", s.log_level);
   r.get_checked(root, "", "device_lost_s", s.device_lost_s, positive, "> 0 s");
   if (const toml::table* m = r.section(root, "mapping")) {
     r.check_keys(*m, "mapping",
@@ -248,6 +250,9 @@ void validate(const Settings& s, const std::string& origin) {
   if (s.device.empty()) {
     bad("device", "empty device URI");
   }
+  if (!tools::is_log_level(s.log_level)) {
+    bad("log_level", fmt::format("\"{}\" is not a level: use {}", s.log_level, tools::kLogLevels));
+  }
   if (s.source.empty()) {
     bad("source", "empty source URI");
   }
@@ -269,6 +274,7 @@ void apply(const Overrides& o, Settings& s) {
   s.stats_json = o.stats_json.value_or(s.stats_json);
   s.record = o.record.value_or(s.record);
   s.quiet = o.quiet.value_or(s.quiet);
+  s.log_level = o.log_level.value_or(s.log_level);
   s.socket = o.socket.value_or(s.socket);
   s.topics_namespace = o.topics_namespace.value_or(s.topics_namespace);
 }

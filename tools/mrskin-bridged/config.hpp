@@ -27,6 +27,7 @@ struct Settings {
   std::string stats_json;   // "" : none
   std::string record;       // "" : none; else the input stream is recorded here (replay:// format)
   bool quiet = false;
+  std::string log_level = "info";      // tools::kLogLevels; SIGHUP applies a new one
   bridge::WorkspaceMapping mapping{};  // [mapping]; rotation given in degrees in the file
   // [stream]: which OpenIGTLink devices the stream is read from and the robot's frame in the
   // tissue frame; the source URI's keys (force_device=...) override these.
@@ -65,6 +66,7 @@ struct Overrides {
   std::optional<std::string> stats_json;
   std::optional<std::string> record;
   std::optional<bool> quiet;
+  std::optional<std::string> log_level;
   std::optional<std::string> socket;
   std::optional<std::string> topics_namespace;
 };

@@ -114,6 +114,10 @@ class Daemon final : public bridge::Tickable, public ControlBackend {
     return loop_ ? &loop_->stats() : nullptr;
   }
   [[nodiscard]] double tick_period_s() const noexcept { return 1.0 / settings_.rate_hz; }
+  // Main thread, for the service watchdog: ticks since start (across reloads) and the current
+  // loop's overruns (from 0 again after a reload rebuilds the loop).
+  [[nodiscard]] std::uint64_t live_ticks() const noexcept { return ticks_base_.load() + ticks_.value(); }
+  [[nodiscard]] std::uint64_t live_overruns() const noexcept { return loop_ ? loop_->live_overruns() : 0; }
   [[nodiscard]] double uptime_s() const noexcept { return to_seconds(clock_.now() - t0_); }
   [[nodiscard]] std::uint64_t reloads() const noexcept { return reloads_.load(); }
   [[nodiscard]] const bridge::SampleRecorder* recorder() const noexcept { return recorder_.get(); }

@@ -3,7 +3,6 @@
 #include <fmt/format.h>
 #include <poll.h>
 #include <pthread.h>
-#include <spdlog/sinks/stdout_color_sinks.h>
 #include <spdlog/spdlog.h>
 #include <sys/eventfd.h>
 #include <sys/signalfd.h>
@@ -17,15 +16,18 @@
 #include <cstdio>
 #include <fstream>
 #include <memory>
+#include <optional>
 #include <thread>
 
 #include "config.hpp"
 #include "control_server.hpp"
 #include "daemon.hpp"
 #include "exit_codes.hpp"
+#include "logging.hpp"
 #include "mrskin/bridge/scene.hpp"
 #include "mrskin/driver/version.hpp"
 #include "mrskin/sim/open_mock.hpp"
+#include "systemd_notify.hpp"
 
 namespace {
 
@@ -190,7 +192,8 @@ void log_health_events(const std::vector<mrskin::bridged::Daemon::HealthEvent>& 
 // Reads the signals that arrived on sfd: SIGHUP reloads the configuration; the first other
 // signal is returned (0: none), to stop on.
 int read_signals(int sfd, Console& console, mrskin::bridged::Daemon& daemon, const std::string& config_path,
-                 const mrskin::bridged::Overrides& overrides) {
+                 const mrskin::bridged::Overrides& overrides,
+                 const mrskin::bridged::SystemdNotifier& notifier) {
   pollfd p{sfd, POLLIN, 0};
   (void)::poll(&p, 1, 1);  // 1 ms: the simulated finger follows the script at 1 kHz
   int stop_signal = 0;
@@ -205,14 +208,17 @@ int read_signals(int sfd, Console& console, mrskin::bridged::Daemon& daemon, con
       spdlog::info("SIGHUP: no --config file to reload");
       continue;
     }
+    (void)notifier.notify("RELOADING=1");
     try {
       Settings next = load(config_path, overrides);
       for (const std::string& line : daemon.reload(std::move(next))) {
         spdlog::info("{}", line);
       }
+      mrskin::tools::set_log_level(daemon.settings().log_level);
     } catch (const std::exception& e) {
       spdlog::error("SIGHUP: configuration not reloaded, running on as before: {}", e.what());
     }
+    (void)notifier.notify("READY=1");
     p.revents = 0;  // one signal read per wake is enough; the next poll returns at once if more
   }
   return stop_signal;
@@ -279,6 +285,50 @@ void print_run_report(const mrskin::bridged::Daemon& daemon, const mrskin::bridg
   }
 }
 
+// The service's side of systemd (docs/daemon.md, "systemd"): READY=1 once the first tick ran,
+// then WATCHDOG=1 every half WatchdogSec while the loop is healthy (WatchdogGate), one error line
+// when it is withheld and one when it resumes. Main thread; nothing without NOTIFY_SOCKET.
+class ServiceState {
+ public:
+  ServiceState(const mrskin::bridged::SystemdNotifier& notifier, mrskin::TimePoint t0)
+      : notifier_(notifier), next_ping_(t0) {}
+  void poll(const mrskin::bridged::Daemon& daemon, mrskin::TimePoint now) {
+    if (!notifier_.active()) {
+      return;
+    }
+    if (!ready_) {
+      if (daemon.live_ticks() == 0) {
+        return;
+      }
+      ready_ = notifier_.notify("READY=1\nSTATUS=rendering");
+    }
+    const std::optional<std::chrono::microseconds> interval = notifier_.watchdog_interval();
+    if (!interval || now < next_ping_) {
+      return;
+    }
+    next_ping_ = now + std::chrono::duration_cast<mrskin::Duration>(*interval);
+    if (gate_.healthy(daemon.live_ticks(), daemon.live_overruns())) {
+      (void)notifier_.notify("WATCHDOG=1");
+      if (withheld_) {
+        withheld_ = false;
+        spdlog::info("the loop ticks on time again: service watchdog petted");
+      }
+    } else if (!withheld_) {
+      withheld_ = true;
+      spdlog::error(
+          "the loop is stalled or overrunning: service watchdog not petted (systemd restarts the service "
+          "after WatchdogSec)");
+    }
+  }
+
+ private:
+  const mrskin::bridged::SystemdNotifier& notifier_;
+  mrskin::bridged::WatchdogGate gate_;
+  mrskin::TimePoint next_ping_;
+  bool ready_ = false;
+  bool withheld_ = false;
+};
+
 // After the loop: the last events, the summary, the statistics file; returns the exit code.
 int finish(mrskin::bridged::Daemon& daemon, mrskin::bridged::ControlServer& server, Console& console,
            int stop_signal, bool lost) {
@@ -322,6 +372,7 @@ int finish(mrskin::bridged::Daemon& daemon, mrskin::bridged::ControlServer& serv
 
 int run(Settings cfg, const std::string& config_path, const mrskin::bridged::Overrides& overrides, int sfd) {
   using namespace mrskin;
+  const bridged::SystemdNotifier notifier;
   Console console(::isatty(STDOUT_FILENO) == 1);
   StartupSignalGuard startup;  // SIGINT/SIGTERM end the start-up within a poll
   // The socket first: a second daemon stops here (kBusy) without touching the device.
@@ -348,6 +399,7 @@ int run(Settings cfg, const std::string& config_path, const mrskin::bridged::Ove
   spdlog::info("control socket {}", server.path());
   const TimePoint t0 = clock.now();
   TimePoint next_status = t0 + std::chrono::milliseconds(500);
+  ServiceState service(notifier, t0);
   int stop_signal = 0;
   bool lost = false;
   while (stop_signal == 0 && !lost) {
@@ -355,7 +407,8 @@ int run(Settings cfg, const std::string& config_path, const mrskin::bridged::Ove
     if (now_cfg.duration_s > 0.0 && clock.now() >= t0 + from_seconds(now_cfg.duration_s)) {
       break;
     }
-    stop_signal = read_signals(sfd, console, daemon, config_path, overrides);
+    stop_signal = read_signals(sfd, console, daemon, config_path, overrides, notifier);
+    service.poll(daemon, clock.now());
     daemon.drive_finger();
     if (std::vector<mrskin::bridge::SourceEvent> events = daemon.take_source_events(); !events.empty()) {
       console.clear();  // each reason once, connections as they happen: no spam to rate-limit
@@ -372,6 +425,7 @@ int run(Settings cfg, const std::string& config_path, const mrskin::bridged::Ove
       lost = status_period(console, daemon, server);
     }
   }
+  (void)notifier.notify("STOPPING=1");
   return finish(daemon, server, console, stop_signal, lost);
 }
 
@@ -390,8 +444,6 @@ int guarded_main(int argc, char** argv) {
     std::perror("signalfd");
     return kFailure;
   }
-  spdlog::set_default_logger(spdlog::stderr_color_st("mrskin-bridged"));
-  spdlog::set_pattern("mrskin-bridged: %^%l%$: %v");
 
   CLI::App app{"mrskin-bridged: renders a slave robot's palpation forces on the MR skin in real time"};
   app.set_version_flag("--version", std::string(mrskin::library_version()));
@@ -417,6 +469,7 @@ int guarded_main(int argc, char** argv) {
                  "record the input stream to this file (replay:// format: play it back with "
                  "--source replay://FILE)");
   app.add_flag("--quiet", o.quiet, "no live status lines");
+  mrskin::tools::add_log_level_option(app, o.log_level.emplace());
   app.add_option("--socket", o.socket,
                  "control socket path (default $RUNTIME_DIRECTORY/bridged.sock, "
                  "$XDG_RUNTIME_DIR/mrskin/bridged.sock or /tmp/mrskin-UID/bridged.sock)");
@@ -429,7 +482,11 @@ int guarded_main(int argc, char** argv) {
   } catch (const CLI::ParseError& e) {
     return app.exit(e) == 0 ? kOk : kUsage;
   }
+  if (o.log_level->empty()) {
+    o.log_level.reset();  // not given: the file's, or info
+  }
   const Settings cfg = load(config_path, o);
+  mrskin::tools::set_log_level(cfg.log_level);
   if (check) {
     fmt::print("configuration ok: device {}, source {}, rate {} Hz, socket {}\n", cfg.device, cfg.source,
                cfg.rate_hz, cfg.socket);
@@ -443,6 +500,7 @@ int guarded_main(int argc, char** argv) {
 }  // namespace
 
 int main(int argc, char** argv) {
+  mrskin::tools::init_logging("mrskin-bridged");
   try {
     return guarded_main(argc, argv);
   } catch (...) {

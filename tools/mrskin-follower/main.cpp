@@ -15,9 +15,11 @@
 #include <thread>
 
 #include "exit_codes.hpp"
+#include "logging.hpp"
 #include "mrskin/bridge/ros2_topics.hpp"
 #include "mrskin/bridge/scene.hpp"
 #include "mrskin/driver/clock.hpp"
+#include "mrskin/driver/version.hpp"
 
 namespace {
 
@@ -111,6 +113,9 @@ int guarded_main(int argc, char** argv) {
   CLI::App app{
       "Publishes a built-in scene as a CRTK follower arm over DDS (ROS 2 topics ARM/measured_cf and "
       "ARM/measured_cp), for mrskin-bridged --source dds://ARM. DDS is configured by CYCLONEDDS_URI."};
+  app.set_version_flag("--version", std::string(mrskin::library_version()));
+  std::string log_level;
+  mrskin::tools::add_log_level_option(app, log_level);
   Options o;
   app.add_option("arm", o.arm, "the arm's ROS 2 namespace, e.g. PSM1")->required();
   app.add_option("--domain", o.domain, "DDS domain id (0 to 232, default 0)");
@@ -123,12 +128,14 @@ int guarded_main(int argc, char** argv) {
   } catch (const CLI::ParseError& e) {
     return app.exit(e) == 0 ? mrskin::tools::kOk : mrskin::tools::kUsage;
   }
+  mrskin::tools::set_log_level(log_level);
   return run(o, stop_signals());
 }
 
 }  // namespace
 
 int main(int argc, char** argv) {
+  mrskin::tools::init_logging("mrskin-follower");
   try {
     return guarded_main(argc, argv);
   } catch (...) {

@@ -13,6 +13,7 @@
 #include "exit_codes.hpp"
 #include "json_text.hpp"
 #include "list_command.hpp"
+#include "logging.hpp"
 #include "model_command.hpp"
 #include "mrskin/driver/device.hpp"
 #include "mrskin/driver/version.hpp"
@@ -218,6 +219,7 @@ int cmd_info(const InfoOptions& o) {
 namespace {
 
 int guarded_main(int argc, char** argv) {
+  mrskin::tools::init_logging("mrskinctl");
   mrskin::sim::register_mock_scheme();  // mock:// (the simulated unit, mrskin::sim)
   CLI::App app{"mrskinctl: inspect, test and calibrate MR skin devices"};
   app.set_version_flag("--version", std::string(mrskin::library_version()) + " (protocol v" +
@@ -227,6 +229,8 @@ int guarded_main(int argc, char** argv) {
   app.fallthrough();  // global flags such as --json may follow the subcommand
   mrskin::ctl::GlobalOptions global;
   app.add_flag("--json", global.json, "machine-readable output");
+  std::string log_level;
+  mrskin::tools::add_log_level_option(app, log_level);
   std::string device = "mock://";
 
   auto* info = app.add_subcommand(
@@ -270,6 +274,7 @@ int guarded_main(int argc, char** argv) {
     // code for it.
     return app.exit(e) == 0 ? mrskin::tools::kOk : mrskin::tools::kUsage;
   }
+  mrskin::tools::set_log_level(log_level);
   if (model->parsed()) {
     return model_exit;
   }
