@@ -452,4 +452,23 @@ std::size_t can_frame_bits_worst_case(std::size_t data_bytes, bool fd) noexcept 
   return dynamic + (dynamic - 1) / 4 + fixed_field + (fixed_field + 3) / 4 + 13;
 }
 
+CanFrameBits can_frame_bits_by_phase_worst_case(std::size_t data_bytes, bool fd) noexcept {
+  const std::size_t total = can_frame_bits_worst_case(data_bytes, fd);
+  if (!fd) {
+    return {total, 0};
+  }
+  constexpr std::size_t kSofToBrs = 17;         // SOF, 11-bit id, RRS, IDE, FDF, res, BRS
+  constexpr std::size_t kAckToIfs = 2 + 7 + 3;  // ACK slot and delimiter, EOF, intermission
+  constexpr std::size_t kNominal = kSofToBrs + (kSofToBrs - 1) / 4 + kAckToIfs;
+  return {kNominal, total - kNominal};
+}
+
+double can_frame_time_worst_case_s(std::size_t data_bytes, bool fd, double nominal_bitrate_bit_per_s,
+                                   double data_bitrate_bit_per_s) noexcept {
+  const CanFrameBits bits = can_frame_bits_by_phase_worst_case(data_bytes, fd);
+  const double data_s =
+      bits.data_bits == 0 ? 0.0 : static_cast<double>(bits.data_bits) / data_bitrate_bit_per_s;
+  return static_cast<double>(bits.nominal_bits) / nominal_bitrate_bit_per_s + data_s;
+}
+
 }  // namespace mrskin::protocol

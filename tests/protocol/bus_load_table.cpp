@@ -90,15 +90,9 @@ double classic_load(double frames) {
 
 // ---- CAN FD (bit-rate switch) -----------------------------------------------------------
 
-// Splits can_frame_bits_worst_case(n, true) into the bits sent at the nominal rate (SOF to
-// BRS with their worst-case stuff bits, then ACK, EOF and intermission) and the bits sent
-// at the data rate (ESI, DLC, data, stuff count, CRC, CRC delimiter).
+// A CAN FD frame's worst-case time with the bit-rate switch (can_frame_time_worst_case_s), us.
 double fd_frame_us(std::size_t packet) {
-  const std::size_t total = can_frame_bits_worst_case(packet, true);
-  const std::size_t arbitration = 17 + (17 - 1) / 4 + 12;  // SOF..BRS stuffed, ACK..IFS
-  const std::size_t data = total - arbitration;
-  return static_cast<double>(arbitration) / kFdNominalRate * 1e6 +
-         static_cast<double>(data) / kFdDataRate * 1e6;
+  return can_frame_time_worst_case_s(packet, true, kFdNominalRate, kFdDataRate) * 1e6;
 }
 // Time on the bus per tick for `values` values sent as packets of at most `cap` values.
 template <class Bytes>

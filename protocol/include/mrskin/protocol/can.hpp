@@ -115,4 +115,21 @@ class MRSKIN_PROTOCOL_API CanDecoder {
 // including interframe space. Classic 8-byte frame: 135 bits.
 MRSKIN_PROTOCOL_API std::size_t can_frame_bits_worst_case(std::size_t data_bytes, bool fd) noexcept;
 
+// can_frame_bits_worst_case split by the bit rate each part is sent at. Classic: every bit at
+// the nominal rate. FD with bit-rate switch: SOF to BRS with its worst-case stuff bits, then ACK,
+// EOF and intermission at the nominal rate (17 + 4 + 12 = 33 bits); ESI to the CRC delimiter at
+// the data rate.
+struct CanFrameBits {
+  std::size_t nominal_bits = 0;
+  std::size_t data_bits = 0;
+};
+MRSKIN_PROTOCOL_API CanFrameBits can_frame_bits_by_phase_worst_case(std::size_t data_bytes, bool fd) noexcept;
+// Time a data frame holds the bus with worst-case stuffing, interframe space included, s.
+// Classic frames are sent at nominal_bitrate_bit_per_s throughout; FD frames switch to
+// data_bitrate_bit_per_s for their data phase. Pure arithmetic: the mock's bus model and a bus
+// budget use the same figure.
+MRSKIN_PROTOCOL_API double can_frame_time_worst_case_s(std::size_t data_bytes, bool fd,
+                                                       double nominal_bitrate_bit_per_s,
+                                                       double data_bitrate_bit_per_s) noexcept;
+
 }  // namespace mrskin::protocol

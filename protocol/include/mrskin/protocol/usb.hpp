@@ -5,6 +5,7 @@
 #pragma once
 
 #include <array>
+#include <cstddef>
 #include <cstdint>
 #include <optional>
 #include <string>
@@ -22,6 +23,32 @@ inline constexpr std::uint8_t kUsbEndpointOut = 0x01;   // interrupt OUT, host -
 inline constexpr std::uint16_t kUsbMaxPacketBytes = 64;
 inline constexpr std::uint8_t kUsbIntervalFrames = 1;  // bInterval: 1 ms at full speed
 // Both reports are kHidReportBytes (packet.hpp) long, without a report ID.
+
+// An interrupt endpoint's reserved bandwidth: at most reports_per_interval reports of at most
+// report_bytes each per service interval. Full speed: one 64-byte report per 1 ms frame (this
+// unit). High speed (USB 2.0 high-bandwidth interrupt endpoints): up to 3 reports of up to
+// 1024 bytes per 125 us microframe; the device declares what it uses.
+struct UsbInterruptSlots {
+  double interval_s = 1e-3;
+  std::size_t reports_per_interval = 1;
+  std::size_t report_bytes = 64;
+};
+inline constexpr double kUsbFullSpeedFrame_s = 1e-3;
+inline constexpr double kUsbHighSpeedMicroframe_s = 125e-6;
+inline constexpr std::size_t kUsbHighSpeedMaxReportsPerMicroframe = 3;
+inline constexpr std::size_t kUsbHighSpeedMaxReportBytes = 1024;
+inline constexpr UsbInterruptSlots kUsbFullSpeedSlots{kUsbFullSpeedFrame_s, 1, kUsbMaxPacketBytes};
+// What a high-speed unit may declare at most. Protocol v1 declares nothing: until the message
+// that declares it (protocol 1.2), the mock's hid-hs bus takes this figure.
+inline constexpr UsbInterruptSlots kUsbHighSpeedMaxSlots{
+    kUsbHighSpeedMicroframe_s, kUsbHighSpeedMaxReportsPerMicroframe, kUsbHighSpeedMaxReportBytes};
+// Reports the slots carry per second, and bytes (reports full to report_bytes) per second.
+constexpr double usb_reports_per_s(const UsbInterruptSlots& slots) noexcept {
+  return static_cast<double>(slots.reports_per_interval) / slots.interval_s;
+}
+constexpr double usb_report_bytes_per_s(const UsbInterruptSlots& slots) noexcept {
+  return usb_reports_per_s(slots) * static_cast<double>(slots.report_bytes);
+}
 
 // HID report descriptor: vendor page 0xFF00, one 64-byte input and one 64-byte output report.
 inline constexpr std::array<std::uint8_t, 27> kHidReportDescriptor = {
