@@ -148,6 +148,7 @@ MockDevice::Impl::Impl(const model::DeviceProfile& profile, std::string_view pro
       seeder_(profile),
       targets_held_(layout_.fluid_cell_count()),
       plant_(std::move(plant)),
+      bus_(options.bus),
       commanded_A_(layout_.valve_count(), 0.0),
       coil_A_(layout_.valve_count(), 0.0),
       plant_A_(layout_.valve_count(), 0.0),
@@ -312,6 +313,8 @@ MockDevice::HeldTarget MockDevice::held_target(std::size_t cell) const noexcept 
   return cell < held.size() ? held[cell] : HeldTarget{};
 }
 
+MockBusStats MockDevice::bus_stats() const noexcept { return impl_->bus_.stats(); }
+
 MockDevice::FaultCounters MockDevice::fault_counters() const noexcept {
   const Impl& m = *impl_;
   return {m.dropped_.value(), m.duplicated_.value(), m.corrupted_.value(), m.reordered_.value(),
@@ -411,19 +414,22 @@ void MockDevice::Impl::emit(const Datagram& d, TimePoint now) noexcept {
       continue;
     }
     for (int k = 0; k < (holding_ ? 2 : 1); ++k) {
-      const Datagram& next = k == 0 ? out : held_;
-      if (delay_count_ == delay_line_.size()) {
-        dropped_.bump();  // line full: a bus would lose it too
-        continue;
-      }
-      Delayed& slot = delay_line_[(delay_head_ + delay_count_) % delay_line_.size()];
-      slot.due = now + from_seconds(f.delay_s);
-      slot.datagram = next;
-      ++delay_count_;
+      bus_.device_sent(k == 0 ? out : held_, now, sink_);
     }
     holding_ = false;
   }
   flush_delayed(now);
+}
+
+void MockDevice::Impl::deliver_to_host(const Datagram& d, TimePoint at) noexcept {
+  if (delay_count_ == delay_line_.size()) {
+    dropped_.bump();  // line full: a bus would lose it too
+    return;
+  }
+  Delayed& slot = delay_line_[(delay_head_ + delay_count_) % delay_line_.size()];
+  slot.due = at + from_seconds(options_.faults.delay_s);
+  slot.datagram = d;
+  ++delay_count_;
 }
 
 void MockDevice::Impl::flush_delayed(TimePoint now) noexcept {
@@ -541,27 +547,34 @@ void MockDevice::Impl::enter_fault(proto::FaultCode code) noexcept {
   send_status();
 }
 
-void MockDevice::Impl::handle_host_input(TimePoint now) noexcept {
+void MockDevice::Impl::handle_host_input(TimePoint now) noexcept { handle_host_input(now, now); }
+
+void MockDevice::Impl::handle_host_input(TimePoint now, TimePoint advance_to) noexcept {
   Datagram d;
-  const MockFaults& f = options_.faults;
   while (to_device_.try_pop(d)) {
-    if (bus_off_until_ > now) {
-      continue;  // bus-off: the node hears nothing
-    }
-    if (chance(f.drop_probability)) {
-      dropped_.bump();
-      continue;
-    }
-    if (chance(f.corrupt_probability) && d.length > 0) {
-      const std::uint64_t bit = splitmix(fault_rng_) % (static_cast<std::uint64_t>(d.length) * 8U);
-      d.bytes[bit / 8U] = static_cast<std::uint8_t>(d.bytes[bit / 8U] ^ (1U << (bit % 8U)));
-      corrupted_.bump();
-    }
-    handle(d.bytes.data(), d.length, now);
-    if (chance(f.duplicate_probability)) {
-      duplicated_.bump();
-      handle(d.bytes.data(), d.length, now);
-    }
+    bus_.host_sent(d, now, sink_);
+  }
+  bus_.advance(advance_to, sink_);
+}
+
+void MockDevice::Impl::deliver_to_device(Datagram d, TimePoint at) noexcept {
+  const MockFaults& f = options_.faults;
+  if (bus_off_until_ > at) {
+    return;  // bus-off: the node hears nothing
+  }
+  if (chance(f.drop_probability)) {
+    dropped_.bump();
+    return;
+  }
+  if (chance(f.corrupt_probability) && d.length > 0) {
+    const std::uint64_t bit = splitmix(fault_rng_) % (static_cast<std::uint64_t>(d.length) * 8U);
+    d.bytes[bit / 8U] = static_cast<std::uint8_t>(d.bytes[bit / 8U] ^ (1U << (bit % 8U)));
+    corrupted_.bump();
+  }
+  handle(d.bytes.data(), d.length, at);
+  if (chance(f.duplicate_probability)) {
+    duplicated_.bump();
+    handle(d.bytes.data(), d.length, at);
   }
 }
 
@@ -838,17 +851,20 @@ void MockDevice::Impl::step(TimePoint now) noexcept {
     next_telemetry_ = now;
     next_status_ = now;
     plant_->read_sensors(stuck_value_);
+    bus_.start(now);
   }
   apply_link_faults(now);
   if (!link_up_.load(std::memory_order_acquire)) {
     Datagram drain;
     while (to_device_.try_pop(drain)) {
     }
+    bus_.reset();
     last_step_ = now;
     last_heartbeat_ = now;
     return;
   }
-  handle_host_input(now);
+  // What the bus delivers later than last_step_ reaches the unit within the substeps below.
+  handle_host_input(now, last_step_);
   const auto state = static_cast<proto::DeviceState>(state_.load(std::memory_order_relaxed));
   if (state == proto::DeviceState::enabled &&
       to_seconds(now - last_heartbeat_) > options_.heartbeat_timeout_s * options_.time_scale) {
@@ -875,6 +891,7 @@ void MockDevice::Impl::step(TimePoint now) noexcept {
     }
   }
   while (last_step_ + dt <= now) {
+    bus_.advance(last_step_, sink_);
     update_coils(options_.physics_dt_s);
     plant_->step(options_.physics_dt_s);
     last_step_ += dt;
@@ -896,6 +913,7 @@ void MockDevice::Impl::step(TimePoint now) noexcept {
     send_status();
     next_status_ += from_seconds(options_.status_period_s);
   }
+  bus_.advance(now, sink_);
   flush_delayed(now);
 }
 

@@ -10,6 +10,7 @@
 #include <thread>
 #include <vector>
 
+#include "mock_bus.hpp"
 #include "mrskin/driver/clock.hpp"
 #include "mrskin/driver/layout.hpp"
 #include "mrskin/driver/model/device_model.hpp"
@@ -46,7 +47,14 @@ struct __attribute__((visibility("hidden"))) MockDevice::Impl {
   void stop() noexcept;
   void set_link_up(bool up) noexcept;
 
+  // Hands the host's packets to the bus as sent at now, then runs the bus up to advance_to
+  // (now when omitted), delivering what it carried (deliver_to_device).
   void handle_host_input(TimePoint now) noexcept;
+  void handle_host_input(TimePoint now, TimePoint advance_to) noexcept;
+  // What the bus delivers: a host packet reaching the unit at `at` (link faults, then handle),
+  // and a unit's packet reaching the host at `at` (the delay line, then the host's queue).
+  void deliver_to_device(Datagram d, TimePoint at) noexcept;
+  void deliver_to_host(const Datagram& d, TimePoint at) noexcept;
   void handle(const std::uint8_t* bytes, std::size_t length, TimePoint now) noexcept;
   void send_message(const protocol::Message& message) noexcept;
   void send_status() noexcept;
@@ -81,6 +89,20 @@ struct __attribute__((visibility("hidden"))) MockDevice::Impl {
   bool rendering_targets_ = false;
   std::vector<double> reported_;  // last telemetry sent, SI (what the host saw)
   std::unique_ptr<Plant> plant_;
+  // The bus between host and unit (mock_bus.hpp) and where it delivers.
+  class Sink final : public BusSink {
+   public:
+    explicit Sink(Impl& impl) noexcept : impl_(impl) {}
+    void deliver_to_device(const Datagram& d, TimePoint at) noexcept override {
+      impl_.deliver_to_device(d, at);
+    }
+    void deliver_to_host(const Datagram& d, TimePoint at) noexcept override { impl_.deliver_to_host(d, at); }
+
+   private:
+    Impl& impl_;
+  };
+  MockBus bus_;
+  Sink sink_{*this};
   SpscQueue<Datagram> to_device_{256};
   SpscQueue<Datagram> to_host_{1024};
   std::vector<double> commanded_A_;

@@ -1,5 +1,7 @@
 #include "mrskin/sim/open_mock.hpp"
 
+#include <fmt/format.h>
+
 #include <algorithm>
 #include <charconv>
 #include <cmath>
@@ -104,6 +106,47 @@ MockFaults parse_faults(std::string_view list) {
   return f;
 }
 
+MockBusKind parse_bus_kind(std::string_view value) {
+  for (const MockBusKind kind :
+       {MockBusKind::none, MockBusKind::hid_fs, MockBusKind::hid_hs, MockBusKind::can, MockBusKind::canfd}) {
+    if (value == to_string(kind)) {
+      return kind;
+    }
+  }
+  throw InvalidArgument(
+      fmt::format("mock:// bus '{}' is unknown: use none, hid-fs, hid-hs, can or canfd (default: {})", value,
+                  to_string(MockBusOptions{}.kind)));
+}
+
+// bitrate=B for can, B or B/D for canfd (nominal/data), bits per second.
+void parse_bitrate(std::string_view value, MockBusOptions& bus) {
+  if (bus.kind != MockBusKind::can && bus.kind != MockBusKind::canfd) {
+    throw InvalidArgument(
+        "mock:// bitrate applies to bus=can (bitrate=B) and bus=canfd (bitrate=B/D), not bus=" +
+        std::string(to_string(bus.kind)));
+  }
+  const auto slash = value.find('/');
+  if (slash != std::string_view::npos && bus.kind == MockBusKind::can) {
+    throw InvalidArgument(
+        "mock:// bitrate for bus=can is one rate in bit/s (e.g. bitrate=500000); B/D is for canfd");
+  }
+  const auto rate = [](std::string_view text, double max_bit_per_s) {
+    const auto r = parse_number<double>("bitrate", text);
+    if (!(r >= 10e3 && r <= max_bit_per_s)) {
+      throw InvalidArgument(
+          fmt::format("mock:// bitrate '{}' is outside 10000 to {:.0f} bit/s", text, max_bit_per_s));
+    }
+    return r;
+  };
+  bus.nominal_bitrate_bit_per_s = rate(value.substr(0, slash), 1e6);
+  if (slash != std::string_view::npos) {
+    bus.data_bitrate_bit_per_s = rate(value.substr(slash + 1), 12e6);
+    if (bus.data_bitrate_bit_per_s < bus.nominal_bitrate_bit_per_s) {
+      throw InvalidArgument("mock:// bitrate B/D: the data rate D is at least the nominal rate B");
+    }
+  }
+}
+
 }  // namespace
 
 MockUri parse_mock_uri(std::string_view uri) {
@@ -117,6 +160,7 @@ MockUri parse_mock_uri(std::string_view uri) {
   const auto q = uri.find('?');
   parsed.profile = std::string(uri.substr(0, q));
   std::string_view query = q == std::string_view::npos ? std::string_view{} : uri.substr(q + 1);
+  std::string_view bitrate;  // read once the bus is known, wherever it comes in the query
   while (!query.empty()) {
     const auto amp = query.find('&');
     const std::string_view pair = query.substr(0, amp);
@@ -161,6 +205,13 @@ MockUri parse_mock_uri(std::string_view uri) {
                               std::string(value) + "'");
       }
       options.finger_scene = std::string(value);
+    } else if (key == "bus") {
+      options.bus.kind = parse_bus_kind(value);
+    } else if (key == "bitrate") {
+      bitrate = value;
+      if (value.empty()) {
+        throw InvalidArgument("mock:// bitrate needs a value: B for can, B or B/D for canfd, in bit/s");
+      }
     } else if (key == "rows" || key == "cols") {
       throw InvalidArgument("mock:// parameter '" + std::string(key) +
                             "' is gone: the grid comes from the device profile; name one "
@@ -168,8 +219,11 @@ MockUri parse_mock_uri(std::string_view uri) {
     } else {
       throw InvalidArgument("mock:// parameter '" + std::string(key) +
                             "' is unknown: use seed, perturbation, faults, time_scale, bipolar, "
-                            "protocol_major or finger");
+                            "protocol_major, finger, bus or bitrate");
     }
+  }
+  if (!bitrate.empty()) {
+    parse_bitrate(bitrate, options.bus);
   }
   return parsed;
 }

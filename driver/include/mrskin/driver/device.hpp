@@ -1,13 +1,16 @@
 // Opening a device by URI. Setup only: throws typed exceptions that say what to do.
-//   mock://[PROFILE][?seed=N&perturbation=F&faults=LIST&time_scale=K]
+//   mock://[PROFILE][?seed=N&perturbation=F&faults=LIST&time_scale=K&bus=KIND&bitrate=B[/D]]
 //     the simulated unit, in-process, built to a device profile: PROFILE is a name in the
 //     profile search path (mr-skin-5x5, fingertip-16x16, palm-64x64, ...), a file path
 //     (mock:///path/to/unit.toml), or empty / "default" for the default profile. The grid,
 //     the current range and resolution and the sensors come from the profile. faults is a
 //     comma list of drop:P, dup:P, corrupt:P, reorder:P, delay:S, disconnect:AT+FOR,
 //     stuck:SENSOR, noisy:SENSOR, overheat:VALVE[+FOR], busoff:AT (probabilities per
-//     datagram, times in seconds of device time). The simulation is a library of its own,
-//     mrskin::sim (mrskin/sim/open_mock.hpp): mock:// opens only in a process linked with it.
+//     datagram, times in seconds of device time). bus models the link on the simulated
+//     clock: none (default: an ideal link), hid-fs, hid-hs, can or canfd; bitrate=B (can) or
+//     B/D (canfd), bit/s (docs/protocol.md, "The mock's bus model"). The simulation is a
+//     library of its own, mrskin::sim (mrskin/sim/open_mock.hpp): mock:// opens only in a
+//     process linked with it.
 //   hid://VID:PID[?serial=S]   the unit through hidapi (hidraw); usb://VID:PID[?serial=S] through
 //     libusb, talking to its HID interface directly; can://IFACE?node=N[&fd=1] over SocketCAN.
 //     One ownership lock per unit: hid:// and usb:// to the same VID:PID:serial exclude each other.

@@ -50,6 +50,63 @@ struct MRSKIN_SIM_API MockFaults {
   [[nodiscard]] bool any() const noexcept;
 };
 
+// The bus between the host and the unit, modelled on the mock's clock (mock://?bus=...): each
+// packet costs exactly the HID reports or CAN frames the protocol's encoders make of it, so
+// traffic that does not fit the bus shows up as latency and loss (docs/protocol.md, "The mock's
+// bus model"). The default stays none while protocol v1 does not fit full-speed USB (issue 20:
+// hid-fs is to become the default; on it every scene's closed loop degrades today).
+//  - none: an ideal link (every packet delivered when sent), as before the model.
+//  - hid_fs: full-speed USB-HID, one 64-byte report per 1 ms frame each way; hid_hs: high speed,
+//    kUsbHighSpeedMaxReportsPerMicroframe reports per 125 us microframe each way. A report that
+//    finds its frame's slots taken waits for the next free slot; past usb_queue_reports waiting
+//    it is dropped and counted.
+//  - can, canfd: one shared bus; each frame holds it for its worst-case stuffed time at the bit
+//    rates, lowest identifier first among the frames waiting (each node's queue in order).
+//    The host's writes get ENOBUFS past can_txqueuelen_frames queued frames (counted), and are
+//    retried after the CAN transport's backoff; the unit drops a packet its queue cannot take.
+enum class MockBusKind : unsigned char { none, hid_fs, hid_hs, can, canfd };
+// "none", "hid-fs", "hid-hs", "can", "canfd": the names mock://?bus= takes.
+MRSKIN_SIM_API const char* to_string(MockBusKind kind) noexcept;
+
+struct MockBusOptions {
+  MockBusKind kind = MockBusKind::none;    // see above: hid_fs once the protocol fits it
+  double nominal_bitrate_bit_per_s = 1e6;  // CAN and CAN FD arbitration phase
+  double data_bitrate_bit_per_s = 5e6;     // CAN FD data phase
+  // Reports that may wait for a slot, each way. Host to device: hidraw's write on usbhid is
+  // synchronous (one report a call), so the queue before the bus is the hid transport's send
+  // queue (HidTransportOptions::send_queue, 64), as deep as usbhid's HID_OUTPUT_FIFO_SIZE (64).
+  // The unit's IN queue gets as many, and keeps one telemetry report waiting at most: a newer
+  // sample takes its place (counted dropped).
+  std::size_t usb_queue_reports = 64;
+  // Frames each node queues for the bus: a CAN netdev's default txqueuelen (10) on the host, and
+  // as many in the unit's transmit queue, which it feeds from its packets as frames leave.
+  std::size_t can_txqueuelen_frames = 10;
+  // Packets the host's CAN transport queues before send() refuses (CanTransportOptions), and the
+  // unit's packets waiting for its transmit queue (one telemetry sample at most, as on USB).
+  std::size_t can_send_queue_packets = 64;
+  std::uint8_t can_node = 1;
+};
+
+// What the bus model carried and lost. Any thread.
+struct MockBusDirection {
+  std::uint64_t packets = 0;  // packets delivered
+  std::uint64_t carried = 0;  // HID reports or CAN frames that went on the bus
+  std::uint64_t bytes = 0;    // bytes they carried: packet bytes in reports, data bytes in frames
+  std::uint64_t dropped = 0;  // packets lost to the bus: its queue was full
+  std::uint64_t unsent = 0;   // packets with no form on this framing (classic CAN's heartbeat
+                              // echo), which a CAN transport drops too
+  double max_wait_s = 0.0;    // longest from a packet handed to the bus to its delivery
+  double load = 0.0;          // fraction of the bus: USB bytes over the bytes the slots could
+                              // carry; CAN the time the bus was busy with this direction
+};
+struct MockBusStats {
+  MockBusKind kind = MockBusKind::none;
+  MockBusDirection host_to_device;
+  MockBusDirection device_to_host;
+  std::uint64_t enobufs = 0;  // CAN: host frame writes refused past txqueuelen (then retried)
+  double elapsed_s = 0.0;     // simulated time the loads are over
+};
+
 // How the unit behaves. What it is (grid, current range and resolution, sensors, coil
 // resistance) comes from its device profile, not from here.
 struct MockOptions {
@@ -86,6 +143,7 @@ struct MockOptions {
   // mock://?finger=SCENE: the scene whose script the simulated finger follows while the stream
   // comes from elsewhere. The driver only carries the name; the bridge's tools run the script.
   std::string finger_scene;
+  MockBusOptions bus{};          // mock://?bus=...&bitrate=...
   double degauss_step_s = 0.02;  // each half-cycle's hold (about 4 coil time constants)
   double degauss_ratio = 0.85;   // amplitude ratio between half-cycles, from max_current_A
 };
@@ -155,6 +213,8 @@ class MRSKIN_SIM_API MockDevice final : public SimulatedUnit {
     std::uint64_t congested = 0;  // device->host datagrams lost because the host did not read
   };
   [[nodiscard]] FaultCounters fault_counters() const noexcept;
+  // The bus model's counts and loads since the unit started (mock://?bus=...).
+  [[nodiscard]] MockBusStats bus_stats() const noexcept;
 
   // --- firmware state, for tests: call from the thread that steps the device ---------------
   // The per-cell impedance target the firmware holds and when its validity started. Once the

@@ -1,0 +1,440 @@
+#include "mock_bus.hpp"
+
+#include <algorithm>
+#include <cmath>
+#include <limits>
+
+#include "mrskin/protocol/can.hpp"
+#include "mrskin/protocol/usb.hpp"
+
+namespace mrskin::sim {
+namespace proto = mrskin::protocol;
+
+namespace {
+
+constexpr std::int64_t kNever = std::numeric_limits<std::int64_t>::max();
+
+std::int64_t floor_div(std::int64_t a, std::int64_t b) noexcept {
+  const std::int64_t q = a / b;
+  return (a % b != 0 && (a < 0) != (b < 0)) ? q - 1 : q;
+}
+
+void raise(std::atomic<std::int64_t>& value, std::int64_t candidate) noexcept {
+  std::int64_t seen = value.load(std::memory_order_relaxed);
+  while (candidate > seen && !value.compare_exchange_weak(seen, candidate, std::memory_order_relaxed)) {
+  }
+}
+
+// The slots the mock's unit has: v1's 64-byte reports, one per full-speed frame, or as many per
+// high-speed microframe as a unit may declare.
+proto::UsbInterruptSlots usb_slots(MockBusKind kind) noexcept {
+  if (kind == MockBusKind::hid_hs) {
+    return {proto::kUsbHighSpeedMicroframe_s, proto::kUsbHighSpeedMaxReportsPerMicroframe,
+            proto::kHidReportBytes};
+  }
+  return proto::kUsbFullSpeedSlots;
+}
+
+bool is_telemetry(const Datagram& d) noexcept {
+  return d.length > 1 && d.bytes[1] == static_cast<std::uint8_t>(proto::MessageType::telemetry);
+}
+
+}  // namespace
+
+const char* to_string(MockBusKind kind) noexcept {
+  switch (kind) {
+    case MockBusKind::none:
+      return "none";
+    case MockBusKind::hid_fs:
+      return "hid-fs";
+    case MockBusKind::hid_hs:
+      return "hid-hs";
+    case MockBusKind::can:
+      return "can";
+    case MockBusKind::canfd:
+      return "canfd";
+  }
+  return "none";
+}
+
+void MockBus::Counters::waited(std::int64_t ns) noexcept { raise(max_wait_ns, ns); }
+
+void MockBus::Counters::carry(std::size_t packet_bytes) noexcept {
+  packets.bump();
+  carried.bump();
+  bytes.bump(packet_bytes);
+}
+
+MockBus::MockBus(const MockBusOptions& options)
+    : options_(options),
+      to_device_waiting_(usb() ? options.usb_queue_reports + proto::kUsbHighSpeedMaxReportsPerMicroframe + 1
+                               : 0),
+      to_host_waiting_(usb() ? options.usb_queue_reports + proto::kUsbHighSpeedMaxReportsPerMicroframe + 1
+                             : 0),
+      host_codec_(CanRole::host, options.can_node, options.kind == MockBusKind::canfd),
+      device_codec_(CanRole::device, options.can_node, options.kind == MockBusKind::canfd),
+      host_(can() ? options.can_send_queue_packets : 0, can() ? options.can_txqueuelen_frames : 0),
+      device_(can() ? options.can_send_queue_packets : 0, can() ? options.can_txqueuelen_frames : 0) {
+  const proto::UsbInterruptSlots slots = usb_slots(options.kind);
+  interval_ns_ = std::llround(slots.interval_s * 1e9);
+  reports_per_interval_ = slots.reports_per_interval;
+  report_bytes_per_s_ = proto::usb_report_bytes_per_s(slots);
+  const CanTransportOptions transport{};
+  backoff_min_ns_ = transport.enobufs_backoff_min.count();
+  backoff_max_ns_ = transport.enobufs_backoff_max.count();
+}
+
+bool MockBus::usb() const noexcept {
+  return options_.kind == MockBusKind::hid_fs || options_.kind == MockBusKind::hid_hs;
+}
+bool MockBus::can() const noexcept {
+  return options_.kind == MockBusKind::can || options_.kind == MockBusKind::canfd;
+}
+
+void MockBus::start(TimePoint t) noexcept {
+  if (started_) {
+    return;
+  }
+  started_ = true;
+  clock_ns_ = bus_free_ns_ = t.count();
+  start_ns_.store(t.count(), std::memory_order_relaxed);
+  last_ns_.store(t.count(), std::memory_order_relaxed);
+  // No report of the past: the first slot is the frame the unit starts in.
+  const auto first = static_cast<std::int64_t>(reports_per_interval_) * floor_div(t.count(), interval_ns_);
+  to_device_lane_.next_slot = to_host_lane_.next_slot = first;
+}
+
+void MockBus::note_time(std::int64_t t_ns) noexcept { raise(last_ns_, t_ns); }
+
+bool MockBus::usb_schedule(UsbLane& lane, TimePoint t, TimePoint& due) const noexcept {
+  const auto per = static_cast<std::int64_t>(reports_per_interval_);
+  const std::int64_t frame = floor_div(t.count(), interval_ns_);
+  const std::int64_t first = frame * per;
+  const std::int64_t slot = std::max(lane.next_slot, first);
+  // Reports already waiting for a later frame than this one, ahead of this report.
+  const std::int64_t ahead = slot - (first + per);
+  if (ahead >= static_cast<std::int64_t>(options_.usb_queue_reports)) {
+    return false;
+  }
+  lane.next_slot = slot + 1;
+  const std::int64_t slot_frame = floor_div(slot, per);
+  due = slot_frame == frame ? t : TimePoint{slot_frame * interval_ns_};
+  return true;
+}
+
+MockBus::UsbPlace MockBus::usb_place(UsbLane& lane, BusRing<Waiting>& waiting, Counters& counters,
+                                     const Datagram& d, TimePoint t) const noexcept {
+  TimePoint due{};
+  if (waiting.full() || !usb_schedule(lane, t, due)) {
+    counters.dropped.bump();
+    return UsbPlace::dropped;
+  }
+  counters.waited((due - t).count());
+  if (due == t && waiting.empty()) {
+    counters.carry(d.length);
+    return UsbPlace::now;
+  }
+  waiting.push() = Waiting{due, t, d};
+  return UsbPlace::later;
+}
+
+void MockBus::host_sent(const Datagram& d, TimePoint t, BusSink& sink) noexcept {
+  if (!started_) {
+    sink.deliver_to_device(d, t);  // before the unit's first step: an ideal link, not counted
+    return;
+  }
+  note_time(t.count());
+  if (usb()) {
+    if (usb_place(to_device_lane_, to_device_waiting_, to_device_, d, t) == UsbPlace::now) {
+      sink.deliver_to_device(d, t);
+    }
+    return;
+  }
+  if (can()) {
+    if (host_.packets.full()) {
+      to_device_.dropped.bump();  // the transport's send() would refuse it (would_block)
+      return;
+    }
+    if (!encode(host_codec_, d, scratch_)) {
+      to_device_.unsent.bump();
+      return;
+    }
+    CanPacket& p = host_.packets.push();
+    p = scratch_;
+    p.submit_ns = std::max(t.count(), clock_ns_);
+    return;
+  }
+  to_device_.carry(d.length);
+  sink.deliver_to_device(d, t);
+}
+
+void MockBus::device_sent(const Datagram& d, TimePoint t, BusSink& sink) noexcept {
+  if (!started_) {
+    sink.deliver_to_host(d, t);
+    return;
+  }
+  note_time(t.count());
+  if (usb()) {
+    usb_device_sent(d, t, sink);
+  } else if (can()) {
+    can_device_sent(d, t);
+  } else {
+    to_host_.carry(d.length);
+    sink.deliver_to_host(d, t);
+  }
+}
+
+void MockBus::usb_device_sent(const Datagram& d, TimePoint t, BusSink& sink) noexcept {
+  const bool telemetry = is_telemetry(d);
+  if (telemetry && waiting_telemetry_ != kNone && waiting_telemetry_ >= to_host_popped_) {
+    // A sample still waits for its slot: this newer one takes its place.
+    Waiting& w = to_host_waiting_.at(static_cast<std::size_t>(waiting_telemetry_ - to_host_popped_));
+    w.datagram = d;
+    w.submitted = t;
+    to_host_.dropped.bump();
+    return;
+  }
+  switch (usb_place(to_host_lane_, to_host_waiting_, to_host_, d, t)) {
+    case UsbPlace::now:
+      sink.deliver_to_host(d, t);
+      break;
+    case UsbPlace::later:
+      if (telemetry) {
+        waiting_telemetry_ = to_host_pushed_;
+      }
+      ++to_host_pushed_;
+      break;
+    case UsbPlace::dropped:
+      break;
+  }
+}
+
+void MockBus::can_device_sent(const Datagram& d, TimePoint t) noexcept {
+  CanNode& node = device_;
+  if (is_telemetry(d)) {
+    // A sample none of whose frames is written yet gives its place to this newer one.
+    for (std::size_t i = node.packets.size(); i > node.written; --i) {
+      CanPacket& waiting = node.packets.at(i - 1);
+      if (!(i - 1 == node.written && node.next_frame > 0) && is_telemetry(waiting.datagram)) {
+        if (!encode(device_codec_, d, scratch_) || scratch_.frame_count != waiting.frame_count) {
+          break;
+        }
+        const std::int64_t submitted = waiting.submit_ns;
+        waiting = scratch_;
+        waiting.submit_ns = submitted;
+        to_host_.dropped.bump();
+        return;
+      }
+    }
+  }
+  if (!encode(device_codec_, d, scratch_)) {
+    to_host_.unsent.bump();
+    return;
+  }
+  if (node.packets.full()) {
+    to_host_.dropped.bump();
+    return;
+  }
+  CanPacket& p = node.packets.push();
+  p = scratch_;
+  p.submit_ns = std::max(t.count(), clock_ns_);
+}
+
+bool MockBus::encode(CanPacketCodec& codec, const Datagram& d, CanPacket& out) noexcept {
+  const CanPacketCodec::Encoded e =
+      codec.encode(std::span<const std::uint8_t>(d.bytes.data(), d.length), frames_);
+  // No frame: a packet this framing has no form for (classic CAN's heartbeat echo) or cannot
+  // address; the CAN transport drops it too.
+  if (e.error != proto::Error::ok || e.frames == 0) {
+    return false;
+  }
+  out.datagram = d;
+  out.frame_count = e.frames;
+  for (std::size_t i = 0; i < e.frames; ++i) {
+    out.frames[i] = {frames_[i].id, frames_[i].length, frames_[i].fd};
+  }
+  return true;
+}
+
+std::int64_t MockBus::frame_ns(const FrameInfo& f) const noexcept {
+  return std::llround(proto::can_frame_time_worst_case_s(f.data_bytes, f.fd,
+                                                         options_.nominal_bitrate_bit_per_s,
+                                                         options_.data_bitrate_bit_per_s) *
+                      1e9);
+}
+
+void MockBus::can_write(CanNode& node, bool host, std::int64_t t_ns) noexcept {
+  while (node.has_unwritten()) {
+    const CanPacket& p = node.packets.at(node.written);
+    while (node.next_frame < p.frame_count) {
+      if (node.tx.full()) {
+        if (host) {
+          // The transport's I/O thread: the interface's queue answers ENOBUFS; the frame is
+          // written again after a backoff that doubles while it lasts (CanTransportOptions).
+          enobufs_.bump();
+          node.backoff_ns = std::clamp<std::int64_t>(node.backoff_ns * 2, backoff_min_ns_, backoff_max_ns_);
+          node.retry_ns = t_ns + node.backoff_ns;
+        }
+        return;
+      }
+      QueuedFrame& f = node.tx.push();
+      f.frame = p.frames[node.next_frame];
+      f.submit_ns = t_ns;
+      f.last = ++node.next_frame == p.frame_count;
+      node.backoff_ns = 0;
+    }
+    ++node.written;
+    node.next_frame = 0;
+  }
+}
+
+void MockBus::can_start(std::int64_t t_ns) noexcept {
+  // Arbitration: the lowest identifier among the frames waiting at the queues' heads.
+  const bool host_ready = !host_.tx.empty() && host_.tx.front().submit_ns <= t_ns;
+  const bool device_ready = !device_.tx.empty() && device_.tx.front().submit_ns <= t_ns;
+  const bool host_wins =
+      host_ready && (!device_ready || host_.tx.front().frame.id < device_.tx.front().frame.id);
+  BusRing<QueuedFrame>& queue = host_wins ? host_.tx : device_.tx;
+  on_bus_.frame = queue.front();
+  on_bus_.from_host = host_wins;
+  queue.pop();
+  const std::int64_t duration = frame_ns(on_bus_.frame.frame);
+  on_bus_.end_ns = t_ns + duration;
+  busy_ = true;
+  Counters& c = host_wins ? to_device_ : to_host_;
+  c.carried.bump();
+  c.bytes.bump(on_bus_.frame.frame.data_bytes);
+  c.busy_ns.fetch_add(duration, std::memory_order_relaxed);
+}
+
+void MockBus::can_complete(BusSink& sink) noexcept {
+  busy_ = false;
+  bus_free_ns_ = on_bus_.end_ns;
+  if (!on_bus_.frame.last) {
+    return;
+  }
+  CanNode& node = on_bus_.from_host ? host_ : device_;
+  Counters& c = on_bus_.from_host ? to_device_ : to_host_;
+  const CanPacket& p = node.packets.front();
+  c.packets.bump();
+  c.waited(on_bus_.end_ns - p.submit_ns);
+  const Datagram d = p.datagram;
+  node.packets.pop();
+  --node.written;
+  if (on_bus_.from_host) {
+    sink.deliver_to_device(d, TimePoint{on_bus_.end_ns});
+  } else {
+    sink.deliver_to_host(d, TimePoint{on_bus_.end_ns});
+  }
+}
+
+void MockBus::advance(TimePoint t, BusSink& sink) noexcept {
+  if (!started_) {
+    return;
+  }
+  const std::int64_t until = t.count();
+  note_time(until);
+  if (usb()) {
+    while (!to_host_waiting_.empty() && to_host_waiting_.front().due <= t) {
+      const Waiting w = to_host_waiting_.front();
+      to_host_waiting_.pop();
+      ++to_host_popped_;
+      to_host_.carry(w.datagram.length);
+      sink.deliver_to_host(w.datagram, w.due);
+    }
+    while (!to_device_waiting_.empty() && to_device_waiting_.front().due <= t) {
+      const Waiting w = to_device_waiting_.front();
+      to_device_waiting_.pop();
+      to_device_.carry(w.datagram.length);
+      sink.deliver_to_device(w.datagram, w.due);
+    }
+    return;
+  }
+  if (!can()) {
+    return;
+  }
+  // Events in time order: a frame finishing, the host writing frames, the unit feeding its
+  // queue, a frame starting.
+  for (;;) {
+    const std::int64_t done = busy_ ? on_bus_.end_ns : kNever;
+    const std::int64_t host_write =
+        host_.has_unwritten()
+            ? std::max({host_.retry_ns, host_.packets.at(host_.written).submit_ns, clock_ns_})
+            : kNever;
+    const std::int64_t device_write = device_.has_unwritten() && !device_.tx.full()
+                                          ? std::max(device_.packets.at(device_.written).submit_ns, clock_ns_)
+                                          : kNever;
+    std::int64_t start = kNever;
+    if (!busy_ && (!host_.tx.empty() || !device_.tx.empty())) {
+      std::int64_t first = kNever;
+      if (!host_.tx.empty()) {
+        first = host_.tx.front().submit_ns;
+      }
+      if (!device_.tx.empty()) {
+        first = std::min(first, device_.tx.front().submit_ns);
+      }
+      start = std::max({bus_free_ns_, first, clock_ns_});
+    }
+    const std::int64_t next = std::min({done, host_write, device_write, start});
+    if (next > until) {
+      break;
+    }
+    clock_ns_ = next;
+    if (next == done) {
+      can_complete(sink);
+    } else if (next == host_write) {
+      can_write(host_, true, next);
+    } else if (next == device_write) {
+      can_write(device_, false, next);
+    } else {
+      can_start(next);
+    }
+  }
+  clock_ns_ = std::max(clock_ns_, until);
+}
+
+void MockBus::reset() noexcept {
+  to_device_waiting_.clear();
+  to_host_waiting_.clear();
+  waiting_telemetry_ = kNone;
+  to_device_lane_.next_slot = to_host_lane_.next_slot = 0;  // the next report takes its own frame
+  for (CanNode* node : {&host_, &device_}) {
+    node->packets.clear();
+    node->tx.clear();
+    node->written = node->next_frame = 0;
+    node->retry_ns = node->backoff_ns = 0;
+  }
+  busy_ = false;
+  host_codec_.reset();
+  device_codec_.reset();
+}
+
+MockBusStats MockBus::stats() const noexcept {
+  MockBusStats s;
+  s.kind = options_.kind;
+  const std::int64_t elapsed_ns =
+      last_ns_.load(std::memory_order_relaxed) - start_ns_.load(std::memory_order_relaxed);
+  s.elapsed_s = static_cast<double>(elapsed_ns) * 1e-9;
+  const auto fill = [&](const Counters& c, MockBusDirection& out) {
+    out.packets = c.packets.value();
+    out.carried = c.carried.value();
+    out.bytes = c.bytes.value();
+    out.dropped = c.dropped.value();
+    out.unsent = c.unsent.value();
+    out.max_wait_s = static_cast<double>(c.max_wait_ns.load(std::memory_order_relaxed)) * 1e-9;
+    if (s.elapsed_s <= 0.0) {
+      return;
+    }
+    if (usb()) {
+      out.load = static_cast<double>(out.bytes) / (s.elapsed_s * report_bytes_per_s_);
+    } else if (can()) {
+      out.load = static_cast<double>(c.busy_ns.load(std::memory_order_relaxed)) * 1e-9 / s.elapsed_s;
+    }
+  };
+  fill(to_device_, s.host_to_device);
+  fill(to_host_, s.device_to_host);
+  s.enobufs = enobufs_.value();
+  return s;
+}
+
+}  // namespace mrskin::sim

@@ -1,0 +1,193 @@
+// The mock's bus model (MockBusOptions, mock_device.hpp): packets in, the same packets out at the
+// time the bus delivers them, or dropped. Private to libmrskin_sim: mock_bus.cpp defines it.
+// Everything runs on the thread that steps the unit (the host's in synchronous mode); the
+// counters are read from any thread. Preallocated: no allocation after construction.
+#pragma once
+
+#include <array>
+#include <atomic>
+#include <cstddef>
+#include <cstdint>
+#include <vector>
+
+#include "mrskin/driver/clock.hpp"
+#include "mrskin/driver/relaxed_counter.hpp"
+#include "mrskin/driver/transport.hpp"
+#include "mrskin/driver/transports/can.hpp"
+#include "mrskin/sim/mock_device.hpp"
+
+namespace mrskin::sim {
+
+// Where the bus hands what it carried.
+class __attribute__((visibility("hidden"))) BusSink {
+ public:
+  BusSink() = default;
+  virtual ~BusSink() = default;
+  BusSink(const BusSink&) = delete;
+  BusSink& operator=(const BusSink&) = delete;
+  BusSink(BusSink&&) = delete;
+  BusSink& operator=(BusSink&&) = delete;
+  virtual void deliver_to_device(const Datagram& d, TimePoint at) noexcept = 0;
+  virtual void deliver_to_host(const Datagram& d, TimePoint at) noexcept = 0;
+};
+
+// A fixed-capacity FIFO.
+template <class T>
+class __attribute__((visibility("hidden"))) BusRing {
+ public:
+  explicit BusRing(std::size_t capacity) : items_(capacity == 0 ? 1 : capacity), capacity_(capacity) {}
+  [[nodiscard]] std::size_t size() const noexcept { return size_; }
+  [[nodiscard]] bool empty() const noexcept { return size_ == 0; }
+  [[nodiscard]] bool full() const noexcept { return size_ >= capacity_; }
+  [[nodiscard]] std::size_t room() const noexcept { return capacity_ - size_; }
+  T& at(std::size_t i) noexcept { return items_[(head_ + i) % items_.size()]; }
+  [[nodiscard]] const T& at(std::size_t i) const noexcept { return items_[(head_ + i) % items_.size()]; }
+  T& front() noexcept { return at(0); }
+  // Callers check full() first.
+  T& push() noexcept { return items_[(head_ + size_++) % items_.size()]; }
+  void pop() noexcept {
+    head_ = (head_ + 1) % items_.size();
+    --size_;
+  }
+  void clear() noexcept { head_ = size_ = 0; }
+
+ private:
+  std::vector<T> items_;
+  std::size_t capacity_;
+  std::size_t head_ = 0;
+  std::size_t size_ = 0;
+};
+
+class __attribute__((visibility("hidden"))) MockBus {
+ public:
+  explicit MockBus(const MockBusOptions& options);
+
+  // The unit's first step: the bus runs from t, the epoch of its loads. Before it the link is
+  // ideal and not counted: a synchronous mock's handshake runs before its clock starts, and
+  // nothing would carry the bus's delayed packets there.
+  void start(TimePoint t) noexcept;
+  // A packet the host's transport hands to the bus at t, and one the unit sends at t. Neither
+  // advances the bus (a packet that finds the bus free may be delivered at once); advance() does.
+  void host_sent(const Datagram& d, TimePoint t, BusSink& sink) noexcept;
+  void device_sent(const Datagram& d, TimePoint t, BusSink& sink) noexcept;
+  // Runs the bus up to t: delivers, in time order, what it finished carrying by then.
+  void advance(TimePoint t, BusSink& sink) noexcept;
+  // The link went down: whatever was queued is gone.
+  void reset() noexcept;
+  [[nodiscard]] MockBusStats stats() const noexcept;
+  [[nodiscard]] MockBusKind kind() const noexcept { return options_.kind; }
+
+ private:
+  struct Counters {
+    RelaxedCounter packets;
+    RelaxedCounter carried;
+    RelaxedCounter bytes;
+    RelaxedCounter dropped;
+    RelaxedCounter unsent;
+    std::atomic<std::int64_t> max_wait_ns{0};
+    std::atomic<std::int64_t> busy_ns{0};  // CAN
+    void waited(std::int64_t ns) noexcept;
+    void carry(std::size_t packet_bytes) noexcept;  // USB: one packet in one report
+  };
+  // USB: one direction's interrupt endpoint. Slot k*R + r is report r of frame k.
+  struct UsbLane {
+    std::int64_t next_slot = 0;
+  };
+  struct Waiting {  // a report that waits for its slot
+    TimePoint due{};
+    TimePoint submitted{};
+    Datagram datagram{};
+  };
+  // CAN
+  struct FrameInfo {
+    std::uint32_t id = 0;
+    std::uint8_t data_bytes = 0;
+    bool fd = false;
+  };
+  struct CanPacket {
+    Datagram datagram{};
+    std::int64_t submit_ns = 0;
+    std::array<FrameInfo, CanPacketCodec::kMaxFrames> frames{};
+    std::size_t frame_count = 0;
+  };
+  struct QueuedFrame {
+    FrameInfo frame{};
+    std::int64_t submit_ns = 0;
+    bool last = false;  // the last frame of its packet
+  };
+  // One node's side: its packets (those whose frames are all written first, then the one being
+  // written, then those waiting), and its queue of frames for the bus.
+  struct CanNode {
+    CanNode(std::size_t packets_capacity, std::size_t frames_capacity)
+        : packets(packets_capacity), tx(frames_capacity) {}
+    BusRing<CanPacket> packets;
+    std::size_t written = 0;     // packets at the front whose frames are all in tx or sent
+    std::size_t next_frame = 0;  // of the packet being written
+    BusRing<QueuedFrame> tx;
+    std::int64_t retry_ns = 0;    // host: after ENOBUFS, the next write attempt
+    std::int64_t backoff_ns = 0;  // host: doubles while ENOBUFS lasts
+    [[nodiscard]] bool has_unwritten() const noexcept { return written < packets.size(); }
+  };
+  struct OnBus {
+    QueuedFrame frame{};
+    bool from_host = false;
+    std::int64_t end_ns = 0;
+  };
+
+  [[nodiscard]] bool usb() const noexcept;
+  [[nodiscard]] bool can() const noexcept;
+  // The slot a report handed over at t gets: false when the queue before it is full.
+  bool usb_schedule(UsbLane& lane, TimePoint t, TimePoint& due) const noexcept;
+  // A report handed to a USB lane at t: delivered now (its frame's slot is free and none waits),
+  // waiting for a later slot, or dropped (usb_queue_reports already wait). Counted.
+  enum class UsbPlace : unsigned char { now, later, dropped };
+  UsbPlace usb_place(UsbLane& lane, BusRing<Waiting>& waiting, Counters& counters, const Datagram& d,
+                     TimePoint t) const noexcept;
+  void usb_device_sent(const Datagram& d, TimePoint t, BusSink& sink) noexcept;
+  void can_device_sent(const Datagram& d, TimePoint t) noexcept;
+  [[nodiscard]] std::int64_t frame_ns(const FrameInfo& f) const noexcept;
+  bool encode(CanPacketCodec& codec, const Datagram& d, CanPacket& out) noexcept;
+  // Writes the node's frames into its queue while there is room: the host's transport gets
+  // ENOBUFS past it and backs off; the unit feeds its queue as frames leave it.
+  void can_write(CanNode& node, bool host, std::int64_t t_ns) noexcept;
+  void can_start(std::int64_t t_ns) noexcept;
+  void can_complete(BusSink& sink) noexcept;
+  void note_time(std::int64_t t_ns) noexcept;
+
+  MockBusOptions options_;
+  // USB
+  std::int64_t interval_ns_ = 1'000'000;
+  std::size_t reports_per_interval_ = 1;
+  double report_bytes_per_s_ = 64'000.0;
+  UsbLane to_device_lane_;
+  UsbLane to_host_lane_;
+  BusRing<Waiting> to_device_waiting_;
+  BusRing<Waiting> to_host_waiting_;
+  // Telemetry: the unit keeps one sample waiting; a newer one takes its place (and its slot).
+  static constexpr std::uint64_t kNone = ~std::uint64_t{0};
+  std::uint64_t to_host_pushed_ = 0;         // reports ever pushed into to_host_waiting_...
+  std::uint64_t to_host_popped_ = 0;         // ...and taken out of it
+  std::uint64_t waiting_telemetry_ = kNone;  // which of them is a telemetry report
+  // CAN
+  CanPacketCodec host_codec_;
+  CanPacketCodec device_codec_;
+  CanNode host_;
+  CanNode device_;
+  std::int64_t backoff_min_ns_ = 0;
+  std::int64_t backoff_max_ns_ = 0;
+  OnBus on_bus_{};
+  bool busy_ = false;
+  std::int64_t bus_free_ns_ = 0;
+  std::int64_t clock_ns_ = 0;  // the bus's own time: what it has run up to
+  CanPacket scratch_{};
+  std::array<protocol::CanFrame, CanPacketCodec::kMaxFrames> frames_{};
+  // Statistics
+  Counters to_device_;
+  Counters to_host_;
+  RelaxedCounter enobufs_;
+  std::atomic<std::int64_t> start_ns_{0};
+  std::atomic<std::int64_t> last_ns_{0};
+  bool started_ = false;
+};
+
+}  // namespace mrskin::sim
