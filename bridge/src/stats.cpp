@@ -103,6 +103,21 @@ std::string drops_by_reason(const DropCounts& drops) {
   return out + "}";
 }
 
+std::string direction_json(const BridgeStats::Direction& d) {
+  return fmt::format(
+      "{{\"load\": {:.6g}, \"packets\": {}, \"carried\": {}, \"bytes\": {}, \"dropped\": {}, "
+      "\"unsent\": {}, \"max_wait_s\": {:.6g}}}",
+      d.load, d.packets, d.carried, d.bytes, d.dropped, d.unsent, d.max_wait_s);
+}
+
+std::string bus_json(const BridgeStats::Bus& b) {
+  return fmt::format(
+      "{{\"kind\": \"{}\", \"host_to_device\": {:.6g}, \"device_to_host\": {:.6g}, \"enobufs\": {}, "
+      "\"host_to_device_traffic\": {}, \"device_to_host_traffic\": {}}}",
+      b.kind, b.host_to_device.load, b.device_to_host.load, b.enobufs, direction_json(b.host_to_device),
+      direction_json(b.device_to_host));
+}
+
 }  // namespace
 
 std::string to_json(const BridgeStats& s, double tick_period_s) {
@@ -134,6 +149,7 @@ std::string to_json(const BridgeStats& s, double tick_period_s) {
       "  \"outside_envelope_fraction\": {:.6g},\n"
       "  \"max_current_a\": {:.6g},\n"
       "  \"bus_load\": {:.6g},\n"
+      "  \"bus\": {},\n"
       "  \"passivity\": {{\"energy_j\": {:.6g}, \"min_energy_j\": {:.6g}, \"active_ticks\": {}}},\n"
       "  \"observer_errors\": {},\n"
       "  \"sensor_faults\": {{\"found\": {}, \"halts\": {}}},\n"
@@ -151,11 +167,11 @@ std::string to_json(const BridgeStats& s, double tick_period_s) {
       percentiles_us(s.processing_latency), percentiles_us(s.end_to_end_latency), s.force_samples,
       s.force_rms_error_N(), s.force_max_abs_error_N, s.relative_error.percentile(0.95),
       s.relative_error.count(), s.true_state_rms_error_N(), s.true_state_relative_error.percentile(0.95),
-      s.release_rms_error_N(), s.clamped_fraction(), s.max_current_A, s.bus_load, s.passivity_energy_J,
-      s.passivity_min_energy_J, s.active_ticks, s.observer_errors, s.sensor_faults, s.sensor_fault_halts,
-      s.stream_stalls, s.stream_connections, s.stream_disconnects, s.stream_restarts, s.device_faults,
-      s.link.sequence_gaps, s.link.duplicates, s.link.undecodable, s.link.crc, s.link.telemetry_timeouts,
-      s.link.disconnects, s.link.reconnects, s.inverse_errors, s.inverse_cached,
+      s.release_rms_error_N(), s.clamped_fraction(), s.max_current_A, s.bus_load, bus_json(s.bus),
+      s.passivity_energy_J, s.passivity_min_energy_J, s.active_ticks, s.observer_errors, s.sensor_faults,
+      s.sensor_fault_halts, s.stream_stalls, s.stream_connections, s.stream_disconnects, s.stream_restarts,
+      s.device_faults, s.link.sequence_gaps, s.link.duplicates, s.link.undecodable, s.link.crc,
+      s.link.telemetry_timeouts, s.link.disconnects, s.link.reconnects, s.inverse_errors, s.inverse_cached,
       s.ticks == 0 ? 0.0 : s.inverse_residual_sum_N / static_cast<double>(s.ticks));
 }
 

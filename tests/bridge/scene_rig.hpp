@@ -11,6 +11,7 @@
 #include "mrskin/bridge/bridge.hpp"
 #include "mrskin/bridge/impairment.hpp"
 #include "mrskin/driver/device.hpp"
+#include "mrskin/eval/bus_stats.hpp"
 #include "mrskin/eval/truth_scorer.hpp"
 #include "mrskin/sim/open_mock.hpp"
 
@@ -62,6 +63,7 @@ inline SceneRun run_scene(const std::string& scene_name, double seconds, const s
   }
   SceneRun r;
   r.stats = loop.stats();
+  eval::fill_bus_stats(*sim::mock_of(dev), r.stats);
   if (impaired) {
     r.network = impaired->stats();
   }

@@ -13,6 +13,7 @@
 
 #include "json_text.hpp"
 #include "mrskin/driver/atomic_raise.hpp"
+#include "mrskin/eval/bus_stats.hpp"
 #include "mrskin/eval/truth_scorer.hpp"
 #include "mrskin/sim/open_mock.hpp"
 
@@ -739,6 +740,9 @@ bridge::BridgeStats Daemon::final_stats() const {
   // Busier direction: one packet per 64-byte report, one report per 1 ms full-speed USB-HID frame
   // (docs/protocol.md, "Bus load").
   stats.bus_load = static_cast<double>(std::max(link.sent, link.received)) / run_s / 1000.0;
+  if (mock_ != nullptr) {
+    eval::fill_bus_stats(*mock_, stats);  // measured on the bus model: the `bus` object and bus_load
+  }
   stats.link = {link.sequence_gaps,      link.duplicates,  link.decode_errors, link.crc_errors,
                 link.telemetry_timeouts, link.disconnects, link.reconnects};
   stats.device_faults = link.faults;

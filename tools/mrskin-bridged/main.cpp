@@ -17,6 +17,7 @@
 #include <fstream>
 #include <memory>
 #include <optional>
+#include <string_view>
 #include <thread>
 
 #include "config.hpp"
@@ -256,11 +257,21 @@ void print_run_report(const mrskin::bridged::Daemon& daemon, const mrskin::bridg
   using namespace mrskin;
   const double run_s = std::max(1e-9, daemon.uptime_s());
   const SessionCounters& link = daemon.link_counters();
-  fmt::print(
-      "bus load   {:.1f} % of full-speed USB-HID reports (host to device {:.1f} %, device to host {:.1f} "
-      "%)\n",
-      100.0 * stats.bus_load, 100.0 * static_cast<double>(link.sent) / run_s / 1000.0,
-      100.0 * static_cast<double>(link.received) / run_s / 1000.0);
+  if (std::string_view(stats.bus.kind) != "none") {
+    const auto& h2d = stats.bus.host_to_device;
+    const auto& d2h = stats.bus.device_to_host;
+    fmt::print(
+        "bus load   {:.1f} % of the modelled {} bus (host to device {:.1f} %, device to host {:.1f} %); "
+        "dropped {} and {}, longest wait {:.1f} and {:.1f} ms\n",
+        100.0 * stats.bus_load, stats.bus.kind, 100.0 * h2d.load, 100.0 * d2h.load, h2d.dropped, d2h.dropped,
+        1e3 * h2d.max_wait_s, 1e3 * d2h.max_wait_s);
+  } else {
+    fmt::print(
+        "bus load   {:.1f} % of full-speed USB-HID reports (host to device {:.1f} %, device to host {:.1f} "
+        "%)\n",
+        100.0 * stats.bus_load, 100.0 * static_cast<double>(link.sent) / run_s / 1000.0,
+        100.0 * static_cast<double>(link.received) / run_s / 1000.0);
+  }
   if (const bridge::LoopStats* ls = daemon.loop_stats(); ls != nullptr) {
     fmt::print(
         "scheduler  {} priority {}, memory {}; wake latency p50 {:.1f} us, p99 {:.1f} us, p99.9 {:.1f} us; "

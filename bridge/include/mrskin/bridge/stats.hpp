@@ -100,8 +100,26 @@ struct MRSKIN_BRIDGE_API BridgeStats {
   double passivity_energy_J = 0.0;
   double passivity_min_energy_J = 0.0;
   std::uint64_t active_ticks = 0;  // ticks on which the energy was below -passivity_tolerance_J
-  // Bus load of the session's traffic (fraction of the bus), set by the caller after the run.
+  // Bus load of the session's traffic (fraction of the bus), set by the caller after the run:
+  // the busier direction of `bus` when the bus is modelled, else packets per 1 ms report.
   double bus_load = 0.0;
+  // The bus measured on the mock's bus model (eval::fill_bus_stats), set after the run. kind is
+  // "none" when nothing measured it (a real transport, or mock://?bus=none).
+  struct Direction {
+    double load = 0.0;          // fraction of the bus (docs/statistics.md, `bus`)
+    std::uint64_t packets = 0;  // delivered
+    std::uint64_t carried = 0;  // HID reports or CAN frames
+    std::uint64_t bytes = 0;    // carried in them
+    std::uint64_t dropped = 0;  // packets lost to the bus
+    std::uint64_t unsent = 0;   // packets with no form on the bus's framing
+    double max_wait_s = 0.0;    // longest from handed to the bus to delivered
+  };
+  struct Bus {
+    const char* kind = "none";  // a string literal (sim::to_string(MockBusKind))
+    Direction host_to_device;
+    Direction device_to_host;
+    std::uint64_t enobufs = 0;  // CAN host writes refused past txqueuelen (retried)
+  } bus;
   std::uint64_t stream_stalls = 0;  // times the slave stream went from fresh to stale
   // Set by the owner of the session and the source after the run (mrskin-bridged): the link's
   // errors by kind (SessionCounters), the device's FAULT entries (e-stops included), and the

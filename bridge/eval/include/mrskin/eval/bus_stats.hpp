@@ -1,0 +1,15 @@
+// The mock's bus model (mock://?bus=...) in the bridge's statistics: the `bus` object and
+// `bus_load` (docs/statistics.md).
+#pragma once
+
+#include "mrskin/bridge/stats.hpp"
+#include "mrskin/eval/export.hpp"
+#include "mrskin/sim/mock_device.hpp"
+
+namespace mrskin::eval {
+
+// Copies the bus model's counts and loads into stats.bus; with a modelled bus (not
+// mock://?bus=none), bus_load becomes the busier direction's load. Any thread; after the run.
+MRSKIN_EVAL_API void fill_bus_stats(const sim::MockDevice& mock, bridge::BridgeStats& stats) noexcept;
+
+}  // namespace mrskin::eval

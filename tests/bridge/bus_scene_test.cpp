@@ -1,0 +1,86 @@
+// The closed loop through the mock's bus model (mock://?bus=..., docs/protocol.md, "The mock's
+// bus model"), on the simulated clock. The test checks that a scene runs on hid-fs and on can and
+// that the statistics report the bus; it does not gate accuracy. The figures of docs/bridge.md,
+// "Bus traffic", come from the disabled measurement below:
+//   build/release/tests/bridge/bridge_bus_scene_test --gtest_also_run_disabled_tests
+//       --gtest_filter='*MeasureEveryScene*'   (one line)
+#include <gtest/gtest.h>
+
+#include <cstdio>
+#include <string>
+#include <string_view>
+
+#include "mrskin/bridge/bridge.hpp"
+#include "scene_rig.hpp"
+
+namespace mrskin::bridge {
+namespace {
+
+bool has(const std::string& text, const std::string& part) { return text.find(part) != std::string::npos; }
+
+TEST(BusScene, DemoRunsOnFullSpeedHidAndReportsTheBus) {
+  const test::SceneRun r = test::run_scene("demo", 2.0, "mock://?seed=7&bus=hid-fs");
+  EXPECT_EQ(r.state, DeviceState::enabled);
+  EXPECT_STREQ(r.stats.bus.kind, "hid-fs");
+  const BridgeStats::Bus& bus = r.stats.bus;
+  // One 64-byte report a 1 ms frame each way: telemetry at 1 kHz fills about every IN slot.
+  EXPECT_GT(bus.device_to_host.carried, 1900U);
+  EXPECT_LE(bus.device_to_host.carried, 2001U);
+  EXPECT_LE(bus.host_to_device.carried, 2001U);
+  EXPECT_GT(bus.device_to_host.load, 0.4);
+  EXPECT_LE(bus.device_to_host.load, 1.0);
+  EXPECT_GT(bus.host_to_device.load, 0.0);
+  EXPECT_DOUBLE_EQ(r.stats.bus_load, std::max(bus.host_to_device.load, bus.device_to_host.load));
+  const std::string json = to_json(r.stats, 1e-3);
+  EXPECT_TRUE(has(json, "\"bus\": {\"kind\": \"hid-fs\", \"host_to_device\": ")) << json;
+  EXPECT_TRUE(has(json, "\"device_to_host\": ")) << json;
+}
+
+TEST(BusScene, DemoRunsOnClassicCanAndReportsTheBus) {
+  const test::SceneRun r = test::run_scene("demo", 2.0, "mock://?seed=7&bus=can");
+  EXPECT_EQ(r.state, DeviceState::enabled);
+  EXPECT_STREQ(r.stats.bus.kind, "can");
+  const BridgeStats::Bus& bus = r.stats.bus;
+  // Telemetry of 12 sensors: a TimeSync and 3 sensor blocks a sample, 135 us each at 1 Mbit/s.
+  EXPECT_GT(bus.device_to_host.carried, 4U * 1900U);
+  EXPECT_GT(bus.device_to_host.load, 0.4);
+  EXPECT_GT(bus.host_to_device.load, 0.0);
+  EXPECT_LE(bus.host_to_device.load + bus.device_to_host.load, 1.0 + 1e-9);  // one shared bus
+  EXPECT_GT(bus.device_to_host.unsent, 0U);  // heartbeat echoes: no form on classic CAN
+  const std::string json = to_json(r.stats, 1e-3);
+  EXPECT_TRUE(has(json, "\"bus\": {\"kind\": \"can\", \"host_to_device\": ")) << json;
+}
+
+// Each scene, seed 7, 8 s, on an ideal link and on each bus: the closed loop's RMS error and p95
+// relative error, and the bus's figures. A measurement: prints a Markdown table, asserts nothing.
+TEST(BusScene, DISABLED_MeasureEveryScene) {
+  std::fputs(
+      "| scene | bus | RMS N | p95 % | dRMS N | dp95 points | H->D load | D->H load | H->D dropped | D->H "
+      "dropped "
+      "| H->D max wait ms | D->H max wait ms |\n|---|---|---|---|---|---|---|---|---|---|---|---|\n",
+      stdout);
+  for (const std::string_view name : scene_names()) {
+    double rms0 = 0.0;
+    double p950 = 0.0;
+    for (const char* bus : {"none", "hid-fs", "can", "canfd", "hid-hs"}) {
+      const test::SceneRun r =
+          test::run_scene(std::string(name), 8.0, std::string("mock://?seed=7&bus=") + bus);
+      const double rms = r.stats.force_rms_error_N();
+      const double p95 = 100.0 * r.stats.relative_error.percentile(0.95);
+      if (std::string_view(bus) == "none") {
+        rms0 = rms;
+        p950 = p95;
+      }
+      const BridgeStats::Bus& b = r.stats.bus;
+      std::printf(  // NOLINT(cppcoreguidelines-pro-type-vararg)
+          "| %s | %s | %.4f | %.1f | %+.4f | %+.1f | %.1f %% | %.1f %% | %llu | %llu | %.1f | %.1f |\n",
+          std::string(name).c_str(), bus, rms, p95, rms - rms0, p95 - p950, 100.0 * b.host_to_device.load,
+          100.0 * b.device_to_host.load, static_cast<unsigned long long>(b.host_to_device.dropped),
+          static_cast<unsigned long long>(b.device_to_host.dropped), 1e3 * b.host_to_device.max_wait_s,
+          1e3 * b.device_to_host.max_wait_s);
+    }
+  }
+}
+
+}  // namespace
+}  // namespace mrskin::bridge
