@@ -1,28 +1,60 @@
 #!/usr/bin/env bash
-# Installs the Debian 12 packages mrskin needs to build, test and lint, and only the missing ones.
-# Quiet (prints nothing) when everything is already there. Needs root or password-less sudo to
-# install; otherwise prints the exact apt-get command to run and exits with status 1.
+# Installs the Debian 12 packages mrskin needs, in sets, and only the missing ones. Quiet (prints
+# nothing) when everything is already there. Needs root or password-less sudo to install;
+# otherwise prints the exact apt-get command to run and exits with status 1.
+#
+#   scripts/setup-deps.sh [SET...]          install the sets (default: all of them)
+#   scripts/setup-deps.sh --print [SET...]  print the sets' packages, one line, install nothing
+#
+# Sets (each installs everything its commands need on a bare Debian 12, debootstrap minbase):
+#   run    build the demo preset and run scripts/demo.sh (the daemon on the mock device)
+#   build  every preset's build: tests, benchmarks, the Python module, clang and its fuzzers
+#   test   build, and what the tests run: valgrind, can-utils, the Fast DDS peer, the QEMU VM
+#          (qemu, busybox, cpio, iproute2), pytest
+#   lint   scripts/lint.sh (clang-format, clang-tidy)
 set -euo pipefail
 
-PACKAGES=(
-  # compilers and build tools
-  g++ clang clang-14 libclang-rt-14-dev cmake ninja-build pkg-config
-  # libraries (Debian 12's packages)
-  libhidapi-dev libusb-1.0-0-dev libeigen3-dev libspdlog-dev libcli11-dev
-  libtomlplusplus-dev nlohmann-json3-dev libcap-dev libopenigtlink-dev
-  # ROS 2 topics over DDS: Cyclone's C API and its IDL compiler (idlc)
-  cyclonedds-dev cyclonedds-tools
-  # tests, benchmarks and test peers
-  libgtest-dev libgmock-dev librapidcheck-dev libbenchmark-dev valgrind can-utils
-  # the ROS 2 interop peer on Fast DDS (tests/interop)
-  libfastrtps-dev
-  # kernel integration tests in a QEMU VM (tests/system, docs/vm-tests.md)
-  qemu-system-x86 busybox-static cpio
-  # lint
-  clang-format clang-tidy
-  # Python bindings (python/, docs/python.md) and their tests
-  python3-dev pybind11-dev python3-numpy python3-pytest
-)
+declare -A SET
+# compilers, build tools and the libraries the libraries and tools link (Debian 12's packages);
+# Cyclone DDS for the ROS 2 topics (its C API and its IDL compiler, idlc)
+SET[run]="g++ cmake ninja-build pkg-config
+  libhidapi-dev libusb-1.0-0-dev libeigen3-dev libspdlog-dev libcli11-dev libtomlplusplus-dev
+  nlohmann-json3-dev libcap-dev libopenigtlink-dev cyclonedds-dev cyclonedds-tools"
+# test frameworks and benchmarks; the Python module; clang 14 with its sanitizer and fuzzer runtime
+SET[build]="${SET[run]}
+  libgtest-dev libgmock-dev librapidcheck-dev libbenchmark-dev
+  python3-dev pybind11-dev python3-numpy
+  clang clang-14 libclang-rt-14-dev"
+# callgrind gates, the CAN peer (candump, cansend), the ROS 2 peer on Fast DDS (tests/interop),
+# the kernel tests in a QEMU VM (tests/system, docs/vm-tests.md: the host's ip for the guest's
+# vcan, busybox and cpio for its init), pytest
+SET[test]="${SET[build]}
+  valgrind can-utils libfastrtps-dev
+  qemu-system-x86 busybox-static cpio iproute2
+  python3-pytest"
+SET[lint]="clang-format clang-tidy"
+
+print=0
+if [[ ${1:-} == --print ]]; then
+  print=1
+  shift
+fi
+sets=("$@")
+((${#sets[@]} > 0)) || sets=(run build test lint)
+PACKAGES=()
+for name in "${sets[@]}"; do
+  if [[ -z ${SET[$name]+set} ]]; then
+    echo "setup-deps: no set '$name': use run, build, test or lint" >&2
+    exit 2
+  fi
+  read -r -a pkgs <<<"$(echo ${SET[$name]})"
+  PACKAGES+=("${pkgs[@]}")
+done
+mapfile -t PACKAGES < <(printf '%s\n' "${PACKAGES[@]}" | awk '!seen[$0]++')
+if ((print)); then
+  echo "${PACKAGES[*]}"
+  exit 0
+fi
 
 missing=()
 for pkg in "${PACKAGES[@]}"; do

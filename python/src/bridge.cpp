@@ -21,6 +21,7 @@
 #include "mrskin/bridge/sources.hpp"
 #include "mrskin/bridge/stats.hpp"
 #include "mrskin/driver/device.hpp"
+#include "mrskin/eval/bus_stats.hpp"
 #include "mrskin/eval/truth_scorer.hpp"
 #include "mrskin/sim/open_mock.hpp"
 #include "recorder.hpp"
@@ -155,7 +156,11 @@ class Rig {
 
   py::dict stats(bool with_callback) const {
     const py::module_ json = py::module_::import("json");
-    py::dict d = json.attr("loads")(bridge::to_json(bridge_->stats(), bridge_->tick_period_s()));
+    bridge::BridgeStats st = bridge_->stats();
+    if (mock_) {
+      eval::fill_bus_stats(*mock_, st);  // the bus object and bus_load, as the C++ runs fill them
+    }
+    py::dict d = json.attr("loads")(bridge::to_json(st, bridge_->tick_period_s()));
     if (with_callback) {
       d["callback_samples"] = recorder_->recorded();
       d["callback_dropped"] = recorder_->dropped();

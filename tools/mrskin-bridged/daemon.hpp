@@ -114,6 +114,8 @@ class Daemon final : public bridge::Tickable, public ControlBackend {
     return loop_ ? &loop_->stats() : nullptr;
   }
   [[nodiscard]] double tick_period_s() const noexcept { return 1.0 / settings_.rate_hz; }
+  // The statistics' errors are against the device's true force (mock://), not an estimate.
+  [[nodiscard]] bool truth_scored() const noexcept { return scorer_ != nullptr; }
   // Main thread, for the service watchdog: ticks since start (across reloads) and the current
   // loop's overruns (from 0 again after a reload rebuilds the loop).
   [[nodiscard]] std::uint64_t live_ticks() const noexcept { return ticks_base_.load() + ticks_.value(); }

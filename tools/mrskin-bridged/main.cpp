@@ -29,6 +29,7 @@
 #include "mrskin/driver/version.hpp"
 #include "mrskin/sim/open_mock.hpp"
 #include "systemd_notify.hpp"
+#include "verdict.hpp"
 
 namespace {
 
@@ -359,6 +360,10 @@ int finish(mrskin::bridged::Daemon& daemon, mrskin::bridged::ControlServer& serv
   print_summary(stats, final_cfg.rate_hz);
   print_stream_summary(stats);
   print_run_report(daemon, stats);
+  for (const std::string& line :
+       bridged::verdict_lines(stats, daemon.truth_scored(), daemon.tick_period_s())) {
+    fmt::print("{}\n", line);
+  }
   int code = kOk;
   if (!final_cfg.stats_json.empty()) {
     std::ofstream out(final_cfg.stats_json);

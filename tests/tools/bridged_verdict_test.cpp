@@ -1,0 +1,94 @@
+// The run's verdict (tools/mrskin-bridged/verdict.hpp): each product figure met or not, a plain
+// explanation for each one beyond its limit, a machine too busy told apart from a slow tick.
+#include <gtest/gtest.h>
+
+#include <string>
+#include <vector>
+
+#include "verdict.hpp"
+
+namespace {
+
+using mrskin::bridge::BridgeStats;
+using mrskin::bridged::verdict_lines;
+
+// A run that meets every figure: 0.01 N RMS over 100 samples, 2 % relative error, no overrun,
+// 50 % bus load.
+BridgeStats good_run() {
+  BridgeStats s;
+  s.ticks = 1000;
+  s.force_samples = 100;
+  s.force_sq_error_sum_N2 = 100 * 0.01 * 0.01;
+  s.true_state_sq_error_sum_N2 = 100 * 0.012 * 0.012;
+  for (int i = 0; i < 100; ++i) {
+    s.relative_error.add(0.02);
+  }
+  s.target_cell_ticks = 100;
+  s.bus_load = 0.5;
+  return s;
+}
+
+bool contains(const std::vector<std::string>& lines, const std::string& what) {
+  for (const std::string& l : lines) {
+    if (l.find(what) != std::string::npos) {
+      return true;
+    }
+  }
+  return false;
+}
+
+TEST(BridgedVerdict, AGoodRunIsOkOnItsLastLine) {
+  const std::vector<std::string> v = verdict_lines(good_run(), true, 1e-3);
+  ASSERT_EQ(v.size(), 1U);
+  EXPECT_EQ(v.back().rfind("verdict: OK: rendering met: 0.0100 N RMS", 0), 0U) << v.back();
+  EXPECT_TRUE(contains(v, "against the true state 0.0120 N"));
+}
+
+TEST(BridgedVerdict, ARenderingErrorBeyondTheLimitIsNotMetAndExplained) {
+  BridgeStats s = good_run();
+  s.force_sq_error_sum_N2 = 100 * 0.05 * 0.05;
+  const std::vector<std::string> v = verdict_lines(s, true, 1e-3);
+  EXPECT_EQ(v.back().rfind("verdict: NOT MET: rendering NOT MET: 0.0500 N RMS", 0), 0U) << v.back();
+  EXPECT_TRUE(contains(v, "why: rendering"));
+}
+
+TEST(BridgedVerdict, ClampingIsNotedWithoutFailing) {
+  BridgeStats s = good_run();
+  s.clamped_cell_ticks = 25;
+  const std::vector<std::string> v = verdict_lines(s, true, 1e-3);
+  EXPECT_TRUE(contains(v, "note: clamped 25.0 %"));
+  EXPECT_EQ(v.back().rfind("verdict: OK", 0), 0U) << v.back();
+}
+
+TEST(BridgedVerdict, ABusyMachineIsToldApartFromASlowTick) {
+  BridgeStats busy = good_run();
+  busy.skipped_periods = 7;
+  busy.tick_time.add(30000);  // ns
+  const std::vector<std::string> b = verdict_lines(busy, true, 1e-3);
+  EXPECT_TRUE(contains(b, "machine was too busy")) << b.front();
+  EXPECT_TRUE(contains(b, "not a rendering failure"));
+
+  BridgeStats slow = good_run();
+  slow.overruns = 500;
+  for (int i = 0; i < 100; ++i) {
+    slow.tick_time.add(1500000);  // ns
+  }
+  const std::vector<std::string> t = verdict_lines(slow, true, 1e-3);
+  EXPECT_TRUE(contains(t, "the tick itself took longer than its period")) << t.front();
+  EXPECT_EQ(t.back().rfind("verdict: NOT MET", 0), 0U);
+}
+
+TEST(BridgedVerdict, AnEstimatedBusOverloadNamesTheProtocolAndTheModel) {
+  BridgeStats s = good_run();
+  s.bus_load = 1.085;
+  const std::vector<std::string> v = verdict_lines(s, true, 1e-3);
+  EXPECT_TRUE(contains(v, "bus NOT MET: 108.5 % (limit 80 %)"));
+  EXPECT_TRUE(contains(v, "mock://?bus=hid-fs"));
+}
+
+TEST(BridgedVerdict, WithoutTheTruthTheRenderingIsNotScored) {
+  const std::vector<std::string> v = verdict_lines(good_run(), false, 1e-3);
+  EXPECT_TRUE(contains(v, "rendering not scored (no true force on this device)"));
+}
+
+}  // namespace

@@ -1,0 +1,109 @@
+#include "verdict.hpp"
+
+#include <fmt/format.h>
+
+#include <string_view>
+
+namespace mrskin::bridged {
+
+std::vector<std::string> verdict_lines(const bridge::BridgeStats& s, bool truth_scored, double period_s,
+                                       const VerdictLimits& limits) {
+  std::vector<std::string> why;    // each figure beyond its limit, in plain words
+  std::vector<std::string> notes;  // what a figure within its limit does not show
+  std::vector<std::string> parts;
+  bool all_met = true;
+
+  // Rendering: against the target clamped into the envelope, with the true state beside it.
+  if (!truth_scored || s.force_samples == 0) {
+    parts.emplace_back(truth_scored ? "rendering not scored (no loaded cell was scored)"
+                                    : "rendering not scored (no true force on this device)");
+  } else {
+    const double rms = s.force_rms_error_N();
+    const bool has_p95 = s.relative_error.count() > 0;
+    const double p95 = has_p95 ? s.relative_error.percentile(0.95) : 0.0;
+    const bool met = rms <= limits.rms_error_N && (!has_p95 || p95 <= limits.relative_p95);
+    all_met = all_met && met;
+    std::string part = fmt::format("rendering {}: {:.4f} N RMS (limit {:.2f} N)", met ? "met" : "NOT MET",
+                                   rms, limits.rms_error_N);
+    if (has_p95) {
+      part += fmt::format(", p95 {:.1f} % (limit {:.0f} %)", 100.0 * p95, 100.0 * limits.relative_p95);
+    }
+    part += fmt::format(", against the true state {:.4f} N", s.true_state_rms_error_N());
+    parts.push_back(std::move(part));
+    if (!met) {
+      why.push_back(fmt::format(
+          "rendering: the force the skin rendered differs from the tissue's by {:.4f} N RMS (p95 {:.1f} %), "
+          "beyond the product's {:.2f} N and {:.0f} %",
+          rms, 100.0 * p95, limits.rms_error_N, 100.0 * limits.relative_p95));
+    }
+    if (s.clamped_cell_ticks > 0) {
+      notes.push_back(fmt::format(
+          "clamped {:.1f} %: on that share of the loaded cell-ticks the tissue asked for a force the valves "
+          "cannot render (they only resist); the rendering error is scored against the target clamped into "
+          "the skin's envelope; the error against the unclamped tissue law is not computed yet "
+          "(docs/bridge.md, \"What is not met yet\")",
+          100.0 * s.clamped_fraction()));
+    }
+  }
+
+  // Real time: a tick longer than its period is the software's; late wakes are the machine's.
+  if (s.overruns > 0 || s.skipped_periods > 0) {
+    all_met = false;
+    const double tick_p99_s = static_cast<double>(s.tick_time.percentile_ns(0.99)) * 1e-9;
+    parts.push_back(
+        fmt::format("real time NOT MET: {} overruns, {} skipped periods", s.overruns, s.skipped_periods));
+    why.push_back(
+        tick_p99_s > period_s
+            ? fmt::format("real time: the tick itself took longer than its period (p99 {:.0f} us against "
+                          "{:.0f} us): a rendering load this machine cannot carry at this rate",
+                          tick_p99_s * 1e6, period_s * 1e6)
+            : fmt::format("real time: the machine was too busy to wake the loop on time ({} overruns, {} "
+                          "skipped periods, tick p99 {:.0f} us within its {:.0f} us period): not a "
+                          "rendering failure; run on an idle or real-time machine (docs/loop.md)",
+                          s.overruns, s.skipped_periods, tick_p99_s * 1e6, period_s * 1e6));
+  } else {
+    parts.emplace_back("real time met: 0 overruns");
+  }
+
+  // The bus: measured on the mock's model, or estimated as packets per 1 ms report.
+  const bool modelled = std::string_view(s.bus.kind) != "none";
+  if (s.bus_load > limits.bus_load) {
+    all_met = false;
+    parts.push_back(
+        fmt::format("bus NOT MET: {:.1f} % (limit {:.0f} %)", 100.0 * s.bus_load, 100.0 * limits.bus_load));
+    why.push_back(
+        modelled ? fmt::format("bus: the traffic needs {:.1f} % of the {} bus (dropped {} host to device, {} "
+                               "device to host): a real unit on that bus would see the same delay and loss",
+                               100.0 * s.bus_load, s.bus.kind, s.bus.host_to_device.dropped,
+                               s.bus.device_to_host.dropped)
+                 : fmt::format(
+                       "bus: protocol v1 sends status and heartbeat echoes in reports of their own, {:.1f} % "
+                       "of the reports a full-speed USB-HID unit carries at 1 kHz; the mock carries them "
+                       "anyway, a real full-speed unit would queue and drop them "
+                       "(mock://?bus=hid-fs models it; docs/bridge.md, \"Bus traffic\")",
+                       100.0 * s.bus_load));
+  } else {
+    parts.push_back(fmt::format("bus met: {:.1f} %", 100.0 * s.bus_load));
+  }
+  if (s.device_faults > 0) {
+    why.push_back(fmt::format(
+        "device: {} FAULT entries (e-stops included): see `fault` on the control socket", s.device_faults));
+  }
+
+  std::vector<std::string> out;
+  out.reserve(notes.size() + why.size() + 1);
+  for (std::string& n : notes) {
+    out.push_back("  note: " + std::move(n));
+  }
+  for (std::string& w : why) {
+    out.push_back("  why: " + std::move(w));
+  }
+  std::string verdict = all_met ? "verdict: OK: " : "verdict: NOT MET: ";
+  for (std::size_t i = 0; i < parts.size(); ++i) {
+    verdict += (i == 0 ? "" : "; ") + parts[i];
+  }
+  out.push_back(std::move(verdict));
+  return out;
+}
+
+}  // namespace mrskin::bridged

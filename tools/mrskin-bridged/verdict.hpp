@@ -1,0 +1,25 @@
+// The run's verdict against the product's figures (../shared/BRIEF.md section 5, docs/daemon.md
+// "Verdict"): the rendered-force error, real time and the bus, each met or not, with a plain
+// explanation of every figure beyond its limit. The last line is the verdict itself.
+#pragma once
+
+#include <string>
+#include <vector>
+
+#include "mrskin/bridge/stats.hpp"
+
+namespace mrskin::bridged {
+
+struct VerdictLimits {
+  double rms_error_N = 0.04;   // RMS rendered-force error, loading and holding
+  double relative_p95 = 0.07;  // 95th-percentile relative error where the target >= 0.3 N
+  double bus_load = 0.80;      // each direction, of the bus's capacity
+};
+
+// truth_scored: the statistics' errors are against the device's true force (the mock); without
+// it they are not the product's figure and the rendering is "not scored". period_s: the tick
+// period, to tell a tick that outgrew its period from a machine too busy to wake on time.
+std::vector<std::string> verdict_lines(const bridge::BridgeStats& stats, bool truth_scored, double period_s,
+                                       const VerdictLimits& limits = {});
+
+}  // namespace mrskin::bridged
