@@ -10,8 +10,9 @@
 #   run    build the demo preset and run scripts/demo.sh (the daemon on the mock device)
 #   build  every preset's build: tests, benchmarks, the Python module, clang and its fuzzers
 #   test   build, and what the tests run: valgrind, can-utils, the Fast DDS peer, the QEMU VM
-#          (qemu, busybox, cpio, iproute2), pytest
+#          (qemu, busybox, cpio, iproute2), pytest, bash-completion
 #   lint   scripts/lint.sh (clang-format, clang-tidy)
+#   package  scripts/package.sh and its test (debhelper, lintian, mmdebstrap)
 set -euo pipefail
 
 declare -A SET
@@ -20,19 +21,25 @@ declare -A SET
 SET[run]="g++ cmake ninja-build pkg-config
   libhidapi-dev libusb-1.0-0-dev libeigen3-dev libspdlog-dev libcli11-dev libtomlplusplus-dev
   nlohmann-json3-dev libcap-dev libopenigtlink-dev cyclonedds-dev cyclonedds-tools"
-# test frameworks and benchmarks; the Python module; clang 14 with its sanitizer and fuzzer runtime
+# test frameworks and benchmarks; the Python module; clang 14 with its sanitizer and fuzzer runtime;
+# the man pages (help2man, from each tool's --help)
 SET[build]="${SET[run]}
   libgtest-dev libgmock-dev librapidcheck-dev libbenchmark-dev
   python3-dev pybind11-dev python3-numpy
-  clang clang-14 libclang-rt-14-dev"
+  clang clang-14 libclang-rt-14-dev
+  help2man"
 # callgrind gates, the CAN peer (candump, cansend), the ROS 2 peer on Fast DDS (tests/interop),
 # the kernel tests in a QEMU VM (tests/system, docs/vm-tests.md: the host's ip for the guest's
 # vcan, busybox and cpio for its init), pytest
 SET[test]="${SET[build]}
   valgrind can-utils libfastrtps-dev
   qemu-system-x86 busybox-static cpio iproute2
-  python3-pytest"
+  python3-pytest bash-completion"
 SET[lint]="clang-format clang-tidy"
+# scripts/package.sh and ctest --preset package (docs/install.md): the Debian packages from the
+# release build, lintian, the minimal Debian 12 root of the package test
+SET[package]="${SET[build]}
+  debhelper dh-python dpkg-dev fakeroot lintian mmdebstrap"
 
 print=0
 if [[ ${1:-} == --print ]]; then
@@ -40,11 +47,11 @@ if [[ ${1:-} == --print ]]; then
   shift
 fi
 sets=("$@")
-((${#sets[@]} > 0)) || sets=(run build test lint)
+((${#sets[@]} > 0)) || sets=(run build test lint package)
 PACKAGES=()
 for name in "${sets[@]}"; do
   if [[ -z ${SET[$name]+set} ]]; then
-    echo "setup-deps: no set '$name': use run, build, test or lint" >&2
+    echo "setup-deps: no set '$name': use run, build, test, lint or package" >&2
     exit 2
   fi
   read -r -a pkgs <<<"$(echo ${SET[$name]})"
