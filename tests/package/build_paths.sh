@@ -2,19 +2,23 @@
 # ctest package.build_paths: no file the packages install names the checkout or the build tree
 # (the install must be relocatable: tools and libraries find their data relative to themselves).
 # Unpacks every .deb into one tree, as apt would install them, and searches every file's bytes
-# (binaries included) for the source and build directories' absolute paths.
+# (binaries included) for the source and build directories' absolute paths. With CONFIGURED_PREFIX
+# (the build's CMAKE_INSTALL_PREFIX, /usr/local for the presets) other than /usr, the programs and
+# libraries must not name it either: the packages install under /usr. (The docs may: they
+# describe installing to /usr/local.)
 #
-#   build_paths.sh DEB_DIR SOURCE_DIR BUILD_DIR WORK_DIR
+#   build_paths.sh DEB_DIR SOURCE_DIR BUILD_DIR WORK_DIR [CONFIGURED_PREFIX]
 set -euo pipefail
 
-if (($# != 4)); then
-  echo "usage: build_paths.sh DEB_DIR SOURCE_DIR BUILD_DIR WORK_DIR" >&2
+if (($# != 4 && $# != 5)); then
+  echo "usage: build_paths.sh DEB_DIR SOURCE_DIR BUILD_DIR WORK_DIR [CONFIGURED_PREFIX]" >&2
   exit 2
 fi
 debs=$(realpath "$1")
 src=$(realpath "$2")
 build=$(realpath "$3")
 tree=$(realpath -m "$4")/tree
+prefix=${5:-/usr}
 
 shopt -s nullglob
 deb_files=("$debs"/*.deb)
@@ -41,9 +45,18 @@ for path in "$src" "$build"; do
     strings -a "$file" | grep -F "$path" | sort -u | sed 's/^/    /' >&2
   done < <(grep -rlaF "$path" "$tree" || true)
 done
+if [[ $prefix != /usr ]]; then
+  while IFS= read -r file; do
+    [[ $(head -c 4 "$file" | od -An -c | tr -d ' ') == '177ELF' ]] || continue
+    grep -qaF "$prefix/" "$file" || continue
+    found=1
+    echo "build_paths: ${file#"$tree"} (ELF) holds the configured prefix $prefix/:" >&2
+    strings -a "$file" | grep -F "$prefix/" | sort -u | sed 's/^/    /' >&2
+  done < <(find "$tree" -type f)
+fi
 if ((found)); then
-  echo "build_paths: FAILED: installed files name the checkout or the build tree (above)" >&2
+  echo "build_paths: FAILED: installed files name the checkout, the build tree or the configured prefix (above)" >&2
   exit 1
 fi
-echo "build_paths: no installed file names $src or $build"
+echo "build_paths: no installed file names $src or $build, no program or library names $prefix/"
 rm -rf "$tree"

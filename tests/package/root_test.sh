@@ -61,12 +61,12 @@ if [[ ! -f $tarball ]]; then
   echo "package.root: making the root with mmdebstrap (first run for this package list; cached as $tarball)"
   mkdir -p "$cache"
   if ! mmdebstrap --variant=minbase --mode=root --quiet --include="$(echo $packages | tr ' ' ',')" \
-    "$suite" "$cache/root-$key.part.tar" "${mirrors[@]}" >"$cache/root-$key.log" 2>&1; then
+    "$suite" "$cache/root-$key.part$$.tar" "${mirrors[@]}" >"$cache/root-$key.log" 2>&1; then
     tail -n 30 "$cache/root-$key.log" >&2
-    rm -rf "$cache/root-$key.part.tar"
+    rm -rf "$cache/root-$key.part$$.tar"
     fail "mmdebstrap failed (log: $cache/root-$key.log); is deb.debian.org reachable?"
   fi
-  mv "$cache/root-$key.part.tar" "$tarball"
+  mv "$cache/root-$key.part$$.tar" "$tarball"
   echo "package.root: root made in $((SECONDS - t0)) s"
 else
   echo "package.root: cached root $tarball"
