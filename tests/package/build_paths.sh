@@ -3,9 +3,10 @@
 # (the install must be relocatable: tools and libraries find their data relative to themselves).
 # Unpacks every .deb into one tree, as apt would install them, and searches every file's bytes
 # (binaries included) for the source and build directories' absolute paths. With CONFIGURED_PREFIX
-# (the build's CMAKE_INSTALL_PREFIX, /usr/local for the presets) other than /usr, the programs and
-# libraries must not name it either: the packages install under /usr. (The docs may: they
-# describe installing to /usr/local.)
+# (the build's CMAKE_INSTALL_PREFIX, /usr/local for the presets) other than /usr, no file outside
+# share/doc may name it either: the packages install under /usr, and a path fixed at configure
+# time (a unit's ExecStart, a library's data directory) would point at the wrong place. The docs
+# may: they describe installing to /usr/local.
 #
 #   build_paths.sh DEB_DIR SOURCE_DIR BUILD_DIR WORK_DIR [CONFIGURED_PREFIX]
 set -euo pipefail
@@ -47,16 +48,14 @@ for path in "$src" "$build"; do
 done
 if [[ $prefix != /usr ]]; then
   while IFS= read -r file; do
-    [[ $(head -c 4 "$file" | od -An -c | tr -d ' ') == '177ELF' ]] || continue
-    grep -qaF "$prefix/" "$file" || continue
     found=1
-    echo "build_paths: ${file#"$tree"} (ELF) holds the configured prefix $prefix/:" >&2
+    echo "build_paths: ${file#"$tree"} holds the configured prefix $prefix/:" >&2
     strings -a "$file" | grep -F "$prefix/" | sort -u | sed 's/^/    /' >&2
-  done < <(find "$tree" -type f)
+  done < <(grep -rlaF "$prefix/" "$tree" --exclude-dir=doc || true)
 fi
 if ((found)); then
   echo "build_paths: FAILED: installed files name the checkout, the build tree or the configured prefix (above)" >&2
   exit 1
 fi
-echo "build_paths: no installed file names $src or $build, no program or library names $prefix/"
+echo "build_paths: no installed file names $src or $build, nothing outside share/doc names $prefix/"
 rm -rf "$tree"
