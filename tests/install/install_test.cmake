@@ -2,7 +2,8 @@
 #  1. cmake --install BUILD_DIR into a fresh prefix under WORK_DIR;
 #  2. checks the installed tree: versioned shared libraries with their soname, headers, tools,
 #     the udev rule and the CMake package files;
-#  3. configures, builds and runs consumer/ against the prefix; its output must name VERSION.
+#  3. configures, builds and runs consumer/ against the prefix; its output must name VERSION;
+#  4. the same for tools/example-console; 5. builds consumer/ with pkg-config (mrskin.pc) alone.
 cmake_minimum_required(VERSION 3.25)
 
 foreach(_var BUILD_DIR WORK_DIR CONSUMER_SOURCE_DIR GENERATOR CXX_COMPILER LIBDIR INCLUDEDIR BINDIR
@@ -123,4 +124,28 @@ string(STRIP "${step_output}" step_output)
 message(STATUS "example console says: ${step_output}")
 if(NOT step_output MATCHES "example-console: 3500 ticks")
   message(FATAL_ERROR "example console did not complete its loop:\n${step_output}")
+endif()
+
+# --- 5. pkg-config: mrskin.pc finds the prefix from its own place (relocatable) -------------
+if(PKG_CONFIG)
+  set(ENV{PKG_CONFIG_PATH} "${_prefix}/${LIBDIR}/pkgconfig")
+  run_step("pkg-config --variable=includedir mrskin" ${PKG_CONFIG} --variable=includedir mrskin)
+  string(STRIP "${step_output}" _pc_include)
+  file(REAL_PATH "${_pc_include}" _pc_include)
+  if(NOT _pc_include STREQUAL "${_real_prefix}/${INCLUDEDIR}")
+    message(FATAL_ERROR "mrskin.pc's includedir is ${_pc_include}, not ${_real_prefix}/${INCLUDEDIR}")
+  endif()
+  run_step("pkg-config --cflags --libs mrskin" ${PKG_CONFIG} --cflags --libs mrskin)
+  string(STRIP "${step_output}" _pc_flags)
+  separate_arguments(_pc_flags UNIX_COMMAND "${_pc_flags}")
+  separate_arguments(_cxx_flags UNIX_COMMAND "${CXX_FLAGS}")
+  set(_pc_consumer ${WORK_DIR}/pkg-config-consumer)
+  run_step("build consumer with pkg-config" ${CXX_COMPILER} -std=c++20 ${_cxx_flags}
+           -o ${_pc_consumer} ${CONSUMER_SOURCE_DIR}/main.cpp ${_pc_flags}
+           -Wl,-rpath,${_prefix}/${LIBDIR})
+  run_step("run pkg-config consumer" ${_pc_consumer})
+  if(NOT step_output MATCHES "mrskin library ${_version_re}([^0-9.]|$)")
+    message(FATAL_ERROR "pkg-config consumer output does not name version ${VERSION}:\n${step_output}")
+  endif()
+  message(STATUS "pkg-config consumer: ok (${_pc_flags})")
 endif()
