@@ -29,11 +29,13 @@ commands=(
   test:ctest test:valgrind test:candump test:cansend test:qemu-system-x86_64 test:busybox test:cpio
   test:ip test:python3 test:apt-get test:dpkg-deb test:flock test:mountpoint test:timeout test:sha256sum
   test:gzip test:setarch
-  build:clang++-14
+  build:clang++-14 build:help2man
   lint:clang-format-14 lint:clang-tidy-14
+  package:dpkg-buildpackage package:lintian package:mmdebstrap package:fakeroot
 )
 callers=("$src/scripts" "$src/tests/system" "$src/tests/install" "$src/tests/tools" "$src/tests/python"
-  "$src/tests/CMakeLists.txt" "$src/CMakePresets.json" "$src/.ci/run" "$src/tests/interop")
+  "$src/tests/CMakeLists.txt" "$src/CMakePresets.json" "$src/.ci/run" "$src/tests/interop"
+  "$src/tests/package" "$src/docs/man" "$src/debian")
 for entry in "${commands[@]}"; do
   set_name=${entry%%:*} cmd=${entry#*:}
   if ! grep -rqwF -- "$cmd" "${callers[@]}" 2>/dev/null; then

@@ -39,12 +39,13 @@ deb_files=("$debs"/*.deb)
 
 # --- the root's package list: our packages' dependencies (first of each alternative), a
 # toolchain for the consoles, systemd for systemd-analyze and its sysusers, procps for the unit's
-# /bin/kill. Our own packages are installed by the test itself.
+# /bin/kill, man-db for the unit's Documentation=man:mrskin-bridged(8) (systemd-analyze verify
+# runs man on it). Our own packages are installed by the test itself.
 ours=$(for d in "${deb_files[@]}"; do dpkg-deb -f "$d" Package; done | sort -u)
 deps=$(for d in "${deb_files[@]}"; do dpkg-deb -f "$d" Depends Pre-Depends; done |
   sed -E 's/^[A-Za-z-]+: //' | tr ',' '\n' | sed -E 's/\|.*//; s/\(.*\)//; s/:any//; s/[[:space:]]//g' |
   grep -v '^$' | sort -u | grep -vxF -f <(echo "$ours") || true)
-packages=$(printf '%s\n' $deps g++ cmake make pkgconf systemd procps | sort -u)
+packages=$(printf '%s\n' $deps g++ cmake make pkgconf systemd procps man-db | sort -u)
 suite=bookworm
 mirrors=(
   "deb http://deb.debian.org/debian bookworm main"
