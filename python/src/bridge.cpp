@@ -160,6 +160,16 @@ class Rig {
     if (mock_) {
       eval::fill_bus_stats(*mock_, st);  // the bus object and bus_load, as the C++ runs fill them
     }
+    // A stream's own counters, as mrskin-bridged reports them (a scene has none of its own).
+    if (const auto* stream = dynamic_cast<const bridge::StreamSource*>(source_.get()); stream != nullptr) {
+      const bridge::SourceStats in = stream->stats();
+      st.samples_accepted = in.accepted;
+      st.samples_dropped = in.dropped();
+      st.samples_dropped_by_reason = in.drops;
+      st.stream_connections = in.connections;
+      st.stream_disconnects = in.disconnects;
+      st.stream_restarts = in.restarts;
+    }
     py::dict d = json.attr("loads")(bridge::to_json(st, bridge_->tick_period_s()));
     if (with_callback) {
       d["callback_samples"] = recorder_->recorded();

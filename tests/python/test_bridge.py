@@ -52,6 +52,8 @@ def test_a_recorded_stream_on_the_simulated_clock(tmp_path):
     stats = bridge.run_simulated(f"replay://{path}", "mock://?seed=4&finger=demo", duration_s=1.5)
     assert stats["slave_samples"] > 1000
     assert stats["force_samples"] > 0
+    # the stream's own counters, as mrskin-bridged reports them
+    assert stats["samples_accepted"] > 1000 and stats["samples_dropped"] == 0
 
 
 def test_realtime_run_with_a_callback():
