@@ -222,7 +222,7 @@ Bridge::Impl::Impl(DeviceSession& session, SlaveSource& source, BridgeOptions op
   sent_A_.assign(layout_.valve_count(), 0.0);
   render_.emplace(options_, layout_);
   allocate_.emplace(options_, layout_, *model_, *inverse_, *observer_, valve_gain_, max_current_A_);
-  statistics_.emplace(options_, cells);
+  statistics_.emplace(options_, *inverse_, cells);
 }
 
 Bridge::Impl::~Impl() { stop(); }

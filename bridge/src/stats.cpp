@@ -85,6 +85,22 @@ double BridgeStats::clamped_fraction() const noexcept {
              : static_cast<double>(clamped_cell_ticks) / static_cast<double>(target_cell_ticks);
 }
 
+double BridgeStats::unclamped_rms_error_N() const noexcept {
+  return force_samples == 0 ? 0.0 : std::sqrt(unclamped.sq_error_sum_N2 / static_cast<double>(force_samples));
+}
+
+double BridgeStats::unclamped_true_state_rms_error_N() const noexcept {
+  return force_samples == 0
+             ? 0.0
+             : std::sqrt(unclamped.true_state_sq_error_sum_N2 / static_cast<double>(force_samples));
+}
+
+double BridgeStats::clamped_missed_force_mean_N() const noexcept {
+  return clamped_cell_ticks == 0 ? 0.0
+                                 : (clamp_causes.floor_excess_sum_N + clamp_causes.ceiling_missed_sum_N) /
+                                       static_cast<double>(clamped_cell_ticks);
+}
+
 namespace {
 
 std::string percentiles_us(const DurationHistogram& h) {
@@ -118,6 +134,31 @@ std::string bus_json(const BridgeStats::Bus& b) {
       direction_json(b.device_to_host));
 }
 
+std::string unclamped_json(const BridgeStats& s) {
+  return fmt::format(
+      "{{\"force_rms_error_n\": {:.6g}, \"relative_error_p95\": {:.6g}, \"relative_error_samples\": {}, "
+      "\"true_state\": {{\"force_rms_error_n\": {:.6g}, \"relative_error_p95\": {:.6g}}}}}",
+      s.unclamped_rms_error_N(), s.unclamped.relative_error.percentile(0.95),
+      s.unclamped.relative_error.count(), s.unclamped_true_state_rms_error_N(),
+      s.unclamped.true_state_relative_error.percentile(0.95));
+}
+
+std::string clamped_json(const BridgeStats& s) {
+  const BridgeStats::ClampCauses& c = s.clamp_causes;
+  const auto of_loaded = [&](std::uint64_t n) {
+    return s.target_cell_ticks == 0 ? 0.0 : static_cast<double>(n) / static_cast<double>(s.target_cell_ticks);
+  };
+  const auto mean = [](double sum, std::uint64_t n) { return n == 0 ? 0.0 : sum / static_cast<double>(n); };
+  const std::uint64_t floor = c.floor_viscous + c.floor_membrane + c.floor_p0;
+  return fmt::format(
+      "{{\"fraction\": {:.6g}, \"floor_viscous\": {:.6g}, \"floor_membrane\": {:.6g}, \"floor_p0\": {:.6g}, "
+      "\"ceiling\": {:.6g}, \"missed_force_mean_n\": {:.6g}, \"floor_excess_mean_n\": {:.6g}, "
+      "\"ceiling_missed_mean_n\": {:.6g}}}",
+      s.clamped_fraction(), of_loaded(c.floor_viscous), of_loaded(c.floor_membrane), of_loaded(c.floor_p0),
+      of_loaded(c.ceiling), s.clamped_missed_force_mean_N(), mean(c.floor_excess_sum_N, floor),
+      mean(c.ceiling_missed_sum_N, c.ceiling));
+}
+
 }  // namespace
 
 std::string to_json(const BridgeStats& s, double tick_period_s) {
@@ -146,7 +187,9 @@ std::string to_json(const BridgeStats& s, double tick_period_s) {
       "  \"relative_error_samples\": {},\n"
       "  \"true_state\": {{\"force_rms_error_n\": {:.6g}, \"relative_error_p95\": {:.6g}}},\n"
       "  \"release_rms_error_n\": {:.6g},\n"
+      "  \"unclamped\": {},\n"
       "  \"outside_envelope_fraction\": {:.6g},\n"
+      "  \"clamped\": {},\n"
       "  \"max_current_a\": {:.6g},\n"
       "  \"bus_load\": {:.6g},\n"
       "  \"bus\": {},\n"
@@ -167,11 +210,12 @@ std::string to_json(const BridgeStats& s, double tick_period_s) {
       percentiles_us(s.processing_latency), percentiles_us(s.end_to_end_latency), s.force_samples,
       s.force_rms_error_N(), s.force_max_abs_error_N, s.relative_error.percentile(0.95),
       s.relative_error.count(), s.true_state_rms_error_N(), s.true_state_relative_error.percentile(0.95),
-      s.release_rms_error_N(), s.clamped_fraction(), s.max_current_A, s.bus_load, bus_json(s.bus),
-      s.passivity_energy_J, s.passivity_min_energy_J, s.active_ticks, s.observer_errors, s.sensor_faults,
-      s.sensor_fault_halts, s.stream_stalls, s.stream_connections, s.stream_disconnects, s.stream_restarts,
-      s.device_faults, s.link.sequence_gaps, s.link.duplicates, s.link.undecodable, s.link.crc,
-      s.link.telemetry_timeouts, s.link.disconnects, s.link.reconnects, s.inverse_errors, s.inverse_cached,
+      s.release_rms_error_N(), unclamped_json(s), s.clamped_fraction(), clamped_json(s), s.max_current_A,
+      s.bus_load, bus_json(s.bus), s.passivity_energy_J, s.passivity_min_energy_J, s.active_ticks,
+      s.observer_errors, s.sensor_faults, s.sensor_fault_halts, s.stream_stalls, s.stream_connections,
+      s.stream_disconnects, s.stream_restarts, s.device_faults, s.link.sequence_gaps, s.link.duplicates,
+      s.link.undecodable, s.link.crc, s.link.telemetry_timeouts, s.link.disconnects, s.link.reconnects,
+      s.inverse_errors, s.inverse_cached,
       s.ticks == 0 ? 0.0 : s.inverse_residual_sum_N / static_cast<double>(s.ticks));
 }
 

@@ -4,8 +4,10 @@
 
 namespace mrskin::bridge::detail {
 
-TickStatistics::TickStatistics(const BridgeOptions& options, std::size_t fluid_cells)
+TickStatistics::TickStatistics(const BridgeOptions& options, const model::CellInverse& inverse,
+                               std::size_t fluid_cells)
     : options_(options),
+      inverse_(inverse),
       port_(fluid_cells, PassivityObserver{options.passivity_tolerance_J}),
       port_open_(fluid_cells, 0) {}
 
@@ -19,6 +21,7 @@ void TickStatistics::count(const TickRecord& record, std::span<const model::Cell
       ++stats.target_cell_ticks;
       if (solve[i].clamped_low || solve[i].clamped_high || record.allocated.below_floor[i] != 0) {
         ++stats.clamped_cell_ticks;
+        count_clamp(record, i, solve[i], stats);
       }
     }
     // The rendered port opens and closes at zero force and depth, so the energy of the first and
@@ -40,6 +43,33 @@ void TickStatistics::count(const TickRecord& record, std::span<const model::Cell
   if (stats.passivity_energy_J < -options_.passivity_tolerance_J) {
     ++stats.active_ticks;
   }
+}
+
+void TickStatistics::count_clamp(const TickRecord& record, std::size_t cell, const model::CellSolution& solve,
+                                 BridgeStats& stats) const noexcept {
+  BridgeStats::ClampCauses& causes = stats.clamp_causes;
+  const double law_N = record.rendered.tissue_N[cell];
+  const double target_N = record.allocated.target_N[cell];
+  const bool below_floor = record.allocated.below_floor[cell] != 0;
+  if (solve.clamped_high && !below_floor) {
+    ++causes.ceiling;
+    causes.ceiling_missed_sum_N += std::max(0.0, law_N - target_N);
+    return;
+  }
+  // The floor the target was held at: with every valve open the observer's force (the fluid's
+  // push, history included), else the solve's quasi-static floor. Its largest part is the cause.
+  const double floor_N = below_floor ? record.observed.force_N[cell] : solve.force_min_N;
+  const model::CellInverse::FloorParts parts =
+      inverse_.floor_parts(record.rendered.state[cell].indentation_m);
+  const double viscous_N = floor_N - parts.membrane_N - parts.preload_N;
+  if (viscous_N >= parts.membrane_N && viscous_N >= parts.preload_N) {
+    ++causes.floor_viscous;
+  } else if (parts.membrane_N >= parts.preload_N) {
+    ++causes.floor_membrane;
+  } else {
+    ++causes.floor_p0;
+  }
+  causes.floor_excess_sum_N += std::max(0.0, target_N - law_N);
 }
 
 }  // namespace mrskin::bridge::detail

@@ -13,15 +13,19 @@ namespace mrskin::bridge::detail {
 
 class TickStatistics {
  public:
-  // Setup: sizes every per-cell array. options are the bridge's and outlive this.
-  TickStatistics(const BridgeOptions& options, std::size_t fluid_cells);
+  // Setup: sizes every per-cell array. options and inverse are the bridge's and outlive this.
+  TickStatistics(const BridgeOptions& options, const model::CellInverse& inverse, std::size_t fluid_cells);
 
   // After the tick: record as the stages left it, solve the inverse's cells (roles, clamps).
   void count(const TickRecord& record, std::span<const model::CellSolution> solve,
              BridgeStats& stats) noexcept;
 
  private:
+  void count_clamp(const TickRecord& record, std::size_t cell, const model::CellSolution& solve,
+                   BridgeStats& stats) const noexcept;
+
   const BridgeOptions& options_;
+  const model::CellInverse& inverse_;
   std::vector<PassivityObserver> port_;   // per cell: energy at the rendered port...
   std::vector<unsigned char> port_open_;  // ...while the finger is in the cell
 };

@@ -50,12 +50,21 @@ std::vector<Field> fields_of(const BridgeStats& s) {
       count("inverse_errors", s.inverse_errors),
       count("sensor_faults", s.sensor_faults),
       count("active_ticks", s.active_ticks),
+      count("clamped_floor_viscous", s.clamp_causes.floor_viscous),
+      count("clamped_floor_membrane", s.clamp_causes.floor_membrane),
+      count("clamped_floor_p0", s.clamp_causes.floor_p0),
+      count("clamped_ceiling", s.clamp_causes.ceiling),
       real("force_rms_error_n", s.force_rms_error_N()),
       real("force_max_abs_error_n", s.force_max_abs_error_N),
       real("true_state_rms_error_n", s.true_state_rms_error_N()),
       real("release_rms_error_n", s.release_rms_error_N()),
       real("relative_error_p95", s.relative_error.percentile(0.95)),
       real("true_state_relative_error_p95", s.true_state_relative_error.percentile(0.95)),
+      real("unclamped_rms_error_n", s.unclamped_rms_error_N()),
+      real("unclamped_true_state_rms_error_n", s.unclamped_true_state_rms_error_N()),
+      real("unclamped_relative_error_p95", s.unclamped.relative_error.percentile(0.95)),
+      real("unclamped_true_state_relative_error_p95", s.unclamped.true_state_relative_error.percentile(0.95)),
+      real("clamped_missed_force_mean_n", s.clamped_missed_force_mean_N()),
       real("max_current_a", s.max_current_A),
       real("inverse_residual_sum_n", s.inverse_residual_sum_N),
       real("passivity_energy_j", s.passivity_energy_J),
@@ -111,6 +120,11 @@ TEST(Reference, EveryScenesStatisticsAtSeed7MatchTheGoldenFile) {
     const test::SceneRun r = test::run_scene(std::string(name), kSeconds, "mock://?seed=7");
     const std::vector<Field> fields = fields_of(r.stats);
     text += line_of(name, fields) + "\n";
+    // Every clamped cell-tick has one cause.
+    const BridgeStats::ClampCauses& causes = r.stats.clamp_causes;
+    EXPECT_EQ(causes.floor_viscous + causes.floor_membrane + causes.floor_p0 + causes.ceiling,
+              r.stats.clamped_cell_ticks)
+        << name;
     if (update) {
       continue;
     }

@@ -17,6 +17,7 @@
 
 #include "inverse_cases.hpp"
 #include "mrskin/driver/errors.hpp"
+#include "mrskin/driver/model/cell.hpp"
 #include "mrskin/driver/model/exact_inverse.hpp"
 
 namespace {
@@ -246,6 +247,25 @@ TEST_F(InverseSolve, TargetsOutsideTheEnvelopeAreClampedAndFlagged) {
   const std::vector<double> g = exact_forces(m, c, inv.currents_A());
   EXPECT_NEAR(g[hi], inv.cells()[hi].force_max_N, 1e-4);
   EXPECT_LT(inv.currents_A()[m.layout().valves_of_cell(hi)[0]], imax);
+}
+
+// The floor's parts (for the statistics' clamp causes): the pad membrane and p0 on the pad, as the
+// device model has them; a press through open valves adds the drag of its flow on top.
+TEST_F(InverseModel, FloorPartsAreTheMembraneAndP0WithTheDragOnTop) {
+  const ContactPatch& patch = m.contact();
+  EXPECT_EQ(inv.floor_parts(0.0).membrane_N, 0.0);
+  for (const double d : {0.5e-3, 2e-3, 4e-3}) {
+    const CellInverse::FloorParts parts = inv.floor_parts(d);
+    EXPECT_NEAR(parts.membrane_N, pad_membrane_force_N(patch, d).value, 1e-9 * (1.0 + parts.membrane_N)) << d;
+    EXPECT_DOUBLE_EQ(parts.preload_N, m.profile().reservoir.initial_pressure_Pa * patch.effective_area_m2);
+  }
+  const std::size_t cell = m.fluid_cell_index(2, 2).value;
+  InverseCase c = blank();
+  c.states[cell] = {3e-3, 10e-3};  // loading: flow through the open valves
+  c.targets[cell] = law_for_force(0.0, 3e-3);
+  ASSERT_EQ(inv.solve(c.targets, c.states, c.now_s), Status::ok);
+  const CellInverse::FloorParts parts = inv.floor_parts(3e-3);
+  EXPECT_GT(inv.cells()[cell].force_min_N - parts.membrane_N - parts.preload_N, 0.0);
 }
 
 TEST_F(InverseSolve, UnloadingAndUntouchedCellsAreReleased) {

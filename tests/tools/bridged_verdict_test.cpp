@@ -60,6 +60,37 @@ TEST(BridgedVerdict, ClampingIsNotedWithoutFailing) {
   EXPECT_EQ(v.back().rfind("verdict: OK", 0), 0U) << v.back();
 }
 
+// The clamped figure is the product's; the unclamped one stands beside it, and the note gives the
+// clamps' causes and the force the surgeon missed.
+TEST(BridgedVerdict, TheUnclampedFigureAndTheClampsCausesStandBesideTheProductsFigure) {
+  BridgeStats s = good_run();
+  s.unclamped.sq_error_sum_N2 = 100 * 0.066 * 0.066;
+  for (int i = 0; i < 100; ++i) {
+    s.unclamped.relative_error.add(i < 90 ? 0.05 : 0.2);
+  }
+  s.clamped_cell_ticks = 30;
+  s.clamp_causes.floor_p0 = 17;
+  s.clamp_causes.floor_viscous = 12;
+  s.clamp_causes.ceiling = 1;
+  s.clamp_causes.floor_excess_sum_N = 2.9;
+  s.clamp_causes.ceiling_missed_sum_N = 0.1;
+  const std::vector<std::string> v = verdict_lines(s, true, 1e-3);
+  EXPECT_EQ(v.back().rfind("verdict: OK: rendering met: 0.0100 N RMS", 0), 0U) << v.back();
+  EXPECT_TRUE(contains(v, "against the unclamped tissue law 0.0660 N RMS, p95 20.1 % (beyond the limits"))
+      << v.back();
+  EXPECT_TRUE(contains(v,
+                       "note: clamped 30.0 % of the loaded cell-ticks (floor: p0 17.0 %, viscous 12.0 %, "
+                       "membrane 0.0 %; ceiling 1.0 %)"));
+  EXPECT_TRUE(contains(v, "on average 0.100 N away from the tissue"));
+
+  s.unclamped.sq_error_sum_N2 = 100 * 0.01 * 0.01;
+  s.unclamped.relative_error = {};
+  for (int i = 0; i < 100; ++i) {
+    s.unclamped.relative_error.add(2.0);  // beyond the histogram's last bin
+  }
+  EXPECT_TRUE(contains(verdict_lines(s, true, 1e-3), "p95 above 100 % (beyond the limits"));
+}
+
 TEST(BridgedVerdict, ABusyMachineIsToldApartFromASlowTick) {
   BridgeStats busy = good_run();
   busy.skipped_periods = 7;

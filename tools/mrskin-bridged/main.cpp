@@ -130,12 +130,12 @@ void print_stream_summary(const mrskin::bridge::BridgeStats& s) {
 void print_summary(const mrskin::bridge::BridgeStats& s, double rate_hz) {
   fmt::print(
       "summary: {} ticks at {:.0f} Hz, {} overruns, {} skipped periods, tick p50 {:.2f} us p99 {:.2f} us "
-      "p99.9 {:.2f} us max {:.2f} us; rendered-force error rms {:.4f} N max {:.4f} N over {} samples; "
-      "clamped {:.1f} %\n",
+      "p99.9 {:.2f} us max {:.2f} us; rendered-force error rms {:.4f} N max {:.4f} N over {} samples "
+      "(against the unclamped law {:.4f} N); clamped {:.1f} %\n",
       s.ticks, rate_hz, s.overruns, s.skipped_periods, s.tick_time.percentile_ns(0.5) / 1e3,
       s.tick_time.percentile_ns(0.99) / 1e3, s.tick_time.percentile_ns(0.999) / 1e3,
       static_cast<double>(s.tick_time.max_ns()) / 1e3, s.force_rms_error_N(), s.force_max_abs_error_N,
-      s.force_samples, 100.0 * s.clamped_fraction());
+      s.force_samples, s.unclamped_rms_error_N(), 100.0 * s.clamped_fraction());
 }
 
 // The status line and the log share the terminal: a log line first clears the in-place status.

@@ -2,9 +2,35 @@
 
 #include <fmt/format.h>
 
+#include <algorithm>
+#include <cstdint>
 #include <string_view>
 
 namespace mrskin::bridged {
+namespace {
+
+// The relative-error histogram's last bin holds everything from 100 % up.
+std::string percent_or_above(double fraction) {
+  return fraction > 1.0 ? std::string("above 100 %") : fmt::format("{:.1f} %", 100.0 * fraction);
+}
+
+std::string clamp_note(const bridge::BridgeStats& s) {
+  const bridge::BridgeStats::ClampCauses& c = s.clamp_causes;
+  const auto pct = [&](std::uint64_t n) {
+    return 100.0 * static_cast<double>(n) /
+           static_cast<double>(std::max<std::uint64_t>(1, s.target_cell_ticks));
+  };
+  return fmt::format(
+      "clamped {:.1f} % of the loaded cell-ticks (floor: p0 {:.1f} %, viscous {:.1f} %, membrane {:.1f} %; "
+      "ceiling {:.1f} %): there the tissue asked for a force outside the skin's envelope (the valves only "
+      "resist), and the surgeon felt on average {:.3f} N away from the tissue; the product's figure is "
+      "scored against the target clamped into the envelope, the unclamped figure beside it is what only "
+      "the device's design can improve (docs/statistics.md, `clamped`)",
+      100.0 * s.clamped_fraction(), pct(c.floor_p0), pct(c.floor_viscous), pct(c.floor_membrane),
+      pct(c.ceiling), s.clamped_missed_force_mean_N());
+}
+
+}  // namespace
 
 std::vector<std::string> verdict_lines(const bridge::BridgeStats& s, bool truth_scored, double period_s,
                                        const VerdictLimits& limits) {
@@ -28,7 +54,18 @@ std::vector<std::string> verdict_lines(const bridge::BridgeStats& s, bool truth_
     if (has_p95) {
       part += fmt::format(", p95 {:.1f} % (limit {:.0f} %)", 100.0 * p95, 100.0 * limits.relative_p95);
     }
-    part += fmt::format(", against the true state {:.4f} N", s.true_state_rms_error_N());
+    part += fmt::format(", against the true state {:.4f} N; against the unclamped tissue law {:.4f} N RMS",
+                        s.true_state_rms_error_N(), s.unclamped_rms_error_N());
+    const bool has_unclamped_p95 = s.unclamped.relative_error.count() > 0;
+    const double unclamped_p95 = has_unclamped_p95 ? s.unclamped.relative_error.percentile(0.95) : 0.0;
+    if (has_unclamped_p95) {
+      part += fmt::format(", p95 {}", percent_or_above(unclamped_p95));
+    }
+    const bool unclamped_within =
+        s.unclamped_rms_error_N() <= limits.rms_error_N && unclamped_p95 <= limits.relative_p95;
+    part += unclamped_within
+                ? " (within the limits too)"
+                : " (beyond the limits; the product's figure leaves out what lies outside the envelope)";
     parts.push_back(std::move(part));
     if (!met) {
       why.push_back(fmt::format(
@@ -37,12 +74,7 @@ std::vector<std::string> verdict_lines(const bridge::BridgeStats& s, bool truth_
           rms, 100.0 * p95, limits.rms_error_N, 100.0 * limits.relative_p95));
     }
     if (s.clamped_cell_ticks > 0) {
-      notes.push_back(fmt::format(
-          "clamped {:.1f} %: on that share of the loaded cell-ticks the tissue asked for a force the valves "
-          "cannot render (they only resist); the rendering error is scored against the target clamped into "
-          "the skin's envelope; the error against the unclamped tissue law is not computed yet "
-          "(docs/bridge.md, \"What is not met yet\")",
-          100.0 * s.clamped_fraction()));
+      notes.push_back(clamp_note(s));
     }
   }
 

@@ -84,6 +84,22 @@ void TruthScorer::on_tick(const bridge::TickView& tick, bridge::BridgeStats& sta
       if (true_state_N >= 0.3) {
         stats.true_state_relative_error.add(e_true / true_state_N);
       }
+      // Against the law itself, neither clamped into the envelope nor floored by open valves.
+      const double law_N = tissue_N[i];
+      const double law_true_N =
+          finger_known ? std::clamp(tick.law_force_N(i, finger_m_[i], finger_rate), 0.0, options_.max_force_N)
+                       : law_N;
+      bridge::BridgeStats::Unclamped& u = stats.unclamped;
+      const double e_law = truth_N_[i] - law_N;
+      const double e_law_true = truth_N_[i] - law_true_N;
+      u.sq_error_sum_N2 += e_law * e_law;
+      u.true_state_sq_error_sum_N2 += e_law_true * e_law_true;
+      if (law_N >= 0.3) {
+        u.relative_error.add(e_law / law_N);
+      }
+      if (law_true_N >= 0.3) {
+        u.true_state_relative_error.add(e_law_true / law_true_N);
+      }
     } else if (retreating) {
       stats.release_sq_error_sum_N2 += e * e;
       ++stats.release_samples;

@@ -65,6 +65,13 @@ std::span<const double> CellInverse::valve_yield_stress_Pa() const noexcept { re
 std::span<const CellSolution> CellInverse::cells() const noexcept { return impl_->output.cells; }
 const InverseReport& CellInverse::report() const noexcept { return impl_->output.rep; }
 
+CellInverse::FloorParts CellInverse::floor_parts(double indentation_m) const noexcept {
+  // The same terms as the solve's floor (InverseTopology::derive: fm and base).
+  const InverseTopology& m = impl_->topo;
+  const double d = indentation_m;
+  return FloorParts{(m.membrane_linear_N_per_m + m.membrane_cubic_N_per_m3 * d * d) * d, m.area_m2 * m.p0_Pa};
+}
+
 void CellInverse::invalidate() noexcept {
   for (CellCache& c : impl_->memory.cache) {
     c.valid = false;

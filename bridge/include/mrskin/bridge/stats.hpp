@@ -86,8 +86,28 @@ struct MRSKIN_BRIDGE_API BridgeStats {
   // release, so this is reported apart from the loading/holding error).
   std::uint64_t release_samples = 0;
   double release_sq_error_sum_N2 = 0.0;
+  // The same scored samples against the tissue law itself, not clamped into the envelope (only
+  // capped at max_force_N, the device's range): what the tissue would have pushed (truth only).
+  struct Unclamped {
+    double sq_error_sum_N2 = 0.0;                      // at the observer's state
+    RelativeErrorHistogram relative_error;             // where that law is >= 0.3 N
+    double true_state_sq_error_sum_N2 = 0.0;           // at the finger's true state
+    RelativeErrorHistogram true_state_relative_error;  // where that law is >= 0.3 N
+  } unclamped;
   std::uint64_t target_cell_ticks = 0;   // loaded cell-ticks
   std::uint64_t clamped_cell_ticks = 0;  // ...whose target lay outside the envelope
+  // The clamped cell-ticks by cause (docs/statistics.md, `clamped`): below the floor, the floor's
+  // largest part; above the ceiling, the valves' highest allowed current. And the force between
+  // the law and the clamped target: felt but not in the tissue (floor), in the tissue but not felt
+  // (ceiling).
+  struct ClampCauses {
+    std::uint64_t floor_viscous = 0;   // drag of the flow through open valves, or the fluid's push
+    std::uint64_t floor_membrane = 0;  // the pad membrane at the depth
+    std::uint64_t floor_p0 = 0;        // the reservoir's pre-pressure on the pad
+    std::uint64_t ceiling = 0;
+    double floor_excess_sum_N = 0.0;
+    double ceiling_missed_sum_N = 0.0;
+  } clamp_causes;
   std::uint64_t observer_errors = 0;     // ticks whose observer update failed (estimate held)
   std::uint64_t inverse_errors = 0;      // ticks whose allocation failed (currents held)
   std::uint64_t inverse_cached = 0;      // ticks on which nothing was dirty: no allocation work
@@ -142,6 +162,10 @@ struct MRSKIN_BRIDGE_API BridgeStats {
   [[nodiscard]] double release_rms_error_N() const noexcept;
   [[nodiscard]] double true_state_rms_error_N() const noexcept;
   [[nodiscard]] double clamped_fraction() const noexcept;
+  [[nodiscard]] double unclamped_rms_error_N() const noexcept;
+  [[nodiscard]] double unclamped_true_state_rms_error_N() const noexcept;
+  // Mean over the clamped cell-ticks of |law - clamped target|: the force the surgeon missed.
+  [[nodiscard]] double clamped_missed_force_mean_N() const noexcept;
 };
 
 // The statistics' JSON layout (docs/statistics.md): raised when a key changes meaning or goes;

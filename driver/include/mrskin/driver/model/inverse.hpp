@@ -151,6 +151,16 @@ class MRSKIN_DRIVER_API CellInverse {
   // Forget every cache: the next solve recomputes every cell.
   void invalidate() noexcept;
 
+  // The parts of a loaded cell's envelope floor (CellSolution::force_min_N) that no valve current
+  // changes, at an indentation: the pad membrane's push and the reservoir's pre-pressure p0 on the
+  // pad. The rest of the floor is the viscous drag of the flow through the open valves. For the
+  // statistics' clamp causes (docs/statistics.md, `clamped`); not used by solve().
+  struct FloorParts {
+    double membrane_N = 0.0;
+    double preload_N = 0.0;
+  };
+  [[nodiscard]] FloorParts floor_parts(double indentation_m) const noexcept;
+
   // The fast model itself, for tests and benchmarks (same tables as solve()):
   // valves' pressure of a cell driving flow Q >= 0 at per-valve yield stresses (size valve_count()).
   [[nodiscard]] Result<double> valve_pressure_Pa(std::size_t cell, double flow_m3_per_s,
