@@ -1,8 +1,12 @@
 #include "allocate_stage.hpp"
 
 #include <algorithm>
+#include <limits>
 
 namespace mrskin::bridge::detail {
+namespace {
+constexpr double kNotLoaded = std::numeric_limits<double>::quiet_NaN();  // no envelope to show
+}  // namespace
 
 bool valves_open(const GridLayout& layout, std::span<const double> current_A, std::size_t cell,
                  double max_current_A) noexcept {
@@ -112,8 +116,10 @@ void AllocateStage::clamp_targets_into_envelope(const Rendering& rendered, std::
     } else {
       out.below_floor[i] = 0;
     }
-    out.target_N[i] =
-        loaded ? std::clamp(rendered.tissue_N[i], floor_N, std::max(floor_N, c.force_max_N)) : 0.0;
+    const double ceiling_N = std::max(floor_N, c.force_max_N);
+    out.target_N[i] = loaded ? std::clamp(rendered.tissue_N[i], floor_N, ceiling_N) : 0.0;
+    out.floor_N[i] = loaded ? floor_N : kNotLoaded;
+    out.ceiling_N[i] = loaded ? ceiling_N : kNotLoaded;
   }
 }
 

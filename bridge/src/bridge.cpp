@@ -3,6 +3,7 @@
 #include <algorithm>
 #include <atomic>
 #include <cmath>
+#include <limits>
 #include <optional>
 #include <string>
 #include <vector>
@@ -67,6 +68,9 @@ class __attribute__((visibility("hidden"))) Bridge::Impl {
   }
   [[nodiscard]] std::span<const double> targets_N() const noexcept { return record_.allocated.target_N; }
   [[nodiscard]] std::span<const double> currents_A() const noexcept { return record_.allocated.current_A; }
+  [[nodiscard]] std::span<const double> law_N() const noexcept { return record_.rendered.tissue_N; }
+  [[nodiscard]] std::span<const double> floor_N() const noexcept { return record_.allocated.floor_N; }
+  [[nodiscard]] std::span<const double> ceiling_N() const noexcept { return record_.allocated.ceiling_N; }
   [[nodiscard]] const model::CellObserver& observer() const noexcept { return *observer_; }
   [[nodiscard]] const model::CellInverse& inverse() const noexcept { return *inverse_; }
   [[nodiscard]] const SensorFaultMonitor& sensor_fault_monitor() const noexcept { return *sensor_faults_; }
@@ -219,6 +223,8 @@ Bridge::Impl::Impl(DeviceSession& session, SlaveSource& source, BridgeOptions op
   a.current_A.assign(layout_.valve_count(), 0.0);
   a.target_N.assign(cells, 0.0);
   a.below_floor.assign(cells, 0);
+  a.floor_N.assign(cells, std::numeric_limits<double>::quiet_NaN());
+  a.ceiling_N.assign(cells, std::numeric_limits<double>::quiet_NaN());
   sent_A_.assign(layout_.valve_count(), 0.0);
   render_.emplace(options_, layout_);
   allocate_.emplace(options_, layout_, *model_, *inverse_, *observer_, valve_gain_, max_current_A_);
@@ -508,6 +514,9 @@ double Bridge::live_rms_error_N() const noexcept { return impl_->live_rms_error_
 double Bridge::live_stiffness_N_per_m() const noexcept { return impl_->live_stiffness_N_per_m(); }
 std::span<const double> Bridge::targets_N() const noexcept { return impl_->targets_N(); }
 std::span<const double> Bridge::currents_A() const noexcept { return impl_->currents_A(); }
+std::span<const double> Bridge::law_N() const noexcept { return impl_->law_N(); }
+std::span<const double> Bridge::envelope_floor_N() const noexcept { return impl_->floor_N(); }
+std::span<const double> Bridge::envelope_ceiling_N() const noexcept { return impl_->ceiling_N(); }
 const model::CellObserver& Bridge::observer() const noexcept { return impl_->observer(); }
 const model::CellInverse& Bridge::inverse() const noexcept { return impl_->inverse(); }
 const SensorFaultMonitor& Bridge::sensor_fault_monitor() const noexcept {

@@ -38,6 +38,8 @@ struct Allocation {
   std::vector<double> current_A;           // per valve: what send hands to the session
   std::vector<double> target_N;            // per cell: the law clamped into this solve's envelope
   std::vector<unsigned char> below_floor;  // per cell: the law is below the open-valve floor
+  std::vector<double> floor_N;             // per cell: the envelope target_N was clamped into...
+  std::vector<double> ceiling_N;           // ...(NaN where not loaded)
   bool solved = false;                     // this tick's solve succeeded
 };
 

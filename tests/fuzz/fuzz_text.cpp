@@ -4,6 +4,7 @@
 //   profile       a device profile (model::parse_profile), as a unit or a file supplies it
 //   calibration   a calibration (model::parse_calibration), as a unit stores it
 //   replay        a stream file (replay://, bridge::open_stream)
+//   recording     a recording of mrskinctl record (ctl::read_recording: replay and plot read it)
 // The bytes are the text. A parser may refuse it with mrskin::Error (InvalidArgument and
 // ConfigError are kinds of it); any other exception, a crash or a sanitizer report is a finding.
 // Files are read through a memfd (no disk), by the path /proc/self/fd/N.
@@ -29,11 +30,14 @@
 #include <chrono>
 
 #include "mrskin/bridge/sources.hpp"
+#elif defined(MRSKIN_FUZZ_TEXT_RECORDING)
+#include "recording.hpp"
 #endif
 
 namespace {
 
-#if defined(MRSKIN_FUZZ_TEXT_CONFIG) || defined(MRSKIN_FUZZ_TEXT_REPLAY)
+#if defined(MRSKIN_FUZZ_TEXT_CONFIG) || defined(MRSKIN_FUZZ_TEXT_REPLAY) || \
+    defined(MRSKIN_FUZZ_TEXT_RECORDING)
 // The bytes as a file at a path, for parsers that read paths.
 class MemFile {
  public:
@@ -79,6 +83,9 @@ void run(const std::uint8_t* data, std::size_t size) {
   for (int k = 0; k < 64 && src->latest(mrskin::TimePoint{std::chrono::milliseconds(k)}, sample); ++k) {
   }
   (void)src->stats();
+#elif defined(MRSKIN_FUZZ_TEXT_RECORDING)
+  const MemFile f(data, size);
+  (void)mrskin::ctl::read_recording(f.path());
 #endif
   (void)text;
 }

@@ -12,8 +12,9 @@ jobs=${3:-2}
 here=$(cd "$(dirname "$0")" && pwd)
 work=$(mktemp -d "${TMPDIR:-/tmp}/mrskin-fuzz.XXXXXX")
 declare -A max_len=([packet]=128 [can_classic]=1024 [can_fd]=1024 [quantize]=64 [control_line]=8192
-                    [config]=8192 [profile]=8192 [calibration]=4096 [replay]=8192 [igtl]=8192 [udp]=128)
-fuzzers=(packet can_classic can_fd quantize control_line config profile calibration replay igtl udp)
+                    [config]=8192 [profile]=8192 [calibration]=4096 [replay]=8192 [igtl]=8192 [udp]=128
+                    [recording]=16384)
+fuzzers=(packet can_classic can_fd quantize control_line config profile calibration replay recording igtl udp)
 for d in "${fuzzers[@]}"; do
   [ -x "$build/tests/fuzz/mrskin_fuzz_$d" ] || { echo "run_fuzzers: $build/tests/fuzz/mrskin_fuzz_$d is not built (clang preset)" >&2; exit 2; }
 done

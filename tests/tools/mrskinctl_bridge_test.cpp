@@ -156,6 +156,16 @@ TEST_F(MrskinctlBridge, MonitorGetsTheGridThenEstopFaultEnable) {
   EXPECT_NE(recorded[0].find(R"("uri": "bridge:)" + socket_ + "\""), std::string::npos) << recorded[0];
   EXPECT_NE(recorded[0].find(R"("sensors": 12,)"), std::string::npos) << recorded[0];
   EXPECT_NE(slurp(file).find(R"("kind": "currents")"), std::string::npos);
+  // Version 2: the per-cell picture, rendered_n the mock's truth; plot draws it.
+  EXPECT_NE(recorded[0].find(R"("version": 2,)"), std::string::npos) << recorded[0];
+  EXPECT_NE(recorded[0].find(R"("rendered": "truth")"), std::string::npos) << recorded[0];
+  EXPECT_NE(slurp(file).find(R"("kind": "cells", "rendered_n": [)"), std::string::npos);
+  const std::string svg = (dir_ / "bridge.svg").string();
+  r = ctl({"plot", file, "--out", svg, "--json"});
+  ASSERT_EQ(r.code, 0) << r.out << r.err;
+  EXPECT_GE(std::stoi(json_field(r.out, "cells").value_or("0")), 1) << r.out;  // the demo loads a cell
+  EXPECT_EQ(json_field(r.out, "rendered"), "truth") << r.out;
+  EXPECT_NE(slurp(svg).find("<polyline"), std::string::npos);
   r = ctl({"replay", file, "--to-device", "mock://?seed=3"});
   ASSERT_EQ(r.code, 0) << r.out << r.err;
   EXPECT_NE(r.out.find("(0 refused by the session)"), std::string::npos) << r.out;

@@ -265,6 +265,9 @@ void Daemon::publish_grid(TimePoint now) noexcept {
     truth_->true_forces(true_N_);
   }
   grid_->write(GridSeqlock::true_n, truth_ ? std::span<const double>(true_N_) : std::span<const double>());
+  grid_->write(GridSeqlock::law_n, bridge_->law_N());
+  grid_->write(GridSeqlock::floor_n, bridge_->envelope_floor_N());
+  grid_->write(GridSeqlock::ceiling_n, bridge_->envelope_ceiling_N());
   grid_->end_write();
 }
 
@@ -353,7 +356,8 @@ std::string Daemon::grid_members() {
   out += fmt::format(R"(,"grid_t_s":{})",
                      json_number(static_cast<double>(grid_copy_.t_ns - t0_.count()) * 1e-9));
   static constexpr std::array<const char*, GridSeqlock::kArrays> kNames = {
-      "force_n", "displacement_m", "target_n", "current_a", "temperature_c", "sensor", "true_force_n"};
+      "force_n", "displacement_m", "target_n", "current_a", "temperature_c",
+      "sensor",  "true_force_n",   "law_n",    "floor_n",   "ceiling_n"};
   for (std::size_t a = 0; a < GridSeqlock::kArrays; ++a) {
     out += fmt::format(R"(,"{}":[)", kNames.at(a));
     const std::vector<double>& values = grid_copy_.arrays.at(a);

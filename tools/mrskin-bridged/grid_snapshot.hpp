@@ -59,7 +59,8 @@ class CoilThermalEstimate {
 class GridSeqlock {
  public:
   // sensor: the raw readings in the sensors' SI unit (what mrskinctl record --bridge writes).
-  // true_n: the mock's true contact force per cell (NaN on hardware).
+  // true_n: the mock's true contact force per cell (NaN on hardware). law_n: the tissue law,
+  // not clamped; floor_n, ceiling_n: the envelope the target was clamped into (NaN: not loaded).
   enum Array : std::uint8_t {
     force_n,
     displacement_m,
@@ -68,6 +69,9 @@ class GridSeqlock {
     temperature_c,
     sensor,
     true_n,
+    law_n,
+    floor_n,
+    ceiling_n,
     kArrays
   };
   GridSeqlock() = default;

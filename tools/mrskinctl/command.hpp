@@ -34,5 +34,6 @@ void add_selftest_command(CLI::App& app, const GlobalOptions& global, int& exit_
 void add_calibrate_command(CLI::App& app, const GlobalOptions& global, int& exit_code);
 // record and replay.
 void add_record_commands(CLI::App& app, const GlobalOptions& global, int& exit_code);
+void add_plot_command(CLI::App& app, const GlobalOptions& global, int& exit_code);
 
 }  // namespace mrskin::ctl

@@ -1,13 +1,17 @@
-// The recording format of mrskinctl record / replay (docs/cli.md, "record, replay"): NDJSON, one
-// flat object per line. Line 1 is the header, then one line per event, t_s counted from the
+// The recording format of mrskinctl record / replay / plot (docs/cli.md, "record, replay"): NDJSON,
+// one flat object per line. Line 1 is the header, then one line per event, t_s counted from the
 // start of the recording (host time):
-//   {"format": "mrskinctl-record", "version": 1, "uri": "mock://", "valves": 12, "fluid_cells": 13,
-//    "sensors": 12, "sensor_unit": "m", "max_current_a": 0.1}
+//   {"format": "mrskinctl-record", "version": 2, "uri": "mock://", "valves": 12, "fluid_cells": 13,
+//    "sensors": 12, "sensor_unit": "m", "max_current_a": 0.1, "rendered": "truth"}
 //   {"t_s": 0.001, "dir": "tx", "kind": "state", "request": "enable"}
 //   {"t_s": 0.004, "dir": "tx", "kind": "currents", "values": [0.01, ...]}          (A, one per valve)
 //   {"t_s": 0.004, "dir": "tx", "kind": "targets", "first": 6, "values": [K, D, F, T]}  (N/m, m, N, s)
 //   {"t_s": 0.005, "dir": "rx", "kind": "telemetry", "device_time_s": 0.005, "first": 0, "values": [...]}
 //   {"t_s": 0.006, "dir": "rx", "kind": "status", "state": "ENABLED", "fault": "none"}
+//   {"t_s": 0.010, "dir": "rx", "kind": "cells", "rendered_n": [...], "target_n": [...], "law_n": [...],
+//    "floor_n": [...], "ceiling_n": [...], "loaded": [0, 1, ...]}              (N, one per fluid cell)
+// Version 2 adds the header's "rendered" (what rendered_n is: "truth" on the mock, "observer" on a
+// unit, "none": no cells lines) and the cells lines (through mrskin-bridged); version 1 files read.
 // Values are strings, numbers or arrays of numbers; nothing nests. The reader is strict and
 // names the line of the first error.
 #pragma once
@@ -28,7 +32,7 @@
 namespace mrskin::ctl {
 
 inline constexpr std::string_view kRecordFormat = "mrskinctl-record";
-inline constexpr int kRecordVersion = 1;
+inline constexpr int kRecordVersion = 2;
 
 // One line of a recording, parsed with nlohmann-json. Throws InvalidArgument("where: reason")
 // when it is not a JSON object of strings, numbers and arrays of numbers, and from the accessors

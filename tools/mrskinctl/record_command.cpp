@@ -20,6 +20,7 @@
 #include "ctl_device_rig.hpp"
 #include "exit_codes.hpp"
 #include "json_text.hpp"
+#include "recording.hpp"
 
 namespace mrskin::ctl {
 namespace {
@@ -120,11 +121,41 @@ void print_record_summary(const RecordOptions& o, const GlobalOptions& global, d
 }
 
 std::string header_line(const std::string& uri, std::size_t valves, std::size_t fluid_cells,
-                        std::size_t sensors, const std::string& sensor_unit, double max_current_a) {
+                        std::size_t sensors, const std::string& sensor_unit, double max_current_a,
+                        std::string_view rendered = "none") {
   return fmt::format(R"({{"format": "{}", "version": {}, "uri": "{}", "valves": {}, "fluid_cells": {}, )"
-                     R"("sensors": {}, "sensor_unit": "{}", "max_current_a": {}}})",
+                     R"("sensors": {}, "sensor_unit": "{}", "max_current_a": {}, "rendered": "{}"}})",
                      kRecordFormat, kRecordVersion, json_escape(uri), valves, fluid_cells, sensors,
-                     json_escape(sensor_unit), json_number(max_current_a));
+                     json_escape(sensor_unit), json_number(max_current_a), rendered);
+}
+
+// Version 2's per-cell picture from one grid event (daemon.md, "Grid telemetry"): false when the
+// daemon sent no envelope (an older one). rendered_n: the truth when the daemon has one.
+bool cells_line(const JsonReply& event, double t_s, std::string& line) {
+  const std::optional<std::vector<double>> truth = event.numbers("true_force_n");
+  const std::optional<std::vector<double>> observed = event.numbers("force_n");
+  const std::optional<std::vector<double>> target = event.numbers("target_n");
+  const std::optional<std::vector<double>> law = event.numbers("law_n");
+  std::optional<std::vector<double>> floor = event.numbers("floor_n");
+  std::optional<std::vector<double>> ceiling = event.numbers("ceiling_n");
+  if (!observed || !target || !law || !floor || !ceiling) {
+    return false;
+  }
+  const bool has_truth = truth && !truth->empty() && std::isfinite(truth->front());
+  std::vector<double> loaded(floor->size(), 0.0);
+  for (std::size_t i = 0; i < floor->size() && i < ceiling->size(); ++i) {
+    loaded[i] = std::isfinite((*floor)[i]) ? 1.0 : 0.0;
+    if (loaded[i] == 0.0) {
+      (*floor)[i] = 0.0;  // the file holds numbers only: "loaded" says where these mean nothing
+      (*ceiling)[i] = 0.0;
+    }
+  }
+  line = fmt::format(
+      R"({{"t_s": {}, "dir": "rx", "kind": "cells", "rendered_n": {}, "target_n": {}, "law_n": {}, )"
+      R"("floor_n": {}, "ceiling_n": {}, "loaded": {}}})",
+      json_number(t_s), record_numbers(has_truth ? *truth : *observed), record_numbers(*target),
+      record_numbers(*law), record_numbers(*floor), record_numbers(*ceiling), record_numbers(loaded));
+  return true;
 }
 
 // Through a running mrskin-bridged (which owns the device): its grid telemetry every 10 ms, as
@@ -141,6 +172,7 @@ int run_record_bridge(const RecordOptions& o, const GlobalOptions& global) {
     return std::chrono::duration<double>(std::chrono::steady_clock::now() - t0).count();
   };
   bool header = false;
+  bool pictured = false;  // the header said cells lines follow
   std::string state;
   std::string fault;
   std::vector<double> last_currents;
@@ -160,11 +192,19 @@ int run_record_bridge(const RecordOptions& o, const GlobalOptions& global) {
     const double t_s = elapsed_s();
     const std::string now_state = event.text("state").value_or("?");
     const std::string now_fault = event.text("fault").value_or("?");
+    std::string picture;
+    const bool has_picture = cells_line(event, t_s, picture);
     if (!header) {
+      const std::optional<std::vector<double>> truth = event.numbers("true_force_n");
+      const bool has_truth = truth && !truth->empty() && std::isfinite(truth->front());
       out.line(header_line("bridge:" + path, currents->size(), cells->size(), sensors->size(),
                            event.text("sensor_unit").value_or("m"),
-                           event.number("max_current_a").value_or(0.0)));
+                           event.number("max_current_a").value_or(0.0),
+                           !has_picture ? "none"
+                           : has_truth  ? "truth"
+                                        : "observer"));
       header = true;
+      pictured = has_picture;
     }
     if (now_state != state || now_fault != fault) {
       state = now_state;
@@ -188,6 +228,9 @@ int run_record_bridge(const RecordOptions& o, const GlobalOptions& global) {
                          json_number(t_s), json_number(event.number("grid_t_s").value_or(0.0)),
                          record_numbers(*sensors)));
     ++telemetry;
+    if (pictured && has_picture) {
+      out.line(picture);
+    }
   });
   const std::size_t lines = out.lines();
   if (!out.close()) {
@@ -272,109 +315,7 @@ int run_record(const RecordOptions& o, const GlobalOptions& global) {
 
 // --- replay ----------------------------------------------------------------------------
 
-struct Event {
-  std::size_t line = 0;
-  double t_s = 0.0;
-  bool tx = false;
-  std::string kind;
-  std::string request;  // state requests
-  std::string state;    // status
-  std::string fault;
-  std::size_t first = 0;
-  double device_time_s = 0.0;
-  std::vector<double> values;
-};
-
-struct Recording {
-  std::string uri;
-  std::size_t valves = 0;
-  std::size_t fluid_cells = 0;
-  std::size_t sensors = 0;
-  std::string sensor_unit;
-  double max_current_a = 0.0;
-  std::vector<Event> events;
-};
-
-Recording read_recording(const std::string& path) {
-  std::ifstream in(path);
-  if (!in) {
-    throw InvalidArgument(fmt::format("replay: cannot read {}: {}", path, std::strerror(errno)));
-  }
-  Recording r;
-  std::string text;
-  std::size_t n = 0;
-  double last_t_s = 0.0;
-  while (std::getline(in, text)) {
-    ++n;
-    const std::string where = fmt::format("{}:{}", path, n);
-    if (text.empty() || text.find_first_not_of(" \t\r") == std::string::npos) {
-      continue;
-    }
-    const RecordLine f(text, where);
-    if (n == 1) {
-      if (f.text("format") != kRecordFormat || f.number("version") != kRecordVersion) {
-        throw InvalidArgument(
-            fmt::format("{}: not a {} version {} header", where, kRecordFormat, kRecordVersion));
-      }
-      r.uri = f.text("uri");
-      r.valves = f.index("valves");
-      r.fluid_cells = f.index("fluid_cells");
-      r.sensors = f.index("sensors");
-      r.sensor_unit = f.text("sensor_unit");
-      r.max_current_a = f.number("max_current_a");
-      continue;
-    }
-    Event e;
-    e.line = n;
-    e.t_s = f.number("t_s");
-    if (!(e.t_s >= last_t_s) || !std::isfinite(e.t_s)) {
-      throw InvalidArgument(
-          fmt::format("{}: t_s {} goes back in time (previous {})", where, e.t_s, last_t_s));
-    }
-    last_t_s = e.t_s;
-    const std::string& dir = f.text("dir");
-    if (dir != "tx" && dir != "rx") {
-      throw InvalidArgument(fmt::format(R"({}: dir must be "tx" or "rx", not "{}")", where, dir));
-    }
-    e.tx = dir == "tx";
-    e.kind = f.text("kind");
-    if (e.tx && e.kind == "state") {
-      e.request = f.text("request");
-      if (e.request != "enable" && e.request != "disable" && e.request != "pause" && e.request != "estop") {
-        throw InvalidArgument(fmt::format("{}: unknown state request \"{}\"", where, e.request));
-      }
-    } else if (e.tx && e.kind == "currents") {
-      e.values = f.array("values");
-      DeviceInfo recorded;
-      recorded.valves = r.valves;
-      recorded.max_current_A = r.max_current_a;
-      check_currents(e.values, recorded, where);
-    } else if (e.tx && e.kind == "targets") {
-      e.first = f.index("first");
-      e.values = f.array("values");
-      if (e.values.size() != 4) {
-        throw InvalidArgument(
-            fmt::format("{}: a target has 4 values: stiffness N/m, offset m, ceiling N, validity s", where));
-      }
-    } else if (!e.tx && e.kind == "telemetry") {
-      e.device_time_s = f.number("device_time_s");
-      e.first = f.index("first");
-      e.values = f.array("values");
-    } else if (!e.tx && e.kind == "status") {
-      e.state = f.text("state");
-      e.fault = f.text("fault");
-    } else {
-      throw InvalidArgument(fmt::format("{}: unknown event {} \"{}\"", where, dir, e.kind));
-    }
-    r.events.push_back(std::move(e));
-  }
-  if (n == 0) {
-    throw InvalidArgument(fmt::format("{}:1: empty file; expected a {} header", path, kRecordFormat));
-  }
-  return r;
-}
-
-std::string event_json(const Event& e) {
+std::string event_json(const RecordedEvent& e) {
   std::string out = fmt::format(R"({{"line": {}, "t_s": {}, "dir": "{}", "kind": "{}")", e.line,
                                 json_number(e.t_s), e.tx ? "tx" : "rx", e.kind);
   if (!e.request.empty()) {
@@ -392,10 +333,17 @@ std::string event_json(const Event& e) {
   if (!e.values.empty()) {
     out += ", \"values\": " + record_numbers(e.values);
   }
+  if (e.kind == "cells") {
+    const CellsSample& c = e.cells;
+    out += fmt::format(
+        R"(, "rendered_n": {}, "target_n": {}, "law_n": {}, "floor_n": {}, "ceiling_n": {}, "loaded": {})",
+        record_numbers(c.rendered_n), record_numbers(c.target_n), record_numbers(c.law_n),
+        record_numbers(c.floor_n), record_numbers(c.ceiling_n), record_numbers(c.loaded));
+  }
   return out + "}";
 }
 
-std::string event_text(const Event& e, const Recording& r) {
+std::string event_text(const RecordedEvent& e, const Recording& r) {
   std::string out = fmt::format("{:10.6f} s {} {:<9}", e.t_s, e.tx ? "tx" : "rx", e.kind);
   if (e.kind == "state") {
     out += " " + e.request;
@@ -409,6 +357,9 @@ std::string event_text(const Event& e, const Recording& r) {
   } else if (e.kind == "telemetry") {
     out += fmt::format(" device {:.6f} s sensors {}..{} [{}]: {:.4g}", e.device_time_s, e.first,
                        e.first + e.values.size() - 1, r.sensor_unit, fmt::join(e.values, " "));
+  } else if (e.kind == "cells") {
+    out += fmt::format(" rendered ({}) [N]: {:.4g}; target [N]: {:.4g}", r.rendered,
+                       fmt::join(e.cells.rendered_n, " "), fmt::join(e.cells.target_n, " "));
   }
   return out;
 }
@@ -417,7 +368,7 @@ int run_replay(const ReplayOptions& o, const GlobalOptions& global) {
   const Recording r = read_recording(o.file);
   std::size_t commands = 0;
   std::size_t telemetry = 0;
-  for (const Event& e : r.events) {
+  for (const RecordedEvent& e : r.events) {
     commands += e.tx ? 1U : 0U;
     telemetry += e.kind == "telemetry" ? 1U : 0U;
   }
@@ -435,7 +386,7 @@ int run_replay(const ReplayOptions& o, const GlobalOptions& global) {
     } else {
       fmt::print("recording of {}: {} valves, {} sensors in {}; {} events ({} commands, {} telemetry)\n",
                  r.uri, r.valves, r.sensors, r.sensor_unit, r.events.size(), commands, telemetry);
-      for (const Event& e : r.events) {
+      for (const RecordedEvent& e : r.events) {
         fmt::print("{}\n", event_text(e, r));
       }
     }
@@ -447,7 +398,7 @@ int run_replay(const ReplayOptions& o, const GlobalOptions& global) {
   // The target device's limits, checked for every command before the first is sent.
   std::vector<protocol::CellTarget> targets(r.events.size());
   for (std::size_t i = 0; i < r.events.size(); ++i) {
-    const Event& e = r.events[i];
+    const RecordedEvent& e = r.events[i];
     const std::string where = fmt::format("{}:{}", o.file, e.line);
     if (e.kind == "currents") {
       check_currents(e.values, info, where);
@@ -458,7 +409,7 @@ int run_replay(const ReplayOptions& o, const GlobalOptions& global) {
   std::size_t sent = 0;
   std::size_t refused = 0;
   for (std::size_t i = 0; i < r.events.size() && !Rig::interrupted(); ++i) {
-    const Event& e = r.events[i];
+    const RecordedEvent& e = r.events[i];
     if (!e.tx) {
       continue;
     }

@@ -207,6 +207,12 @@ class MRSKIN_BRIDGE_API Bridge {
   [[nodiscard]] double live_stiffness_N_per_m() const noexcept;
   [[nodiscard]] std::span<const double> targets_N() const noexcept;
   [[nodiscard]] std::span<const double> currents_A() const noexcept;
+  // Per cell, from the tick thread (or after stop()): the tissue law at the observed state
+  // (capped at max_force_N, not clamped), and the envelope its target was clamped into (the
+  // floor is the observer's force when every valve of the cell is open); NaN where not loaded.
+  [[nodiscard]] std::span<const double> law_N() const noexcept;
+  [[nodiscard]] std::span<const double> envelope_floor_N() const noexcept;
+  [[nodiscard]] std::span<const double> envelope_ceiling_N() const noexcept;
   [[nodiscard]] const model::CellObserver& observer() const noexcept;
   [[nodiscard]] const model::CellInverse& inverse() const noexcept;
   // Sensor faults: the monitor (setup data: cells_of_sensor, stuck_run_readings; its live state
