@@ -35,5 +35,6 @@ void add_calibrate_command(CLI::App& app, const GlobalOptions& global, int& exit
 // record and replay.
 void add_record_commands(CLI::App& app, const GlobalOptions& global, int& exit_code);
 void add_plot_command(CLI::App& app, const GlobalOptions& global, int& exit_code);
+void add_budget_command(CLI::App& app, const GlobalOptions& global, int& exit_code);
 
 }  // namespace mrskin::ctl

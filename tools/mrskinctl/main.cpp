@@ -265,6 +265,7 @@ int guarded_main(int argc, char** argv) {
   mrskin::ctl::add_calibrate_command(app, global, command_exit);
   mrskin::ctl::add_record_commands(app, global, command_exit);
   mrskin::ctl::add_plot_command(app, global, command_exit);
+  mrskin::ctl::add_budget_command(app, global, command_exit);
   mrskin::ctl::add_bridge_commands(app, global, command_exit);
   int model_exit = 0;
   CLI::App* model = mrskin::ctl::add_model_command(app, model_exit);
