@@ -69,6 +69,7 @@ class __attribute__((visibility("hidden"))) Bridge::Impl {
   [[nodiscard]] std::span<const double> targets_N() const noexcept { return record_.allocated.target_N; }
   [[nodiscard]] std::span<const double> currents_A() const noexcept { return record_.allocated.current_A; }
   [[nodiscard]] std::span<const double> law_N() const noexcept { return record_.rendered.tissue_N; }
+  [[nodiscard]] const BusBudgetCheck& bus_budget() const noexcept { return bus_budget_; }
   [[nodiscard]] std::span<const double> floor_N() const noexcept { return record_.allocated.floor_N; }
   [[nodiscard]] std::span<const double> ceiling_N() const noexcept { return record_.allocated.ceiling_N; }
   [[nodiscard]] const model::CellObserver& observer() const noexcept { return *observer_; }
@@ -159,6 +160,7 @@ class __attribute__((visibility("hidden"))) Bridge::Impl {
   TimePoint start_{};
   bool started_ = false;
   BridgeStats stats_;
+  BusBudgetCheck bus_budget_;
   RelaxedCounter live_ticks_;
   std::atomic<double> live_rms_N_{0.0};
   std::atomic<double> live_stiffness_{0.0};
@@ -190,6 +192,9 @@ Bridge::Impl::Impl(DeviceSession& session, SlaveSource& source, BridgeOptions op
   }
   if (!options_.mapping.valid()) {
     throw InvalidArgument("the workspace mapping needs finite numbers and cells_per_m > 0");
+  }
+  if (options_.check_bus_budget) {
+    bus_budget_ = check_bus_budget(session.info(), session.transport(), options_.rate_hz);
   }
   // The unit's own parameters: its stored calibration applied to the profile it was built to.
   model::Calibration calibration;
@@ -455,7 +460,12 @@ void Bridge::Impl::retune(const BridgeTuning& t) {
   if (!t.mapping.valid()) {
     throw InvalidArgument("the workspace mapping needs finite numbers and cells_per_m > 0");
   }
+  BusBudgetCheck budget = bus_budget_;
+  if (options_.check_bus_budget && t.rate_hz != options_.rate_hz) {
+    budget = check_bus_budget(session_.info(), session_.transport(), t.rate_hz);  // throws: nothing changed
+  }
   render_->estimator().set_stale_policy(t.stale_hold_s, t.stale_fade_s);  // throws before anything changed
+  bus_budget_ = std::move(budget);
   if (t.rate_hz != options_.rate_hz || t.realtime != options_.realtime ||
       t.rt_priority != options_.rt_priority) {
     loop_.reset();  // the library's loop is made again at start() with the new rate
@@ -515,6 +525,7 @@ double Bridge::live_stiffness_N_per_m() const noexcept { return impl_->live_stif
 std::span<const double> Bridge::targets_N() const noexcept { return impl_->targets_N(); }
 std::span<const double> Bridge::currents_A() const noexcept { return impl_->currents_A(); }
 std::span<const double> Bridge::law_N() const noexcept { return impl_->law_N(); }
+const BusBudgetCheck& Bridge::bus_budget() const noexcept { return impl_->bus_budget(); }
 std::span<const double> Bridge::envelope_floor_N() const noexcept { return impl_->floor_N(); }
 std::span<const double> Bridge::envelope_ceiling_N() const noexcept { return impl_->ceiling_N(); }
 const model::CellObserver& Bridge::observer() const noexcept { return impl_->observer(); }

@@ -174,10 +174,13 @@ const char* to_string(BusKind kind) noexcept {
   return "?";
 }
 
-BusSpec default_bus_spec(BusKind kind) noexcept {
+BusSpec default_bus_spec(BusKind kind, bool packed) noexcept {
   BusSpec s;
   s.kind = kind;
   s.usb = kind == BusKind::hid_high_speed ? kUsbHighSpeedMaxSlots : kUsbFullSpeedSlots;
+  if (kind == BusKind::hid_high_speed && !packed) {
+    s.usb.report_bytes = kHidReportBytes;
+  }
   return s;
 }
 

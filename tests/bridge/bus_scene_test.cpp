@@ -11,6 +11,8 @@
 #include <string_view>
 
 #include "mrskin/bridge/bridge.hpp"
+#include "mrskin/driver/device.hpp"
+#include "mrskin/driver/errors.hpp"
 #include "scene_rig.hpp"
 
 namespace mrskin::bridge {
@@ -18,8 +20,15 @@ namespace {
 
 bool has(const std::string& text, const std::string& part) { return text.find(part) != std::string::npos; }
 
+// What the bus model does with traffic the budget refuses: the check is off to measure it.
+BridgeOptions unchecked() {
+  BridgeOptions o;
+  o.check_bus_budget = false;
+  return o;
+}
+
 TEST(BusScene, DemoRunsOnFullSpeedHidAndReportsTheBus) {
-  const test::SceneRun r = test::run_scene("demo", 2.0, "mock://?seed=7&bus=hid-fs");
+  const test::SceneRun r = test::run_scene("demo", 2.0, "mock://?seed=7&bus=hid-fs", nullptr, 0, unchecked());
   EXPECT_EQ(r.state, DeviceState::enabled);
   EXPECT_STREQ(r.stats.bus.kind, "hid-fs");
   const BridgeStats::Bus& bus = r.stats.bus;
@@ -51,6 +60,58 @@ TEST(BusScene, DemoRunsOnClassicCanAndReportsTheBus) {
   EXPECT_TRUE(has(json, "\"bus\": {\"kind\": \"can\", \"host_to_device\": ")) << json;
 }
 
+// The bus budget at open (docs/protocol.md, "Bus budget"): a bridge whose traffic does not fit its
+// unit's bus is refused with what would carry it, one that fits above 80 % carries a warning, and
+// a retune to a rate the bus does not carry changes nothing.
+TEST(BusBudgetAtOpen, TheBridgeRefusesARateItsBusCannotCarry) {
+  SimulatedClock clock;
+  OpenOptions open;
+  open.synchronous_mock = true;
+  auto scene = make_scene("demo");
+  {
+    OpenedDevice dev = open_device("mock://?seed=7&bus=hid-fs", clock, open);
+    try {
+      Bridge bridge(*dev.session, *scene);
+      ADD_FAILURE() << "protocol 1.1 does not fit full-speed HID at 1 kHz";
+    } catch (const BusOverloaded& e) {
+      const std::string what = e.what();
+      EXPECT_TRUE(has(what, "does not fit the hid-fs bus")) << what;
+      EXPECT_TRUE(has(what, "1.05 reports a slot")) << what;
+      EXPECT_TRUE(has(what, "hid-fs carries no loop rate")) << what;
+      EXPECT_TRUE(has(what, "at 1000 Hz it fits hid-hs")) << what;
+    }
+  }
+  {
+    OpenedDevice dev = open_device("mock://?seed=7&bus=can", clock, open);
+    BridgeOptions at_2kHz;
+    at_2kHz.rate_hz = 2000.0;
+    try {
+      Bridge bridge(*dev.session, *scene, at_2kHz);
+      ADD_FAILURE() << "classic CAN does not carry the 5x5 at 2 kHz";
+    } catch (const BusOverloaded& e) {
+      const std::string what = e.what();
+      EXPECT_TRUE(has(what, "the highest loop rate can carries is 1115 Hz")) << what;
+      EXPECT_TRUE(has(what, "at 2000 Hz it fits hid-hs")) << what;
+    }
+    Bridge bridge(*dev.session, *scene);  // 1 kHz: 95.3 % of the bus, a warning
+    const BusBudgetCheck& b = bridge.bus_budget();
+    EXPECT_TRUE(b.limited);
+    EXPECT_NEAR(b.budget.load(), 0.953, 1e-3);
+    EXPECT_TRUE(has(b.warning, "needs 95.3 % of the can bus")) << b.warning;
+    BridgeTuning faster = bridge.tuning();
+    faster.rate_hz = 1500.0;
+    EXPECT_THROW(bridge.retune(faster), BusOverloaded);
+    EXPECT_EQ(bridge.tuning().rate_hz, 1000.0);
+    BridgeTuning slower = bridge.tuning();
+    slower.rate_hz = 500.0;
+    bridge.retune(slower);
+    EXPECT_TRUE(bridge.bus_budget().warning.empty()) << bridge.bus_budget().warning;
+  }
+  // An ideal link (bus=none, the default) has nothing to check.
+  OpenedDevice ideal = open_device("mock://?seed=7", clock, open);
+  EXPECT_FALSE(Bridge(*ideal.session, *scene).bus_budget().limited);
+}
+
 // Each scene, seed 7, 8 s, on an ideal link and on each bus: the closed loop's RMS error and p95
 // relative error, and the bus's figures. A measurement: prints a Markdown table, asserts nothing.
 TEST(BusScene, DISABLED_MeasureEveryScene) {
@@ -63,8 +124,8 @@ TEST(BusScene, DISABLED_MeasureEveryScene) {
     double rms0 = 0.0;
     double p950 = 0.0;
     for (const char* bus : {"none", "hid-fs", "can", "canfd", "hid-hs"}) {
-      const test::SceneRun r =
-          test::run_scene(std::string(name), 8.0, std::string("mock://?seed=7&bus=") + bus);
+      const test::SceneRun r = test::run_scene(
+          std::string(name), 8.0, std::string("mock://?seed=7&bus=") + bus, nullptr, 0, unchecked());
       const double rms = r.stats.force_rms_error_N();
       const double p95 = 100.0 * r.stats.relative_error.percentile(0.95);
       if (std::string_view(bus) == "none") {

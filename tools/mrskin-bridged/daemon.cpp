@@ -893,6 +893,9 @@ std::vector<std::string> Daemon::reload(Settings next) {
     if (const std::string warning = start(); !warning.empty()) {
       log.push_back("warning: " + warning);
     }
+    if (plan.loop_changed && !bus_warning().empty()) {  // a new rate: its budget
+      log.push_back("warning: " + bus_warning());
+    }
     log.push_back(fmt::format(
         "reload: {} (rate {} Hz, feedback gain {} /s, footprint {} cells, mapping origin ({}, {}) m, {} "
         "cells/m, stale hold {} s, fade {} s, source {})",

@@ -91,6 +91,8 @@ class Daemon final : public bridge::Tickable, public ControlBackend {
   void drive_finger();  // the mock's simulated finger follows a scene's script
   // The stream source's events not taken yet (connections, the first drop of each reason).
   std::vector<bridge::SourceEvent> take_source_events();
+  // The bus budget's warning at the current rate ("" when within 80 % or not limited).
+  [[nodiscard]] const std::string& bus_warning() const noexcept { return bridge_->bus_budget().warning; }
   // The stream source's latest warning ("" when none): why no sample may be arriving.
   [[nodiscard]] std::string stream_warning() const;
   [[nodiscard]] std::string status_line() const;

@@ -402,6 +402,9 @@ int run(Settings cfg, const std::string& config_path, const mrskin::bridged::Ove
       library_version(), cfg.device, info.serial, info.firmware, info.protocol_major, info.protocol_minor,
       info.rows, info.cols, info.valves, info.sensors, cfg.source);
   std::fflush(stdout);
+  if (!daemon.bus_warning().empty()) {
+    spdlog::warn("{}", daemon.bus_warning());
+  }
   if (const std::string warning = daemon.start(); !warning.empty()) {
     spdlog::warn("{}", warning);
   }

@@ -14,7 +14,6 @@
 #include "mrskin/driver/layout.hpp"
 #include "mrskin/driver/model/profile.hpp"
 #include "mrskin/protocol/bus_budget.hpp"
-#include "mrskin/protocol/packet.hpp"
 
 namespace mrskin::ctl {
 namespace {
@@ -67,10 +66,7 @@ int run_budget(const BudgetOptions& o, const GlobalOptions& global) {
     for (const bool packed : {false, true}) {
       const auto bus = static_cast<proto::BusKind>(k);
       traffic.packed = packed;
-      proto::BusSpec spec = proto::default_bus_spec(bus);
-      if (bus == proto::BusKind::hid_high_speed && !packed) {
-        spec.usb.report_bytes = protocol::kHidReportBytes;  // 1.1 declares nothing: its 64-byte reports
-      }
+      const proto::BusSpec spec = proto::default_bus_spec(bus, packed);
       rows.push_back({bus, packed, proto::compute_bus_budget(spec, traffic),
                       proto::highest_update_rate_hz(spec, traffic)});
     }

@@ -159,6 +159,11 @@ class CanTransport final : public QueuedTransport {
     return s;
   }
 
+  // 1 Mbit/s (5 Mbit/s data phase) assumed: SocketCAN's bit timing is the interface's, not ours.
+  [[nodiscard]] std::optional<protocol::BusSpec> bus() const noexcept override {
+    return protocol::default_bus_spec(uri_.fd ? protocol::BusKind::can_fd : protocol::BusKind::can_classic);
+  }
+
  private:
   // What the writer waits for before writing again.
   enum class Wait : std::uint8_t { nothing, writable, backoff };

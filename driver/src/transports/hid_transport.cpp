@@ -211,6 +211,11 @@ class HidTransport final : public QueuedTransport {
     return problem_;
   }
 
+  // The unit's descriptors are full speed (usb.hpp): one 64-byte report a 1 ms frame each way.
+  [[nodiscard]] std::optional<protocol::BusSpec> bus() const noexcept override {
+    return protocol::default_bus_spec(protocol::BusKind::hid_full_speed);
+  }
+
  private:
   [[nodiscard]] bool stopping() const noexcept { return stopping_.load(std::memory_order_acquire); }
 

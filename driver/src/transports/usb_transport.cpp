@@ -299,6 +299,10 @@ class UsbTransport final : public QueuedTransport {
   UsbTransport(UsbTransport&&) = delete;
   UsbTransport& operator=(UsbTransport&&) = delete;
   ~UsbTransport() override;
+  // The unit's descriptors are full speed (usb.hpp): one 64-byte report a 1 ms frame each way.
+  [[nodiscard]] std::optional<protocol::BusSpec> bus() const noexcept override {
+    return protocol::default_bus_spec(protocol::BusKind::hid_full_speed);
+  }
 
  private:
   struct Slot {

@@ -17,6 +17,7 @@
 #include "mrskin/bridge/sensor_faults.hpp"
 #include "mrskin/bridge/stats.hpp"
 #include "mrskin/bridge/tissue.hpp"
+#include "mrskin/driver/bus_budget_check.hpp"
 #include "mrskin/driver/clock.hpp"
 #include "mrskin/driver/errors.hpp"
 #include "mrskin/driver/force_truth.hpp"
@@ -81,6 +82,10 @@ struct BridgeOptions {
   // fit; when a fluid cell is left with no healthy sensor the bridge releases the valves and
   // disables the device, and refuses enable until it is rebuilt.
   SensorFaultOptions sensor_faults{};
+  // The unit's bus budget at rate_hz (mrskin/driver/bus_budget_check.hpp): refused with
+  // BusOverloaded when the traffic does not fit the transport's bus; off only to measure what a
+  // bus does with traffic that does not fit (the mock's bus model tests).
+  bool check_bus_budget = true;
 };
 
 // What a running bridge can change without losing its state (Bridge::retune): a reload of these
@@ -185,6 +190,9 @@ class MRSKIN_BRIDGE_API Bridge {
   // InvalidArgument for a value out of range (nothing changed then) or while start()ed. Setup.
   void retune(const BridgeTuning& tuning);
   [[nodiscard]] BridgeTuning tuning() const noexcept;
+  // The bus budget at the current rate, checked at construction and at every retune (limited is
+  // false on a link without a limit); its warning (above 80 % of the bus) for the owner to log.
+  [[nodiscard]] const BusBudgetCheck& bus_budget() const noexcept;
 
   // One tick at time now. Real-time safe.
   ResultCode step(TimePoint now) noexcept;

@@ -24,6 +24,12 @@ class MRSKIN_DRIVER_API ProfileNotFound : public InvalidArgument {
  public:
   using InvalidArgument::InvalidArgument;
 };
+// A loop rate whose traffic the unit's bus cannot carry (DeviceSession's bus budget); the message
+// names the highest rate this bus carries and the buses that carry the one asked for.
+class MRSKIN_DRIVER_API BusOverloaded : public InvalidArgument {
+ public:
+  using InvalidArgument::InvalidArgument;
+};
 // No device answers at the given address.
 class MRSKIN_DRIVER_API DeviceNotFound : public Error {
  public:

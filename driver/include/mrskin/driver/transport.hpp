@@ -8,12 +8,14 @@
 #include <atomic>
 #include <cstddef>
 #include <cstdint>
+#include <optional>
 #include <span>
 #include <string_view>
 
 #include "mrskin/driver/clock.hpp"
 #include "mrskin/driver/errors.hpp"
 #include "mrskin/driver/export.hpp"
+#include "mrskin/protocol/bus_budget.hpp"
 
 namespace mrskin {
 
@@ -75,6 +77,9 @@ class MRSKIN_DRIVER_API Transport {
   [[nodiscard]] virtual TransportState state() const noexcept = 0;
   [[nodiscard]] virtual std::string_view uri() const noexcept = 0;
   [[nodiscard]] virtual TransportCounters counters() const noexcept { return {}; }
+  // The bus the datagrams travel on, for the bus budget (DeviceSession::check_bus_budget);
+  // nullopt when nothing limits it (mock://?bus=none, an in-process link).
+  [[nodiscard]] virtual std::optional<protocol::BusSpec> bus() const noexcept { return std::nullopt; }
 };
 
 }  // namespace mrskin

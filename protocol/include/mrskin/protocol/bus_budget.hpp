@@ -26,9 +26,10 @@ struct BusSpec {
   double data_bitrate_bit_per_s = 5e6;         // CAN FD's data phase
 };
 
-// The usual spec of each kind: full-speed slots, high speed as at most declared (3 x 1024 B per
-// 125 us), classic CAN at 1 Mbit/s, CAN FD at 1/5 Mbit/s.
-MRSKIN_PROTOCOL_API BusSpec default_bus_spec(BusKind kind) noexcept;
+// The usual spec of each kind: full-speed slots; high speed 3 reports a 125 us microframe, of
+// 64 bytes with protocol 1.1 (packed = false: it declares nothing) and of up to 1024 with 1.2;
+// classic CAN at 1 Mbit/s, CAN FD at 1/5 Mbit/s.
+MRSKIN_PROTOCOL_API BusSpec default_bus_spec(BusKind kind, bool packed = true) noexcept;
 
 // A unit's cyclic traffic. The host sends every valve's current at update_rate_hz (the loop's
 // rate: the worst case, every tick changes them) and a Heartbeat at heartbeat_hz; the device
