@@ -1295,7 +1295,7 @@ TEST(CanList, ListsTheNodesThatAnswerAndInterfacesThatAreDown) {
   EXPECT_EQ(listed[1].uri, "can://vcan0?node=3");
   EXPECT_EQ(listed[1].path, "vcan0");
   EXPECT_EQ(listed[1].serial, "4D520001");
-  EXPECT_EQ(listed[1].protocol, "1.1");
+  EXPECT_EQ(listed[1].protocol, "1." + std::to_string(protocol::kVersionMinor));
   EXPECT_FALSE(listed[1].firmware.empty());
   EXPECT_TRUE(listed[1].problem.empty());
   EXPECT_EQ(bus->open_sockets(), 0U);

@@ -87,7 +87,7 @@ class __attribute__((visibility("hidden"))) MockBus {
     std::atomic<std::int64_t> max_wait_ns{0};
     std::atomic<std::int64_t> busy_ns{0};  // CAN
     void waited(std::int64_t ns) noexcept;
-    void carry(std::size_t packet_bytes) noexcept;  // USB: one packet in one report
+    void carry(const Datagram& report) noexcept;  // USB: one report, its packets and bytes
   };
   // USB: one direction's interrupt endpoint. Slot k*R + r is report r of frame k.
   struct UsbLane {
@@ -109,6 +109,7 @@ class __attribute__((visibility("hidden"))) MockBus {
     std::int64_t submit_ns = 0;
     std::array<FrameInfo, CanPacketCodec::kMaxFrames> frames{};
     std::size_t frame_count = 0;
+    std::size_t unsent = 0;  // its packets with no form on the framing (classic echoes)
   };
   struct QueuedFrame {
     FrameInfo frame{};
