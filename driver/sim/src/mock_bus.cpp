@@ -269,18 +269,47 @@ void MockBus::can_device_sent(const Datagram& d, TimePoint t) noexcept {
 }
 
 bool MockBus::encode(CanPacketCodec& codec, const Datagram& d, CanPacket& out) noexcept {
+  out.datagram = d;
+  out.frame_count = 0;
+  out.unsent = 0;
+  const std::span<const std::uint8_t> bytes(d.bytes.data(), d.length);
+  if (codec.fd() || packets_in(d) == 1) {
+    // One packet, or a packed report in one CAN FD frame: delivered whole with its last frame.
+    if (!encode_packet_frames(codec, d, 0, d.length, out)) {
+      return false;
+    }
+  } else {
+    // A packed report on classic CAN: each packet's frames, as the CAN transport writes them.
+    proto::PacketWalker walker(bytes);
+    proto::PacketDecoded p;
+    std::size_t begin = 0;
+    while (walker.next(p)) {
+      if (p.error != proto::Error::ok || !encode_packet_frames(codec, d, begin, walker.offset(), out)) {
+        return false;
+      }
+      begin = walker.offset();
+    }
+  }
+  // No frame: packets this framing has no form for (classic CAN's heartbeat echo); the CAN
+  // transport drops them too.
+  return out.frame_count > 0;
+}
+
+bool MockBus::encode_packet_frames(CanPacketCodec& codec, const Datagram& d, std::size_t begin,
+                                   std::size_t end, CanPacket& out) noexcept {
   const CanPacketCodec::Encoded e =
-      codec.encode(std::span<const std::uint8_t>(d.bytes.data(), d.length), frames_);
-  // No frame: a packet this framing has no form for (classic CAN's heartbeat echo) or cannot
-  // address; the CAN transport drops it too.
-  if (e.error != proto::Error::ok || e.frames == 0) {
+      codec.encode(std::span<const std::uint8_t>(d.bytes.data() + begin, end - begin), frames_);
+  if (e.error != proto::Error::ok || out.frame_count + e.frames > out.frames.size()) {
     return false;
   }
-  out.datagram = d;
-  out.frame_count = e.frames;
-  out.unsent = e.unsent;
+  out.unsent += e.unsent;
   for (std::size_t i = 0; i < e.frames; ++i) {
-    out.frames[i] = {frames_[i].id, frames_[i].length, frames_[i].fd};
+    out.frames[out.frame_count++] = {frames_[i].id, frames_[i].length, frames_[i].fd, 0, 0};
+  }
+  if (e.frames > 0) {
+    FrameInfo& last = out.frames[out.frame_count - 1];
+    last.packet_begin = static_cast<std::uint8_t>(begin);
+    last.packet_end = static_cast<std::uint8_t>(end);
   }
   return true;
 }
@@ -339,17 +368,22 @@ void MockBus::can_start(std::int64_t t_ns) noexcept {
 void MockBus::can_complete(BusSink& sink) noexcept {
   busy_ = false;
   bus_free_ns_ = on_bus_.end_ns;
-  if (!on_bus_.frame.last) {
+  const FrameInfo& f = on_bus_.frame.frame;
+  if (f.packet_end == 0) {
     return;
   }
   CanNode& node = on_bus_.from_host ? host_ : device_;
   Counters& c = on_bus_.from_host ? to_device_ : to_host_;
   const CanPacket& p = node.packets.front();
-  c.packets.bump(packets_in(p.datagram) - p.unsent);
+  Datagram d;  // the packet (or the FD frame's packed report) this frame completes
+  d.length = static_cast<std::uint8_t>(f.packet_end - f.packet_begin);
+  std::copy_n(p.datagram.bytes.begin() + f.packet_begin, d.length, d.bytes.begin());
+  c.packets.bump(packets_in(d));
   c.waited(on_bus_.end_ns - p.submit_ns);
-  const Datagram d = p.datagram;
-  node.packets.pop();
-  --node.written;
+  if (on_bus_.frame.last) {
+    node.packets.pop();
+    --node.written;
+  }
   if (on_bus_.from_host) {
     sink.deliver_to_device(d, TimePoint{on_bus_.end_ns});
   } else {
