@@ -514,7 +514,7 @@ void MockDevice::Impl::send_status() noexcept {
     flags |= proto::kFlagDegaussing;
   }
   s.flags = static_cast<std::uint8_t>(flags);
-  if (packing_ && held_status_at_ != kNoHeldStatus) {
+  if (wait_for_telemetry() && held_status_at_ != kNoHeldStatus) {
     // A newer snapshot supersedes the status still waiting for the telemetry report (same place
     // and sequence), so a burst of changes costs no extra report; a fault is never hidden.
     const std::span<std::uint8_t> held(report_.bytes.data() + held_status_at_, kStatusPacketBytes);
@@ -524,8 +524,8 @@ void MockDevice::Impl::send_status() noexcept {
       return;
     }
   }
-  send_message(s, /*hold=*/true);  // packed: it rides with the next telemetry report
-  if (packing_ && report_.length >= kStatusPacketBytes) {
+  send_message(s, wait_for_telemetry());  // packed: it rides with the next telemetry report
+  if (wait_for_telemetry() && report_.length >= kStatusPacketBytes) {
     held_status_at_ = report_.length - kStatusPacketBytes;
   }
 }
@@ -797,7 +797,7 @@ void MockDevice::Impl::handle_packet(const proto::PacketDecoded& p, TimePoint no
       rendering_targets_ = true;
     }
   } else if (const auto* h = std::get_if<proto::Heartbeat>(&p.message)) {
-    send_message(proto::Heartbeat{h->counter}, /*hold=*/true);  // echo: the host times round trips
+    send_message(proto::Heartbeat{h->counter}, wait_for_telemetry());  // echo: the host times round trips
   } else {
     handle_config(p.message);
   }

@@ -62,6 +62,12 @@ struct __attribute__((visibility("hidden"))) MockDevice::Impl {
   // out now unless hold: status and heartbeat echoes wait for the next telemetry report.
   void send_message(const protocol::Message& message, bool hold = false) noexcept;
   void flush_report() noexcept;
+  // Status and echoes wait for the telemetry report: with packing agreed, on a framing where a
+  // report carries several packets. Classic CAN sends each packet as its own frames anyway, so
+  // there they go at once, as in 1.1.
+  [[nodiscard]] bool wait_for_telemetry() const noexcept {
+    return packing_ && options_.bus.kind != MockBusKind::can;
+  }
   void handle_packet(const protocol::PacketDecoded& p, TimePoint now) noexcept;
   void send_status() noexcept;
   void release_valves() noexcept;
