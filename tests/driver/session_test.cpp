@@ -925,6 +925,19 @@ TEST(SessionPacked, CanFdCarriesPackedReportsInOneFrame) {
   EXPECT_EQ(r.counters.decode_errors, 0U);
 }
 
+TEST(SessionPacked, ALargerGridSendsWhatDoesNotFitInTheNextReport) {
+  // 128 valves and sensors: five ValveCurrents and six Telemetry packets a tick, most too big to
+  // share a report; whatever is packed or not, every packet arrives once and in order.
+  const PackedRun r = run_enabled("mock://fingertip-16x16?seed=1", {}, 300);
+  EXPECT_TRUE(r.packed);
+  EXPECT_EQ(r.state, DeviceState::enabled);
+  EXPECT_EQ(r.counters.decode_errors, 0U);
+  EXPECT_EQ(r.counters.sequence_gaps, 0U);
+  EXPECT_GE(r.counters.telemetry, 6U * 290U);
+  EXPECT_GE(r.counters.round_trip.count(), 12U);
+  EXPECT_GE(r.counters.reports_sent, 5U * 300U);  // each currents packet in a report of its own
+}
+
 TEST(SessionPacked, TheRingLogKeepsPackets) {
   Rig rig("mock://?seed=1");
   ASSERT_TRUE(rig.dev.session->packed_reports());
