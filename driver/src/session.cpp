@@ -7,6 +7,7 @@
 #include <string>
 
 #include "mrskin/driver/layout.hpp"
+#include "mrskin/protocol/packed_report.hpp"
 #include "mrskin/protocol/packet.hpp"
 #include "mrskin/protocol/units.hpp"
 #include "session_impl.hpp"
@@ -195,6 +196,10 @@ DeviceSession::Impl::Impl(std::unique_ptr<Transport> transport, Clock& clock, Se
         fmt::format("ring log of {} packets is outside 1..65536: set SessionOptions::ring_log_packets",
                     options_.ring_log_packets));
   }
+  if (options_.protocol_minor > proto::kVersionMinor) {
+    throw InvalidArgument(fmt::format("protocol minor version {} is above this library's {}.{}",
+                                      options_.protocol_minor, proto::kVersionMajor, proto::kVersionMinor));
+  }
   ring_.resize(options_.ring_log_packets);
   fault_ring_.resize(options_.ring_log_packets);
   options_.handshake_timeout = scaled_duration(options_.handshake_timeout, options_.time_scale);
@@ -236,6 +241,8 @@ void DeviceSession::Impl::apply_identity(const proto::Identity& id) {
         transport_->uri(), id.proto_major, id.proto_minor, proto::kVersionMajor, proto::kVersionMinor));
   }
   identity_ = id;
+  packing_ = proto::reads_packed_reports(proto::kVersionMajor, options_.protocol_minor) &&
+             proto::reads_packed_reports(id.proto_major, id.proto_minor);
   info_.protocol_major = id.proto_major;
   info_.protocol_minor = id.proto_minor;
   info_.firmware = fmt::format("{}.{}.{}", id.fw_major, id.fw_minor, id.fw_patch);
@@ -271,7 +278,8 @@ void DeviceSession::Impl::await_identity(TimePoint deadline) {
     const TimePoint now = clock_.now();
     if (now >= next_request) {
       // Repeated, since a lossy link may eat the request or the answer.
-      if (send_packet(proto::IdentifyRequest{}) == ResultCode::disconnected) {
+      if (send_packet(proto::IdentifyRequest{proto::kVersionMajor, options_.protocol_minor}) ==
+          ResultCode::disconnected) {
         throw DeviceNotFound(
             fmt::format("device on {} disconnected during the handshake", transport_->uri()));
       }
@@ -432,7 +440,25 @@ void DeviceSession::Impl::log(const Datagram& d, bool sent, TimePoint now) noexc
   ring_size_ = std::min(ring_size_ + 1, ring_.size());
 }
 
-ResultCode DeviceSession::Impl::send_packet(const proto::Message& message) noexcept {
+ResultCode DeviceSession::Impl::send_packet(const proto::Message& message, bool hold) noexcept {
+  if (packing_) {
+    proto::EncodeResult r = proto::append_packet(message, tx_sequence_, report_, report_used_);
+    if (r.error == proto::Error::short_buffer && report_used_ > 0) {
+      // Full: the report goes as it is, this packet starts the next one.
+      if (const ResultCode rc = flush_report(); rc != ResultCode::ok) {
+        return rc;
+      }
+      r = proto::append_packet(message, tx_sequence_, report_, report_used_);
+    }
+    if (r.error != proto::Error::ok) {
+      ++counters_.invalid_commands;
+      return ResultCode::invalid_value;
+    }
+    report_used_ += r.bytes;
+    report_ends_[report_packets_++] = static_cast<std::uint8_t>(report_used_);
+    ++tx_sequence_;
+    return hold ? ResultCode::ok : flush_report();
+  }
   Datagram d;
   const auto r = proto::encode_packet(message, tx_sequence_, d.bytes);
   if (r.error != proto::Error::ok) {
@@ -444,6 +470,7 @@ ResultCode DeviceSession::Impl::send_packet(const proto::Message& message) noexc
   if (rc == ResultCode::ok) {
     ++tx_sequence_;
     ++counters_.sent;
+    ++counters_.reports_sent;
     log(d, true, clock_.now());
   } else if (rc == ResultCode::would_block) {
     ++counters_.send_would_block;
@@ -451,10 +478,69 @@ ResultCode DeviceSession::Impl::send_packet(const proto::Message& message) noexc
   return rc;
 }
 
+ResultCode DeviceSession::Impl::flush_report() noexcept {
+  if (report_used_ == 0) {
+    return ResultCode::ok;
+  }
+  const ResultCode rc = transport_->send(std::span<const std::uint8_t>(report_.data(), report_used_));
+  if (rc == ResultCode::ok) {
+    counters_.sent += report_packets_;
+    ++counters_.reports_sent;
+    const TimePoint now = clock_.now();
+    std::size_t begin = 0;
+    for (std::size_t i = 0; i < report_packets_; ++i) {
+      Datagram d;  // the ring log keeps packets, as the log's decoder reads them
+      d.length = static_cast<std::uint8_t>(report_ends_[i] - begin);
+      std::copy_n(report_.begin() + static_cast<std::ptrdiff_t>(begin), d.length, d.bytes.begin());
+      log(d, true, now);
+      begin = report_ends_[i];
+    }
+    report_used_ = report_packets_ = 0;
+    return rc;
+  }
+  if (rc == ResultCode::would_block) {
+    ++counters_.send_would_block;
+  }
+  drop_report();
+  return rc;
+}
+
+void DeviceSession::Impl::drop_report() noexcept {
+  // Never sent: the device must see no gap in the sequence.
+  tx_sequence_ = static_cast<std::uint8_t>(tx_sequence_ - report_packets_);
+  report_used_ = report_packets_ = 0;
+}
+
 void DeviceSession::Impl::handle(const Datagram& d, TimePoint now) noexcept {
-  log(d, false, now);
-  const proto::PacketDecoded p =
-      proto::decode_packet(std::span<const std::uint8_t>(d.bytes.data(), d.length));
+  const std::span<const std::uint8_t> bytes(d.bytes.data(), d.length);
+  ++counters_.reports_received;
+  if (!packing_) {
+    log(d, false, now);
+    handle_packet(proto::decode_packet(bytes), now);
+    return;
+  }
+  // Every packet of the report, each logged on its own; a broken one ends the walk.
+  proto::PacketWalker walker(bytes);
+  proto::PacketDecoded p;
+  std::size_t begin = 0;
+  bool any = false;
+  while (walker.next(p)) {
+    any = true;
+    const std::size_t end = walker.broken() ? bytes.size() : walker.offset();
+    Datagram one;
+    one.length = static_cast<std::uint8_t>(end - begin);
+    std::copy_n(bytes.begin() + static_cast<std::ptrdiff_t>(begin), one.length, one.bytes.begin());
+    log(one, false, now);
+    begin = end;
+    handle_packet(p, now);
+  }
+  if (!any) {
+    log(d, false, now);
+    handle_packet(proto::decode_packet(bytes), now);  // an empty report: counted undecodable
+  }
+}
+
+void DeviceSession::Impl::handle_packet(const proto::PacketDecoded& p, TimePoint now) noexcept {
   if (p.error != proto::Error::ok) {
     ++counters_.decode_errors;
     counters_.crc_errors += p.error == proto::Error::bad_crc ? 1U : 0U;
@@ -548,6 +634,8 @@ void DeviceSession::Impl::handle(const Datagram& d, TimePoint now) noexcept {
         return;
       }
       connected_ = true;
+      packing_ = proto::reads_packed_reports(proto::kVersionMajor, options_.protocol_minor) &&
+                 proto::reads_packed_reports(id->proto_major, id->proto_minor);
       ++counters_.reconnects;
       backoff_ = Duration{0};
       rx_last_sequence_ = -1;
@@ -564,18 +652,22 @@ ResultCode DeviceSession::Impl::poll(TimePoint now) noexcept {
     if (connected_) {
       connected_ = false;
       identify_pending_ = false;
+      packing_ = false;  // the unit reboots: it packs again only after the next handshake
+      drop_report();
       ++counters_.disconnects;
       backoff_ = options_.reconnect_backoff_min;
       next_reconnect_ = now + backoff_;
     }
     return ResultCode::disconnected;
   }
+  // A heartbeat held by the last poll() that no valve currents came to ride with.
+  (void)flush_report();
   if (!connected_ && counters_.identity_changes == 0) {
     // Link is back: identify again, with exponential backoff between attempts.
     if (now >= next_reconnect_) {
       identify_pending_ = true;
       rx_last_sequence_ = -1;
-      (void)send_packet(proto::IdentifyRequest{});
+      (void)send_packet(proto::IdentifyRequest{proto::kVersionMajor, options_.protocol_minor});
       next_reconnect_ = now + backoff_;
       backoff_ = std::min(backoff_ * 2, options_.reconnect_backoff_max);
     }
@@ -608,7 +700,8 @@ ResultCode DeviceSession::Impl::poll(TimePoint now) noexcept {
   if (!suppress_heartbeat_ && now >= next_heartbeat_) {
     next_heartbeat_ = now + options_.heartbeat_period;
     heartbeat_sent_[heartbeat_counter_ % heartbeat_sent_.size()] = now;
-    if (send_packet(proto::Heartbeat{heartbeat_counter_}) == ResultCode::ok) {
+    // Held with packed reports: it rides with the valve currents the tick sends next.
+    if (send_packet(proto::Heartbeat{heartbeat_counter_}, /*hold=*/true) == ResultCode::ok) {
       ++counters_.heartbeats;
     }
     ++heartbeat_counter_;
@@ -643,12 +736,13 @@ ResultCode DeviceSession::Impl::send_valve_currents(std::span<const double> curr
     m.first = static_cast<std::uint16_t>(first);
     m.count = static_cast<std::uint8_t>(std::min(proto::kMaxValveCurrents, current_counts_.size() - first));
     std::copy_n(current_counts_.begin() + static_cast<std::ptrdiff_t>(first), m.count, m.counts.begin());
-    const ResultCode rc = send_packet(m);
+    const ResultCode rc = send_packet(m, /*hold=*/true);
     if (rc != ResultCode::ok) {
+      drop_report();
       return rc;
     }
   }
-  return ResultCode::ok;
+  return flush_report();
 }
 
 ResultCode DeviceSession::Impl::send_cell_targets(std::uint16_t first_cell,
@@ -666,12 +760,13 @@ ResultCode DeviceSession::Impl::send_cell_targets(std::uint16_t first_cell,
     m.first = static_cast<std::uint16_t>(first_cell + done);
     m.count = static_cast<std::uint8_t>(std::min(proto::kMaxCellTargets, targets.size() - done));
     std::copy_n(targets.begin() + static_cast<std::ptrdiff_t>(done), m.count, m.targets.begin());
-    const ResultCode rc = send_packet(m);
+    const ResultCode rc = send_packet(m, /*hold=*/true);
     if (rc != ResultCode::ok) {
+      drop_report();
       return rc;
     }
   }
-  return ResultCode::ok;
+  return flush_report();
 }
 
 void DeviceSession::Impl::reseed_and_send() noexcept {
@@ -683,7 +778,7 @@ void DeviceSession::Impl::reseed_and_send() noexcept {
       proto::ValveCurrents m;
       m.first = static_cast<std::uint16_t>(first);
       m.count = static_cast<std::uint8_t>(std::min(proto::kMaxValveCurrents, current_counts_.size() - first));
-      (void)send_packet(m);  // all zero: released until the host commands again
+      (void)send_packet(m, /*hold=*/true);  // all zero: released until the host commands again
     }
   }
   // Targets: one message per run of targeted cells, at most kMaxCellTargets long.
@@ -698,10 +793,11 @@ void DeviceSession::Impl::reseed_and_send() noexcept {
       m.targets[m.count++] = targets_[c];
     }
     if (m.count > 0 && (!take || m.count == proto::kMaxCellTargets)) {
-      (void)send_packet(m);
+      (void)send_packet(m, /*hold=*/true);
       m.count = 0;
     }
   }
+  (void)flush_report();
 }
 
 ResultCode DeviceSession::Impl::send_state_request(proto::StateRequestCode request) noexcept {
@@ -864,6 +960,7 @@ bool DeviceSession::derated() const noexcept { return impl_->derated(); }
 Transport& DeviceSession::transport() noexcept { return impl_->transport(); }
 bool DeviceSession::degaussing() const noexcept { return impl_->degaussing(); }
 bool DeviceSession::connected() const noexcept { return impl_->connected(); }
+bool DeviceSession::packed_reports() const noexcept { return impl_->packed_reports(); }
 const SessionCounters& DeviceSession::counters() const noexcept { return impl_->counters(); }
 TransportState DeviceSession::transport_state() const noexcept { return impl_->transport_state(); }
 void DeviceSession::write_calibration(std::string_view text) { impl_->write_calibration(text); }

@@ -14,6 +14,7 @@
 
 #include "mrskin/driver/session.hpp"
 #include "mrskin/protocol/messages.hpp"
+#include "mrskin/protocol/packet.hpp"
 
 namespace mrskin {
 
@@ -56,6 +57,7 @@ class __attribute__((visibility("hidden"))) DeviceSession::Impl {
   [[nodiscard]] Transport& transport() noexcept { return *transport_; }
   [[nodiscard]] bool degaussing() const noexcept { return degaussing_; }
   [[nodiscard]] bool connected() const noexcept { return connected_; }
+  [[nodiscard]] bool packed_reports() const noexcept { return packing_; }
   [[nodiscard]] const SessionCounters& counters() const noexcept { return counters_; }
   [[nodiscard]] TransportState transport_state() const noexcept { return transport_->state(); }
   void write_calibration(std::string_view text);
@@ -68,8 +70,14 @@ class __attribute__((visibility("hidden"))) DeviceSession::Impl {
   [[nodiscard]] std::string fault_report() const;
 
  private:
-  ResultCode send_packet(const protocol::Message& message) noexcept;
+  // Sends message as one packet. With packed reports agreed, it joins the report being filled
+  // (sent first when the packet does not fit), which goes out now unless hold: then the next
+  // send_packet() without hold, flush_report() or the next poll() sends it.
+  ResultCode send_packet(const protocol::Message& message, bool hold = false) noexcept;
+  ResultCode flush_report() noexcept;
+  void drop_report() noexcept;
   void handle(const Datagram& d, TimePoint now) noexcept;
+  void handle_packet(const protocol::PacketDecoded& p, TimePoint now) noexcept;
   void log(const Datagram& d, bool sent, TimePoint now) noexcept;
   void apply_identity(const protocol::Identity& id);
   [[nodiscard]] bool same_unit(const protocol::Identity& id) const noexcept;
@@ -115,6 +123,14 @@ class __attribute__((visibility("hidden"))) DeviceSession::Impl {
   std::uint16_t heartbeat_counter_ = 0;
   std::array<TimePoint, 64> heartbeat_sent_{};
   std::uint8_t tx_sequence_ = 0;
+  // Protocol 1.2 packed reports: agreed when the device's Identity says 1.2 and this host is 1.2.
+  bool packing_ = false;
+  std::array<std::uint8_t, kMaxDatagramBytes> report_{};
+  std::size_t report_used_ = 0;
+  std::size_t report_packets_ = 0;
+  // Where each packet of the report ends (a packet has at least a header and a CRC).
+  std::array<std::uint8_t, kMaxDatagramBytes / (protocol::kPacketHeaderBytes + protocol::kPacketCrcBytes)>
+      report_ends_{};
   int rx_last_sequence_ = -1;
   SessionCounters counters_;
   std::uint32_t current_lsb_nA_ = 0;

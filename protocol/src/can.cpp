@@ -4,6 +4,7 @@
 #include <utility>
 
 #include "mrskin/protocol/crc.hpp"
+#include "mrskin/protocol/packed_report.hpp"
 #include "validate.hpp"
 
 namespace mrskin::protocol {
@@ -316,6 +317,34 @@ CanEncodeResult encode_canfd(const Message& message, std::uint8_t node, Directio
                                                        : CanFunction::fd_device_to_host,
                 0, node);
   f.length = static_cast<std::uint8_t>(canfd_padded_length(enc.bytes));
+  out = f;
+  return {Error::ok, 1};
+}
+
+CanEncodeResult encode_canfd_report(std::span<const std::uint8_t> report, std::uint8_t node,
+                                    Direction direction, CanFrame& out) noexcept {
+  if (node < kCanNodeMin || node > kCanNodeMax) {
+    return {Error::out_of_range, 0};
+  }
+  PacketWalker walker(report);
+  PacketDecoded p;
+  std::size_t packets = 0;
+  while (walker.next(p)) {
+    if (p.error != Error::ok) {
+      return {p.error, 0};
+    }
+    ++packets;
+  }
+  if (packets == 0) {
+    return {Error::short_buffer, 0};
+  }
+  CanFrame f;
+  f.fd = true;
+  f.id = can_id(direction == Direction::host_to_device ? CanFunction::fd_host_to_device
+                                                       : CanFunction::fd_device_to_host,
+                0, node);
+  std::copy_n(report.begin(), walker.offset(), f.data.begin());
+  f.length = static_cast<std::uint8_t>(canfd_padded_length(walker.offset()));
   out = f;
   return {Error::ok, 1};
 }

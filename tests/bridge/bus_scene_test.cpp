@@ -69,7 +69,7 @@ TEST(BusBudgetAtOpen, TheBridgeRefusesARateItsBusCannotCarry) {
   open.synchronous_mock = true;
   auto scene = make_scene("demo");
   {
-    OpenedDevice dev = open_device("mock://?seed=7&bus=hid-fs", clock, open);
+    OpenedDevice dev = open_device("mock://?seed=7&bus=hid-fs&protocol_minor=1", clock, open);
     try {
       Bridge bridge(*dev.session, *scene);
       ADD_FAILURE() << "protocol 1.1 does not fit full-speed HID at 1 kHz";
@@ -107,9 +107,71 @@ TEST(BusBudgetAtOpen, TheBridgeRefusesARateItsBusCannotCarry) {
     bridge.retune(slower);
     EXPECT_TRUE(bridge.bus_budget().warning.empty()) << bridge.bus_budget().warning;
   }
+  {
+    // A 1.2 unit packs: the same demo fits full-speed HID (58.6 % of the bytes in, one report a frame).
+    OpenedDevice dev = open_device("mock://?seed=7&bus=hid-fs", clock, open);
+    Bridge bridge(*dev.session, *scene);
+    EXPECT_TRUE(bridge.bus_budget().budget.fits(0.8));
+    EXPECT_TRUE(bridge.bus_budget().warning.empty()) << bridge.bus_budget().warning;
+  }
   // An ideal link (bus=none, the default) has nothing to check.
   OpenedDevice ideal = open_device("mock://?seed=7", clock, open);
   EXPECT_FALSE(Bridge(*ideal.session, *scene).bus_budget().limited);
+}
+
+// Protocol 1.2 (docs/protocol.md, "Packed reports"): the heartbeat rides in the currents' report,
+// status and echoes in the telemetry's, so the 5x5 demo needs at most one report a frame each
+// way on full-speed HID, none waits past its frame, none is dropped, and at most 80 % of the bytes.
+TEST(BusScene, DemoAtProtocolOnePointTwoNeedsOneReportAFrameEachWay) {
+  const test::SceneRun r = test::run_scene("demo", 2.0, "mock://?seed=7&bus=hid-fs");
+  EXPECT_EQ(r.state, DeviceState::enabled);
+  const BridgeStats::Bus& bus = r.stats.bus;
+  const double frames = 2000.0;
+  EXPECT_LE(static_cast<double>(bus.host_to_device.carried), frames + 1.0);
+  EXPECT_LE(static_cast<double>(bus.device_to_host.carried), frames + 1.0);
+  EXPECT_GT(bus.device_to_host.packets, bus.device_to_host.carried);  // status and echoes rode along
+  EXPECT_GT(bus.host_to_device.packets, bus.host_to_device.carried);  // heartbeats rode along
+  EXPECT_EQ(bus.host_to_device.dropped, 0U);
+  EXPECT_EQ(bus.device_to_host.dropped, 0U);
+  EXPECT_LE(bus.host_to_device.max_wait_s, 1e-3);
+  EXPECT_LE(bus.device_to_host.max_wait_s, 1e-3);
+  EXPECT_LE(bus.host_to_device.load, 0.8);
+  EXPECT_LE(bus.device_to_host.load, 0.8);
+}
+
+// The demo on full-speed HID with a 1.1 unit (no packing: the traffic of protocol 1.1) and with
+// a 1.2 unit: reports per 1 ms frame, bytes over what the slots carry, the longest wait and the
+// drops, each way. A measurement: prints a Markdown table, asserts nothing.
+//   build/release/tests/bridge/bridge_bus_scene_test --gtest_also_run_disabled_tests
+//       --gtest_filter='*MeasurePackedReports*'   (one line)
+TEST(BusScene, DISABLED_MeasurePackedReports) {
+  std::fputs(
+      "| scene | unit | H->D reports/frame | D->H reports/frame | H->D packets/report | D->H packets/report "
+      "| H->D "
+      "bytes | D->H bytes | H->D longest wait ms | D->H longest wait ms | H->D dropped | D->H dropped |\n"
+      "|---|---|---|---|---|---|---|---|---|---|---|---|\n",
+      stdout);
+  for (const std::string_view name : scene_names()) {
+    for (const char* minor : {"1", "2"}) {
+      const test::SceneRun r = test::run_scene(
+          std::string(name), 8.0, std::string("mock://?seed=7&bus=hid-fs&protocol_minor=") + minor, nullptr,
+          0, unchecked());
+      const BridgeStats::Bus& b = r.stats.bus;
+      const double frames = 8000.0;
+      const auto per = [](std::uint64_t a, std::uint64_t c) {
+        return c == 0 ? 0.0 : static_cast<double>(a) / static_cast<double>(c);
+      };
+      std::printf(  // NOLINT(cppcoreguidelines-pro-type-vararg)
+          "| %s | 1.%s | %.3f | %.3f | %.2f | %.2f | %.1f %% | %.1f %% | %.1f | %.1f | %llu | %llu |\n",
+          std::string(name).c_str(), minor, static_cast<double>(b.host_to_device.carried) / frames,
+          static_cast<double>(b.device_to_host.carried) / frames,
+          per(b.host_to_device.packets, b.host_to_device.carried),
+          per(b.device_to_host.packets, b.device_to_host.carried), 100.0 * b.host_to_device.load,
+          100.0 * b.device_to_host.load, 1e3 * b.host_to_device.max_wait_s, 1e3 * b.device_to_host.max_wait_s,
+          static_cast<unsigned long long>(b.host_to_device.dropped),
+          static_cast<unsigned long long>(b.device_to_host.dropped));
+    }
+  }
 }
 
 // Each scene, seed 7, 8 s, on an ideal link and on each bus: the closed loop's RMS error and p95

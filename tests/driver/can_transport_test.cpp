@@ -10,10 +10,13 @@
 #include <sys/socket.h>
 #include <unistd.h>
 
+#include <algorithm>
+#include <array>
 #include <atomic>
 #include <chrono>
 #include <cstring>
 #include <functional>
+#include <initializer_list>
 #include <map>
 #include <mutex>
 #include <random>
@@ -25,6 +28,7 @@
 #include "counting_new.hpp"
 #include "mrskin/driver/session.hpp"
 #include "mrskin/protocol/can.hpp"
+#include "mrskin/protocol/packed_report.hpp"
 #include "mrskin/protocol/packet.hpp"
 #include "mrskin/sim/mock_device.hpp"
 #include "transports/can_socket_api.hpp"
@@ -537,6 +541,69 @@ TEST(CanCodec, EveryGoldenMessageRoundTripsOnClassicAndFd) {
       }
     }
   }
+}
+
+// Protocol 1.2: the packets of one packed report, sequences from 0.
+std::vector<std::uint8_t> packed_report(std::initializer_list<proto::Message> messages) {
+  std::array<std::uint8_t, proto::kHidReportBytes> report{};
+  std::size_t used = 0;
+  std::uint8_t sequence = 0;
+  for (const proto::Message& m : messages) {
+    const proto::EncodeResult r = proto::append_packet(m, sequence++, report, used);
+    EXPECT_EQ(r.error, proto::Error::ok);
+    used += r.bytes;
+  }
+  return {report.begin(), report.begin() + static_cast<std::ptrdiff_t>(used)};
+}
+
+TEST(CanCodec, APackedReportOnClassicCanIsItsPacketsFramesAsIfSentAlone) {
+  CanPacketCodec packed(CanRole::host, 5, false);
+  CanPacketCodec alone(CanRole::host, 5, false);
+  const proto::ValveCurrents v = valves(0, 12, 1000);
+  std::array<proto::CanFrame, CanPacketCodec::kMaxFrames> frames{};
+  const CanPacketCodec::Encoded e = packed.encode(packed_report({proto::Heartbeat{3}, v}), frames);
+  ASSERT_EQ(e.error, proto::Error::ok);
+  std::vector<proto::CanFrame> expected = encode(alone, proto::Heartbeat{3}, 0);
+  const std::vector<proto::CanFrame> blocks = encode(alone, v, 1);
+  expected.insert(expected.end(), blocks.begin(), blocks.end());
+  ASSERT_EQ(e.frames, expected.size());  // 1 heartbeat + 3 valve blocks
+  for (std::size_t i = 0; i < expected.size(); ++i) {
+    EXPECT_EQ(frames[i], expected[i]) << i;
+  }
+  EXPECT_EQ(CanPacketCodec::check(CanRole::host, false, packed_report({proto::Heartbeat{3}, v})),
+            proto::Error::ok);
+  // A packet of the other direction anywhere in the report refuses it all.
+  EXPECT_EQ(
+      CanPacketCodec::check(CanRole::host, false, packed_report({proto::Heartbeat{3}, proto::Status{}})),
+      proto::Error::unknown_type);
+  // The unit's echo has no classic form: counted, not sent.
+  CanPacketCodec device(CanRole::device, 5, false);
+  const CanPacketCodec::Encoded d =
+      device.encode(packed_report({proto::Status{}, proto::Heartbeat{3}, telemetry(7, 0, 12)}), frames);
+  ASSERT_EQ(d.error, proto::Error::ok);
+  EXPECT_EQ(d.frames, 1U + 1U + 3U);  // status, TimeSync, 3 sensor blocks
+  EXPECT_EQ(d.unsent, 1U);
+}
+
+TEST(CanCodec, APackedReportOnCanFdIsOneFrameHandedOnWhole) {
+  CanPacketCodec device(CanRole::device, 5, true);
+  CanPacketCodec host(CanRole::host, 5, true);
+  const std::vector<std::uint8_t> report =
+      packed_report({proto::Status{}, proto::Heartbeat{3}, telemetry(7, 0, 12)});
+  std::array<proto::CanFrame, CanPacketCodec::kMaxFrames> frames{};
+  const CanPacketCodec::Encoded e = device.encode(report, frames);
+  ASSERT_EQ(e.error, proto::Error::ok);
+  ASSERT_EQ(e.frames, 1U);
+  EXPECT_EQ(frames[0].length, proto::canfd_padded_length(report.size()));
+  const CanPacketCodec::Decoded d = host.decode(frames[0]);
+  ASSERT_TRUE(d.complete);
+  ASSERT_GE(d.packet.length, report.size());
+  EXPECT_TRUE(
+      std::equal(report.begin(), report.end(), d.packet.bytes.begin()));  // every packet, for the walk
+  // A lone packet is handed on as before: the packet alone.
+  const CanPacketCodec::Decoded one = host.decode(encode(device, proto::Status{}, 9)[0]);
+  ASSERT_TRUE(one.complete);
+  EXPECT_EQ(one.packet.length, packet_of(proto::Status{}, 9).size());
 }
 
 TEST(CanCodec, ClassicFramesAreTheProtocolEncodersFrames) {
@@ -1295,7 +1362,7 @@ TEST(CanList, ListsTheNodesThatAnswerAndInterfacesThatAreDown) {
   EXPECT_EQ(listed[1].uri, "can://vcan0?node=3");
   EXPECT_EQ(listed[1].path, "vcan0");
   EXPECT_EQ(listed[1].serial, "4D520001");
-  EXPECT_EQ(listed[1].protocol, "1.1");
+  EXPECT_EQ(listed[1].protocol, "1." + std::to_string(protocol::kVersionMinor));
   EXPECT_FALSE(listed[1].firmware.empty());
   EXPECT_TRUE(listed[1].problem.empty());
   EXPECT_EQ(bus->open_sockets(), 0U);

@@ -9,12 +9,14 @@
 #include <algorithm>
 #include <array>
 #include <cstdint>
+#include <initializer_list>
 #include <memory>
 #include <string>
 #include <vector>
 
 #include "mrskin/driver/errors.hpp"
 #include "mrskin/protocol/can.hpp"
+#include "mrskin/protocol/packed_report.hpp"
 #include "mrskin/protocol/packet.hpp"
 #include "mrskin/sim/mock_device.hpp"
 #include "mrskin/sim/open_mock.hpp"
@@ -394,6 +396,76 @@ TEST(MockBusUsb, ANewerSampleTakesTheWaitingOnesSlot) {
   EXPECT_EQ(std::get<proto::Telemetry>(p.message).device_time_us, 3U);
   EXPECT_EQ(sink.log[2].at, TimePoint{milliseconds(2)});
   EXPECT_EQ(bus.stats().device_to_host.dropped, 2U);
+}
+
+// --- protocol 1.2: packed reports ------------------------------------------------------------------
+
+// Several packets in one datagram, sequences from 0 (append_packet).
+Datagram packed(std::initializer_list<proto::Message> messages) {
+  Datagram d;
+  std::uint8_t sequence = 0;
+  for (const proto::Message& m : messages) {
+    const proto::EncodeResult r = proto::append_packet(m, sequence++, d.bytes, d.length);
+    EXPECT_EQ(r.error, proto::Error::ok);
+    d.length = static_cast<std::uint8_t>(d.length + r.bytes);
+  }
+  return d;
+}
+
+proto::Telemetry twelve_samples() {
+  proto::Telemetry t;
+  t.count = 12;
+  return t;
+}
+
+TEST(MockBusUsb, APackedReportIsOneReportAndNoNewerSampleTakesItsPlace) {
+  Rig rig(bus_options(MockBusKind::hid_fs));
+  auto& [bus, sink] = rig;
+  bus.device_sent(packet(proto::Status{}), TimePoint{0}, sink);  // frame 0
+  const Datagram status_and_sample = packed({proto::Status{}, twelve_samples()});
+  bus.device_sent(status_and_sample, TimePoint{microseconds(100)}, sink);         // frame 1, waiting
+  bus.device_sent(packet(twelve_samples()), TimePoint{microseconds(200)}, sink);  // frame 2: no replacing
+  bus.advance(TimePoint{milliseconds(3)}, sink);
+  ASSERT_EQ(sink.log.size(), 3U);
+  EXPECT_EQ(sink.log[1].at, TimePoint{milliseconds(1)});
+  EXPECT_EQ(sink.log[1].datagram.length, status_and_sample.length);  // 11 + 37 bytes, one report
+  EXPECT_EQ(sink.log[2].at, TimePoint{milliseconds(2)});
+  const MockBusStats s = bus.stats();
+  EXPECT_EQ(s.device_to_host.carried, 3U);
+  EXPECT_EQ(s.device_to_host.packets, 4U);
+  EXPECT_EQ(s.device_to_host.bytes, 11U + 48U + 37U);
+  EXPECT_EQ(s.device_to_host.dropped, 0U);
+}
+
+TEST(MockBusCan, EachPacketOfAPackedReportArrivesWithItsOwnLastFrame) {
+  Rig rig(bus_options(MockBusKind::can));
+  auto& [bus, sink] = rig;
+  const TimePoint t0{microseconds(1000)};
+  bus.host_sent(packed({proto::Heartbeat{1}, twelve_currents()}), t0, sink);
+  bus.advance(TimePoint{milliseconds(5)}, sink);
+  ASSERT_EQ(sink.log.size(), 2U);
+  const auto frame_ns = static_cast<std::int64_t>(classic_worst_case_bits(8) * 1000);  // 1 us a bit
+  EXPECT_EQ(type_of(sink.log[0].datagram), proto::MessageType::heartbeat);
+  EXPECT_EQ(sink.log[0].at, t0 + std::chrono::nanoseconds(frame_ns));  // the heartbeat frame
+  EXPECT_EQ(type_of(sink.log[1].datagram), proto::MessageType::valve_currents);
+  EXPECT_EQ(sink.log[1].at, t0 + std::chrono::nanoseconds(4 * frame_ns));  // then 3 valve blocks
+  const MockBusStats s = bus.stats();
+  EXPECT_EQ(s.host_to_device.carried, 4U);  // the frames of the two packets sent alone
+  EXPECT_EQ(s.host_to_device.packets, 2U);
+}
+
+TEST(MockBusCan, APackedReportIsOneCanFdFrame) {
+  Rig rig(bus_options(MockBusKind::canfd));
+  auto& [bus, sink] = rig;
+  const Datagram report = packed({proto::Status{}, proto::Heartbeat{1}, twelve_samples()});
+  bus.device_sent(report, TimePoint{0}, sink);
+  bus.advance(TimePoint{milliseconds(1)}, sink);
+  ASSERT_EQ(sink.log.size(), 1U);
+  EXPECT_EQ(sink.log[0].datagram.length, report.length);  // delivered whole
+  const MockBusStats s = bus.stats();
+  EXPECT_EQ(s.device_to_host.carried, 1U);
+  EXPECT_EQ(s.device_to_host.packets, 3U);
+  EXPECT_EQ(s.device_to_host.bytes, proto::canfd_padded_length(report.length));  // 56 -> 64
 }
 
 // --- through the unit ------------------------------------------------------------------------------

@@ -10,7 +10,7 @@ endfunction()
 
 # Identity, protocol, profile, layout, limits, calibration, state and statistics.
 run_info(0 --device "mock://?seed=1" --sample 0.05)
-foreach(t "protocol     v1.1 (library speaks v1.1)" "profile      mr-skin-5x5" "grid         5 x 5: 13 fluid cells, 12 valves"
+foreach(t "protocol     v1.2 (library speaks v1.2)" "profile      mr-skin-5x5" "grid         5 x 5: 13 fluid cells, 12 valves"
           "sensors      12 displacement sensors in m" "limits       current 0..0.1000 A in steps of 25.0 uA"
           "heartbeat timeout 0.100 s" "state        DISABLED" "calibration" "version = 1" "statistics over 0.05 s"
           "round trip")

@@ -97,7 +97,8 @@ TEST(Session, VersionMismatchNamesBothVersions) {
     FAIL() << "handshake accepted protocol v2";
   } catch (const ProtocolMismatch& e) {
     EXPECT_NE(std::string(e.what()).find("v2.3"), std::string::npos) << e.what();
-    EXPECT_NE(std::string(e.what()).find("v1.1"), std::string::npos) << e.what();
+    EXPECT_NE(std::string(e.what()).find("v1." + std::to_string(proto::kVersionMinor)), std::string::npos)
+        << e.what();
   }
   // A packet whose framing itself is another major version.
   packet[0] = 7;
@@ -827,6 +828,138 @@ TEST(Firmware, RendersPerCellTargetsThenReleasesWhenTheyExpire) {
   rendered.run(5);
   EXPECT_FALSE(sim::mock_of(rendered.dev)->rendering_targets());
   EXPECT_NEAR(sim::mock_of(rendered.dev)->commanded_currents()[0], 0.01, 1e-9);
+}
+
+// ---- protocol 1.2: packed reports, negotiated both ways --------------------------------
+
+struct PackedRun {
+  sim::MockBusStats bus;
+  SessionCounters counters;
+  DeviceState state = DeviceState::disabled;
+  bool packed = false;
+  DeviceInfo info;
+};
+
+// Enabled, valve currents every tick, `ms` on the simulated clock.
+PackedRun run_enabled(const std::string& uri, SessionOptions options = {}, int ms = 1000) {
+  Rig rig(uri, options);
+  EXPECT_EQ(rig.dev.session->request_enable(), ResultCode::ok);
+  for (int k = 0; k < ms; ++k) {
+    std::fill(rig.currents.begin(), rig.currents.end(), 0.001 * (k % 20));  // changes every tick
+    rig.run(1);
+  }
+  return {sim::mock_of(rig.dev)->bus_stats(), rig.dev.session->counters(), rig.dev.session->state(),
+          rig.dev.session->packed_reports(), rig.dev.session->info()};
+}
+
+TEST(SessionPacked, AtOnePointTwoBothWaysOneReportAFrameOnFullSpeedHid) {
+  const PackedRun r = run_enabled("mock://?seed=1&bus=hid-fs");
+  EXPECT_TRUE(r.packed);
+  EXPECT_EQ(r.info.protocol_minor, 2);
+  EXPECT_EQ(r.state, DeviceState::enabled);  // the heartbeats inside the currents' reports fed the watchdog
+  const double frames = r.bus.elapsed_s / 1e-3;
+  // Heartbeats rode with the currents: more packets than reports, at most one report a frame.
+  EXPECT_LE(static_cast<double>(r.bus.host_to_device.carried), frames + 1.0);
+  EXPECT_GE(r.bus.host_to_device.packets, r.bus.host_to_device.carried + 45U);  // 50 Hz heartbeats
+  // Status and echoes rode with the telemetry.
+  EXPECT_LE(static_cast<double>(r.bus.device_to_host.carried), frames + 1.0);
+  EXPECT_GE(r.bus.device_to_host.packets, r.bus.device_to_host.carried + 45U);
+  EXPECT_EQ(r.bus.host_to_device.dropped, 0U);
+  EXPECT_EQ(r.bus.device_to_host.dropped, 0U);
+  EXPECT_LE(r.bus.host_to_device.max_wait_s, 1e-3);
+  EXPECT_LE(r.bus.device_to_host.max_wait_s, 1e-3);
+  EXPECT_GE(r.counters.round_trip.count(), 45U);  // every echo came back inside a telemetry report
+  EXPECT_GT(r.counters.sent, r.counters.reports_sent);
+  EXPECT_GT(r.counters.received, r.counters.reports_received);
+  EXPECT_EQ(r.counters.decode_errors, 0U);
+  EXPECT_EQ(r.counters.sequence_gaps, 0U);
+}
+
+TEST(SessionPacked, AOnePointTwoHostDrivesAOnePointOneUnitAsOnePointOne) {
+  const PackedRun r = run_enabled("mock://?seed=1&bus=hid-fs&protocol_minor=1");
+  EXPECT_FALSE(r.packed);
+  EXPECT_EQ(r.info.protocol_minor, 1);
+  EXPECT_EQ(r.state, DeviceState::enabled);  // a 1.1 unit reads every heartbeat: none was packed
+  EXPECT_EQ(r.bus.host_to_device.packets, r.bus.host_to_device.carried);  // one packet a report
+  EXPECT_EQ(r.bus.device_to_host.packets, r.bus.device_to_host.carried);
+  EXPECT_EQ(r.counters.sent, r.counters.reports_sent);
+  EXPECT_EQ(r.counters.received, r.counters.reports_received);
+  EXPECT_GE(r.counters.round_trip.count(), 40U);
+}
+
+TEST(SessionPacked, AOnePointOneHostSeesOnePointOneFromAOnePointTwoUnit) {
+  SessionOptions host11;
+  host11.protocol_minor = 1;
+  const PackedRun r = run_enabled("mock://?seed=1&bus=hid-fs", host11);
+  EXPECT_FALSE(r.packed);
+  EXPECT_EQ(r.info.protocol_minor, 2);  // the unit speaks 1.2, but the host said 1.1
+  EXPECT_EQ(r.state, DeviceState::enabled);
+  EXPECT_EQ(r.bus.host_to_device.packets, r.bus.host_to_device.carried);
+  EXPECT_EQ(r.bus.device_to_host.packets, r.bus.device_to_host.carried);  // the unit did not pack
+  EXPECT_EQ(r.counters.received, r.counters.reports_received);
+  EXPECT_EQ(r.counters.decode_errors, 0U);
+}
+
+TEST(SessionPacked, PackingChangesNoClassicCanFrame) {
+  SessionOptions host11;
+  host11.protocol_minor = 1;
+  const PackedRun packed = run_enabled("mock://?seed=1&bus=can", {}, 500);
+  const PackedRun plain = run_enabled("mock://?seed=1&bus=can", host11, 500);
+  EXPECT_TRUE(packed.packed);
+  EXPECT_EQ(packed.state, DeviceState::enabled);
+  // The same frames: the transport splits a packed report into its packets' frames.
+  EXPECT_EQ(packed.bus.host_to_device.carried, plain.bus.host_to_device.carried);
+  EXPECT_EQ(packed.bus.host_to_device.bytes, plain.bus.host_to_device.bytes);
+  EXPECT_EQ(packed.bus.device_to_host.carried, plain.bus.device_to_host.carried);
+  EXPECT_EQ(packed.bus.device_to_host.unsent, plain.bus.device_to_host.unsent);  // echoes: no classic form
+  EXPECT_GT(packed.bus.device_to_host.unsent, 20U);
+}
+
+TEST(SessionPacked, CanFdCarriesPackedReportsInOneFrame) {
+  const PackedRun r = run_enabled("mock://?seed=1&bus=canfd", {}, 500);
+  EXPECT_TRUE(r.packed);
+  EXPECT_EQ(r.state, DeviceState::enabled);
+  EXPECT_GE(r.bus.host_to_device.packets, r.bus.host_to_device.carried + 20U);
+  EXPECT_GE(r.bus.device_to_host.packets, r.bus.device_to_host.carried + 20U);
+  EXPECT_GE(r.counters.round_trip.count(), 20U);  // echoes came back inside FD frames
+  EXPECT_EQ(r.counters.decode_errors, 0U);
+}
+
+TEST(SessionPacked, ALargerGridSendsWhatDoesNotFitInTheNextReport) {
+  // 128 valves and sensors: five ValveCurrents and six Telemetry packets a tick, most too big to
+  // share a report; whatever is packed or not, every packet arrives once and in order.
+  const PackedRun r = run_enabled("mock://fingertip-16x16?seed=1", {}, 300);
+  EXPECT_TRUE(r.packed);
+  EXPECT_EQ(r.state, DeviceState::enabled);
+  EXPECT_EQ(r.counters.decode_errors, 0U);
+  EXPECT_EQ(r.counters.sequence_gaps, 0U);
+  EXPECT_GE(r.counters.telemetry, 6U * 290U);
+  EXPECT_GE(r.counters.round_trip.count(), 12U);
+  EXPECT_GE(r.counters.reports_sent, 5U * 300U);  // each currents packet in a report of its own
+}
+
+TEST(SessionPacked, TheRingLogKeepsPackets) {
+  Rig rig("mock://?seed=1");
+  ASSERT_TRUE(rig.dev.session->packed_reports());
+  ASSERT_EQ(rig.dev.session->request_enable(), ResultCode::ok);
+  rig.currents[0] = 0.01;
+  rig.run(40);
+  int heartbeats_sent = 0;
+  int echoes = 0;
+  for (const LogEntry& e : rig.dev.session->decode_log(rig.dev.session->ring_log())) {
+    EXPECT_EQ(e.error, "") << e.kind;
+    heartbeats_sent += e.kind == "heartbeat" && e.sent ? 1 : 0;
+    echoes += e.kind == "heartbeat" && !e.sent ? 1 : 0;
+  }
+  EXPECT_GE(heartbeats_sent, 1);
+  EXPECT_GE(echoes, 1);
+}
+
+TEST(SessionPacked, MinorVersionsAboveTheLibraryAreRefused) {
+  SessionOptions future;
+  future.protocol_minor = proto::kVersionMinor + 1;
+  EXPECT_THROW(Rig("mock://?seed=1", future), InvalidArgument);
+  EXPECT_THROW(Rig("mock://?seed=1&protocol_minor=3"), InvalidArgument);
 }
 
 }  // namespace

@@ -6,7 +6,8 @@
 // a broken invariant is a finding just like a sanitizer report.
 //
 // Input formats (documented in docs/protocol.md, section "Fuzzing"):
-//   packet:      the bytes are the packet (as hid_read() returns them).
+//   packet:      the bytes are the packet (as hid_read() returns them), and walked as a
+//                packed report (protocol 1.2).
 //   can_classic: byte 0 = decoder node (1 + byte % 15), then records of 12 bytes:
 //                flags, id (2 bytes, little-endian, not masked to 11 bits), length,
 //                8 data bytes. flags bit 0: recompute the CRC-8 in data[7];
@@ -32,6 +33,7 @@
 #include "mrskin/protocol/crc.hpp"
 #include "mrskin/protocol/errors.hpp"
 #include "mrskin/protocol/messages.hpp"
+#include "mrskin/protocol/packed_report.hpp"
 #include "mrskin/protocol/packet.hpp"
 #include "mrskin/protocol/units.hpp"
 
@@ -61,9 +63,61 @@ inline const char* check_packet(std::span<const std::uint8_t> in) noexcept {
   return nullptr;
 }
 
+// Walks in as a packed report (protocol 1.2): every packet handed out with intact framing must
+// re-encode to exactly its bytes at its offset, the walk must stay inside the input and end
+// after at most one packet with broken framing, and the first packet is decode_packet's.
+inline const char* check_packed_report(std::span<const std::uint8_t> in) noexcept {
+  p::PacketWalker walker(in);
+  p::PacketDecoded d;
+  std::size_t packets = 0;
+  std::size_t offset = 0;
+  while (walker.next(d)) {
+    if (!known_error(d.error)) return "PacketWalker returned an undefined error code";
+    if (packets == 0 && in.size() <= p::kPacketMaxBytes && d.error != p::decode_packet(in).error) {
+      return "PacketWalker's first packet disagrees with decode_packet";
+    }
+    if (++packets > p::kPacketMaxBytes / (p::kPacketHeaderBytes + p::kPacketCrcBytes) + 1) {
+      return "PacketWalker handed out more packets than a report holds";
+    }
+    if (walker.broken()) {
+      if (d.error == p::Error::ok) return "PacketWalker broke on a packet that decoded";
+      if (walker.next(d)) return "PacketWalker went on after a broken packet";
+      break;
+    }
+    if (walker.offset() <= offset || walker.offset() > in.size()) return "PacketWalker's offset went wrong";
+    if (d.error == p::Error::ok) {
+      std::array<std::uint8_t, p::kPacketMaxBytes> out{};
+      const p::EncodeResult e = p::encode_packet(d.message, d.sequence, out);
+      if (e.error != p::Error::ok || e.bytes != walker.offset() - offset ||
+          !std::equal(out.begin(), out.begin() + static_cast<std::ptrdiff_t>(e.bytes),
+                      in.begin() + static_cast<std::ptrdiff_t>(offset))) {
+        return "walked packet re-encodes to other bytes";
+      }
+    }
+    offset = walker.offset();
+  }
+  return nullptr;
+}
+
 inline const char* packet_entry(const std::uint8_t* data, std::size_t size) noexcept {
   // As received. data is exactly size bytes, so ASan sees any read past the end.
   if (const char* f = check_packet({data, size})) return f;
+  if (const char* f = check_packed_report({data, size})) return f;
+  // Again with the CRC of every packet along the walk recomputed over its declared length, so
+  // the walk reaches the packets after the first without the fuzzer solving CRC-16.
+  if (size <= p::kPacketMaxBytes) {
+    std::vector<std::uint8_t> packed(data, data + size);
+    std::size_t at = 0;
+    while (at + p::kPacketHeaderBytes + p::kPacketCrcBytes <= size && packed[at] != 0) {
+      const std::size_t body = p::kPacketHeaderBytes + packed[at + 3];
+      if (at + body + p::kPacketCrcBytes > size) break;
+      const std::uint16_t crc = p::crc16_ccitt({packed.data() + at, body});
+      packed[at + body] = static_cast<std::uint8_t>(crc & 0xFFU);
+      packed[at + body + 1] = static_cast<std::uint8_t>(crc >> 8U);
+      at += body + p::kPacketCrcBytes;
+    }
+    if (const char* f = check_packed_report(packed)) return f;
+  }
   // Again with a correct CRC over the declared length, so the payload parsers are reached
   // without the fuzzer having to solve CRC-16.
   if (size >= p::kPacketHeaderBytes + p::kPacketCrcBytes && size <= p::kPacketMaxBytes) {

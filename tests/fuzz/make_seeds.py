@@ -56,6 +56,11 @@ def main():
         write("packet", name, bytes.fromhex(v[(name, "packet")][0]))
     report = bytes.fromhex(v[("status", "packet")][0])
     write("packet", "status_hid_report", report + bytes(64 - len(report)))
+    # Protocol 1.2 packed reports: as the report's bytes and as a zero-padded HID report.
+    for name in ["packed_host_report", "packed_device_report"]:
+        report = bytes.fromhex(v[(name, "report")][0])
+        write("packet", name, report)
+        write("packet", name + "_hid", report + bytes(64 - len(report)))
     v2 = bytearray(bytes.fromhex(v[("heartbeat", "packet")][0]))
     v2[0] = 2
     write("packet", "version2_heartbeat", bytes(v2))
@@ -66,6 +71,8 @@ def main():
     write("can_classic", "management", bytes([NODE_BYTE]) + mgmt)
 
     for name in ["valve_currents", "telemetry", "identity", "heartbeat", "config_ack"]:
+        write("can_fd", name, bytes([NODE_BYTE]) + fd_record(v[(name, "canfd")][0]))
+    for name in ["packed_host_report", "packed_device_report"]:
         write("can_fd", name, bytes([NODE_BYTE]) + fd_record(v[(name, "canfd")][0]))
     write("can_fd", "classic_and_fd", bytes([NODE_BYTE]) + fd_record(v[("status", "can")][0], flags=0) +
           fd_record(v[("status", "canfd")][0]))

@@ -135,6 +135,54 @@ double hid_full_reports(const Grid& g, bool with_background) {
       ceil_div(g.sensors(), kMaxTelemetryValues) + (with_background ? kStatusHz / kTickHz : 0.0);
   return std::max(out, in);
 }
+// Protocol 1.2 packs packets back to back into 64-byte reports (append_packet's rule: a packet
+// that does not fit starts the next report). Reports for packets of these sizes, in order.
+double packed_reports(const std::vector<std::size_t>& packets) {
+  double reports = 0.0;
+  std::size_t used = kHidReportBytes;
+  for (const std::size_t bytes : packets) {
+    if (used + bytes > kHidReportBytes) {
+      reports += 1.0;
+      used = 0;
+    }
+    used += bytes;
+  }
+  return reports;
+}
+// Packet sizes of one full update in one direction, values split as the session splits them.
+std::vector<std::size_t> update_packets(int values, int cap, std::size_t (*bytes)(int)) {
+  std::vector<std::size_t> sizes;
+  for (int left = values; left > 0; left -= cap) sizes.push_back(bytes(std::min(left, cap)));
+  return sizes;
+}
+// 1.2 with packing agreed: the heartbeat rides with the valve currents (first in the host's
+// report), status and heartbeat echo with the telemetry (first in the unit's report). Reports
+// per tick, averaged over whether a heartbeat (50 Hz) and a status (10 Hz) fall in the tick;
+// the busier direction.
+double hid_packed_reports(const Grid& g) {
+  const double p_heartbeat = kHeartbeatHz / kTickHz;
+  const double p_status = kStatusHz / kTickHz;
+  const std::size_t heartbeat = packet_bytes(Heartbeat{});
+  const std::size_t status = packet_bytes(Status{});
+  const std::vector<std::size_t> currents = update_packets(g.valves(), kMaxValveCurrents, valve_packet_bytes);
+  const std::vector<std::size_t> telemetry =
+      update_packets(g.sensors(), kMaxTelemetryValues, telemetry_packet_bytes);
+  auto with = [](std::vector<std::size_t> first, const std::vector<std::size_t>& rest) {
+    first.insert(first.end(), rest.begin(), rest.end());
+    return packed_reports(first);
+  };
+  const double out = (1.0 - p_heartbeat) * with({}, currents) + p_heartbeat * with({heartbeat}, currents);
+  double in = 0.0;
+  for (const bool s : {false, true}) {
+    for (const bool h : {false, true}) {
+      std::vector<std::size_t> first;
+      if (s) first.push_back(status);
+      if (h) first.push_back(heartbeat);  // the echo is a Heartbeat packet
+      in += (s ? p_status : 1.0 - p_status) * (h ? p_heartbeat : 1.0 - p_heartbeat) * with(first, telemetry);
+    }
+  }
+  return std::max(out, in);
+}
 double hid_delta_reports(const Grid& g, double changed_blocks) {
   auto dir = [changed_blocks](int values, int cap) {
     const int changed = std::min(values, static_cast<int>(changed_blocks * 4));
@@ -210,23 +258,28 @@ void print_tables() {
   out("\n");
 
   out("## Load at 1 kHz (heartbeat %.0f Hz and status %.0f Hz included)\n\n", kHeartbeatHz, kStatusHz);
-  out("| grid | fluid/valves/sensors | HID FS full | classic CAN full | classic CAN delta typical | classic "
-      "CAN delta busy | CAN FD full | CAN FD delta typical | full updates/s at 100 %% classic CAN |\n");
-  out("|---|---|---|---|---|---|---|---|---|\n");
+  out("| grid | fluid/valves/sensors | HID FS full 1.1 | HID FS full 1.2 | classic CAN full | classic CAN "
+      "delta "
+      "typical | classic CAN delta busy | CAN FD full | CAN FD delta typical | full updates/s at 100 % "
+      "classic "
+      "CAN |\n");
+  out("|---|---|---|---|---|---|---|---|---|---|\n");
   for (const Grid g : {Grid{3, 3}, Grid{4, 4}, Grid{5, 5}, Grid{7, 7}, Grid{8, 8}, Grid{10, 10}, Grid{16, 16},
                        Grid{64, 64}}) {
     const double classic_full = classic_load(classic_frames_full(g));
     const double per_update_us = (classic_frames_full(g) + classic_background_frames()) * classic_frame_us();
-    out("| %dx%d | %d/%d/%d | %s | %s (%.1f frames) | %s | %s | %s | %s | %.0f |\n", g.rows, g.cols,
+    out("| %dx%d | %d/%d/%d | %s | %s | %s (%.1f frames) | %s | %s | %s | %s | %.0f |\n", g.rows, g.cols,
         g.fluid(), g.valves(), g.sensors(), pct(hid_full_reports(g, true) / kHidFsReportsPerMs).c_str(),
-        pct(classic_full).c_str(), classic_frames_full(g),
-        pct(classic_load(classic_frames_delta(g, kTypicalChangedBlocks))).c_str(),
+        pct(hid_packed_reports(g) / kHidFsReportsPerMs).c_str(), pct(classic_full).c_str(),
+        classic_frames_full(g), pct(classic_load(classic_frames_delta(g, kTypicalChangedBlocks))).c_str(),
         pct(classic_load(classic_frames_delta(g, kBusyChangedBlocks))).c_str(),
         pct(fd_load(fd_full_us(g))).c_str(), pct(fd_load(fd_delta_us(g, kTypicalChangedBlocks))).c_str(),
         1e6 / per_update_us);
   }
-  out("\nHID FS load = reports per 1 ms frame in the busier direction; above 100 %% the\n"
-      "heartbeat must ride on valve traffic and status displaces telemetry reports.\n\n");
+  out("\nHID FS load = reports per 1 ms frame in the busier direction. 1.1: one packet a report\n"
+      "(heartbeat host->device, status device->host; echoes not counted); above 100 % the\n"
+      "heartbeat must ride on valve traffic and status displaces telemetry reports. 1.2: packed\n"
+      "reports, heartbeat with the currents, status and echo with the telemetry (echoes counted).\n\n");
 
   out("## Largest grid updated at 1 kHz (cells = R*C; checkerboard: valves = sensors = floor(R*C/2))\n\n");
   out("| bus | full, <= 100 %% | full, <= 50 %% | delta typical, <= 100 %% | delta typical, <= 50 %% | delta "

@@ -16,12 +16,19 @@ int main() {
                "#           hid_write() gets 0x00 + the 64-byte report)\n"
                "#   can:    classic CAN frames in cansend syntax <id>#<8 data bytes>, in send order\n"
                "#   canfd:  the CAN FD frame in cansend syntax <id>##<flags><data>\n"
+               "#   report: protocol 1.2, several packets back to back in one report, sequences\n"
+               "#           counting up from the one below (HID report = these bytes + zero padding)\n"
                "# CAN vectors use node "
             << int{kGoldenNode} << ", rolling counter " << int{kGoldenCounter}
             << "; every vector uses sequence 0x" << std::hex << std::uppercase << int{kGoldenSequence}
             << std::dec << ".\n";
   for (const NamedMessage& nm : golden_messages()) {
     for (const std::string& line : golden_lines_for(nm)) {
+      std::cout << line << '\n';
+    }
+  }
+  for (const NamedReport& r : golden_reports()) {
+    for (const std::string& line : golden_report_lines_for(r)) {
       std::cout << line << '\n';
     }
   }

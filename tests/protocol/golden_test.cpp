@@ -15,6 +15,7 @@
 #include <vector>
 
 #include "mrskin/protocol/can.hpp"
+#include "mrskin/protocol/packed_report.hpp"
 #include "mrskin/protocol/packet.hpp"
 #include "test_support.hpp"
 
@@ -157,8 +158,14 @@ INSTANTIATE_TEST_SUITE_P(Vectors, ProtocolGolden, ::testing::ValuesIn(golden_mes
 TEST(ProtocolGoldenFile, EveryTypeOnEveryFraming) {
   std::map<std::string, std::set<MessageType>> seen;
   std::map<std::string, MessageType> type_by_name;
+  std::set<std::string> report_names;
   for (const NamedMessage& nm : golden_messages()) type_by_name[nm.name] = type_of(nm.message);
+  for (const NamedReport& r : golden_reports()) report_names.insert(r.name);
   for (const GoldenLine& g : golden()) {
+    if (report_names.count(g.name) != 0) {
+      EXPECT_TRUE(g.framing == "report" || g.framing == "canfd") << g.text;
+      continue;
+    }
     ASSERT_TRUE(type_by_name.count(g.name)) << "vector for unknown message " << g.name;
     seen[g.framing].insert(type_by_name[g.name]);
   }
@@ -173,6 +180,9 @@ TEST(ProtocolGoldenFile, FileIsWhatTheGeneratorWrites) {
   std::vector<std::string> generated;
   for (const NamedMessage& nm : golden_messages()) {
     for (const std::string& line : golden_lines_for(nm)) generated.push_back(line);
+  }
+  for (const NamedReport& r : golden_reports()) {
+    for (const std::string& line : golden_report_lines_for(r)) generated.push_back(line);
   }
   std::vector<std::string> stored;
   for (const GoldenLine& g : golden()) stored.push_back(g.text);
@@ -189,6 +199,72 @@ TEST(ProtocolGoldenFile, DocQuotesEveryVector) {
     EXPECT_NE(doc.find(g.text), std::string::npos) << "docs/protocol.md does not quote: " << g.text;
   }
 }
+
+// ---- protocol 1.2: packed reports --------------------------------------------------------
+
+class ProtocolGoldenPacked : public ::testing::TestWithParam<NamedReport> {};
+
+TEST_P(ProtocolGoldenPacked, ReportEncode) {
+  const NamedReport& r = GetParam();
+  const GoldenLine* g = find_line(r.name, "report");
+  ASSERT_NE(g, nullptr) << "no report vector for " << r.name;
+  ASSERT_EQ(g->tokens.size(), 1U);
+  EXPECT_EQ(hex(report_bytes(r, kGoldenSequence)), g->tokens[0]);
+}
+
+TEST_P(ProtocolGoldenPacked, HidReportWalksToEveryPacket) {
+  const NamedReport& r = GetParam();
+  const GoldenLine* g = find_line(r.name, "report");
+  ASSERT_NE(g, nullptr);
+  std::vector<std::uint8_t> report = unhex(g->tokens[0]);
+  const std::size_t used = report.size();
+  report.resize(kHidReportBytes, 0x00);  // as hid_read() returns it
+  PacketWalker walker(report);
+  PacketDecoded d;
+  std::size_t i = 0;
+  while (walker.next(d)) {
+    ASSERT_LT(i, r.messages.size());
+    EXPECT_EQ(d.error, Error::ok) << "packet " << i;
+    EXPECT_EQ(d.sequence, static_cast<std::uint8_t>(kGoldenSequence + i));
+    EXPECT_EQ(d.message, r.messages[i]) << "packet " << i;
+    ++i;
+  }
+  EXPECT_EQ(i, r.messages.size());
+  EXPECT_FALSE(walker.broken());
+  EXPECT_EQ(walker.offset(), used);
+  // A 1.1 receiver reads the first packet and takes the rest for padding.
+  const PacketDecoded first = decode_packet(report);
+  EXPECT_EQ(first.error, Error::ok);
+  EXPECT_EQ(first.message, r.messages.front());
+}
+
+TEST_P(ProtocolGoldenPacked, CanFdEncodeAndDecode) {
+  const NamedReport& r = GetParam();
+  const GoldenLine* g = find_line(r.name, "canfd");
+  ASSERT_NE(g, nullptr) << "no CAN FD vector for " << r.name;
+  CanFrame f;
+  const std::vector<std::uint8_t> bytes = report_bytes(r, kGoldenSequence);
+  ASSERT_EQ(encode_canfd_report(bytes, kGoldenNode, r.direction, f).error, Error::ok);
+  EXPECT_EQ(frame_to_text(f), g->tokens[0]);
+  const CanFrame parsed = frame_from_text(g->tokens[0]);
+  CanDecoder decoder(kGoldenNode);
+  const CanDecoded d = decoder.decode(parsed);  // the first packet, as a 1.1 decoder sees it
+  EXPECT_EQ(d.error, Error::ok);
+  EXPECT_EQ(d.message, r.messages.front());
+  PacketWalker walker(std::span<const std::uint8_t>(parsed.data.data(), parsed.length));
+  PacketDecoded p;
+  std::size_t i = 0;
+  while (walker.next(p)) {
+    ASSERT_LT(i, r.messages.size());
+    EXPECT_EQ(p.message, r.messages[i++]);
+  }
+  EXPECT_EQ(i, r.messages.size());
+}
+
+INSTANTIATE_TEST_SUITE_P(Reports, ProtocolGoldenPacked, ::testing::ValuesIn(golden_reports()),
+                         [](const ::testing::TestParamInfo<NamedReport>& param_info) {
+                           return param_info.param.name;
+                         });
 
 // ---- vectors rebuilt by hand from the documented layout -------------------------------
 
@@ -355,6 +431,28 @@ TEST(ProtocolGoldenByHand, CanFdCarriesThePacket) {
   // Heartbeat: 8-byte packet, FD length 8, no padding.
   EXPECT_EQ(find_line("heartbeat", "canfd")->tokens[0],
             "405##0" + find_line("heartbeat", "packet")->tokens[0]);
+}
+
+TEST(ProtocolGoldenByHand, PackedReportsAreTheirPacketsBackToBack) {
+  // Each packet whole, with its own header and CRC; sequences 0x2A, 0x2B, 0x2C.
+  const std::string status = find_line("status", "packet")->tokens[0];  // sequence 0x2A
+  const auto echo = with_crc16({0x01, 0x31, 0x2B, 0x02, 0xEF, 0xBE});
+  std::vector<std::uint8_t> tele = unhex(find_line("telemetry", "packet")->tokens[0]);
+  tele[2] = 0x2C;
+  tele.resize(tele.size() - 2);
+  EXPECT_EQ(find_line("packed_device_report", "report")->tokens[0],
+            status + hex(echo) + hex(with_crc16(tele)));
+  // 11 + 8 + 37 = 56 bytes: CAN FD length 64, 8 zero bytes after the last packet.
+  EXPECT_EQ(find_line("packed_device_report", "canfd")->tokens[0],
+            "505##0" + status + hex(echo) + hex(with_crc16(tele)) + std::string(2 * 8, '0'));
+  const std::string heartbeat = find_line("heartbeat", "packet")->tokens[0];  // sequence 0x2A
+  std::vector<std::uint8_t> currents = unhex(find_line("valve_currents", "packet")->tokens[0]);
+  currents[2] = 0x2B;
+  currents.resize(currents.size() - 2);
+  EXPECT_EQ(find_line("packed_host_report", "report")->tokens[0], heartbeat + hex(with_crc16(currents)));
+  // 8 + 33 = 41 bytes: CAN FD length 48.
+  EXPECT_EQ(find_line("packed_host_report", "canfd")->tokens[0],
+            "405##0" + heartbeat + hex(with_crc16(currents)) + std::string(2 * 7, '0'));
 }
 
 TEST(ProtocolGoldenByHand, ReferenceCrcsMatchCheckValues) {

@@ -9,6 +9,7 @@
 
 #include "mrskin/protocol/can.hpp"
 #include "mrskin/protocol/crc.hpp"
+#include "mrskin/protocol/packed_report.hpp"
 #include "mrskin/protocol/packet.hpp"
 #include "mrskin/protocol/units.hpp"
 #include "test_support.hpp"
@@ -587,6 +588,145 @@ TEST(ProtocolMalformed, OutOfRangeSiValues) {
   // An LSB of zero or below cannot quantise anything.
   EXPECT_EQ(quantize_unsigned(1.0, 0.0, 100).error, Error::not_finite);
   EXPECT_EQ(quantize_unsigned(1.0, -1.0, 100).error, Error::not_finite);
+}
+
+// ---- protocol 1.2: packed reports --------------------------------------------------------
+
+// Heartbeat (8 bytes), second packet (given), Status (11 bytes): one report.
+std::vector<std::uint8_t> report_with_middle(const std::vector<std::uint8_t>& middle) {
+  std::vector<std::uint8_t> r = packet_bytes(Heartbeat{7}, 1);
+  r.insert(r.end(), middle.begin(), middle.end());
+  const std::vector<std::uint8_t> status = packet_bytes(Status{1, 0, 0, 0}, 3);
+  r.insert(r.end(), status.begin(), status.end());
+  r.resize(kHidReportBytes, 0);
+  return r;
+}
+
+struct Walked {
+  std::vector<Error> errors;
+  std::vector<Message> messages;
+  bool broken = false;
+};
+Walked walk(std::span<const std::uint8_t> report) {
+  Walked w;
+  PacketWalker walker(report);
+  PacketDecoded d;
+  while (walker.next(d)) {
+    w.errors.push_back(d.error);
+    w.messages.push_back(d.message);
+  }
+  w.broken = walker.broken();
+  return w;
+}
+
+// The second packet of report_with_middle(middle): its error, and whether the walk read on.
+// Broken framing ends the walk after it (the Status is not read); intact framing goes on.
+void expect_middle(const std::vector<std::uint8_t>& middle, Error error, bool broken) {
+  const Walked w = walk(report_with_middle(middle));
+  ASSERT_EQ(w.errors.size(), broken ? 2U : 3U) << to_string(error);
+  EXPECT_EQ(w.errors[0], Error::ok);
+  EXPECT_EQ(w.messages[0], Message(Heartbeat{7}));  // the packet before it stands
+  EXPECT_EQ(w.errors[1], error);
+  EXPECT_EQ(w.broken, broken);
+  if (!broken) {
+    EXPECT_EQ(w.errors[2], Error::ok);
+    EXPECT_EQ(w.messages[2], Message(Status{1, 0, 0, 0}));
+  }
+}
+
+// A heartbeat packet (sequence 2) with one byte set, and its CRC recomputed when fix.
+std::vector<std::uint8_t> changed_heartbeat(std::size_t at, std::uint8_t value, bool fix) {
+  std::vector<std::uint8_t> p = packet_bytes(Heartbeat{8}, 2);
+  p[at] = value;
+  if (fix) fix_crc(p);
+  return p;
+}
+
+TEST(ProtocolMalformedPacked, BrokenFramingEndsTheWalkAfterTheFirstPacket) {
+  std::vector<std::uint8_t> bad_crc = packet_bytes(Heartbeat{8}, 2);
+  bad_crc.back() ^= 0x01U;
+  expect_middle(bad_crc, Error::bad_crc, true);
+  expect_middle(changed_heartbeat(0, 2, false), Error::wrong_version, true);
+  expect_middle(changed_heartbeat(3, 59, false), Error::bad_length, true);  // length byte over 58
+  // Claims 58 payload bytes: 64 in all, past the report's 64 - 8.
+  std::vector<std::uint8_t> r = packet_bytes(Heartbeat{7}, 1);
+  const std::vector<std::uint8_t> big = changed_heartbeat(3, 58, false);
+  r.insert(r.end(), big.begin(), big.end());
+  r.resize(kHidReportBytes, 0xEE);
+  const Walked w = walk(r);
+  ASSERT_EQ(w.errors.size(), 2U);
+  EXPECT_EQ(w.errors[1], Error::short_buffer);
+  EXPECT_TRUE(w.broken);
+}
+
+TEST(ProtocolMalformedPacked, RefusedContentWithIntactFramingIsSkipped) {
+  // A later minor version's message: its CRC holds, so the walk goes on to the Status.
+  expect_middle(changed_heartbeat(1, 0x7E, true), Error::unknown_type, false);
+  // So is a payload that disagrees with its type, and a field out of its domain.
+  std::vector<std::uint8_t> short_payload = changed_heartbeat(3, 1, true);
+  expect_middle(short_payload, Error::bad_length, false);
+  std::vector<std::uint8_t> bad_state = packet_bytes(StateRequest{1}, 2);
+  bad_state[4] = 9;
+  fix_crc(bad_state);
+  expect_middle(bad_state, Error::out_of_range, false);
+}
+
+TEST(ProtocolMalformedPacked, EmptyOverlongAndTruncatedReports) {
+  EXPECT_TRUE(walk({}).errors.empty());
+  const std::array<std::uint8_t, kHidReportBytes> zeros{};
+  EXPECT_TRUE(walk(zeros).errors.empty());  // all padding: no packet, no error
+  const std::vector<std::uint8_t> overlong(kHidReportBytes + 1, 0x01);
+  const Walked o = walk(overlong);
+  ASSERT_EQ(o.errors.size(), 1U);
+  EXPECT_EQ(o.errors[0], Error::too_long);
+  std::vector<std::uint8_t> r = packet_bytes(Heartbeat{7}, 1);
+  r.push_back(0x01);  // a version byte and nothing after it
+  const Walked t = walk(r);
+  ASSERT_EQ(t.errors.size(), 2U);
+  EXPECT_EQ(t.errors[1], Error::short_buffer);
+}
+
+TEST(ProtocolMalformedPacked, AppendRefusesWhatDoesNotFitAndLeavesTheReport) {
+  std::array<std::uint8_t, kHidReportBytes> report{};
+  report.fill(0xCC);
+  std::size_t used = 0;
+  Telemetry t;
+  t.count = 22;  // 7 + 44 payload bytes: a 57-byte packet
+  EncodeResult e = append_packet(t, 1, report, used);
+  ASSERT_EQ(e.error, Error::ok);
+  EXPECT_EQ(e.bytes, 57U);
+  EXPECT_EQ(report[57], 0x00);  // terminated
+  used += e.bytes;
+  const auto before = report;
+  e = append_packet(Heartbeat{1}, 2, report, used);  // 8 bytes: 65 > 64
+  EXPECT_EQ(e.error, Error::short_buffer);
+  EXPECT_EQ(report, before);
+  e = append_packet(StateRequest{1}, 2, report, used);  // 7 bytes: exactly 64, no terminator
+  ASSERT_EQ(e.error, Error::ok);
+  EXPECT_EQ(append_packet(Heartbeat{1}, 3, report, kHidReportBytes + 1).error, Error::short_buffer);
+  EXPECT_EQ(append_packet(StateRequest{99}, 3, report, 0).error, Error::out_of_range);
+  const Walked w = walk(report);
+  ASSERT_EQ(w.errors.size(), 2U);
+  EXPECT_EQ(w.messages[1], Message(StateRequest{1}));
+}
+
+CanFrame packed_frame(const std::vector<std::uint8_t>& report, Direction d) {
+  CanFrame f;
+  EXPECT_EQ(encode_canfd_report(report, kNode, d, f).error, Error::ok);
+  return f;
+}
+
+TEST(ProtocolMalformedPacked, CanFdReportRefusesBadPacketsAndNodes) {
+  std::vector<std::uint8_t> middle = packet_bytes(Heartbeat{8}, 2);
+  middle.back() ^= 0x01U;
+  CanFrame f;
+  EXPECT_EQ(encode_canfd_report(report_with_middle(middle), kNode, Direction::host_to_device, f).error,
+            Error::bad_crc);
+  const std::vector<std::uint8_t> good = report_with_middle(packet_bytes(Heartbeat{8}, 2));
+  EXPECT_EQ(encode_canfd_report(good, 0, Direction::host_to_device, f).error, Error::out_of_range);
+  EXPECT_EQ(encode_canfd_report({}, kNode, Direction::host_to_device, f).error, Error::short_buffer);
+  const CanFrame ok = packed_frame(good, Direction::host_to_device);
+  EXPECT_EQ(ok.length, 32U);  // 8 + 8 + 11 = 27 bytes -> FD length 32
 }
 
 }  // namespace

@@ -15,6 +15,7 @@
 
 #include "fuzz_entry.hpp"
 #include "mrskin/protocol/can.hpp"
+#include "mrskin/protocol/packed_report.hpp"
 #include "mrskin/protocol/packet.hpp"
 #include "mrskin/protocol/units.hpp"
 #include "test_support.hpp"
@@ -324,6 +325,140 @@ RC_GTEST_PROP(ProtocolProperty, CanFdRoundTrip, ()) {
   RC_ASSERT(d.complete);
   RC_ASSERT(d.sequence == sequence);
   RC_ASSERT(d.message == m);
+}
+
+// ---- protocol 1.2: packed reports ----------------------------------------------------
+
+// Packs the messages into as few 64-byte reports as append_packet allows, in order; sequences
+// from sequence. Returns the reports' used bytes.
+std::vector<std::vector<std::uint8_t>> pack_reports(const std::vector<Message>& messages,
+                                                    std::uint8_t sequence) {
+  std::vector<std::vector<std::uint8_t>> reports;
+  std::array<std::uint8_t, kHidReportBytes> report{};
+  std::size_t used = 0;
+  for (std::size_t i = 0; i < messages.size(); ++i) {
+    const auto seq = static_cast<std::uint8_t>(sequence + i);
+    EncodeResult e = append_packet(messages[i], seq, report, used);
+    if (e.error == Error::short_buffer) {
+      RC_ASSERT(used > 0);  // only a report with packets already in it is full
+      reports.emplace_back(report.begin(), report.begin() + static_cast<std::ptrdiff_t>(used));
+      used = 0;
+      e = append_packet(messages[i], seq, report, used);
+    }
+    RC_ASSERT(e.error == Error::ok);
+    used += e.bytes;
+  }
+  if (used > 0) reports.emplace_back(report.begin(), report.begin() + static_cast<std::ptrdiff_t>(used));
+  return reports;
+}
+
+RC_GTEST_PROP(ProtocolProperty, PackedReportsRoundTrip, ()) {
+  // Any run of valid packets packed then walked gives back the same packets, in order, with
+  // their sequences; with the HID report's zero padding or without it.
+  const int n = in<int>(1, 12);
+  std::vector<Message> sent;
+  for (int i = 0; i < n; ++i) sent.push_back(gen_message(Fit::packet));
+  const auto sequence = any<std::uint8_t>();
+  const bool padded = *rc::gen::arbitrary<bool>();
+  std::size_t k = 0;
+  for (std::vector<std::uint8_t> report : pack_reports(sent, sequence)) {
+    RC_ASSERT(report.size() <= kHidReportBytes);
+    if (padded) report.resize(kHidReportBytes, 0x00);
+    PacketWalker walker(report);
+    PacketDecoded d;
+    std::size_t in_report = 0;
+    while (walker.next(d)) {
+      RC_ASSERT(d.error == Error::ok);
+      RC_ASSERT(k < sent.size());
+      RC_ASSERT(d.sequence == static_cast<std::uint8_t>(sequence + k));
+      RC_ASSERT(d.message == sent[k]);
+      ++k;
+      ++in_report;
+    }
+    RC_ASSERT(in_report > 0U);
+    RC_ASSERT(!walker.broken());
+  }
+  RC_ASSERT(k == sent.size());
+}
+
+RC_GTEST_PROP(ProtocolProperty, PackedReportOnCanFdRoundTrip, ()) {
+  const int n = in<int>(1, 8);
+  std::vector<Message> sent;
+  for (int i = 0; i < n; ++i) sent.push_back(gen_message(Fit::packet));
+  const std::vector<std::uint8_t> report = pack_reports(sent, 0).front();
+  const auto node = in<std::uint8_t>(kCanNodeMin, kCanNodeMax);
+  CanFrame f;
+  RC_ASSERT(encode_canfd_report(report, node, Direction::device_to_host, f).error == Error::ok);
+  RC_ASSERT(f.length == canfd_padded_length(report.size()));
+  RC_ASSERT(std::equal(report.begin(), report.end(), f.data.begin()));
+  PacketWalker walker(std::span<const std::uint8_t>(f.data.data(), f.length));
+  PacketDecoded d;
+  std::size_t k = 0;
+  while (walker.next(d)) {
+    RC_ASSERT(d.error == Error::ok);
+    RC_ASSERT(d.message == sent[k++]);
+  }
+  RC_ASSERT(k >= 1U);
+  RC_ASSERT(walker.offset() == report.size());
+}
+
+RC_GTEST_PROP(ProtocolProperty, TruncatedPackedReportGivesItsWholePacketsThenAnError, ()) {
+  const int n = in<int>(2, 8);
+  std::vector<Message> sent;
+  for (int i = 0; i < n; ++i) sent.push_back(gen_message(Fit::packet));
+  const std::vector<std::uint8_t> report = pack_reports(sent, 0).front();
+  const auto cut = in<std::size_t>(0, static_cast<long>(report.size()));
+  const std::vector<std::uint8_t> truncated(report.begin(),
+                                            report.begin() + static_cast<std::ptrdiff_t>(cut));
+  // Where each packet of the full report ends.
+  std::vector<std::size_t> ends;
+  PacketWalker full(report);
+  PacketDecoded d;
+  while (full.next(d)) ends.push_back(full.offset());
+  PacketWalker walker(truncated);
+  std::size_t k = 0;
+  bool error = false;
+  while (walker.next(d)) {
+    if (d.error != Error::ok) {
+      RC_ASSERT(d.error == Error::short_buffer);
+      RC_ASSERT(!error);
+      error = true;
+      continue;
+    }
+    RC_ASSERT(!error);
+    RC_ASSERT(ends[k] <= cut);
+    RC_ASSERT(d.message == sent[k]);
+    ++k;
+  }
+  // Every packet that ends inside the cut is delivered; a cut inside a packet is one error.
+  const auto whole = static_cast<std::size_t>(
+      std::count_if(ends.begin(), ends.end(), [cut](std::size_t e) { return e <= cut; }));
+  RC_ASSERT(k == whole);
+  RC_ASSERT(error == (std::find(ends.begin(), ends.end(), cut) == ends.end() && cut > 0));
+}
+
+RC_GTEST_PROP(ProtocolProperty, CorruptedPackedReportsIntoTheWalker, ()) {
+  const int n = in<int>(1, 8);
+  std::vector<Message> sent;
+  for (int i = 0; i < n; ++i) sent.push_back(gen_message(Fit::packet));
+  std::vector<std::uint8_t> original = pack_reports(sent, any<std::uint8_t>()).front();
+  original.resize(in<std::size_t>(original.size(), kHidReportBytes), 0);
+  std::vector<std::uint8_t> report = original;
+  mutate(report);
+  expect_ok(mrskin::fuzz::check_packed_report(report), report);
+  // The packets that end before the first changed byte still come out whole, in order.
+  const auto first_change = static_cast<std::size_t>(
+      std::mismatch(original.begin(), original.end(), report.begin()).first - original.begin());
+  std::vector<std::size_t> ends;
+  PacketWalker full(original);
+  PacketDecoded d;
+  while (full.next(d)) ends.push_back(full.offset());
+  PacketWalker walker(report);
+  for (std::size_t k = 0; k < ends.size() && ends[k] <= first_change; ++k) {
+    RC_ASSERT(walker.next(d));
+    RC_ASSERT(d.error == Error::ok);
+    RC_ASSERT(d.message == sent[k]);
+  }
 }
 
 // ---- random and mutated input --------------------------------------------------------

@@ -19,6 +19,7 @@
 #include "mrskin/protocol/can.hpp"
 #include "mrskin/protocol/errors.hpp"
 #include "mrskin/protocol/messages.hpp"
+#include "mrskin/protocol/packed_report.hpp"
 #include "mrskin/protocol/packet.hpp"
 
 namespace mrskin::protocol {
@@ -295,6 +296,32 @@ inline std::vector<NamedMessage> golden_messages() {
   return out;
 }
 
+// Protocol 1.2 packed reports: the packets of one report, sequence kGoldenSequence + i. Their
+// encodings are in golden_vectors.txt too (framings "report" and "canfd").
+struct NamedReport {
+  std::string name;
+  Direction direction = Direction::host_to_device;
+  std::vector<Message> messages;
+};
+
+inline std::vector<NamedReport> golden_reports() {
+  const std::vector<NamedMessage> m = golden_messages();
+  const auto find = [&m](const std::string& name) {
+    for (const NamedMessage& nm : m) {
+      if (nm.name == name) return nm.message;
+    }
+    throw std::runtime_error("no golden message " + name);
+  };
+  // What a 1.2 host sends in a tick: the heartbeat poll() made due, then the valve currents.
+  NamedReport host{
+      "packed_host_report", Direction::host_to_device, {find("heartbeat"), find("valve_currents")}};
+  // What a 1.2 unit sends with a sample: the status and echo that waited, then the telemetry.
+  NamedReport device{"packed_device_report",
+                     Direction::device_to_host,
+                     {find("status"), find("heartbeat"), find("telemetry")}};
+  return {host, device};
+}
+
 // ---- golden vector file -------------------------------------------------------------
 
 struct GoldenLine {
@@ -359,6 +386,32 @@ inline std::vector<std::string> golden_lines_for(const NamedMessage& nm) {
   canfd << nm.name << " canfd " << frame_to_text(fd);
   lines.push_back(canfd.str());
   return lines;
+}
+
+// The report's bytes up to the end of its last packet (append_packet, sequences from sequence).
+inline std::vector<std::uint8_t> report_bytes(const NamedReport& r, std::uint8_t sequence) {
+  std::array<std::uint8_t, kHidReportBytes> report{};
+  std::size_t used = 0;
+  for (std::size_t i = 0; i < r.messages.size(); ++i) {
+    const EncodeResult e =
+        append_packet(r.messages[i], static_cast<std::uint8_t>(sequence + i), report, used);
+    if (e.error != Error::ok) throw std::runtime_error("append_packet failed for " + r.name);
+    used += e.bytes;
+  }
+  return {report.begin(), report.begin() + static_cast<std::ptrdiff_t>(used)};
+}
+
+inline std::vector<std::string> golden_report_lines_for(const NamedReport& r) {
+  const std::vector<std::uint8_t> bytes = report_bytes(r, kGoldenSequence);
+  std::ostringstream report;
+  report << r.name << " report " << hex(bytes);
+  CanFrame fd;
+  if (encode_canfd_report(bytes, kGoldenNode, r.direction, fd).error != Error::ok) {
+    throw std::runtime_error("encode_canfd_report failed for " + r.name);
+  }
+  std::ostringstream canfd;
+  canfd << r.name << " canfd " << frame_to_text(fd);
+  return {report.str(), canfd.str()};
 }
 
 // ---- reassembly of classic CAN blocks --------------------------------------------------

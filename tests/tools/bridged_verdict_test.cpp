@@ -24,7 +24,7 @@ BridgeStats good_run() {
     s.relative_error.add(0.02);
   }
   s.target_cell_ticks = 100;
-  s.bus_load = 0.5;
+  s.bus_load = 0.5;  // reports a frame (unmodelled)
   return s;
 }
 
@@ -109,12 +109,24 @@ TEST(BridgedVerdict, ABusyMachineIsToldApartFromASlowTick) {
   EXPECT_EQ(t.back().rfind("verdict: NOT MET", 0), 0U);
 }
 
-TEST(BridgedVerdict, AnEstimatedBusOverloadNamesTheProtocolAndTheModel) {
+// Unmodelled, the bus figure is the reports counted per 1 ms frame: a full-speed frame carries one.
+TEST(BridgedVerdict, ACountedBusOverloadNamesTheProtocolAndTheModel) {
   BridgeStats s = good_run();
-  s.bus_load = 1.085;
+  s.bus_load = 1.06;
   const std::vector<std::string> v = verdict_lines(s, true, 1e-3);
-  EXPECT_TRUE(contains(v, "bus NOT MET: 108.5 % (limit 80 %)"));
+  EXPECT_TRUE(contains(v, "bus NOT MET: 1.06 reports a frame (limit 1)")) << v.back();
   EXPECT_TRUE(contains(v, "mock://?bus=hid-fs"));
+  s.bus_load = 1.0;  // protocol 1.2: one report a frame each way
+  EXPECT_TRUE(contains(verdict_lines(s, true, 1e-3), "bus met: 1.00 reports a frame"));
+}
+
+TEST(BridgedVerdict, AModelledBusIsHeldTo80PercentOfItsCapacity) {
+  BridgeStats s = good_run();
+  s.bus.kind = "can";
+  s.bus_load = 0.953;
+  const std::vector<std::string> v = verdict_lines(s, true, 1e-3);
+  EXPECT_TRUE(contains(v, "bus NOT MET: 95.3 % (limit 80 %)")) << v.back();
+  EXPECT_TRUE(contains(v, "of the can bus"));
 }
 
 TEST(BridgedVerdict, WithoutTheTruthTheRenderingIsNotScored) {

@@ -187,7 +187,10 @@ if(PART STREQUAL "record")
   endforeach()
   run(0 replay "${rec}" --json)
   expect_json_field("${out}" valves 12)
-  expect_json_field("${out}" "events;2;kind" currents)
+  # Protocol 1.2: the ENABLED status rides in a telemetry report, so samples reach the host
+  # before it sees the enable done and sends the currents.
+  expect_json_field("${out}" "events;2;kind" telemetry)
+  expect_json_field("${out}" "events;4;kind" currents)
   run(0 replay "${rec}" --to-device "mock://?seed=2" --json)
   expect_json_field("${out}" commands_refused 0)
   expect_json_field("${out}" state DISABLED)

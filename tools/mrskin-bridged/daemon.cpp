@@ -87,6 +87,8 @@ Daemon::Daemon(Settings settings, MonotonicClock& clock)
   force_range_N_ = profile != nullptr ? profile->design.force_range_N : 0.0;
   thermal_.reset(info.valves, profile != nullptr ? profile->coil.resistance_ohm : 0.0);
   t0_ = clock_.now();
+  // The handshake and the configuration read are not the loop's traffic.
+  reports_at_start_ = {dev_.session->counters().reports_sent, dev_.session->counters().reports_received};
   last_thermal_ = t0_;
   if (source_.scene != nullptr) {
     source_.scene->set_start(t0_);
@@ -734,16 +736,23 @@ bool Daemon::unrequested_fault() const noexcept {
          operator_halt_.load() != static_cast<unsigned char>(Bridge::Request::estop);
 }
 
+Daemon::ReportsPerFrame Daemon::reports_per_frame() const noexcept {
+  const double frames = std::max(1e-9, uptime_s()) * 1000.0;
+  const SessionCounters& link = dev_.session->counters();
+  return {static_cast<double>(link.reports_sent - reports_at_start_.first) / frames,
+          static_cast<double>(link.reports_received - reports_at_start_.second) / frames};
+}
+
 bridge::BridgeStats Daemon::final_stats() const {
   bridge::BridgeStats stats = bridge_->stats();
   if (loop_) {
     stats.skipped_periods += loop_->stats().skipped_periods;
   }
-  const double run_s = std::max(1e-9, uptime_s());
   const SessionCounters& link = dev_.session->counters();
-  // Busier direction: one packet per 64-byte report, one report per 1 ms full-speed USB-HID frame
-  // (docs/protocol.md, "Bus load").
-  stats.bus_load = static_cast<double>(std::max(link.sent, link.received)) / run_s / 1000.0;
+  // Busier direction, counted: reports (datagrams: protocol 1.2 packs several packets in one) per
+  // 1 ms full-speed USB-HID frame, which carries one (docs/protocol.md, "Bus budget").
+  const ReportsPerFrame counted = reports_per_frame();
+  stats.bus_load = std::max(counted.host_to_device, counted.device_to_host);
   if (mock_ != nullptr) {
     eval::fill_bus_stats(*mock_, stats);  // measured on the bus model: the `bus` object and bus_load
   }

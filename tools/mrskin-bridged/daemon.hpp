@@ -123,6 +123,13 @@ class Daemon final : public bridge::Tickable, public ControlBackend {
   [[nodiscard]] std::uint64_t live_ticks() const noexcept { return ticks_base_.load() + ticks_.value(); }
   [[nodiscard]] std::uint64_t live_overruns() const noexcept { return loop_ ? loop_->live_overruns() : 0; }
   [[nodiscard]] double uptime_s() const noexcept { return to_seconds(clock_.now() - t0_); }
+  // Reports (datagrams) each way since the loop's start, per 1 ms frame (the handshake and the
+  // configuration read left out).
+  struct ReportsPerFrame {
+    double host_to_device = 0.0;
+    double device_to_host = 0.0;
+  };
+  [[nodiscard]] ReportsPerFrame reports_per_frame() const noexcept;
   [[nodiscard]] std::uint64_t reloads() const noexcept { return reloads_.load(); }
   [[nodiscard]] const bridge::SampleRecorder* recorder() const noexcept { return recorder_.get(); }
   [[nodiscard]] const SessionCounters& link_counters() const noexcept { return dev_.session->counters(); }
@@ -180,6 +187,7 @@ class Daemon final : public bridge::Tickable, public ControlBackend {
   std::unique_ptr<bridge::Bridge> bridge_;
   std::unique_ptr<bridge::RealtimeLoop> loop_;
   std::vector<double> finger_;
+  std::pair<std::uint64_t, std::uint64_t> reports_at_start_{};  // sent, received
   TimePoint t0_{};
   bool warned_ = false;
 

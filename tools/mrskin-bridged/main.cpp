@@ -256,8 +256,6 @@ bool status_period(Console& console, mrskin::bridged::Daemon& daemon,
 // The lines printed at exit after the statistics: bus, scheduler, recording, topics, reloads.
 void print_run_report(const mrskin::bridged::Daemon& daemon, const mrskin::bridge::BridgeStats& stats) {
   using namespace mrskin;
-  const double run_s = std::max(1e-9, daemon.uptime_s());
-  const SessionCounters& link = daemon.link_counters();
   if (std::string_view(stats.bus.kind) != "none") {
     const auto& h2d = stats.bus.host_to_device;
     const auto& d2h = stats.bus.device_to_host;
@@ -268,10 +266,9 @@ void print_run_report(const mrskin::bridged::Daemon& daemon, const mrskin::bridg
         1e3 * h2d.max_wait_s, 1e3 * d2h.max_wait_s);
   } else {
     fmt::print(
-        "bus load   {:.1f} % of full-speed USB-HID reports (host to device {:.1f} %, device to host {:.1f} "
-        "%)\n",
-        100.0 * stats.bus_load, 100.0 * static_cast<double>(link.sent) / run_s / 1000.0,
-        100.0 * static_cast<double>(link.received) / run_s / 1000.0);
+        "bus load   {:.2f} reports a 1 ms frame, counted (host to device {:.2f}, device to host {:.2f}; "
+        "full-speed USB-HID carries 1)\n",
+        stats.bus_load, daemon.reports_per_frame().host_to_device, daemon.reports_per_frame().device_to_host);
   }
   if (const bridge::LoopStats* ls = daemon.loop_stats(); ls != nullptr) {
     fmt::print(

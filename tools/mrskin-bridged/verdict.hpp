@@ -11,9 +11,10 @@
 namespace mrskin::bridged {
 
 struct VerdictLimits {
-  double rms_error_N = 0.04;   // RMS rendered-force error, loading and holding
-  double relative_p95 = 0.07;  // 95th-percentile relative error where the target >= 0.3 N
-  double bus_load = 0.80;      // each direction, of the bus's capacity
+  double rms_error_N = 0.04;       // RMS rendered-force error, loading and holding
+  double relative_p95 = 0.07;      // 95th-percentile relative error where the target >= 0.3 N
+  double bus_load = 0.80;          // each direction, of the bus's capacity (a modelled bus)
+  double reports_per_frame = 1.0;  // counted on an unmodelled link: a full-speed frame carries one
 };
 
 // truth_scored: the statistics' errors are against the device's true force (the mock); without

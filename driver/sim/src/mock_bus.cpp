@@ -3,8 +3,11 @@
 #include <algorithm>
 #include <cmath>
 #include <limits>
+#include <span>
+#include <variant>
 
 #include "mrskin/protocol/can.hpp"
+#include "mrskin/protocol/packed_report.hpp"
 #include "mrskin/protocol/usb.hpp"
 
 namespace mrskin::sim {
@@ -35,8 +38,31 @@ proto::UsbInterruptSlots usb_slots(MockBusKind kind) noexcept {
   return proto::kUsbFullSpeedSlots;
 }
 
+// Whether every packet of the report is telemetry: a newer sample may take its place. A packed
+// report (protocol 1.2) that also carries a status or an echo keeps its place.
 bool is_telemetry(const Datagram& d) noexcept {
-  return d.length > 1 && d.bytes[1] == static_cast<std::uint8_t>(proto::MessageType::telemetry);
+  proto::PacketWalker walker(std::span<const std::uint8_t>(d.bytes.data(), d.length));
+  proto::PacketDecoded p;
+  bool any = false;
+  while (walker.next(p)) {
+    if (p.error != proto::Error::ok || !std::holds_alternative<proto::Telemetry>(p.message)) {
+      return false;
+    }
+    any = true;
+  }
+  return any;
+}
+
+// Packets a report carries: one in protocol 1.1, one or more in a packed report (1.2). A
+// report that does not decode counts as one, as v1 counted it.
+std::uint64_t packets_in(const Datagram& d) noexcept {
+  proto::PacketWalker walker(std::span<const std::uint8_t>(d.bytes.data(), d.length));
+  proto::PacketDecoded p;
+  std::uint64_t n = 0;
+  while (walker.next(p)) {
+    ++n;
+  }
+  return std::max<std::uint64_t>(n, 1);
 }
 
 }  // namespace
@@ -59,10 +85,10 @@ const char* to_string(MockBusKind kind) noexcept {
 
 void MockBus::Counters::waited(std::int64_t ns) noexcept { raise(max_wait_ns, ns); }
 
-void MockBus::Counters::carry(std::size_t packet_bytes) noexcept {
-  packets.bump();
+void MockBus::Counters::carry(const Datagram& report) noexcept {
+  packets.bump(packets_in(report));
   carried.bump();
-  bytes.bump(packet_bytes);
+  bytes.bump(report.length);
 }
 
 MockBus::MockBus(const MockBusOptions& options)
@@ -131,7 +157,7 @@ MockBus::UsbPlace MockBus::usb_place(UsbLane& lane, BusRing<Waiting>& waiting, C
   }
   counters.waited((due - t).count());
   if (due == t && waiting.empty()) {
-    counters.carry(d.length);
+    counters.carry(d);
     return UsbPlace::now;
   }
   waiting.push() = Waiting{due, t, d};
@@ -162,9 +188,10 @@ void MockBus::host_sent(const Datagram& d, TimePoint t, BusSink& sink) noexcept 
     CanPacket& p = host_.packets.push();
     p = scratch_;
     p.submit_ns = std::max(t.count(), clock_ns_);
+    to_device_.unsent.bump(p.unsent);
     return;
   }
-  to_device_.carry(d.length);
+  to_device_.carry(d);
   sink.deliver_to_device(d, t);
 }
 
@@ -179,7 +206,7 @@ void MockBus::device_sent(const Datagram& d, TimePoint t, BusSink& sink) noexcep
   } else if (can()) {
     can_device_sent(d, t);
   } else {
-    to_host_.carry(d.length);
+    to_host_.carry(d);
     sink.deliver_to_host(d, t);
   }
 }
@@ -238,20 +265,51 @@ void MockBus::can_device_sent(const Datagram& d, TimePoint t) noexcept {
   CanPacket& p = node.packets.push();
   p = scratch_;
   p.submit_ns = std::max(t.count(), clock_ns_);
+  to_host_.unsent.bump(p.unsent);
 }
 
 bool MockBus::encode(CanPacketCodec& codec, const Datagram& d, CanPacket& out) noexcept {
+  out.datagram = d;
+  out.frame_count = 0;
+  out.unsent = 0;
+  const std::span<const std::uint8_t> bytes(d.bytes.data(), d.length);
+  if (codec.fd() || packets_in(d) == 1) {
+    // One packet, or a packed report in one CAN FD frame: delivered whole with its last frame.
+    if (!encode_packet_frames(codec, d, 0, d.length, out)) {
+      return false;
+    }
+  } else {
+    // A packed report on classic CAN: each packet's frames, as the CAN transport writes them.
+    proto::PacketWalker walker(bytes);
+    proto::PacketDecoded p;
+    std::size_t begin = 0;
+    while (walker.next(p)) {
+      if (p.error != proto::Error::ok || !encode_packet_frames(codec, d, begin, walker.offset(), out)) {
+        return false;
+      }
+      begin = walker.offset();
+    }
+  }
+  // No frame: packets this framing has no form for (classic CAN's heartbeat echo); the CAN
+  // transport drops them too.
+  return out.frame_count > 0;
+}
+
+bool MockBus::encode_packet_frames(CanPacketCodec& codec, const Datagram& d, std::size_t begin,
+                                   std::size_t end, CanPacket& out) noexcept {
   const CanPacketCodec::Encoded e =
-      codec.encode(std::span<const std::uint8_t>(d.bytes.data(), d.length), frames_);
-  // No frame: a packet this framing has no form for (classic CAN's heartbeat echo) or cannot
-  // address; the CAN transport drops it too.
-  if (e.error != proto::Error::ok || e.frames == 0) {
+      codec.encode(std::span<const std::uint8_t>(d.bytes.data() + begin, end - begin), frames_);
+  if (e.error != proto::Error::ok || out.frame_count + e.frames > out.frames.size()) {
     return false;
   }
-  out.datagram = d;
-  out.frame_count = e.frames;
+  out.unsent += e.unsent;
   for (std::size_t i = 0; i < e.frames; ++i) {
-    out.frames[i] = {frames_[i].id, frames_[i].length, frames_[i].fd};
+    out.frames[out.frame_count++] = {frames_[i].id, frames_[i].length, frames_[i].fd, 0, 0};
+  }
+  if (e.frames > 0) {
+    FrameInfo& last = out.frames[out.frame_count - 1];
+    last.packet_begin = static_cast<std::uint8_t>(begin);
+    last.packet_end = static_cast<std::uint8_t>(end);
   }
   return true;
 }
@@ -310,17 +368,22 @@ void MockBus::can_start(std::int64_t t_ns) noexcept {
 void MockBus::can_complete(BusSink& sink) noexcept {
   busy_ = false;
   bus_free_ns_ = on_bus_.end_ns;
-  if (!on_bus_.frame.last) {
+  const FrameInfo& f = on_bus_.frame.frame;
+  if (f.packet_end == 0) {
     return;
   }
   CanNode& node = on_bus_.from_host ? host_ : device_;
   Counters& c = on_bus_.from_host ? to_device_ : to_host_;
   const CanPacket& p = node.packets.front();
-  c.packets.bump();
+  Datagram d;  // the packet (or the FD frame's packed report) this frame completes
+  d.length = static_cast<std::uint8_t>(f.packet_end - f.packet_begin);
+  std::copy_n(p.datagram.bytes.begin() + f.packet_begin, d.length, d.bytes.begin());
+  c.packets.bump(packets_in(d));
   c.waited(on_bus_.end_ns - p.submit_ns);
-  const Datagram d = p.datagram;
-  node.packets.pop();
-  --node.written;
+  if (on_bus_.frame.last) {
+    node.packets.pop();
+    --node.written;
+  }
   if (on_bus_.from_host) {
     sink.deliver_to_device(d, TimePoint{on_bus_.end_ns});
   } else {
@@ -339,13 +402,13 @@ void MockBus::advance(TimePoint t, BusSink& sink) noexcept {
       const Waiting w = to_host_waiting_.front();
       to_host_waiting_.pop();
       ++to_host_popped_;
-      to_host_.carry(w.datagram.length);
+      to_host_.carry(w.datagram);
       sink.deliver_to_host(w.datagram, w.due);
     }
     while (!to_device_waiting_.empty() && to_device_waiting_.front().due <= t) {
       const Waiting w = to_device_waiting_.front();
       to_device_waiting_.pop();
-      to_device_.carry(w.datagram.length);
+      to_device_.carry(w.datagram);
       sink.deliver_to_device(w.datagram, w.due);
     }
     return;

@@ -87,7 +87,7 @@ class __attribute__((visibility("hidden"))) MockBus {
     std::atomic<std::int64_t> max_wait_ns{0};
     std::atomic<std::int64_t> busy_ns{0};  // CAN
     void waited(std::int64_t ns) noexcept;
-    void carry(std::size_t packet_bytes) noexcept;  // USB: one packet in one report
+    void carry(const Datagram& report) noexcept;  // USB: one report, its packets and bytes
   };
   // USB: one direction's interrupt endpoint. Slot k*R + r is report r of frame k.
   struct UsbLane {
@@ -103,12 +103,17 @@ class __attribute__((visibility("hidden"))) MockBus {
     std::uint32_t id = 0;
     std::uint8_t data_bytes = 0;
     bool fd = false;
+    // The frame that completes a packet: its bytes [packet_begin, packet_end) in the datagram
+    // (a packed report on classic CAN delivers each packet when its own last frame ends).
+    std::uint8_t packet_begin = 0;
+    std::uint8_t packet_end = 0;  // 0: completes none
   };
   struct CanPacket {
     Datagram datagram{};
     std::int64_t submit_ns = 0;
     std::array<FrameInfo, CanPacketCodec::kMaxFrames> frames{};
     std::size_t frame_count = 0;
+    std::size_t unsent = 0;  // its packets with no form on the framing (classic echoes)
   };
   struct QueuedFrame {
     FrameInfo frame{};
@@ -147,6 +152,9 @@ class __attribute__((visibility("hidden"))) MockBus {
   void can_device_sent(const Datagram& d, TimePoint t) noexcept;
   [[nodiscard]] std::int64_t frame_ns(const FrameInfo& f) const noexcept;
   bool encode(CanPacketCodec& codec, const Datagram& d, CanPacket& out) noexcept;
+  // One packet's frames appended to out; false when the codec refuses it.
+  bool encode_packet_frames(CanPacketCodec& codec, const Datagram& d, std::size_t begin, std::size_t end,
+                            CanPacket& out) noexcept;
   // Writes the node's frames into its queue while there is room: the host's transport gets
   // ENOBUFS past it and backs off; the unit feeds its queue as frames leave it.
   void can_write(CanNode& node, bool host, std::int64_t t_ns) noexcept;

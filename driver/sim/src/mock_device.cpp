@@ -13,6 +13,7 @@
 #include "mock_device_impl.hpp"
 #include "mrskin/driver/errors.hpp"
 #include "mrskin/driver/model/calibration.hpp"
+#include "mrskin/protocol/packed_report.hpp"
 #include "mrskin/protocol/packet.hpp"
 #include "mrskin/protocol/units.hpp"
 #include "mrskin/sim/network_plant.hpp"
@@ -28,6 +29,7 @@ constexpr std::uint8_t kFirmwarePatch = 0;
 constexpr std::size_t kDelayLineCapacity = 4096;
 constexpr std::size_t kConfigCapacity = 4096;
 constexpr std::size_t kAnswerReserve = 64;  // device->host slots telemetry may not take
+constexpr std::size_t kStatusPacketBytes = proto::kPacketHeaderBytes + 5 + proto::kPacketCrcBytes;
 
 std::uint64_t splitmix(std::uint64_t& s) noexcept {
   std::uint64_t z = (s += 0x9E3779B97F4A7C15ULL);
@@ -473,8 +475,24 @@ void MockDevice::Impl::flush_delayed(TimePoint now) noexcept {
   }
 }
 
-void MockDevice::Impl::send_message(const proto::Message& message) noexcept {
+void MockDevice::Impl::send_message(const proto::Message& message, bool hold) noexcept {
   if (!link_up_.load(std::memory_order_acquire) || bus_off_until_ > last_step_) {
+    return;
+  }
+  if (packing_) {
+    proto::EncodeResult r = proto::append_packet(message, tx_sequence_, report_.bytes, report_.length);
+    if (r.error == proto::Error::short_buffer && report_.length > 0) {
+      flush_report();  // full: this packet starts the next report
+      r = proto::append_packet(message, tx_sequence_, report_.bytes, report_.length);
+    }
+    if (r.error != proto::Error::ok) {
+      return;
+    }
+    ++tx_sequence_;
+    report_.length = static_cast<std::uint8_t>(report_.length + r.bytes);
+    if (!hold) {
+      flush_report();
+    }
     return;
   }
   Datagram d;
@@ -484,6 +502,19 @@ void MockDevice::Impl::send_message(const proto::Message& message) noexcept {
   }
   ++tx_sequence_;
   d.length = static_cast<std::uint8_t>(r.bytes);
+  emit(d, last_step_);
+}
+
+void MockDevice::Impl::flush_report() noexcept {
+  if (report_.length == 0) {
+    return;
+  }
+  const Datagram d = report_;
+  report_.length = 0;
+  held_status_at_ = kNoHeldStatus;
+  if (!link_up_.load(std::memory_order_acquire) || bus_off_until_ > last_step_) {
+    return;  // lost with the link, as a unit's transmit buffer would be
+  }
   emit(d, last_step_);
 }
 
@@ -504,7 +535,20 @@ void MockDevice::Impl::send_status() noexcept {
     flags |= proto::kFlagDegaussing;
   }
   s.flags = static_cast<std::uint8_t>(flags);
-  send_message(s);
+  if (wait_for_telemetry() && held_status_at_ != kNoHeldStatus) {
+    // A newer snapshot supersedes the status still waiting for the telemetry report (same place
+    // and sequence), so a burst of changes costs no extra report; a fault is never hidden.
+    const std::span<std::uint8_t> held(report_.bytes.data() + held_status_at_, kStatusPacketBytes);
+    const auto fault = static_cast<std::uint8_t>(proto::DeviceState::fault);
+    if (held[proto::kPacketHeaderBytes] != fault || s.state == fault) {
+      (void)proto::encode_packet(s, held[2], held);
+      return;
+    }
+  }
+  send_message(s, wait_for_telemetry());  // packed: it rides with the next telemetry report
+  if (wait_for_telemetry() && report_.length >= kStatusPacketBytes) {
+    held_status_at_ = report_.length - kStatusPacketBytes;
+  }
 }
 
 void MockDevice::Impl::release_valves() noexcept {
@@ -566,6 +610,7 @@ void MockDevice::Impl::enter_fault(proto::FaultCode code) noexcept {
   fault_.store(static_cast<std::uint8_t>(code));  // latched until an explicit enable
   release_valves();
   send_status();
+  flush_report();  // a fault goes out at once, not with the next sample (bus-off may follow)
 }
 
 void MockDevice::Impl::handle_host_input(TimePoint now) noexcept { handle_host_input(now, now); }
@@ -665,13 +710,29 @@ void MockDevice::Impl::handle_config(const proto::Message& message) noexcept {
 }
 
 void MockDevice::Impl::handle(const std::uint8_t* bytes, std::size_t length, TimePoint now) noexcept {
-  const proto::PacketDecoded p = proto::decode_packet(std::span<const std::uint8_t>(bytes, length));
+  const std::span<const std::uint8_t> report(bytes, length);
+  if (!packing_) {
+    handle_packet(proto::decode_packet(report), now);  // 1.1: the rest of a report is padding
+    return;
+  }
+  proto::PacketWalker walker(report);
+  proto::PacketDecoded p;
+  while (walker.next(p)) {
+    handle_packet(p, now);
+  }
+}
+
+void MockDevice::Impl::handle_packet(const proto::PacketDecoded& p, TimePoint now) noexcept {
   if (p.error != proto::Error::ok) {
     return;  // a unit drops what it cannot parse; the host sees no answer
   }
   last_heartbeat_ = now;  // any valid packet proves the host is alive
   const auto state = static_cast<proto::DeviceState>(state_.load(std::memory_order_relaxed));
-  if (std::holds_alternative<proto::IdentifyRequest>(p.message)) {
+  if (const auto* request = std::get_if<proto::IdentifyRequest>(&p.message)) {
+    // The Identity goes alone, first in its report: a host reads it before it knows the unit
+    // packs. Packing follows from this request on, as both sides declared.
+    flush_report();
+    packing_ = false;
     proto::Identity id;
     id.fw_major = kFirmwareMajor;
     id.fw_minor = kFirmwareMinor;
@@ -683,6 +744,7 @@ void MockDevice::Impl::handle(const std::uint8_t* bytes, std::size_t length, Tim
     id.sensors = static_cast<std::uint16_t>(sensor_si_.size());
     id.serial = options_.serial;
     id.proto_major = options_.protocol_major;
+    id.proto_minor = options_.protocol_minor;
     id.current_lsb_nA = static_cast<std::uint32_t>(std::lround(current_lsb_A_ * 1e9));
     id.current_max_counts = static_cast<std::uint16_t>(
         std::min<long>(std::lround(max_current_A_ / current_lsb_A_), proto::kCurrentCountMax));
@@ -692,6 +754,8 @@ void MockDevice::Impl::handle(const std::uint8_t* bytes, std::size_t length, Tim
         static_cast<std::uint16_t>(std::lround(options_.heartbeat_timeout_s * options_.time_scale * 1e3));
     id.telemetry_rate_hz = static_cast<std::uint16_t>(std::lround(1.0 / options_.telemetry_period_s));
     send_message(id);
+    packing_ = proto::reads_packed_reports(options_.protocol_major, options_.protocol_minor) &&
+               proto::reads_packed_reports(request->host_major, request->host_minor);
     send_status();
   } else if (const auto* r = std::get_if<proto::StateRequest>(&p.message)) {
     if (degaussing_ && r->request != static_cast<std::uint8_t>(proto::StateRequestCode::degauss)) {
@@ -754,7 +818,7 @@ void MockDevice::Impl::handle(const std::uint8_t* bytes, std::size_t length, Tim
       rendering_targets_ = true;
     }
   } else if (const auto* h = std::get_if<proto::Heartbeat>(&p.message)) {
-    send_message(proto::Heartbeat{h->counter});  // echo: the host measures round trips
+    send_message(proto::Heartbeat{h->counter}, wait_for_telemetry());  // echo: the host times round trips
   } else {
     handle_config(p.message);
   }
@@ -839,9 +903,10 @@ void MockDevice::Impl::emit_telemetry(TimePoint now) noexcept {
                                                          static_cast<double>(proto::kSensorCountMax)));
       reported_[s] = static_cast<double>(t.counts[i]) * sensor_lsb_;
     }
-    send_message(t);
+    send_message(t, /*hold=*/true);
     first += t.count;
   }
+  flush_report();  // with what waited for it: status, heartbeat echoes
 }
 
 void MockDevice::Impl::apply_link_faults(TimePoint now) noexcept {
@@ -880,6 +945,9 @@ void MockDevice::Impl::step(TimePoint now) noexcept {
     while (to_device_.try_pop(drain)) {
     }
     bus_.reset();
+    packing_ = false;  // a unit that boots again packs only after the next IdentifyRequest
+    report_.length = 0;
+    held_status_at_ = kNoHeldStatus;
     last_step_ = now;
     last_heartbeat_ = now;
     return;

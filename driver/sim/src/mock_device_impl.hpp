@@ -22,6 +22,7 @@
 #include "mrskin/driver/spsc_queue.hpp"
 #include "mrskin/driver/transport.hpp"
 #include "mrskin/protocol/messages.hpp"
+#include "mrskin/protocol/packet.hpp"
 #include "mrskin/sim/mock_device.hpp"
 #include "mrskin/sim/plant.hpp"
 
@@ -56,7 +57,18 @@ struct __attribute__((visibility("hidden"))) MockDevice::Impl {
   void deliver_to_device(Datagram d, TimePoint at) noexcept;
   void deliver_to_host(const Datagram& d, TimePoint at) noexcept;
   void handle(const std::uint8_t* bytes, std::size_t length, TimePoint now) noexcept;
-  void send_message(const protocol::Message& message) noexcept;
+  // Sends message as one packet. With packed reports agreed (the host's IdentifyRequest said
+  // 1.2), it joins the report being filled (sent first when the packet does not fit), which goes
+  // out now unless hold: status and heartbeat echoes wait for the next telemetry report.
+  void send_message(const protocol::Message& message, bool hold = false) noexcept;
+  void flush_report() noexcept;
+  // Status and echoes wait for the telemetry report: with packing agreed, on a framing where a
+  // report carries several packets. Classic CAN sends each packet as its own frames anyway, so
+  // there they go at once, as in 1.1.
+  [[nodiscard]] bool wait_for_telemetry() const noexcept {
+    return packing_ && options_.bus.kind != MockBusKind::can;
+  }
+  void handle_packet(const protocol::PacketDecoded& p, TimePoint now) noexcept;
   void send_status() noexcept;
   void release_valves() noexcept;
   void emit_telemetry(TimePoint now) noexcept;
@@ -155,6 +167,10 @@ struct __attribute__((visibility("hidden"))) MockDevice::Impl {
   TimePoint next_status_{};
   bool started_ = false;
   std::uint8_t tx_sequence_ = 0;
+  bool packing_ = false;  // the host's IdentifyRequest declared 1.2 and this unit speaks it
+  Datagram report_{};     // packed report being filled (length: bytes used)
+  static constexpr std::size_t kNoHeldStatus = ~std::size_t{0};
+  std::size_t held_status_at_ = kNoHeldStatus;  // where the status waiting in report_ starts
   std::uint64_t noise_state_;
 };
 

@@ -191,6 +191,13 @@ MockUri parse_mock_uri(std::string_view uri) {
         throw InvalidArgument("mock:// protocol_major must be in [1, 255]");
       }
       options.protocol_major = static_cast<std::uint8_t>(major);
+    } else if (key == "protocol_minor") {
+      const auto minor = parse_number<unsigned>(key, value);
+      if (minor > protocol::kVersionMinor) {
+        throw InvalidArgument(
+            fmt::format("mock:// protocol_minor must be in [0, {}]", protocol::kVersionMinor));
+      }
+      options.protocol_minor = static_cast<std::uint8_t>(minor);
     } else if (key == "bipolar") {
       if (value != "0" && value != "1") {
         throw InvalidArgument("mock:// bipolar must be 0 (a unipolar coil driver: no degauss) or 1");
@@ -219,7 +226,7 @@ MockUri parse_mock_uri(std::string_view uri) {
     } else {
       throw InvalidArgument("mock:// parameter '" + std::string(key) +
                             "' is unknown: use seed, perturbation, faults, time_scale, bipolar, "
-                            "protocol_major, finger, bus or bitrate");
+                            "protocol_major, protocol_minor, finger, bus or bitrate");
     }
   }
   if (!bitrate.empty()) {

@@ -6,6 +6,7 @@
 #include <variant>
 
 #include "mrskin/driver/transports/can.hpp"
+#include "mrskin/protocol/packed_report.hpp"
 
 namespace mrskin {
 namespace proto = mrskin::protocol;
@@ -63,39 +64,56 @@ CanPacketCodec::CanPacketCodec(CanRole role, std::uint8_t node, bool fd) noexcep
     : role_(role), node_(node), fd_(fd), decoder_(node) {}
 
 proto::Error CanPacketCodec::check(CanRole role, bool fd, std::span<const std::uint8_t> packet) noexcept {
-  const proto::PacketDecoded p = proto::decode_packet(packet);
-  if (p.error != proto::Error::ok) {
-    return p.error;
-  }
-  if (!sent_by(role, p.message)) {
-    return proto::Error::unknown_type;
-  }
-  if (fd) {
-    return proto::Error::ok;
-  }
-  if (const auto* v = std::get_if<proto::ValveCurrents>(&p.message)) {
-    return v->first + v->count > kBlockValues ? proto::Error::out_of_range : proto::Error::ok;
-  }
-  if (const auto* t = std::get_if<proto::Telemetry>(&p.message)) {
-    return t->first + t->count > kBlockValues ? proto::Error::out_of_range : proto::Error::ok;
-  }
-  if (const auto* c = std::get_if<proto::CellTargets>(&p.message)) {
-    return c->first + c->count - 1 > proto::kCellIndexMaxCan ? proto::Error::out_of_range : proto::Error::ok;
-  }
-  return proto::Error::ok;
+  CanPacketCodec scratch(role, proto::kCanNodeMin, fd);
+  std::array<proto::CanFrame, kMaxFrames> frames{};
+  return scratch.encode(packet, frames).error;
 }
 
 CanPacketCodec::Encoded CanPacketCodec::encode(std::span<const std::uint8_t> packet,
                                                std::span<proto::CanFrame, kMaxFrames> out) noexcept {
-  const proto::PacketDecoded p = proto::decode_packet(packet);
-  if (p.error != proto::Error::ok) {
-    return {p.error, 0};
+  // The packets of the datagram: one in protocol 1.1, several in a packed report (1.2).
+  proto::PacketWalker walker(packet);
+  proto::PacketDecoded p;
+  std::size_t packets = 0;
+  while (walker.next(p)) {
+    if (p.error != proto::Error::ok) {
+      return {p.error, 0};
+    }
+    if (!sent_by(role_, p.message)) {
+      return {proto::Error::unknown_type, 0};
+    }
+    ++packets;
   }
+  if (packets == 0) {
+    return {proto::decode_packet(packet).error, 0};  // the error a lone packet would give
+  }
+  if (fd_ && packets > 1) {
+    const auto dir =
+        role_ == CanRole::host ? proto::Direction::host_to_device : proto::Direction::device_to_host;
+    const proto::CanEncodeResult r = proto::encode_canfd_report(packet, node_, dir, out[0]);
+    return {r.error, r.frames};
+  }
+  // Classic CAN keeps its frames: each packet as if it came alone.
+  Encoded all;
+  proto::PacketWalker again(packet);
+  while (again.next(p)) {
+    const Encoded e = encode_one(p, std::span<proto::CanFrame>(out).subspan(all.frames));
+    if (e.error != proto::Error::ok) {
+      return {e.error, 0};
+    }
+    all.frames += e.frames;
+    all.unsent += e.unsent;
+  }
+  return all;
+}
+
+CanPacketCodec::Encoded CanPacketCodec::encode_one(const proto::PacketDecoded& p,
+                                                   std::span<proto::CanFrame> out) noexcept {
   const proto::Message& m = p.message;
-  if (!sent_by(role_, m)) {
-    return {proto::Error::unknown_type, 0};
-  }
   if (fd_) {
+    if (out.empty()) {
+      return {proto::Error::too_long, 0};
+    }
     const auto dir =
         role_ == CanRole::host ? proto::Direction::host_to_device : proto::Direction::device_to_host;
     const proto::CanEncodeResult r = proto::encode_canfd(m, node_, dir, p.sequence, out[0]);
@@ -107,7 +125,7 @@ CanPacketCodec::Encoded CanPacketCodec::encode(std::span<const std::uint8_t> pac
   std::uint8_t counter = 0;
   if (std::holds_alternative<proto::Heartbeat>(m)) {
     if (role_ == CanRole::device) {
-      return {proto::Error::ok, 0};  // classic CAN has no heartbeat echo
+      return {proto::Error::ok, 0, 1};  // classic CAN has no heartbeat echo
     }
     counter = tx_heartbeat_++;
   } else if (std::holds_alternative<proto::CellTargets>(m)) {
@@ -119,17 +137,23 @@ CanPacketCodec::Encoded CanPacketCodec::encode(std::span<const std::uint8_t> pac
   }
   const proto::CanEncodeResult r =
       proto::encode_can(m, node_, static_cast<std::uint8_t>(counter & 0xFU), p.sequence, out);
-  return {r.error, r.frames};
+  return {r.error == proto::Error::short_buffer ? proto::Error::too_long : r.error, r.frames};
 }
 
 CanPacketCodec::Encoded CanPacketCodec::encode_blocks(const proto::Message& m,
-                                                      std::span<proto::CanFrame, kMaxFrames> out) noexcept {
+                                                      std::span<proto::CanFrame> out) noexcept {
   const auto* v = std::get_if<proto::ValveCurrents>(&m);
   const auto* t = std::get_if<proto::Telemetry>(&m);
   const std::size_t first = v != nullptr ? v->first : t->first;
   const std::size_t count = v != nullptr ? v->count : t->count;
   if (first + count > kBlockValues) {
     return {proto::Error::out_of_range, 0};
+  }
+  const std::size_t end = first + count;
+  const std::size_t blocks = (end + proto::kCanValuesPerBlock - 1) / proto::kCanValuesPerBlock -
+                             first / proto::kCanValuesPerBlock + (t != nullptr ? 1U : 0U);
+  if (blocks > out.size()) {
+    return {proto::Error::too_long, 0};
   }
   for (std::size_t i = 0; i < count; ++i) {
     shadow_[first + i] = v != nullptr ? v->counts[i] : static_cast<std::uint16_t>(t->counts[i]);
@@ -145,7 +169,6 @@ CanPacketCodec::Encoded CanPacketCodec::encode_blocks(const proto::Message& m,
     }
     n = 1;
   }
-  const std::size_t end = first + count;
   for (std::size_t b = first / proto::kCanValuesPerBlock; b * proto::kCanValuesPerBlock < end; ++b) {
     const std::size_t start = b * proto::kCanValuesPerBlock;
     const auto values = static_cast<std::uint8_t>(std::min(proto::kCanValuesPerBlock, end - start));
@@ -221,6 +244,12 @@ CanPacketCodec::Decoded CanPacketCodec::decode(const proto::CanFrame& frame) noe
     finish(out, m, d.sequence);
     rx_sequence_ = static_cast<std::uint8_t>(d.sequence + 1U);
     lost_ = 0;
+    const std::size_t first = out.packet.length;
+    if (first < frame.length && frame.data[first] != 0x00) {
+      // A packed report (protocol 1.2): the frame's packets as they came; the session walks them.
+      std::copy_n(frame.data.begin(), frame.length, out.packet.bytes.begin());
+      out.packet.length = frame.length;
+    }
     return out;
   }
   proto::Message handed = m;

@@ -65,11 +65,14 @@ struct SessionOptions {
   // Timeout when no chunk arrives within handshake_timeout.
   bool read_configuration = true;
   std::size_t ring_log_packets = 256;  // N of the ring log (1..65536)
+  // The protocol minor version this host declares in its IdentifyRequest, 0..kVersionMinor:
+  // 1 makes it a 1.1 host (no packed reports either way), for tests against older peers.
+  std::uint8_t protocol_minor = protocol::kVersionMinor;
 };
 
 // Counters the session keeps; read from the tick thread or after it stops.
 struct SessionCounters {
-  std::uint64_t sent = 0;
+  std::uint64_t sent = 0;  // packets
   std::uint64_t send_would_block = 0;
   std::uint64_t received = 0;
   std::uint64_t telemetry = 0;
@@ -86,6 +89,8 @@ struct SessionCounters {
   std::uint64_t reseeds = 0;            // explicit enables that re-seeded the command state
   std::uint64_t state_retries = 0;      // state requests sent again: no status confirmed them
   std::uint64_t identity_changes = 0;   // another unit answered a reconnect: refused
+  std::uint64_t reports_sent = 0;       // datagrams (HID reports, CAN FD frames) that carried them
+  std::uint64_t reports_received = 0;   // ... and that brought the received packets
   DurationHistogram round_trip;         // heartbeat sent -> its echo received
   std::int64_t last_round_trip_ns = 0;  // the latest of those, ns
 };
@@ -223,6 +228,9 @@ class MRSKIN_DRIVER_API DeviceSession {
   // Protocol 1.1: a degauss cycle is running (request_degauss), per the device's last Status.
   [[nodiscard]] bool degaussing() const noexcept;
   [[nodiscard]] bool connected() const noexcept;
+  // Protocol 1.2: host and device both declared 1.2, so each report (HID report, CAN FD frame)
+  // carries several packets: the heartbeat rides with the valve currents (docs/protocol.md).
+  [[nodiscard]] bool packed_reports() const noexcept;
   [[nodiscard]] const SessionCounters& counters() const noexcept;
   [[nodiscard]] TransportState transport_state() const noexcept;
 

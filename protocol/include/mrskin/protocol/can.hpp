@@ -82,6 +82,13 @@ MRSKIN_PROTOCOL_API CanEncodeResult encode_canfd(const Message& message, std::ui
                                                  Direction direction, std::uint8_t sequence,
                                                  CanFrame& out) noexcept;
 
+// Protocol 1.2: one CAN FD frame carrying a packed report (packed_report.hpp): the report's
+// packets, each checked with decode_packet (the first error is returned and nothing written),
+// zero padded to the next CAN FD length. The walk ends at the report's first 0x00 or its end.
+MRSKIN_PROTOCOL_API CanEncodeResult encode_canfd_report(std::span<const std::uint8_t> report,
+                                                        std::uint8_t node, Direction direction,
+                                                        CanFrame& out) noexcept;
+
 struct CanDecoded {
   Error error = Error::ok;
   bool complete = false;      // a message is ready (false while a segmented transfer runs)
@@ -92,7 +99,8 @@ struct CanDecoded {
 };
 
 // Decodes frames addressed to one node; keeps the state of one segmented transfer per
-// direction. No allocation; frames for other nodes give wrong_node.
+// direction. No allocation; frames for other nodes give wrong_node. A CAN FD frame gives its
+// first packet; a receiver that agreed on packed reports walks the frame's data (PacketWalker).
 class MRSKIN_PROTOCOL_API CanDecoder {
  public:
   explicit CanDecoder(std::uint8_t node) noexcept : node_(node) {}

@@ -13,7 +13,8 @@
 namespace mrskin::protocol {
 
 inline constexpr std::uint8_t kVersionMajor = 1;
-inline constexpr std::uint8_t kVersionMinor = 1;  // 1.1: StateRequest degauss, Status flag degaussing
+// 1.1: StateRequest degauss, Status flag degaussing. 1.2: packed reports (packed_report.hpp).
+inline constexpr std::uint8_t kVersionMinor = 2;
 
 enum class MessageType : std::uint8_t {
   identify_request = 0x01,

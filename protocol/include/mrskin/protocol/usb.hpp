@@ -38,8 +38,8 @@ inline constexpr double kUsbHighSpeedMicroframe_s = 125e-6;
 inline constexpr std::size_t kUsbHighSpeedMaxReportsPerMicroframe = 3;
 inline constexpr std::size_t kUsbHighSpeedMaxReportBytes = 1024;
 inline constexpr UsbInterruptSlots kUsbFullSpeedSlots{kUsbFullSpeedFrame_s, 1, kUsbMaxPacketBytes};
-// What a high-speed unit may declare at most. Protocol v1 declares nothing: until the message
-// that declares it (protocol 1.2), the mock's hid-hs bus takes this figure.
+// What a high-speed unit may declare at most. Protocol 1.2 declares nothing yet: until the
+// message that declares it (a later minor version), the mock's hid-hs bus takes this figure.
 inline constexpr UsbInterruptSlots kUsbHighSpeedMaxSlots{
     kUsbHighSpeedMicroframe_s, kUsbHighSpeedMaxReportsPerMicroframe, kUsbHighSpeedMaxReportBytes};
 // Reports the slots carry per second, and bytes (reports full to report_bytes) per second.

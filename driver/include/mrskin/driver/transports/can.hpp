@@ -79,12 +79,17 @@ class MRSKIN_DRIVER_API CanPacketCodec {
   struct Encoded {
     protocol::Error error = protocol::Error::ok;
     std::size_t frames = 0;  // 0 with ok: nothing to send on this framing (a classic echo)
+    std::size_t unsent = 0;  // packets with no form on this framing (classic heartbeat echoes)
   };
   // A packet this role sends -> frames. unknown_type for a message of the other direction,
-  // out_of_range for a valve, sensor or cell this framing cannot address.
+  // out_of_range for a valve, sensor or cell this framing cannot address. A packed report
+  // (protocol 1.2, several packets): on CAN FD one frame carrying it (encode_canfd_report); on
+  // classic CAN each packet's frames in order, exactly as if sent one by one (too_long past
+  // kMaxFrames). Any packet's error refuses the whole report.
   Encoded encode(std::span<const std::uint8_t> packet,
                  std::span<protocol::CanFrame, kMaxFrames> out) noexcept;
-  // Whether encode() would take the packet (decodes it; keeps no state). Safe on any thread.
+  // Whether encode() would take the packet or packed report (encodes it with a scratch codec;
+  // keeps no state). Safe on any thread.
   [[nodiscard]] static protocol::Error check(CanRole role, bool fd,
                                              std::span<const std::uint8_t> packet) noexcept;
 
@@ -106,8 +111,9 @@ class MRSKIN_DRIVER_API CanPacketCodec {
   [[nodiscard]] bool fd() const noexcept { return fd_; }
 
  private:
-  Encoded encode_blocks(const protocol::Message& message,
-                        std::span<protocol::CanFrame, kMaxFrames> out) noexcept;
+  // One decoded packet's frames, into out (classic: blocks, single or segmented frames).
+  Encoded encode_one(const protocol::PacketDecoded& p, std::span<protocol::CanFrame> out) noexcept;
+  Encoded encode_blocks(const protocol::Message& message, std::span<protocol::CanFrame> out) noexcept;
   [[nodiscard]] protocol::ValveCurrents valve_block(std::size_t start, std::uint8_t values) const noexcept;
   [[nodiscard]] protocol::Telemetry sensor_block(std::size_t start, std::uint8_t values) const noexcept;
   static void finish(Decoded& d, const protocol::Message& message, std::uint8_t sequence) noexcept;

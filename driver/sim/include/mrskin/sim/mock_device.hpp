@@ -140,6 +140,9 @@ struct MockOptions {
   // The protocol major version the unit reports in its Identity (mock://?protocol_major=N): a
   // unit from another major release, which a host must refuse (ProtocolMismatch).
   std::uint8_t protocol_major = protocol::kVersionMajor;
+  // The protocol minor version the unit reports (mock://?protocol_minor=N, 0..kVersionMinor).
+  // Below 2 it is a 1.1 unit: it never packs reports and reads only the first packet of each.
+  std::uint8_t protocol_minor = protocol::kVersionMinor;
   // mock://?finger=SCENE: the scene whose script the simulated finger follows while the stream
   // comes from elsewhere. The driver only carries the name; the bridge's tools run the script.
   std::string finger_scene;
