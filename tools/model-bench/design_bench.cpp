@@ -294,7 +294,7 @@ int run_design_suite(const BenchOptions& o) {
     s.guarded_base.push_back(coverage_of(start_model, g).fraction());
   }
   s.log.open(o.out + "/design_search.csv");
-  const Evaluated best = search(s, start_design, o.quick ? 2 : 4, o.quick ? 5 : 9);
+  const Evaluated best = search(s, start_design, o.quick ? 2 : 4, o.quick ? 4 : 9);
   if (!best.feasible) {
     std::cerr << "design: no candidate meets the constraints: " << best.why << "\n";
     return 1;
@@ -304,7 +304,7 @@ int run_design_suite(const BenchOptions& o) {
   command += o.profile.empty() ? "" : " --profile " + o.profile;
   std::ofstream(o.out + "/designed.toml") << designed_toml(base.text, best.design, command);
   const double search_s = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
-  const bool plots = write_sweeps(s, best, start_design, o.out, o.quick ? 5 : 15);
+  const bool plots = write_sweeps(s, best, start_design, o.out, o.quick ? 3 : 15);
   const DeviceProfile written = model::load_profile(o.out + "/designed.toml");
   const std::vector<Row> rows = {measure(base.profile.name, base.profile, all, s.limits),
                                  measure("paper-table4", model::load_profile("paper-table4"), all, s.limits),

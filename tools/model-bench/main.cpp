@@ -17,9 +17,11 @@
 //            parameter (design_bench.cpp; about a minute; docs/model.md, "The design study")
 //   all      valve, network and inverse, in that order (default; design only when named)
 // --reps applies to the valve suite; --profile to the valve suite and to design (its base);
-// --quick makes design short (one scene cycle, a coarse search: the test's mode); --check exits 1 unless the
-// fast valve law is within 0.5 % and at least 10x faster than the exact one. A progress bar is drawn on
-// stderr when it is a terminal. Exit codes: 0, 1 (a suite failed, --check unmet), 2 (bad argument).
+// --quick makes design short (one scene cycle, a coarse search: the test's mode); --check exits 1
+// unless the fast valve law is within 0.5 % and at least 10x faster than the exact one. A progress
+// bar is drawn on stderr when it is a terminal. Exit codes: 0, 1 (a suite failed, --check unmet;
+// design: no design meets the constraints, or the written one covers less than its base), 2 (bad
+// argument).
 #include <CLI/CLI.hpp>
 #include <array>
 #include <exception>
@@ -75,6 +77,13 @@ int run(int argc, char** argv) {
          "Device profile file for the valve suite, and the design suite's base (default: mr-skin-5x5)")
       ->check(CLI::ExistingFile);
   app.add_flag("--quick", o.quick, "design suite: one scene cycle and a coarse search (about 10 s)");
+  app.footer(
+      "Suites: valve, network and inverse time the model's laws against their error (all runs these "
+      "three); design searches the profile's design parameters for the organ scenes' envelope coverage "
+      "under stated constraints and writes designed.toml, design_coverage.csv, design_search.csv and a "
+      "design_<parameter>.svg each (about 1.5 min; docs/model.md, section 11a).\n"
+      "Exit codes: 0 done; 1 a suite failed (--check unmet; design: no candidate meets the constraints, "
+      "or the written profile fails one or covers the organs less than its base); 2 bad argument.");
   app.add_flag("--check", o.check,
                "Exit 1 unless the fast valve law is within 0.5 % and at least 10x faster than the exact one");
   try {
