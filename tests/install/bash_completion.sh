@@ -52,8 +52,9 @@ expect _mrskinctl mrskinctl monitor --color '' '=>' auto always never
 expect _mrskin_bridged mrskin-bridged -- '=>' --device --scene --duration --config --stats-json
 expect _mrskin_bridged mrskin-bridged --scene '' '=>' demo hand tumour
 expect _mrskin_follower mrskin-follower --sc '=>' --scene
-expect _mrskin_model_bench mrskin-model-bench --suite '' '=>' valve network inverse all
+expect _mrskin_model_bench mrskin-model-bench --suite '' '=>' valve network inverse design all
 expect _mrskin_model_bench mrskin-model-bench --r '=>' --reps
+expect _mrskin_model_bench mrskin-model-bench --q '=>' --quick
 
 if ((failures)); then
   echo "bash_completion: FAILED: $failures expectations not met" >&2

@@ -90,6 +90,35 @@ void Progress::draw(const std::string& what) const {
   std::fflush(stderr);
 }
 
+void svg_open(std::ostream& f, double width, double height, double left, const std::string& title,
+              const std::string& subtitle) {
+  f << "<svg xmlns='http://www.w3.org/2000/svg' width='" << general(width, 6) << "' height='"
+    << general(height, 6)
+    << "' font-family='sans-serif' font-size='12'>\n<rect width='100%' height='100%' fill='white'/>\n";
+  svg_text(f, left, 22, "font-size='15' font-weight='bold'", title);
+  svg_text(f, left, 40, "fill='#555'", subtitle);
+}
+
+void svg_line(std::ostream& f, double xa, double ya, double xb, double yb, const std::string& style) {
+  f << "<line x1='" << general(xa, 6) << "' y1='" << general(ya, 6) << "' x2='" << general(xb, 6) << "' y2='"
+    << general(yb, 6) << "' " << style << "/>\n";
+}
+
+void svg_text(std::ostream& f, double x, double y, const std::string& attrs, const std::string& body) {
+  f << "<text x='" << general(x, 6) << "' y='" << general(y, 6) << "' " << attrs << ">" << body
+    << "</text>\n";
+}
+
+void svg_polyline(std::ostream& f, const PlotSeries& s, const std::function<double(double)>& sx,
+                  const std::function<double(double)>& sy) {
+  f << "<polyline fill='none' stroke='" << s.colour << "' stroke-width='1.5'"
+    << (s.dash.empty() ? "" : " stroke-dasharray='" + s.dash + "'") << " points='";
+  for (const PlotPoint& p : s.points) {
+    f << general(sx(p.x), 6) << ',' << general(sy(p.y), 6) << ' ';
+  }
+  f << "'/>\n";
+}
+
 bool LogLogPlot::write(const std::string& path) const {
   std::ofstream f(path);
   if (!f) {
@@ -111,17 +140,13 @@ bool LogLogPlot::write(const std::string& path) const {
     return mt + (y_hi - lv) / (y_hi - y_lo) * (h - mt - mb);
   };
   auto g = [](double v) { return general(v, 6); };
-  auto line = [&](double xa, double ya, double xb, double yb, const std::string& style) {
-    f << "<line x1='" << g(xa) << "' y1='" << g(ya) << "' x2='" << g(xb) << "' y2='" << g(yb) << "' " << style
-      << "/>\n";
+  auto line = [&f](double xa, double ya, double xb, double yb, const std::string& style) {
+    svg_line(f, xa, ya, xb, yb, style);
   };
-  auto text = [&](double x, double y, const std::string& attrs, const std::string& body) {
-    f << "<text x='" << g(x) << "' y='" << g(y) << "' " << attrs << ">" << body << "</text>\n";
+  auto text = [&f](double x, double y, const std::string& attrs, const std::string& body) {
+    svg_text(f, x, y, attrs, body);
   };
-  f << "<svg xmlns='http://www.w3.org/2000/svg' width='" << g(w) << "' height='" << g(h)
-    << "' font-family='sans-serif' font-size='12'>\n<rect width='100%' height='100%' fill='white'/>\n";
-  text(ml, 22, "font-size='15' font-weight='bold'", title);
-  text(ml, 40, "fill='#555'", subtitle);
+  svg_open(f, w, h, ml, title, subtitle);
   for (int e = x_lo; e <= x_hi; ++e) {
     const double x = sx(std::pow(10.0, e));
     line(x, mt, x, h - mb, "stroke='#ddd'");
@@ -152,12 +177,7 @@ bool LogLogPlot::write(const std::string& path) const {
   double legend_y = mt + 10;
   for (const PlotSeries& s : series) {
     if (s.line && s.points.size() > 1) {
-      f << "<polyline fill='none' stroke='" << s.colour << "' stroke-width='1.5'"
-        << (s.dash.empty() ? "" : " stroke-dasharray='" + s.dash + "'") << " points='";
-      for (const PlotPoint& p : s.points) {
-        f << g(sx(p.x)) << ',' << g(sy(p.y)) << ' ';
-      }
-      f << "'/>\n";
+      svg_polyline(f, s, sx, sy);
     }
     for (const PlotPoint& p : s.points) {
       f << "<circle cx='" << g(sx(p.x)) << "' cy='" << g(sy(p.y)) << "' r='4' fill='" << s.colour << "'/>\n";

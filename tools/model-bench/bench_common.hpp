@@ -4,6 +4,7 @@
 
 #include <cstddef>
 #include <functional>
+#include <ostream>
 #include <string>
 #include <vector>
 
@@ -14,6 +15,7 @@ struct BenchOptions {
   std::string profile;  // valve suite: the fluid's profile (default profile if empty)
   int reps = 41;        // valve suite: timing repetitions
   bool check = false;   // valve suite: exit 1 unless the fast law meets its figure
+  bool quick = false;   // design suite: one scene cycle, a coarser search (for the test)
 };
 
 // Keeps timed results observable so that no call is optimised away.
@@ -45,6 +47,13 @@ class Progress {
   bool tty_;
 };
 
+// SVG markup shared by the plot writers: the document with its title and subtitle at x = left,
+// a line, a text.
+void svg_open(std::ostream& f, double width, double height, double left, const std::string& title,
+              const std::string& subtitle);
+void svg_line(std::ostream& f, double xa, double ya, double xb, double yb, const std::string& style);
+void svg_text(std::ostream& f, double x, double y, const std::string& attrs, const std::string& body);
+
 struct PlotPoint {
   double x = 0.0;
   double y = 0.0;
@@ -57,6 +66,10 @@ struct PlotSeries {
   bool line = true;  // join the points
   std::string dash;  // SVG stroke-dasharray of the line ("" solid)
 };
+// The series' points joined, through the frame's coordinate maps.
+void svg_polyline(std::ostream& f, const PlotSeries& s, const std::function<double(double)>& sx,
+                  const std::function<double(double)>& sy);
+
 struct RefLine {
   bool vertical = false;
   double at = 0.0;

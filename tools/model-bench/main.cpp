@@ -1,6 +1,7 @@
 // mrskin-model-bench: run time against error of the device model, published as CSV and SVG.
 //
-//   mrskin-model-bench [--suite valve|network|inverse|all] [--out DIR] [--reps N] [--profile FILE] [--check]
+//   mrskin-model-bench [--suite valve|network|inverse|design|all] [--out DIR] [--reps N] [--profile FILE]
+//                      [--check] [--quick]
 //
 // --out (default: ./model-bench-out) is created when missing; the committed results in
 // tools/model-bench/results change only when it is named explicitly (docs/model.md).
@@ -11,10 +12,16 @@
 //            cost from 5x5 to 64x64 with 1-100 % of cells in contact (network_bench.cpp)
 //   inverse  the fast CellInverse against the slow exact solve: force error and time per solve
 //            (inverse_bench.cpp)
-//   all      every suite, in that order (default)
-// --reps and --profile apply to the valve suite; --check exits 1 unless the fast valve law is
-// within 0.5 % and at least 10x faster than the exact one. A progress bar is drawn on stderr
-// when it is a terminal. Exit codes: 0, 1 (a suite failed, --check unmet), 2 (bad argument).
+//   design   the design study: searches the profile's design parameters for the largest coverage
+//            of the organ scenes under stated constraints, writes designed.toml and a plot per
+//            parameter (design_bench.cpp; about a minute; docs/model.md, "The design study")
+//   all      valve, network and inverse, in that order (default; design only when named)
+// --reps applies to the valve suite; --profile to the valve suite and to design (its base);
+// --quick makes design short (one scene cycle, a coarse search: the test's mode); --check exits 1
+// unless the fast valve law is within 0.5 % and at least 10x faster than the exact one. A progress
+// bar is drawn on stderr when it is a terminal. Exit codes: 0, 1 (a suite failed, --check unmet;
+// design: no design meets the constraints, or the written one covers less than its base), 2 (bad
+// argument).
 #include <CLI/CLI.hpp>
 #include <array>
 #include <exception>
@@ -36,14 +43,21 @@ struct Suite {
   const char* name;
   int (*run)(const BenchOptions&);
 };
-constexpr std::array<Suite, 3> kSuites = {{
-    {"valve", &mrskin::bench::run_valve_suite},
-    {"network", &mrskin::bench::run_network_suite},
-    {"inverse", &mrskin::bench::run_inverse_suite},
+struct SuiteEntry {
+  Suite suite;
+  bool in_all;  // run by --suite all
+};
+constexpr std::array<SuiteEntry, 4> kSuites = {{
+    {{"valve", &mrskin::bench::run_valve_suite}, true},
+    {{"network", &mrskin::bench::run_network_suite}, true},
+    {{"inverse", &mrskin::bench::run_inverse_suite}, true},
+    {{"design", &mrskin::bench::run_design_suite}, false},
 }};
 
 int run(int argc, char** argv) {
-  CLI::App app{"mrskin-model-bench: run time against error of the device model, written as CSV and SVG"};
+  CLI::App app{
+      "mrskin-model-bench: run time against error of the device model, and the design study, written as CSV "
+      "and SVG"};
   app.set_version_flag("--version", std::string(mrskin::library_version()));
   std::string log_level;
   mrskin::tools::add_log_level_option(app, log_level);
@@ -51,14 +65,25 @@ int run(int argc, char** argv) {
   o.out = "model-bench-out";
   std::string suite = "all";
   app.add_option("--suite", suite, "The suite to run")
-      ->check(CLI::IsMember({"valve", "network", "inverse", "all"}))
+      ->check(CLI::IsMember({"valve", "network", "inverse", "design", "all"}))
       ->capture_default_str();
   app.add_option("--out", o.out, "Directory for the CSV and SVG files (created when missing)")
       ->capture_default_str();
   app.add_option("--reps", o.reps, "Timing repetitions of the valve suite")
       ->check(CLI::Range(3, 1000000))
       ->capture_default_str();
-  app.add_option("--profile", o.profile, "Device profile file for the valve suite")->check(CLI::ExistingFile);
+  app.add_option(
+         "--profile", o.profile,
+         "Device profile file for the valve suite, and the design suite's base (default: mr-skin-5x5)")
+      ->check(CLI::ExistingFile);
+  app.add_flag("--quick", o.quick, "design suite: one scene cycle and a coarse search (about 10 s)");
+  app.footer(
+      "Suites: valve, network and inverse time the model's laws against their error (all runs these "
+      "three); design searches the profile's design parameters for the organ scenes' envelope coverage "
+      "under stated constraints and writes designed.toml, design_coverage.csv, design_search.csv and a "
+      "design_<parameter>.svg each (about 1.5 min; docs/model.md, section 11a).\n"
+      "Exit codes: 0 done; 1 a suite failed (--check unmet; design: no candidate meets the constraints, "
+      "or the written profile fails one or covers the organs less than its base); 2 bad argument.");
   app.add_flag("--check", o.check,
                "Exit 1 unless the fast valve law is within 0.5 % and at least 10x faster than the exact one");
   try {
@@ -76,8 +101,8 @@ int run(int argc, char** argv) {
     return mrskin::tools::kUsage;
   }
   int rc = mrskin::tools::kOk;
-  for (const Suite& s : kSuites) {
-    if (suite == "all" || suite == s.name) {
+  for (const auto& [s, in_all] : kSuites) {
+    if ((suite == "all" && in_all) || suite == s.name) {
       std::cout << "== " << s.name << "\n";
       const int r = s.run(o);
       rc = rc != mrskin::tools::kOk ? rc : r;

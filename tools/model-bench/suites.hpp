@@ -9,5 +9,6 @@ namespace mrskin::bench {
 int run_valve_suite(const BenchOptions& o);    // valve laws: exact, Wereley-Pang, fast
 int run_network_suite(const BenchOptions& o);  // network steppers and scaling
 int run_inverse_suite(const BenchOptions& o);  // the inverse against the slow exact solve
+int run_design_suite(const BenchOptions& o);   // the design study: coverage of the organ scenes
 
 }  // namespace mrskin::bench
