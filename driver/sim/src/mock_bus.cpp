@@ -500,4 +500,24 @@ MockBusStats MockBus::stats() const noexcept {
   return s;
 }
 
+std::optional<protocol::BusSpec> bus_spec_of(const MockBusOptions& bus) noexcept {
+  protocol::BusSpec spec;
+  switch (bus.kind) {
+    case MockBusKind::none:
+      return std::nullopt;
+    case MockBusKind::hid_fs:
+      return protocol::default_bus_spec(protocol::BusKind::hid_full_speed);
+    case MockBusKind::hid_hs:
+      return protocol::default_bus_spec(protocol::BusKind::hid_high_speed, false);
+    case MockBusKind::can:
+    case MockBusKind::canfd:
+      spec = protocol::default_bus_spec(bus.kind == MockBusKind::can ? protocol::BusKind::can_classic
+                                                                     : protocol::BusKind::can_fd);
+      spec.nominal_bitrate_bit_per_s = bus.nominal_bitrate_bit_per_s;
+      spec.data_bitrate_bit_per_s = bus.data_bitrate_bit_per_s;
+      return spec;
+  }
+  return std::nullopt;
+}
+
 }  // namespace mrskin::sim

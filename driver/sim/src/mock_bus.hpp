@@ -8,12 +8,14 @@
 #include <atomic>
 #include <cstddef>
 #include <cstdint>
+#include <optional>
 #include <vector>
 
 #include "mrskin/driver/clock.hpp"
 #include "mrskin/driver/relaxed_counter.hpp"
 #include "mrskin/driver/transport.hpp"
 #include "mrskin/driver/transports/can.hpp"
+#include "mrskin/protocol/bus_budget.hpp"
 #include "mrskin/sim/mock_device.hpp"
 
 namespace mrskin::sim {
@@ -197,5 +199,9 @@ class __attribute__((visibility("hidden"))) MockBus {
   std::atomic<std::int64_t> last_ns_{0};
   bool started_ = false;
 };
+
+// The bus the model stands for, as the bus budget sees it (docs/protocol.md, "Bus budget"):
+// nullopt for none (an ideal link); hid-hs with 1.1's 64-byte reports, as the model carries them.
+std::optional<protocol::BusSpec> bus_spec_of(const MockBusOptions& bus) noexcept;
 
 }  // namespace mrskin::sim

@@ -133,26 +133,8 @@ class MockDevice::Impl::HostTransport final : public Transport {
                                                             : TransportState::disconnected;
   }
   [[nodiscard]] std::string_view uri() const noexcept override { return "mock://"; }
-  // The bus model's (docs/protocol.md, "The mock's bus model"): none is an ideal link.
   [[nodiscard]] std::optional<protocol::BusSpec> bus() const noexcept override {
-    const MockBusOptions& b = device_.options_.bus;
-    protocol::BusSpec spec;
-    switch (b.kind) {
-      case MockBusKind::none:
-        return std::nullopt;
-      case MockBusKind::hid_fs:
-        return protocol::default_bus_spec(protocol::BusKind::hid_full_speed);
-      case MockBusKind::hid_hs:
-        return protocol::default_bus_spec(protocol::BusKind::hid_high_speed, false);  // 1.1's reports
-      case MockBusKind::can:
-      case MockBusKind::canfd:
-        spec = protocol::default_bus_spec(b.kind == MockBusKind::can ? protocol::BusKind::can_classic
-                                                                     : protocol::BusKind::can_fd);
-        spec.nominal_bitrate_bit_per_s = b.nominal_bitrate_bit_per_s;
-        spec.data_bitrate_bit_per_s = b.data_bitrate_bit_per_s;
-        return spec;
-    }
-    return std::nullopt;
+    return bus_spec_of(device_.options_.bus);
   }
 
  private:
