@@ -10,6 +10,7 @@
 #include <map>
 #include <optional>
 #include <set>
+#include <span>
 #include <sstream>
 #include <string>
 #include <thread>
@@ -17,6 +18,7 @@
 
 #include "mrskin/driver/device.hpp"
 #include "mrskin/protocol/can.hpp"
+#include "mrskin/protocol/packed_report.hpp"
 #include "vm_support.hpp"
 
 namespace mrskin::vmtest {
@@ -174,9 +176,19 @@ CheckReport check_recording(const std::vector<LoggedFrame>& frames, bool fd,
       continue;
     }
     if (fd) {
+      // Protocol 1.2 packs several packets in one FD frame (the telemetry with a status or an
+      // echo, the currents with a heartbeat): each packet carries its own sequence.
       const std::string stream = function == 4 ? "host packets" : "device packets";
-      ++r.kinds[stream];
-      follow(f, stream + " sequence", d.sequence, 256, false);
+      proto::PacketWalker walk(std::span<const std::uint8_t>(f.frame.data.data(), f.frame.length));
+      proto::PacketDecoded p;
+      while (walk.next(p)) {
+        if (p.error != proto::Error::ok) {
+          problem(f, "a packed packet does not decode: " + std::string(proto::to_string(p.error)));
+          break;
+        }
+        ++r.kinds[stream];
+        follow(f, stream + " sequence", p.sequence, 256, false);
+      }
       continue;
     }
     const int counter = d.counter;
