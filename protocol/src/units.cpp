@@ -9,7 +9,8 @@ Quantized<std::uint16_t> quantize_unsigned(double value, double lsb, std::uint16
     return {Error::not_finite, 0};
   }
   const double c = std::nearbyint(value / lsb);
-  if (c < 0.0 || c > static_cast<double>(max_counts)) {
+  // A count whose value overflows a double (c * lsb = Inf) could never be read back.
+  if (c < 0.0 || c > static_cast<double>(max_counts) || !std::isfinite(c * lsb)) {
     return {Error::out_of_range, 0};
   }
   return {Error::ok, static_cast<std::uint16_t>(c)};
@@ -21,7 +22,7 @@ Quantized<std::int16_t> quantize_signed(double value, double lsb, std::int16_t m
     return {Error::not_finite, 0};
   }
   const double c = std::nearbyint(value / lsb);
-  if (c < static_cast<double>(min_counts) || c > static_cast<double>(max_counts)) {
+  if (c < static_cast<double>(min_counts) || c > static_cast<double>(max_counts) || !std::isfinite(c * lsb)) {
     return {Error::out_of_range, 0};
   }
   return {Error::ok, static_cast<std::int16_t>(c)};

@@ -354,7 +354,10 @@ const char* check_quantized(const Q& q, double value, double lsb, double min_cou
   if (q.error == p::Error::out_of_range) {
     // Exactly at a half the rounding mode decides; both answers are right there.
     const bool edge = quotient == min_counts - 0.5 || quotient == max_counts + 0.5;
-    return (!in_range || edge) ? nullptr : "in-range value refused";
+    // A count whose value overflows a double is refused too (units.hpp).
+    const double nearest = std::nearbyint(quotient);
+    const bool overflows = !std::isfinite(nearest * lsb);
+    return (!in_range || edge || overflows) ? nullptr : "in-range value refused";
   }
   if (q.error != p::Error::ok) return "unexpected error from quantize";
   if (!in_range) return "out-of-range value accepted";

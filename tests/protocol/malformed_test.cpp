@@ -585,6 +585,11 @@ TEST(ProtocolMalformed, OutOfRangeSiValues) {
   EXPECT_EQ(quantize_cell_target({0, 0, 0, 0.64}).error, Error::out_of_range);        // > 630 ms
   EXPECT_EQ(quantize_cell_target({32766.0, 8.19e-3, 4.095, 0.63}).error, Error::ok);  // the maxima
 
+  // A count that would read back as Inf is refused (found by the quantize fuzzer in CI).
+  EXPECT_EQ(quantize_unsigned(1.7e308, 1e308, 100).error, Error::out_of_range);
+  EXPECT_EQ(quantize_signed(-1.7e308, 1e308, -100, 100).error, Error::out_of_range);
+  EXPECT_EQ(quantize_unsigned(1.4e308, 1e308, 100).counts, 1);
+
   // An LSB of zero or below cannot quantise anything.
   EXPECT_EQ(quantize_unsigned(1.0, 0.0, 100).error, Error::not_finite);
   EXPECT_EQ(quantize_unsigned(1.0, -1.0, 100).error, Error::not_finite);

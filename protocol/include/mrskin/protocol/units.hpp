@@ -21,7 +21,8 @@ struct Quantized {
   T counts{};
 };
 
-// Rounds value/lsb to the nearest count in [0, max_counts].
+// Rounds value/lsb to the nearest count in [0, max_counts]; out_of_range also when that count
+// times lsb overflows a double (1.7e308 with an LSB of 1e308 rounds to 2 counts, 2e308 = Inf).
 MRSKIN_PROTOCOL_API Quantized<std::uint16_t> quantize_unsigned(double value, double lsb,
                                                                std::uint16_t max_counts) noexcept;
 // Rounds value/lsb to the nearest count in [min_counts, max_counts].
