@@ -114,8 +114,8 @@ TEST(BusBudgetAtOpen, TheBridgeRefusesARateItsBusCannotCarry) {
     EXPECT_TRUE(bridge.bus_budget().budget.fits(0.8));
     EXPECT_TRUE(bridge.bus_budget().warning.empty()) << bridge.bus_budget().warning;
   }
-  // An ideal link (bus=none, the default) has nothing to check.
-  OpenedDevice ideal = open_device("mock://?seed=7", clock, open);
+  // An ideal link (bus=none) has nothing to check.
+  OpenedDevice ideal = open_device("mock://?seed=7&bus=none", clock, open);
   EXPECT_FALSE(Bridge(*ideal.session, *scene).bus_budget().limited);
 }
 

@@ -14,6 +14,7 @@
 #include <string>
 #include <vector>
 
+#include "mrskin/driver/device.hpp"
 #include "mrskin/driver/errors.hpp"
 #include "mrskin/protocol/can.hpp"
 #include "mrskin/protocol/packed_report.hpp"
@@ -84,7 +85,9 @@ std::size_t classic_worst_case_bits(std::size_t n) { return 44 + 8 * n + (34 + 8
 // --- mock://?bus=...&bitrate=... -----------------------------------------------------------------
 
 TEST(MockBusUri, DefaultsAndEveryKind) {
-  EXPECT_EQ(parse_mock_uri("mock://").options.bus.kind, MockBusOptions{}.kind);
+  EXPECT_EQ(parse_mock_uri("mock://").options.bus.kind, MockBusKind::none);
+  EXPECT_FALSE(parse_mock_uri("mock://?bus=hid-fs").profile_bus);
+  EXPECT_TRUE(parse_mock_uri("mock://?bus=profile").profile_bus);  // open_device reads the profile
   EXPECT_EQ(parse_mock_uri("mock://?bus=none").options.bus.kind, MockBusKind::none);
   EXPECT_EQ(parse_mock_uri("mock://?bus=hid-fs").options.bus.kind, MockBusKind::hid_fs);
   EXPECT_EQ(parse_mock_uri("mock://?bus=hid-hs").options.bus.kind, MockBusKind::hid_hs);
@@ -121,7 +124,8 @@ std::string refusal(const std::string& uri) {
 TEST(MockBusUri, BadValuesAreRefusedSayingWhatIsAccepted) {
   const std::string kinds = refusal("mock://?bus=usb");
   EXPECT_NE(kinds.find("'usb'"), std::string::npos) << kinds;
-  EXPECT_NE(kinds.find("use none, hid-fs, hid-hs, can or canfd (default: "), std::string::npos) << kinds;
+  EXPECT_NE(kinds.find("use none (the default), hid-fs, hid-hs, can, canfd or profile"), std::string::npos)
+      << kinds;
   EXPECT_NE(refusal("mock://?bus=").find("hid-fs"), std::string::npos);
   const std::string on_usb = refusal("mock://?bus=hid-fs&bitrate=1000000");
   EXPECT_NE(on_usb.find("bitrate applies to bus=can"), std::string::npos) << on_usb;
@@ -519,6 +523,24 @@ TEST(MockBusDevice, DelayAndLossReachTheHost) {
   EXPECT_DOUBLE_EQ(s.host_to_device.max_wait_s, 8e-3);
   EXPECT_DOUBLE_EQ(s.device_to_host.max_wait_s, 8e-3);
   EXPECT_LE(s.device_to_host.carried, 60U);  // one report a frame
+}
+
+// bus=profile: the unit is on the bus its profile names ([interface] bus): full-speed USB for the
+// 5x5, high speed for the 16x16 (whose telemetry alone needs six full-speed reports a frame),
+// none for the 64x64 design (ModelProfile.TheInterfaceNamesTheBus; it opens slowly).
+TEST(MockBusDevice, BusProfileIsTheBusTheProfileNames) {
+  SimulatedClock clock;
+  OpenOptions open;
+  open.synchronous_mock = true;
+  const auto kind_of = [&](const char* uri) {
+    const OpenedDevice dev = open_device(uri, clock, open);
+    return mock_of(dev)->bus_stats().kind;
+  };
+  EXPECT_EQ(kind_of("mock://"), MockBusKind::none);  // the default: an ideal link
+  EXPECT_EQ(kind_of("mock://?bus=profile"), MockBusKind::hid_fs);
+  EXPECT_EQ(kind_of("mock://mr-skin-5x5?seed=2&bus=profile"), MockBusKind::hid_fs);
+  EXPECT_EQ(kind_of("mock://fingertip-16x16?bus=profile"), MockBusKind::hid_hs);
+  EXPECT_EQ(kind_of("mock://fingertip-16x16?bus=canfd"), MockBusKind::canfd);
 }
 
 }  // namespace

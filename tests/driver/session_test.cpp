@@ -201,7 +201,9 @@ TEST(Session, CorruptedFramesFailTheirCrc) {
 }
 
 TEST(Session, DuplicatesAreDroppedAndCounted) {
-  Rig rig("mock://?seed=5&faults=dup:0.1");
+  // An ideal link: on a bus a duplicated telemetry report that waits gives its slot to the next
+  // sample (the bus model's drop), and the count under test is the session's.
+  Rig rig("mock://?seed=5&faults=dup:0.1&bus=none");
   rig.run(500);
   EXPECT_GT(rig.dev.session->counters().duplicates, 10U);
 }
@@ -913,6 +915,20 @@ TEST(SessionPacked, PackingChangesNoClassicCanFrame) {
   EXPECT_EQ(packed.bus.device_to_host.carried, plain.bus.device_to_host.carried);
   EXPECT_EQ(packed.bus.device_to_host.unsent, plain.bus.device_to_host.unsent);  // echoes: no classic form
   EXPECT_GT(packed.bus.device_to_host.unsent, 20U);
+}
+
+// The 16x16 on its own bus (high-speed USB, bus=profile): six telemetry blocks a sample, each
+// waiting for its own slot. A newer sample replaces only the same block's waiting report (it
+// replaced any waiting telemetry report before, which lost five blocks in six: 299 gaps here).
+TEST(SessionPacked, ALargerGridOnItsHighSpeedBusLosesNoTelemetryBlock) {
+  const PackedRun r = run_enabled("mock://fingertip-16x16?seed=1&bus=profile", {}, 300);
+  EXPECT_TRUE(r.packed);
+  EXPECT_EQ(r.bus.kind, sim::MockBusKind::hid_hs);
+  EXPECT_EQ(r.state, DeviceState::enabled);
+  EXPECT_EQ(r.counters.sequence_gaps, 0U);
+  EXPECT_GE(r.counters.telemetry, 6U * 290U);
+  EXPECT_EQ(r.bus.device_to_host.dropped, 0U);
+  EXPECT_EQ(r.bus.host_to_device.dropped, 0U);
 }
 
 TEST(SessionPacked, CanFdCarriesPackedReportsInOneFrame) {

@@ -132,6 +132,18 @@ TEST(ModelProfile, BadProfilesNameTheFieldAndTheReason) {
                   "[contact] finger_radius_m");
   expect_rejected(mutate("viscosity_Pa_s = 0.112", "viscosity_Pa_s = nan"),
                   "[fluid] viscosity_Pa_s: must be finite");
+  expect_rejected(read("mr-skin-5x5") + "\n[interface]\nbus = \"usb\"\n",
+                  "[interface] bus: \"usb\" is not \"hid-fs\", \"hid-hs\", \"can\", \"canfd\" or \"none\"");
+  expect_rejected(read("mr-skin-5x5") + "\n[interface]\nbitrate = 1\n", "[interface] bitrate: unknown key");
+}
+
+// [interface] bus: the bus a unit is built with, hid-fs unless the profile says otherwise.
+TEST(ModelProfile, TheInterfaceNamesTheBus) {
+  EXPECT_EQ(parse_profile(read("mr-skin-5x5"), "5x5").bus, mrskin::protocol::BusKind::hid_full_speed);
+  EXPECT_EQ(load_profile("fingertip-16x16").bus, mrskin::protocol::BusKind::hid_high_speed);
+  EXPECT_FALSE(load_profile("palm-64x64").bus.has_value());
+  EXPECT_EQ(parse_profile(read("mr-skin-5x5") + "\n[interface]\nbus = \"canfd\"\n", "t").bus,
+            mrskin::protocol::BusKind::can_fd);
 }
 
 TEST(ModelProfile, ExplicitGraphAndSensors) {

@@ -53,6 +53,19 @@ bool is_telemetry(const Datagram& d) noexcept {
   return any;
 }
 
+// A report that carries telemetry only: its first packet's first sensor, the block a newer
+// sample of the same sensors replaces while it waits (a 16 x 16 unit sends six blocks a
+// sample); -1 for any other report.
+std::int32_t telemetry_block_of(const Datagram& d) noexcept {
+  if (!is_telemetry(d)) {
+    return -1;
+  }
+  proto::PacketWalker walker(std::span<const std::uint8_t>(d.bytes.data(), d.length));
+  proto::PacketDecoded p;
+  const proto::Telemetry* t = walker.next(p) ? std::get_if<proto::Telemetry>(&p.message) : nullptr;
+  return t == nullptr ? -1 : t->first;
+}
+
 // Packets a report carries: one in protocol 1.1, one or more in a packed report (1.2). A
 // report that does not decode counts as one, as v1 counted it.
 std::uint64_t packets_in(const Datagram& d) noexcept {
@@ -212,24 +225,25 @@ void MockBus::device_sent(const Datagram& d, TimePoint t, BusSink& sink) noexcep
 }
 
 void MockBus::usb_device_sent(const Datagram& d, TimePoint t, BusSink& sink) noexcept {
-  const bool telemetry = is_telemetry(d);
-  if (telemetry && waiting_telemetry_ != kNone && waiting_telemetry_ >= to_host_popped_) {
-    // A sample still waits for its slot: this newer one takes its place.
-    Waiting& w = to_host_waiting_.at(static_cast<std::size_t>(waiting_telemetry_ - to_host_popped_));
-    w.datagram = d;
-    w.submitted = t;
-    to_host_.dropped.bump();
-    return;
+  const std::int32_t block = telemetry_block_of(d);
+  if (block >= 0) {
+    for (std::size_t i = to_host_waiting_.size(); i > 0; --i) {
+      Waiting& w = to_host_waiting_.at(i - 1);
+      if (w.telemetry_block == block) {
+        // The same sensors' sample still waits for its slot: this newer one takes its place.
+        w.datagram = d;
+        w.submitted = t;
+        to_host_.dropped.bump();
+        return;
+      }
+    }
   }
   switch (usb_place(to_host_lane_, to_host_waiting_, to_host_, d, t)) {
     case UsbPlace::now:
       sink.deliver_to_host(d, t);
       break;
     case UsbPlace::later:
-      if (telemetry) {
-        waiting_telemetry_ = to_host_pushed_;
-      }
-      ++to_host_pushed_;
+      to_host_waiting_.at(to_host_waiting_.size() - 1).telemetry_block = block;
       break;
     case UsbPlace::dropped:
       break;
@@ -238,11 +252,12 @@ void MockBus::usb_device_sent(const Datagram& d, TimePoint t, BusSink& sink) noe
 
 void MockBus::can_device_sent(const Datagram& d, TimePoint t) noexcept {
   CanNode& node = device_;
-  if (is_telemetry(d)) {
-    // A sample none of whose frames is written yet gives its place to this newer one.
+  if (const std::int32_t block = telemetry_block_of(d); block >= 0) {
+    // A sample of the same sensors none of whose frames is written yet gives its place to this
+    // newer one.
     for (std::size_t i = node.packets.size(); i > node.written; --i) {
       CanPacket& waiting = node.packets.at(i - 1);
-      if (!(i - 1 == node.written && node.next_frame > 0) && is_telemetry(waiting.datagram)) {
+      if (!(i - 1 == node.written && node.next_frame > 0) && telemetry_block_of(waiting.datagram) == block) {
         if (!encode(device_codec_, d, scratch_) || scratch_.frame_count != waiting.frame_count) {
           break;
         }
@@ -401,7 +416,6 @@ void MockBus::advance(TimePoint t, BusSink& sink) noexcept {
     while (!to_host_waiting_.empty() && to_host_waiting_.front().due <= t) {
       const Waiting w = to_host_waiting_.front();
       to_host_waiting_.pop();
-      ++to_host_popped_;
       to_host_.carry(w.datagram);
       sink.deliver_to_host(w.datagram, w.due);
     }
@@ -459,7 +473,6 @@ void MockBus::advance(TimePoint t, BusSink& sink) noexcept {
 void MockBus::reset() noexcept {
   to_device_waiting_.clear();
   to_host_waiting_.clear();
-  waiting_telemetry_ = kNone;
   to_device_lane_.next_slot = to_host_lane_.next_slot = 0;  // the next report takes its own frame
   for (CanNode* node : {&host_, &device_}) {
     node->packets.clear();

@@ -99,6 +99,7 @@ class __attribute__((visibility("hidden"))) MockBus {
     TimePoint due{};
     TimePoint submitted{};
     Datagram datagram{};
+    std::int32_t telemetry_block = -1;  // telemetry only: its first sensor (telemetry_block_of)
   };
   // CAN
   struct FrameInfo {
@@ -174,10 +175,6 @@ class __attribute__((visibility("hidden"))) MockBus {
   BusRing<Waiting> to_device_waiting_;
   BusRing<Waiting> to_host_waiting_;
   // Telemetry: the unit keeps one sample waiting; a newer one takes its place (and its slot).
-  static constexpr std::uint64_t kNone = ~std::uint64_t{0};
-  std::uint64_t to_host_pushed_ = 0;         // reports ever pushed into to_host_waiting_...
-  std::uint64_t to_host_popped_ = 0;         // ...and taken out of it
-  std::uint64_t waiting_telemetry_ = kNone;  // which of them is a telemetry report
   // CAN
   CanPacketCodec host_codec_;
   CanPacketCodec device_codec_;

@@ -6,6 +6,7 @@
 #include <charconv>
 #include <cmath>
 #include <cstdint>
+#include <optional>
 #include <string>
 
 #include "mrskin/driver/errors.hpp"
@@ -113,9 +114,27 @@ MockBusKind parse_bus_kind(std::string_view value) {
       return kind;
     }
   }
-  throw InvalidArgument(
-      fmt::format("mock:// bus '{}' is unknown: use none, hid-fs, hid-hs, can or canfd (default: {})", value,
-                  to_string(MockBusOptions{}.kind)));
+  throw InvalidArgument(fmt::format(
+      "mock:// bus '{}' is unknown: use none (the default), hid-fs, hid-hs, can, canfd or profile "
+      "(the bus the profile's [interface] names)",
+      value));
+}
+
+MockBusKind mock_bus_kind_of(std::optional<protocol::BusKind> bus) noexcept {
+  if (!bus) {
+    return MockBusKind::none;
+  }
+  switch (*bus) {
+    case protocol::BusKind::hid_high_speed:
+      return MockBusKind::hid_hs;
+    case protocol::BusKind::can_classic:
+      return MockBusKind::can;
+    case protocol::BusKind::can_fd:
+      return MockBusKind::canfd;
+    case protocol::BusKind::hid_full_speed:
+      break;
+  }
+  return MockBusKind::hid_fs;
 }
 
 // bitrate=B for can, B or B/D for canfd (nominal/data), bits per second.
@@ -213,7 +232,8 @@ MockUri parse_mock_uri(std::string_view uri) {
       }
       options.finger_scene = std::string(value);
     } else if (key == "bus") {
-      options.bus.kind = parse_bus_kind(value);
+      parsed.profile_bus = value == "profile";
+      options.bus.kind = parsed.profile_bus ? MockBusKind::none : parse_bus_kind(value);
     } else if (key == "bitrate") {
       bitrate = value;
       if (value.empty()) {
@@ -241,6 +261,9 @@ OpenedDevice open_mock(std::string_view uri, Clock& clock, const OpenOptions& op
                        const SessionOptions& session_options) {
   MockUri parsed = parse_mock_uri(uri);
   const model::LoadedProfile profile = model::load_profile_with_text(parsed.profile);
+  if (parsed.profile_bus) {
+    parsed.options.bus.kind = mock_bus_kind_of(profile.profile.bus);
+  }
   OpenedDevice opened;
   opened.lock = std::make_unique<DeviceLock>(uri);
   parsed.options.time_scale = std::max(parsed.options.time_scale, session_options.time_scale);

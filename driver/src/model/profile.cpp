@@ -598,6 +598,27 @@ void parse_design(Section& top, DeviceProfile& p, const Grid& g) {
   de.finish();
 }
 
+// [interface]
+void parse_interface(Section& top, DeviceProfile& p) {
+  Section in = top.sub("interface");
+  const std::string bus = in.text("bus", "hid-fs");
+  bool known = bus == "none";
+  if (known) {
+    p.bus.reset();
+  }
+  for (const auto kind : {protocol::BusKind::hid_full_speed, protocol::BusKind::hid_high_speed,
+                          protocol::BusKind::can_classic, protocol::BusKind::can_fd}) {
+    if (bus == protocol::to_string(kind)) {
+      p.bus = kind;
+      known = true;
+    }
+  }
+  if (!known) {
+    in.fail_key("bus", "\"" + bus + R"(" is not "hid-fs", "hid-hs", "can", "canfd" or "none")");
+  }
+  in.finish();
+}
+
 }  // namespace
 
 DeviceProfile parse_profile(std::string_view toml_text, const std::string& origin) {
@@ -627,6 +648,7 @@ DeviceProfile parse_profile(std::string_view toml_text, const std::string& origi
   parse_hydraulics(top, p, origin, g);
   parse_sensors(top, p, origin, g);
   parse_design(top, p, g);
+  parse_interface(top, p);
   top.finish();
   return p;
 }

@@ -9,6 +9,7 @@
 
 #include <cstddef>
 #include <cstdint>
+#include <optional>
 #include <string>
 #include <string_view>
 #include <vector>
@@ -19,6 +20,7 @@
 #include "mrskin/driver/model/magnetic.hpp"
 #include "mrskin/driver/model/membrane.hpp"
 #include "mrskin/driver/model/valve.hpp"
+#include "mrskin/protocol/bus_budget.hpp"
 
 namespace mrskin::model {
 
@@ -86,6 +88,11 @@ struct MRSKIN_DRIVER_API DeviceProfile {
   std::vector<HydraulicLink> links;
   std::vector<SensorSpec> sensors;
   DesignPoint design;
+  // [interface] bus: the bus a unit of this design is built with ("hid-fs", "hid-hs", "can",
+  // "canfd"), which mock:// models when its URI names no bus=; "none" (nullopt) for a design
+  // with no bus yet, which the mock links ideally. A 16 x 16 unit's telemetry alone needs six
+  // full-speed reports a millisecond, so fingertip-16x16 says "hid-hs".
+  std::optional<protocol::BusKind> bus = protocol::BusKind::hid_full_speed;
 
   // Radius of the circle with the cell's area (a = pitch / sqrt(pi)), m.
   [[nodiscard]] double cell_radius_m() const noexcept;
