@@ -712,6 +712,23 @@ TEST_F(BridgedDaemon, NoSuchDeviceIsExit3) {
   EXPECT_FALSE(fs::exists(socket_));
 }
 
+// A bus that cannot carry the default 1000 Hz (the 5x5 on classic CAN at 800 kbit/s carries 621 Hz
+// at most, by the bus budget): without a rate the loop runs at 80 % of that, and says so; a rate
+// asked for that does not fit is refused, exit 2, naming the highest rate (issue 20).
+TEST_F(BridgedDaemon, WithoutARateTheLoopRunsAtWhatTheBusCarries) {
+  const std::string out = expect_exit(
+      "duration_s = 0.3\n[bridge]\nrealtime = false", {"--device", "mock://?bus=can&bitrate=800000"},
+      mrskin::tools::kOk, "rate: 1000 Hz does not fit can for this unit (it carries 621 Hz at most)");
+  EXPECT_NE(out.find("the loop runs at 496 Hz"), std::string::npos) << out;
+  EXPECT_NE(out.find("at 496 Hz"), std::string::npos) << out;
+  (void)expect_exit("duration_s = 0.5\nrate_hz = 1000\n[bridge]\nrealtime = false",
+                    {"--device", "mock://?bus=can&bitrate=800000"}, mrskin::tools::kUsage,
+                    "the highest loop rate can carries is 621 Hz");
+  (void)expect_exit("duration_s = 0.5\n[bridge]\nrealtime = false",
+                    {"--device", "mock://?bus=can&bitrate=800000", "--rate", "400"}, mrskin::tools::kOk,
+                    "at 400 Hz");
+}
+
 // Exit 4: a unit that reports another protocol major version in its Identity.
 TEST_F(BridgedDaemon, AUnitOfAnotherProtocolMajorIsExit4) {
   (void)expect_exit("[bridge]\nrealtime = false", {"--device", "mock://?protocol_major=2"},

@@ -158,6 +158,7 @@ Settings load_settings(const std::string& path) {
   r.get(root, "", "source", s.source);
   r.get_checked(
       root, "", "rate_hz", s.rate_hz, [](double v) { return v >= 1.0 && v <= 20000.0; }, "1 to 20000 Hz");
+  s.rate_given = root.contains("rate_hz");
   r.get_checked(
       root, "", "duration_s", s.duration_s, [](double v) { return v >= 0.0 && v <= kMaxDuration_s; },
       "0 to 1e8 s; 0 runs until a signal");
@@ -270,6 +271,7 @@ void apply(const Overrides& o, Settings& s) {
   s.device = o.device.value_or(s.device);
   s.source = o.source.value_or(s.source);
   s.rate_hz = o.rate_hz.value_or(s.rate_hz);
+  s.rate_given = s.rate_given || o.rate_hz.has_value();
   s.duration_s = o.duration_s.value_or(s.duration_s);
   s.stats_json = o.stats_json.value_or(s.stats_json);
   s.record = o.record.value_or(s.record);

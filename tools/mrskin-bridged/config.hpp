@@ -23,6 +23,9 @@ struct Settings {
   std::string device = "mock://";
   std::string source = "scene://demo";
   double rate_hz = 1000.0;
+  // rate_hz came from the file or --rate. Without it a bus that cannot carry 1000 Hz runs the
+  // loop at the highest whole rate it carries (logged); with it the daemon refuses (exit 2).
+  bool rate_given = false;
   double duration_s = 0.0;  // 0: until SIGINT/SIGTERM
   std::string stats_json;   // "" : none
   std::string record;       // "" : none; else the input stream is recorded here (replay:// format)

@@ -13,6 +13,7 @@
 
 #include "json_text.hpp"
 #include "mrskin/driver/atomic_raise.hpp"
+#include "mrskin/driver/bus_budget_check.hpp"
 #include "mrskin/eval/bus_stats.hpp"
 #include "mrskin/eval/truth_scorer.hpp"
 #include "mrskin/sim/open_mock.hpp"
@@ -102,8 +103,44 @@ Daemon::Daemon(Settings settings, MonotonicClock& clock)
     to.domain = settings_.topics_domain;
     topics_ = std::make_unique<bridge::SkinPublisher>(to);
   }
+  fit_default_rate_to_bus();
   build_bridge(settings_);
   (void)bridge_->enable();
+}
+
+// Without a rate from the file or --rate, a bus that cannot carry the default 1000 Hz runs the
+// loop at 80 % of the highest rate it carries, rounded down (docs/daemon.md); a rate
+// that was asked for and does not fit is refused by the Bridge (BusOverloaded, exit 2), and so
+// is a unit whose own telemetry overloads its bus (check_bus_budget throws even at 1 Hz).
+void Daemon::fit_default_rate_to_bus() {
+  default_rate_hz_ = Settings{}.rate_hz;
+  if (settings_.rate_given) {
+    return;
+  }
+  const DeviceInfo& info = dev_.session->info();
+  const Transport& link = dev_.session->transport();
+  BusBudgetCheck slowest;
+  try {
+    slowest = check_bus_budget(info, link, 1.0);
+  } catch (const BusOverloaded&) {
+    return;  // no rate fits: the Bridge refuses, naming the default rate and the buses that carry it
+  }
+  if (!slowest.limited || slowest.highest_rate_hz >= settings_.rate_hz) {
+    return;
+  }
+  // 80 % of the highest: room for retries and bursts in the host's own traffic (the unit's
+  // telemetry does not scale with the loop, so the bus may stay above 80 %: then it warns).
+  const double rate_hz = std::floor(0.8 * slowest.highest_rate_hz);
+  if (rate_hz < 1.0) {
+    return;
+  }
+  rate_note_ = fmt::format(
+      "rate: {} Hz does not fit {} for this unit (it carries {:.0f} Hz at most); the loop runs at {} Hz, "
+      "80 % of that. Set rate_hz or --rate to choose (a rate that does not fit is refused)",
+      settings_.rate_hz, protocol::to_string(slowest.bus.kind), std::floor(slowest.highest_rate_hz), rate_hz);
+  default_rate_hz_ = rate_hz;
+  settings_.rate_hz = rate_hz;
+  shown_.rate_hz = rate_hz;
 }
 
 Daemon::~Daemon() {
@@ -893,6 +930,9 @@ bool Daemon::apply_reload(const Settings& next, const ReloadPlan& plan, std::vec
 std::vector<std::string> Daemon::reload(Settings next) {
   std::vector<std::string> log;
   keep_restart_only_settings(settings_, next, log);
+  if (!next.rate_given) {
+    next.rate_hz = default_rate_hz_;  // what the bus carries, as at start
+  }
   const ReloadPlan plan = plan_reload(next);
   if (plan.bridge_changed) {
     if (!apply_reload(next, plan, log)) {

@@ -93,6 +93,8 @@ class Daemon final : public bridge::Tickable, public ControlBackend {
   std::vector<bridge::SourceEvent> take_source_events();
   // The bus budget's warning at the current rate ("" when within 80 % or not limited).
   [[nodiscard]] const std::string& bus_warning() const noexcept { return bridge_->bus_budget().warning; }
+  // Set when no rate was given and the bus cannot carry the default: the rate chosen, and why.
+  [[nodiscard]] const std::string& rate_note() const noexcept { return rate_note_; }
   // The stream source's latest warning ("" when none): why no sample may be arriving.
   [[nodiscard]] std::string stream_warning() const;
   [[nodiscard]] std::string status_line() const;
@@ -160,6 +162,7 @@ class Daemon final : public bridge::Tickable, public ControlBackend {
   [[nodiscard]] ReloadPlan plan_reload(const Settings& next) const;
   bool apply_reload(const Settings& next, const ReloadPlan& plan, std::vector<std::string>& log);
   void build_bridge(const Settings& s);  // setup, before the loop runs
+  void fit_default_rate_to_bus();        // setup: rate_note_, default_rate_hz_
   std::unique_ptr<eval::TruthScorer> make_scorer(bridge::Bridge& b, const bridge::BridgeOptions& options);
   void publish(TimePoint now) noexcept;
   void publish_grid(TimePoint now) noexcept;
@@ -168,6 +171,8 @@ class Daemon final : public bridge::Tickable, public ControlBackend {
   [[nodiscard]] std::string topics_members() const;  // status: the skin's topics, or null
 
   Settings settings_;
+  double default_rate_hz_ = 0.0;  // the loop rate when none is given: 1000 Hz or what the bus carries
+  std::string rate_note_;
   MonotonicClock& clock_;
   OpenedDevice dev_;
   std::shared_ptr<sim::MockDevice> mock_;  // set for mock:// (the simulated unit behind dev_)

@@ -399,6 +399,9 @@ int run(Settings cfg, const std::string& config_path, const mrskin::bridged::Ove
       library_version(), cfg.device, info.serial, info.firmware, info.protocol_major, info.protocol_minor,
       info.rows, info.cols, info.valves, info.sensors, cfg.source);
   std::fflush(stdout);
+  if (!daemon.rate_note().empty()) {
+    spdlog::warn("{}", daemon.rate_note());
+  }
   if (!daemon.bus_warning().empty()) {
     spdlog::warn("{}", daemon.bus_warning());
   }
@@ -479,7 +482,9 @@ int guarded_main(int argc, char** argv) {
       ->excludes(source)
       ->transform([](const std::string& name) { return "scene://" + name; });
   app.add_option("--duration", o.duration_s, "seconds to run; 0 runs until SIGINT/SIGTERM");
-  app.add_option("--rate", o.rate_hz, "loop rate, Hz (1 to 20000; default 1000)");
+  app.add_option(
+      "--rate", o.rate_hz,
+      "loop rate, Hz (1 to 20000; default 1000, or 80 % of the highest rate the unit's bus carries)");
   app.add_option("--stats-json", o.stats_json, "write loop statistics as JSON to this file at exit");
   app.add_option("--record", o.record,
                  "record the input stream to this file (replay:// format: play it back with "
