@@ -53,9 +53,9 @@ struct MRSKIN_SIM_API MockFaults {
 // The bus between the host and the unit, modelled on the mock's clock (mock://?bus=...): each
 // packet costs exactly the HID reports or CAN frames the protocol's encoders make of it, so
 // traffic that does not fit the bus shows up as latency and loss (docs/protocol.md, "The mock's
-// bus model"). The default stays none until real-time runs lose no telemetry on hid-fs (a
-// self-test through a daemon's lease saw 89 gaps: docs/protocol.md says what was found);
-// bus=profile in a mock:// URI models the bus the profile's [interface] names.
+// bus model"). The default stays none until a session's configuration read on hid-fs loses no
+// telemetry (its ~90 ConfigData replies each displace a sample: docs/protocol.md); bus=profile
+// in a mock:// URI models the bus the profile's [interface] names.
 //  - none: an ideal link (every packet delivered when sent), as before the model.
 //  - hid_fs: full-speed USB-HID, one 64-byte report per 1 ms frame each way; hid_hs: high speed,
 //    kUsbHighSpeedMaxReportsPerMicroframe reports per 125 us microframe each way. A report that
@@ -70,7 +70,7 @@ enum class MockBusKind : unsigned char { none, hid_fs, hid_hs, can, canfd };
 MRSKIN_SIM_API const char* to_string(MockBusKind kind) noexcept;
 
 struct MockBusOptions {
-  MockBusKind kind = MockBusKind::none;    // see above: hid_fs once real-time runs lose nothing
+  MockBusKind kind = MockBusKind::none;    // see above: hid_fs once the config read loses nothing
   double nominal_bitrate_bit_per_s = 1e6;  // CAN and CAN FD arbitration phase
   double data_bitrate_bit_per_s = 5e6;     // CAN FD data phase
   // Reports that may wait for a slot, each way. Host to device: hidraw's write on usbhid is
