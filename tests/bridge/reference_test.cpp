@@ -146,6 +146,28 @@ TEST(Reference, EveryScenesStatisticsAtSeed7MatchTheGoldenFile) {
   }
 }
 
+// A measurement, not a test: the same rig on another unit, MRSKIN_REFERENCE_DEVICE (default
+// mock://?seed=7, the golden file's), one table row a scene: clamped, RMS error, p95 relative,
+// unclamped RMS, release RMS. docs/model.md's closed-loop table of the designed profile:
+//   MRSKIN_REFERENCE_DEVICE="mock://$PWD/tools/model-bench/results/design/designed.toml?seed=7"
+//   build/release/tests/bridge/bridge_reference_test --gtest_also_run_disabled_tests
+//     --gtest_filter='*MeasureEveryScene*'      (one command, the variable set before it)
+TEST(Reference, DISABLED_MeasureEverySceneOnADevice) {
+  const char* env = std::getenv("MRSKIN_REFERENCE_DEVICE");
+  const std::string device = env != nullptr ? env : "mock://?seed=7";
+  std::printf("%s, %.0f s on the simulated clock, default BridgeOptions\n", device.c_str(), kSeconds);
+  std::printf(
+      "| scene | clamped | RMS error | p95 relative | unclamped RMS | release RMS "
+      "|\n|---|---|---|---|---|---|\n");
+  for (const std::string_view name : scene_names()) {
+    const BridgeStats s = test::run_scene(std::string(name), kSeconds, device).stats;
+    std::printf("| %s | %.1f %% | %.3f N | %.1f %% | %.3f N | %.3f N |\n", std::string(name).c_str(),
+                100.0 * s.clamped_fraction(), s.force_rms_error_N(),
+                100.0 * s.relative_error.percentile(0.95), s.unclamped_rms_error_N(),
+                s.release_rms_error_N());
+  }
+}
+
 // docs/statistics.md is the one table of the statistics' keys: every key to_json writes is in it.
 TEST(Reference, EveryStatisticsKeyIsDocumented) {
   const std::string json = to_json(BridgeStats{}, 1e-3);
