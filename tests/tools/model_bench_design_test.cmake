@@ -6,7 +6,7 @@ include(${CMAKE_CURRENT_LIST_DIR}/cli_check.cmake)  # expect()
 file(REMOVE_RECURSE ${WORK})
 file(MAKE_DIRECTORY ${WORK})
 execute_process(COMMAND ${BENCH} --suite design --quick --out ${WORK} RESULT_VARIABLE code
-                OUTPUT_VARIABLE out ERROR_VARIABLE err TIMEOUT 120)
+                OUTPUT_VARIABLE out ERROR_VARIABLE err TIMEOUT 400)
 if(NOT code EQUAL 0)
   message(FATAL_ERROR "--suite design --quick: exit ${code}\n${out}\n${err}")
 endif()
