@@ -4,9 +4,11 @@
 
 #include <algorithm>
 #include <cmath>
+#include <optional>
 #include <string>
 
 #include "mrskin/driver/layout.hpp"
+#include "mrskin/protocol/bus_budget.hpp"
 #include "mrskin/protocol/packed_report.hpp"
 #include "mrskin/protocol/packet.hpp"
 #include "mrskin/protocol/units.hpp"
@@ -21,7 +23,6 @@ using session_names::quantity_name;
 using session_names::quantity_unit;
 
 namespace {
-constexpr std::size_t kConfigWindow = 16;  // configuration chunks in flight
 
 std::uint16_t clamp_counts(double value, double lsb, std::uint16_t max_counts) noexcept {
   if (!(value > 0.0)) {
@@ -288,24 +289,47 @@ void DeviceSession::Impl::await_identity(TimePoint deadline) {
     Datagram d;
     const ResultCode rc = transport_->receive(d);
     if (rc == ResultCode::ok) {
-      log(d, false, now);
-      const proto::PacketDecoded p =
-          proto::decode_packet(std::span<const std::uint8_t>(d.bytes.data(), d.length));
+      const std::span<const std::uint8_t> bytes(d.bytes.data(), d.length);
+      proto::PacketWalker walker(bytes);
+      proto::PacketDecoded p;
+      if (!walker.next(p)) {
+        p = proto::decode_packet(bytes);  // an empty report: its error
+      }
       if (p.error == proto::Error::wrong_version) {
+        log(d, false, now);
         throw ProtocolMismatch(fmt::format(
             "device on {} speaks protocol v{}, this library speaks v{}: update the device firmware or use a "
             "matching mrskin release",
             transport_->uri(), p.peer_version, proto::kVersionMajor));
       }
       if (p.error != proto::Error::ok) {
+        log(d, false, now);
         ++counters_.decode_errors;
         counters_.crc_errors += p.error == proto::Error::bad_crc ? 1U : 0U;
         continue;
       }
       if (const auto* id = std::get_if<proto::Identity>(&p.message)) {
         apply_identity(*id);
+        if (packing_) {
+          // A 1.2 unit packs the first status (or more) behind the Identity: this session's
+          // first traffic, in sequence after the Identity.
+          Datagram head;  // the Identity, then the rest as a report of its own
+          Datagram rest;
+          head.length = static_cast<std::uint8_t>(walker.offset());
+          rest.length = static_cast<std::uint8_t>(d.length - head.length);
+          std::copy_n(d.bytes.begin(), head.length, head.bytes.begin());
+          std::copy_n(d.bytes.begin() + head.length, rest.length, rest.bytes.begin());
+          log(head, false, now);
+          rx_last_sequence_ = p.sequence;
+          if (rest.length > 0 && rest.bytes[0] != 0) {
+            handle(rest, now);
+          }
+        } else {
+          log(d, false, now);
+        }
         return;
       }
+      log(d, false, now);
       continue;
     }
     if (rc == ResultCode::disconnected) {
@@ -316,77 +340,6 @@ void DeviceSession::Impl::await_identity(TimePoint deadline) {
           fmt::format("device on {} did not identify within {:.3f} s: check power, firmware and that no "
                       "other process owns it (raise the time scale in slow environments)",
                       transport_->uri(), to_seconds(options_.handshake_timeout)));
-    }
-    clock_.sleep_until(now + std::chrono::microseconds(200));
-  }
-}
-
-std::string DeviceSession::Impl::read_config(proto::ConfigKey key) {
-  constexpr std::size_t chunk = proto::kMaxConfigBytes;
-  config_ = ConfigTransfer{};
-  config_.active = true;
-  config_.key = static_cast<std::uint16_t>(key);
-  std::vector<TimePoint> asked;  // per chunk, when last requested (-1: never)
-  TimePoint first_asked{-1};
-  TimePoint last_progress = clock_.now();
-  auto request = [&](std::size_t index) {
-    proto::ConfigRead r;
-    r.key = config_.key;
-    r.offset = static_cast<std::uint16_t>(index * chunk);
-    r.length = static_cast<std::uint8_t>(chunk);
-    (void)send_packet(r);
-  };
-  for (;;) {
-    const TimePoint now = clock_.now();
-    if (config_.total < 0) {
-      // The first chunk tells the blob's length; ask again until it comes.
-      if (first_asked.count() < 0 || now - first_asked >= options_.handshake_retry) {
-        request(0);
-        first_asked = now;
-      }
-    } else {
-      if (asked.empty()) {
-        asked.assign(config_.have.size(), TimePoint{-1});
-      }
-      std::size_t in_flight = 0;
-      for (std::size_t i = 0; i < asked.size(); ++i) {
-        in_flight +=
-            config_.have[i] == 0 && asked[i].count() >= 0 && now - asked[i] < options_.handshake_retry ? 1U
-                                                                                                       : 0U;
-      }
-      for (std::size_t i = 0; i < asked.size() && in_flight < kConfigWindow; ++i) {
-        if (config_.have[i] == 0 && (asked[i].count() < 0 || now - asked[i] >= options_.handshake_retry)) {
-          request(i);
-          asked[i] = now;
-          ++in_flight;
-        }
-      }
-    }
-    Datagram d;
-    while (transport_->receive(d) == ResultCode::ok) {
-      handle(d, now);
-    }
-    if (config_.acked && config_.ack_status != static_cast<std::uint8_t>(proto::ConfigStatus::ok)) {
-      config_.active = false;
-      throw Error(fmt::format("device on {} refused to read its {} (key {}): {}; service the unit",
-                              transport_->uri(), config_key_name(config_.key), config_.key,
-                              config_status_name(config_.ack_status)));
-    }
-    if (config_.total >= 0 && config_.received == config_.have.size()) {
-      config_.active = false;
-      return std::move(config_.text);
-    }
-    if (config_.progress) {
-      config_.progress = false;
-      last_progress = now;
-    } else if (now - last_progress > options_.handshake_timeout) {
-      config_.active = false;
-      throw Timeout(fmt::format(
-          "device on {} stopped returning its {} ({} of {} bytes after {:.3f} s without progress): check the "
-          "link (raise the time scale in slow environments)",
-          transport_->uri(), config_key_name(config_.key), config_.received * chunk,
-          config_.total < 0 ? std::string("?") : std::to_string(config_.total),
-          to_seconds(options_.handshake_timeout)));
     }
     clock_.sleep_until(now + std::chrono::microseconds(200));
   }
@@ -606,13 +559,12 @@ void DeviceSession::Impl::handle_packet(const proto::PacketDecoded& p, TimePoint
     if (c.total < 0) {
       c.total = cd->total;  // setup only: the one allocation of the transfer
       c.text.assign(cd->total, '\0');
-      c.have.assign((cd->total + proto::kMaxConfigBytes - 1) / proto::kMaxConfigBytes, 0);
+      c.have.assign((cd->total + c.chunk - 1) / c.chunk, 0);
     }
-    const std::size_t index = cd->offset / proto::kMaxConfigBytes;
-    const std::size_t expected =
-        std::min<std::size_t>(proto::kMaxConfigBytes,
-                              static_cast<std::size_t>(c.total) - std::min<std::size_t>(cd->offset, c.total));
-    if (cd->total != c.total || cd->offset % proto::kMaxConfigBytes != 0 || index >= c.have.size() ||
+    const std::size_t index = cd->offset / c.chunk;
+    const std::size_t expected = std::min<std::size_t>(
+        c.chunk, static_cast<std::size_t>(c.total) - std::min<std::size_t>(cd->offset, c.total));
+    if (cd->total != c.total || cd->offset % c.chunk != 0 || index >= c.have.size() ||
         cd->length != expected || c.have[index] != 0) {
       return;
     }

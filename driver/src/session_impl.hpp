@@ -82,6 +82,9 @@ class __attribute__((visibility("hidden"))) DeviceSession::Impl {
   void apply_identity(const protocol::Identity& id);
   [[nodiscard]] bool same_unit(const protocol::Identity& id) const noexcept;
   std::string read_config(protocol::ConfigKey key);
+  // The bytes a configuration read asks for at a time: docs/protocol.md, "Configuration reads
+  // beside the telemetry".
+  [[nodiscard]] std::size_t config_chunk_bytes() const;
   void await_config_ack(std::uint16_t offset);
   ResultCode send_state_request(protocol::StateRequestCode request) noexcept;
   void await_identity(TimePoint deadline);
@@ -150,7 +153,8 @@ class __attribute__((visibility("hidden"))) DeviceSession::Impl {
   struct ConfigTransfer {
     bool active = false;
     std::uint16_t key = 0;
-    int total = -1;  // unknown until the first chunk
+    std::size_t chunk = protocol::kMaxConfigBytes;  // bytes a read asks for (config_chunk_bytes)
+    int total = -1;                                 // unknown until the first chunk
     std::string text;
     std::vector<std::uint8_t> have;  // per chunk
     std::size_t received = 0;

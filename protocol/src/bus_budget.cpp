@@ -250,4 +250,20 @@ double highest_update_rate_hz(const BusSpec& bus, CyclicTraffic traffic, double 
   return lo;
 }
 
+std::size_t config_bytes_beside_telemetry(std::size_t sensors, std::size_t report_bytes) noexcept {
+  constexpr std::size_t kFraming = kPacketHeaderBytes + kPacketCrcBytes;
+  std::size_t last = 0;  // bytes of the sample's last report, packed as the unit packs them
+  for (std::size_t first = 0; first < sensors; first += kMaxTelemetryValues) {
+    Telemetry t;
+    t.count = static_cast<std::uint8_t>(std::min(kMaxTelemetryValues, sensors - first));
+    const std::size_t bytes = kFraming + packet_payload_length(Message{t});
+    last = last > 0 && last + bytes <= report_bytes ? last + bytes : bytes;
+  }
+  const std::size_t reply_framing = kFraming + packet_payload_length(Message{ConfigData{}});
+  if (last + reply_framing >= report_bytes) {
+    return 0;
+  }
+  return std::min(kMaxConfigBytes, report_bytes - last - reply_framing);
+}
+
 }  // namespace mrskin::protocol

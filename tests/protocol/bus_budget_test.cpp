@@ -96,5 +96,20 @@ TEST(ProtocolBusBudget, GridsAClassicCanNodeCannotAddressAreNotEncodable) {
   EXPECT_TRUE(compute_bus_budget(default_bus_spec(BusKind::hid_high_speed), t).fits(0.8));
 }
 
+// A configuration reply beside a sample in one report: the bytes hand-counted from the framing
+// (4-byte header, 2-byte CRC; Telemetry 7 + 2 a value, ConfigData 7 + n).
+TEST(ProtocolBusBudget, ConfigBytesBesideTheTelemetryAreWhatTheReportLeaves) {
+  // 5x5: 12 sensors, 6 + 7 + 24 = 37 bytes; 64 - 37 - 13 = 14.
+  EXPECT_EQ(config_bytes_beside_telemetry(12, 64), 14U);
+  // 25 values fill 63 bytes: no reply fits beside them.
+  EXPECT_EQ(config_bytes_beside_telemetry(25, 64), 0U);
+  // No sensors: the report's room, capped at one chunk.
+  EXPECT_EQ(config_bytes_beside_telemetry(0, 64), kMaxConfigBytes);
+  // 26 values: a 63-byte packet, then a 15-byte one in the next report; 64 - 15 - 13 = 36.
+  EXPECT_EQ(config_bytes_beside_telemetry(26, 64), 36U);
+  // 256 sensors in 1024-byte reports: ten 63-byte packets and one of 6 + 7 + 12 = 25 share one.
+  EXPECT_EQ(config_bytes_beside_telemetry(256, 1024), kMaxConfigBytes);
+}
+
 }  // namespace
 }  // namespace mrskin::protocol

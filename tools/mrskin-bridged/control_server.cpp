@@ -485,7 +485,20 @@ void ControlServer::handle_line(Client& c, std::string_view line) {
     }
     c.telemetry_ms = 0.0;
     c.grid = false;
-    send(c, R"({"ok":true,"cmd":"lease","framing":"u8 length, then the datagram, both ways"})");
+    // The bus the device sits on, so that the lessee's session fits its traffic to it.
+    std::string bus;
+    if (const Transport* t = backend_->leased_transport(); t != nullptr) {
+      if (const std::optional<protocol::BusSpec> b = t->bus()) {
+        bus = fmt::format(
+            R"(,"bus":"{}","bus_usb_interval_s":{},"bus_usb_reports_per_interval":{},"bus_usb_report_bytes":{},)"
+            R"("bus_nominal_bitrate_bit_per_s":{},"bus_data_bitrate_bit_per_s":{})",
+            protocol::to_string(b->kind), ctl::json_number(b->usb.interval_s), b->usb.reports_per_interval,
+            b->usb.report_bytes, ctl::json_number(b->nominal_bitrate_bit_per_s),
+            ctl::json_number(b->data_bitrate_bit_per_s));
+      }
+    }
+    send(c, fmt::format(
+                R"({{"ok":true,"cmd":"lease","framing":"u8 length, then the datagram, both ways"{}}})", bus));
     c.leased = true;
     event(fmt::format("control socket: the device is leased to {} (bridge halted)", c.who));
   } else if (r.cmd == "stop") {

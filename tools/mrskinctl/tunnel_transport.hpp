@@ -16,6 +16,7 @@
 #include <chrono>
 #include <cstdint>
 #include <cstring>
+#include <optional>
 #include <span>
 #include <string>
 #include <string_view>
@@ -23,6 +24,7 @@
 #include "bridge_client.hpp"
 #include "mrskin/driver/errors.hpp"
 #include "mrskin/driver/transport.hpp"
+#include "mrskin/protocol/bus_budget.hpp"
 
 namespace mrskin::ctl {
 
@@ -38,10 +40,12 @@ class TunnelTransport final : public Transport {
       throw Error(fmt::format("mrskin-bridged on {} did not answer the device lease request within 5 s",
                               socket_path));
     }
-    if (const JsonReply reply(*ack); reply.text("ok") != "true") {
+    const JsonReply reply(*ack);
+    if (reply.text("ok") != "true") {
       throw DeviceBusy(fmt::format("mrskin-bridged on {} refused the device lease: {}", socket_path,
                                    reply.text("error").value_or(*ack)));
     }
+    bus_ = bus_of(reply);
     auto [fd, rest] = c.release();
     fd_ = fd;
     const std::size_t n = std::min(rest.size(), in_.size());
@@ -126,6 +130,8 @@ class TunnelTransport final : public Transport {
     return fd_ >= 0 ? TransportState::open : TransportState::disconnected;
   }
   [[nodiscard]] std::string_view uri() const noexcept override { return uri_; }
+  // The daemon's device's bus, as its lease answer declares it (none from an older daemon).
+  [[nodiscard]] std::optional<protocol::BusSpec> bus() const noexcept override { return bus_; }
   [[nodiscard]] TransportCounters counters() const noexcept override { return counters_; }
 
  private:
@@ -137,7 +143,33 @@ class TunnelTransport final : public Transport {
     }
   }
 
+  static std::optional<protocol::BusSpec> bus_of(const JsonReply& reply) {
+    const std::optional<std::string> kind = reply.text("bus");
+    for (std::size_t k = 0; kind && k < protocol::kBusKindCount; ++k) {
+      const auto candidate = static_cast<protocol::BusKind>(k);
+      if (*kind != protocol::to_string(candidate)) {
+        continue;
+      }
+      protocol::BusSpec b = protocol::default_bus_spec(candidate);
+      const auto positive = [&](std::string_view key, double fallback) {
+        const std::optional<double> v = reply.number(key);
+        return v && *v > 0.0 && *v < 1e12 ? *v : fallback;
+      };
+      b.usb.interval_s = positive("bus_usb_interval_s", b.usb.interval_s);
+      b.usb.reports_per_interval = static_cast<std::size_t>(
+          positive("bus_usb_reports_per_interval", static_cast<double>(b.usb.reports_per_interval)));
+      b.usb.report_bytes = static_cast<std::size_t>(
+          std::min(positive("bus_usb_report_bytes", static_cast<double>(b.usb.report_bytes)),
+                   static_cast<double>(protocol::kUsbHighSpeedMaxReportBytes)));
+      b.nominal_bitrate_bit_per_s = positive("bus_nominal_bitrate_bit_per_s", b.nominal_bitrate_bit_per_s);
+      b.data_bitrate_bit_per_s = positive("bus_data_bitrate_bit_per_s", b.data_bitrate_bit_per_s);
+      return b;
+    }
+    return std::nullopt;
+  }
+
   std::string uri_;
+  std::optional<protocol::BusSpec> bus_;
   int fd_ = -1;
   std::array<std::uint8_t, 8192> in_{};
   std::size_t in_length_ = 0;

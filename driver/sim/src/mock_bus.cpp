@@ -229,6 +229,9 @@ void MockBus::usb_device_sent(const Datagram& d, TimePoint t, BusSink& sink) noe
   if (block >= 0) {
     for (std::size_t i = to_host_waiting_.size(); i > 0; --i) {
       Waiting& w = to_host_waiting_.at(i - 1);
+      if (w.telemetry_block < 0) {
+        break;  // taking a place ahead of a status or an answer would reorder the packets
+      }
       if (w.telemetry_block == block) {
         // The same sensors' sample still waits for its slot: this newer one takes its place.
         w.datagram = d;

@@ -13,6 +13,7 @@
 #include "mock_device_impl.hpp"
 #include "mrskin/driver/errors.hpp"
 #include "mrskin/driver/model/calibration.hpp"
+#include "mrskin/protocol/bus_budget.hpp"
 #include "mrskin/protocol/packed_report.hpp"
 #include "mrskin/protocol/packet.hpp"
 #include "mrskin/protocol/units.hpp"
@@ -27,7 +28,6 @@ constexpr std::uint8_t kFirmwareMajor = 0;
 constexpr std::uint8_t kFirmwareMinor = 2;
 constexpr std::uint8_t kFirmwarePatch = 0;
 constexpr std::size_t kDelayLineCapacity = 4096;
-constexpr std::size_t kConfigCapacity = 4096;
 constexpr std::size_t kAnswerReserve = 64;  // device->host slots telemetry may not take
 constexpr std::size_t kStatusPacketBytes = proto::kPacketHeaderBytes + 5 + proto::kPacketCrcBytes;
 
@@ -57,37 +57,6 @@ proto::SensorQuantity wire_quantity(model::SensorQuantity q) noexcept {
       return proto::SensorQuantity::pressure_Pa;
   }
   return proto::SensorQuantity::displacement_m;
-}
-
-// The N of the first "version = N" line of a calibration, or -1.
-long calibration_version(std::span<const std::uint8_t> blob) noexcept {
-  constexpr std::string_view key = "version";
-  std::size_t i = 0;
-  while (i < blob.size()) {  // i is at a line start
-    std::size_t k = 0;
-    while (k < key.size() && i + k < blob.size() && blob[i + k] == static_cast<std::uint8_t>(key[k])) {
-      ++k;
-    }
-    if (k == key.size()) {
-      std::size_t j = i + k;
-      while (j < blob.size() && (blob[j] == ' ' || blob[j] == '=')) {
-        ++j;
-      }
-      long version = 0;
-      bool digits = false;
-      while (j < blob.size() && blob[j] >= '0' && blob[j] <= '9' && version < 100000000) {
-        version = version * 10 + (blob[j] - '0');
-        digits = true;
-        ++j;
-      }
-      return digits ? version : -1;
-    }
-    while (i < blob.size() && blob[i] != '\n') {
-      ++i;
-    }
-    ++i;
-  }
-  return -1;
 }
 
 }  // namespace
@@ -124,6 +93,12 @@ class MockDevice::Impl::HostTransport final : public Transport {
                                 ? std::max(device_.sync_clock_->now(), device_.last_step_)
                                 : device_.last_step_;
       device_.handle_host_input(now);
+      if (device_.options_.bus.kind == MockBusKind::hid_fs ||
+          device_.options_.bus.kind == MockBusKind::hid_hs) {
+        // A host blocked in a setup call (a configuration read) steps no unit: the reports its
+        // answers queued for their slots still go as the frames pass.
+        device_.bus_.advance(now, device_.sink_);
+      }
       device_.flush_delayed(now);
     }
     return device_.to_host_.try_pop(out) ? ResultCode::ok : ResultCode::would_block;
@@ -217,6 +192,8 @@ MockDevice::Impl::Impl(const model::DeviceProfile& profile, std::string_view pro
   }
   stuck_value_.assign(plant_->sensor_count(), 0.0);
   sensor_si_.assign(plant_->sensor_count(), 0.0);
+  config_bytes_beside_telemetry_ =
+      proto::config_bytes_beside_telemetry(sensor_si_.size(), proto::kHidReportBytes);
   reported_.assign(plant_->sensor_count(), 0.0);
   for (auto& f : finger_m_) {
     f.store(0.0);
@@ -275,7 +252,7 @@ std::shared_ptr<MockDevice> MockDevice::make(const MockOptions& options, const m
   calibration.profile = loaded.profile.name;
   auto device = std::make_shared<MockDevice>(loaded.profile, loaded.text, options, std::move(plant));
   device->impl_->calibration_blob_ = to_bytes(model::format_calibration(calibration));
-  device->impl_->calibration_blob_.reserve(kConfigCapacity);
+  device->impl_->calibration_blob_.reserve(Impl::kConfigCapacity);
   return device;
 }
 
@@ -626,71 +603,6 @@ void MockDevice::Impl::deliver_to_device(Datagram d, TimePoint at) noexcept {
   }
 }
 
-void MockDevice::Impl::handle_config(const proto::Message& message) noexcept {
-  auto blob_for = [this](std::uint16_t key) -> std::vector<std::uint8_t>* {
-    switch (static_cast<proto::ConfigKey>(key)) {
-      case proto::ConfigKey::profile:
-        return &profile_blob_;
-      case proto::ConfigKey::calibration:
-        return &calibration_blob_;
-    }
-    return nullptr;
-  };
-  if (const auto* r = std::get_if<proto::ConfigRead>(&message)) {
-    const std::vector<std::uint8_t>* blob = blob_for(r->key);
-    if (blob == nullptr || r->offset > blob->size()) {
-      send_message(
-          proto::ConfigAck{r->key, r->offset,
-                           static_cast<std::uint8_t>(blob == nullptr ? proto::ConfigStatus::bad_key
-                                                                     : proto::ConfigStatus::bad_range)});
-      return;
-    }
-    proto::ConfigData data;
-    data.key = r->key;
-    data.offset = r->offset;
-    data.total = static_cast<std::uint16_t>(blob->size());
-    data.length = static_cast<std::uint8_t>(std::min<std::size_t>(r->length, blob->size() - r->offset));
-    std::copy_n(blob->begin() + r->offset, data.length, data.bytes.begin());
-    send_message(data);
-  } else if (const auto* w = std::get_if<proto::ConfigWrite>(&message)) {
-    // Only the calibration is writable, only while the coils are off, in order, and only
-    // with a version above the stored one (checked when the last chunk arrives).
-    auto status = proto::ConfigStatus::ok;
-    std::vector<std::uint8_t>& pending = calibration_pending_;
-    if (static_cast<proto::ConfigKey>(w->key) != proto::ConfigKey::calibration) {
-      status = proto::ConfigStatus::rejected;
-    } else if (state_.load() == static_cast<std::uint8_t>(proto::DeviceState::enabled)) {
-      status = proto::ConfigStatus::busy;
-    } else if (w->total > kConfigCapacity || w->total == 0 || w->offset + w->length > w->total) {
-      status = proto::ConfigStatus::bad_range;
-    } else {
-      const bool repeat_of_committed =
-          pending.empty() && w->total == calibration_blob_.size() && w->offset + w->length == w->total &&
-          std::equal(w->bytes.begin(), w->bytes.begin() + w->length, calibration_blob_.begin() + w->offset);
-      if (w->offset == 0) {
-        pending.clear();  // a new write (or its first chunk again); within reserve: no allocation
-      }
-      if (repeat_of_committed) {
-        // The last chunk again (its ack was lost): already stored.
-      } else if (w->offset == pending.size()) {
-        pending.insert(pending.end(), w->bytes.begin(), w->bytes.begin() + w->length);
-      } else if (w->offset + w->length != pending.size()) {
-        status = proto::ConfigStatus::bad_range;  // chunks must arrive in order (a repeat is fine)
-      }
-      if (status == proto::ConfigStatus::ok && !repeat_of_committed && pending.size() == w->total &&
-          w->offset + w->length == w->total) {
-        if (calibration_version(pending) > calibration_version(calibration_blob_)) {
-          calibration_blob_.swap(pending);  // both reserved: no allocation
-        } else {
-          status = proto::ConfigStatus::rejected;
-        }
-        pending.clear();
-      }
-    }
-    send_message(proto::ConfigAck{w->key, w->offset, static_cast<std::uint8_t>(status)});
-  }
-}
-
 void MockDevice::Impl::handle(const std::uint8_t* bytes, std::size_t length, TimePoint now) noexcept {
   const std::span<const std::uint8_t> report(bytes, length);
   if (!packing_) {
@@ -711,10 +623,23 @@ void MockDevice::Impl::handle_packet(const proto::PacketDecoded& p, TimePoint no
   last_heartbeat_ = now;  // any valid packet proves the host is alive
   const auto state = static_cast<proto::DeviceState>(state_.load(std::memory_order_relaxed));
   if (const auto* request = std::get_if<proto::IdentifyRequest>(&p.message)) {
-    // The Identity goes alone, first in its report: a host reads it before it knows the unit
-    // packs. Packing follows from this request on, as both sides declared.
-    flush_report();
-    packing_ = false;
+    // The Identity goes first in its report: a host reads it before it knows the unit packs.
+    // Packing follows from this request on, as both sides declared. When every slot carries a
+    // sample, the Identity's report takes the next sample's slot: that sample is skipped (never
+    // numbered, as firmware skips a sample that finds its endpoint busy), and what the previous
+    // session left waiting for telemetry (status, echoes) is dropped rather than sent in a slot
+    // of its own (a status follows the Identity).
+    const bool packs = proto::reads_packed_reports(options_.protocol_major, options_.protocol_minor) &&
+                       proto::reads_packed_reports(request->host_major, request->host_minor);
+    const bool tight = slots_taken_by_samples();
+    if (tight) {
+      report_.length = 0;
+      held_status_at_ = kNoHeldStatus;
+    } else {
+      flush_report();
+    }
+    packing_ = packs && tight;  // packed and tight: the status joins the Identity's report
+    pending_read_count_ = 0;    // a new session asks again
     proto::Identity id;
     id.fw_major = kFirmwareMajor;
     id.fw_minor = kFirmwareMinor;
@@ -735,10 +660,13 @@ void MockDevice::Impl::handle_packet(const proto::PacketDecoded& p, TimePoint no
     id.heartbeat_timeout_ms =
         static_cast<std::uint16_t>(std::lround(options_.heartbeat_timeout_s * options_.time_scale * 1e3));
     id.telemetry_rate_hz = static_cast<std::uint16_t>(std::lround(1.0 / options_.telemetry_period_s));
-    send_message(id);
-    packing_ = proto::reads_packed_reports(options_.protocol_major, options_.protocol_minor) &&
-               proto::reads_packed_reports(request->host_major, request->host_minor);
+    send_message(id, /*hold=*/true);
+    packing_ = packs;
     send_status();
+    if (tight) {
+      flush_report();
+      skip_next_sample_ = true;
+    }
   } else if (const auto* r = std::get_if<proto::StateRequest>(&p.message)) {
     if (degaussing_ && r->request != static_cast<std::uint8_t>(proto::StateRequestCode::degauss)) {
       release_valves();  // any other request ends the degauss first
@@ -859,6 +787,10 @@ void MockDevice::Impl::update_coils(double dt_s) noexcept {
 }
 
 void MockDevice::Impl::emit_telemetry(TimePoint now) noexcept {
+  if (skip_next_sample_) {
+    skip_next_sample_ = false;  // the Identity's report has this sample's slot
+    return;
+  }
   plant_->read_sensors(sensor_si_);
   const MockFaults& f = options_.faults;
   const auto time_us =
@@ -888,7 +820,10 @@ void MockDevice::Impl::emit_telemetry(TimePoint now) noexcept {
     send_message(t, /*hold=*/true);
     first += t.count;
   }
-  flush_report();  // with what waited for it: status, heartbeat echoes
+  if (config_replies_ride_telemetry()) {
+    append_pending_config_replies();
+  }
+  flush_report();  // with what waited for it: status, heartbeat echoes, configuration replies
 }
 
 void MockDevice::Impl::apply_link_faults(TimePoint now) noexcept {
@@ -928,6 +863,8 @@ void MockDevice::Impl::step(TimePoint now) noexcept {
     }
     bus_.reset();
     packing_ = false;  // a unit that boots again packs only after the next IdentifyRequest
+    pending_read_count_ = 0;
+    skip_next_sample_ = false;
     report_.length = 0;
     held_status_at_ = kNoHeldStatus;
     last_step_ = now;

@@ -2,6 +2,7 @@
 // libmrskin_sim: mock_device.cpp defines it.
 #pragma once
 
+#include <array>
 #include <atomic>
 #include <cstddef>
 #include <cstdint>
@@ -68,6 +69,20 @@ struct __attribute__((visibility("hidden"))) MockDevice::Impl {
   [[nodiscard]] bool wait_for_telemetry() const noexcept {
     return packing_ && options_.bus.kind != MockBusKind::can;
   }
+  // On full-speed USB every slot carries a sample: packed, a ConfigRead that fits beside the
+  // telemetry is answered in the next telemetry report, not in a report (and slot) of its own.
+  // Before the first step (a synchronous mock's handshake) no sample comes: answers go at once.
+  [[nodiscard]] bool config_replies_ride_telemetry() const noexcept {
+    return packing_ && slots_taken_by_samples();
+  }
+  // Full-speed USB, streaming: every IN slot carries a sample. Not a synchronous mock: it takes
+  // no step (so sends no sample) while its host is blocked in a setup call.
+  [[nodiscard]] bool slots_taken_by_samples() const noexcept {
+    return started_ && options_.bus.kind == MockBusKind::hid_fs &&
+           !synchronous_.load(std::memory_order_relaxed);
+  }
+  [[nodiscard]] protocol::ConfigData config_data_for(const protocol::ConfigRead& r) const noexcept;
+  void append_pending_config_replies() noexcept;  // into report_, as many as fit, in order
   void handle_packet(const protocol::PacketDecoded& p, TimePoint now) noexcept;
   void send_status() noexcept;
   void release_valves() noexcept;
@@ -171,6 +186,14 @@ struct __attribute__((visibility("hidden"))) MockDevice::Impl {
   Datagram report_{};     // packed report being filled (length: bytes used)
   static constexpr std::size_t kNoHeldStatus = ~std::size_t{0};
   std::size_t held_status_at_ = kNoHeldStatus;  // where the status waiting in report_ starts
+  // ConfigReads waiting for a telemetry report (config_replies_ride_telemetry), oldest first; a
+  // host keeps at most 16 in flight.
+  static constexpr std::size_t kPendingConfigReads = 32;
+  static constexpr std::size_t kConfigCapacity = 4096;  // bytes of configuration memory per blob
+  std::array<protocol::ConfigRead, kPendingConfigReads> pending_reads_{};
+  std::size_t pending_read_count_ = 0;
+  bool skip_next_sample_ = false;                  // the Identity's report took its slot
+  std::size_t config_bytes_beside_telemetry_ = 0;  // the largest reply that rides (bus_budget.hpp)
   std::uint64_t noise_state_;
 };
 

@@ -75,4 +75,12 @@ MRSKIN_PROTOCOL_API BusBudget compute_bus_budget(const BusSpec& bus, const Cycli
 MRSKIN_PROTOCOL_API double highest_update_rate_hz(const BusSpec& bus, CyclicTraffic traffic,
                                                   double max_load = 1.0) noexcept;
 
+// Protocol 1.2 on a USB bus whose every slot carries a telemetry sample (full speed at 1 kHz):
+// the ConfigData bytes that fit in a sample's last report beside its Telemetry packets (sensors
+// values, report_bytes-byte reports), at most kMaxConfigBytes, 0 when none fit. A host reads its
+// configuration in chunks of this size, so that each reply can ride with a sample instead of
+// taking the sample's slot (docs/protocol.md, "Configuration reads beside the telemetry").
+MRSKIN_PROTOCOL_API std::size_t config_bytes_beside_telemetry(std::size_t sensors,
+                                                              std::size_t report_bytes) noexcept;
+
 }  // namespace mrskin::protocol
