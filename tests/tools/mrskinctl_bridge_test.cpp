@@ -147,7 +147,9 @@ TEST_F(MrskinctlBridge, MonitorGetsTheGridThenEstopFaultEnable) {
   // record --bridge: the daemon's raw sensors and commanded currents as the record format, which
   // replay prints and replays onto a free device.
   const std::string file = (dir_ / "bridge.ndjson").string();
-  r = ctl({"record", "--bridge", socket_, "--out", file, "--duration", "1", "--json"});
+  // 3 s, not 1: under a sanitizer on a busy machine the demo's first press came after a 1 s
+  // recording ended (CI, ASan stage, 2026-11-26), and plot then found no loaded cell.
+  r = ctl({"record", "--bridge", socket_, "--out", file, "--duration", "3", "--json"});
   ASSERT_EQ(r.code, 0) << r.out << r.err;
   EXPECT_GT(std::stoi(json_field(r.out, "telemetry").value_or("0")), 10) << r.out;
   EXPECT_GT(std::stoi(json_field(r.out, "commands").value_or("0")), 1) << r.out;  // enable, currents
