@@ -525,7 +525,7 @@ TEST(MockBusDevice, DelayAndLossReachTheHost) {
   EXPECT_LE(s.device_to_host.carried, 60U);  // one report a frame
 }
 
-// bus=profile: the unit is on the bus its profile names ([interface] bus): full-speed USB for
+// bus=profile (the default): the unit is on the bus its profile names ([interface] bus): full-speed USB for
 // the 5x5, high speed for the 16x16 (whose telemetry alone needs six full-speed reports a frame), none for
 // the 64x64 design (ModelProfile.TheInterfaceNamesTheBus; it opens slowly).
 TEST(MockBusDevice, BusProfileIsTheBusTheProfileNames) {
@@ -536,7 +536,8 @@ TEST(MockBusDevice, BusProfileIsTheBusTheProfileNames) {
     const OpenedDevice dev = open_device(uri, clock, open);
     return mock_of(dev)->bus_stats().kind;
   };
-  EXPECT_EQ(kind_of("mock://"), MockBusKind::none);  // the default, for now: an ideal link
+  EXPECT_EQ(kind_of("mock://"), MockBusKind::hid_fs);  // the default: the profile's bus
+  EXPECT_EQ(kind_of("mock://?bus=none"), MockBusKind::none);
   EXPECT_EQ(kind_of("mock://?bus=none"), MockBusKind::none);
   EXPECT_EQ(kind_of("mock://?bus=profile"), MockBusKind::hid_fs);
   EXPECT_EQ(kind_of("mock://mr-skin-5x5?seed=2&bus=profile"), MockBusKind::hid_fs);

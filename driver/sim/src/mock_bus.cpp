@@ -208,6 +208,15 @@ void MockBus::host_sent(const Datagram& d, TimePoint t, BusSink& sink) noexcept 
   sink.deliver_to_device(d, t);
 }
 
+bool MockBus::device_slot_free(TimePoint t) const noexcept {
+  if (!started_ || !usb()) {
+    return true;
+  }
+  UsbLane lane = to_host_lane_;  // a trial: nothing is booked
+  TimePoint due{};
+  return usb_schedule(lane, t, due) && due == t;
+}
+
 void MockBus::device_sent(const Datagram& d, TimePoint t, BusSink& sink) noexcept {
   if (!started_) {
     sink.deliver_to_host(d, t);

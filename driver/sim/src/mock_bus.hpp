@@ -72,6 +72,9 @@ class __attribute__((visibility("hidden"))) MockBus {
   // advances the bus (a packet that finds the bus free may be delivered at once); advance() does.
   void host_sent(const Datagram& d, TimePoint t, BusSink& sink) noexcept;
   void device_sent(const Datagram& d, TimePoint t, BusSink& sink) noexcept;
+  // USB: whether a report the unit hands over at t goes out in t's frame (its slot free, none
+  // booked ahead of it). True on the other buses and before the unit's first step.
+  [[nodiscard]] bool device_slot_free(TimePoint t) const noexcept;
   // Runs the bus up to t: delivers, in time order, what it finished carrying by then.
   void advance(TimePoint t, BusSink& sink) noexcept;
   // The link went down: whatever was queued is gone.

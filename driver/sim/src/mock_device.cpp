@@ -625,10 +625,9 @@ void MockDevice::Impl::handle_packet(const proto::PacketDecoded& p, TimePoint no
   if (const auto* request = std::get_if<proto::IdentifyRequest>(&p.message)) {
     // The Identity goes first in its report: a host reads it before it knows the unit packs.
     // Packing follows from this request on, as both sides declared. When every slot carries a
-    // sample, the Identity's report takes the next sample's slot: that sample is skipped (never
-    // numbered, as firmware skips a sample that finds its endpoint busy), and what the previous
-    // session left waiting for telemetry (status, echoes) is dropped rather than sent in a slot
-    // of its own (a status follows the Identity).
+    // sample, the Identity's report takes the next sample's slot (that sample is skipped:
+    // emit_telemetry), and what the previous session left waiting for telemetry (status,
+    // echoes) is dropped rather than sent in a slot of its own (a status follows the Identity).
     const bool packs = proto::reads_packed_reports(options_.protocol_major, options_.protocol_minor) &&
                        proto::reads_packed_reports(request->host_major, request->host_minor);
     const bool tight = slots_taken_by_samples();
@@ -664,8 +663,7 @@ void MockDevice::Impl::handle_packet(const proto::PacketDecoded& p, TimePoint no
     packing_ = packs;
     send_status();
     if (tight) {
-      flush_report();
-      skip_next_sample_ = true;
+      flush_report();  // the next sample finds the slot taken and is skipped (emit_telemetry)
     }
   } else if (const auto* r = std::get_if<proto::StateRequest>(&p.message)) {
     if (degaussing_ && r->request != static_cast<std::uint8_t>(proto::StateRequestCode::degauss)) {
@@ -787,8 +785,10 @@ void MockDevice::Impl::update_coils(double dt_s) noexcept {
 }
 
 void MockDevice::Impl::emit_telemetry(TimePoint now) noexcept {
-  if (skip_next_sample_) {
-    skip_next_sample_ = false;  // the Identity's report has this sample's slot
+  if (packing_ && slots_taken_by_samples() && !bus_.device_slot_free(now)) {
+    // As firmware does with a sample that finds its IN endpoint busy (an Identity or another
+    // unit-made report took the slot): skipped, never numbered, so the host sees no gap. What
+    // waits for a telemetry report (status, echoes, replies) waits for the next sample.
     return;
   }
   plant_->read_sensors(sensor_si_);
@@ -864,7 +864,6 @@ void MockDevice::Impl::step(TimePoint now) noexcept {
     bus_.reset();
     packing_ = false;  // a unit that boots again packs only after the next IdentifyRequest
     pending_read_count_ = 0;
-    skip_next_sample_ = false;
     report_.length = 0;
     held_status_at_ = kNoHeldStatus;
     last_step_ = now;

@@ -192,7 +192,6 @@ struct __attribute__((visibility("hidden"))) MockDevice::Impl {
   static constexpr std::size_t kConfigCapacity = 4096;  // bytes of configuration memory per blob
   std::array<protocol::ConfigRead, kPendingConfigReads> pending_reads_{};
   std::size_t pending_read_count_ = 0;
-  bool skip_next_sample_ = false;                  // the Identity's report took its slot
   std::size_t config_bytes_beside_telemetry_ = 0;  // the largest reply that rides (bus_budget.hpp)
   std::uint64_t noise_state_;
 };

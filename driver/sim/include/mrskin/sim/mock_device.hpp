@@ -70,7 +70,7 @@ enum class MockBusKind : unsigned char { none, hid_fs, hid_hs, can, canfd };
 MRSKIN_SIM_API const char* to_string(MockBusKind kind) noexcept;
 
 struct MockBusOptions {
-  MockBusKind kind = MockBusKind::none;    // docs/protocol.md: why not yet the profile's bus
+  MockBusKind kind = MockBusKind::none;    // mock:// without bus= takes the profile's bus instead
   double nominal_bitrate_bit_per_s = 1e6;  // CAN and CAN FD arbitration phase
   double data_bitrate_bit_per_s = 5e6;     // CAN FD data phase
   // Reports that may wait for a slot, each way. Host to device: hidraw's write on usbhid is

@@ -17,9 +17,8 @@ namespace mrskin::sim {
 struct MockUri {
   std::string profile;  // name or path as written ("" for the default)
   MockOptions options;
-  // bus=profile: open_device models the bus the profile's [interface] names (docs/protocol.md,
-  // "The mock's bus model": why it is not yet the default).
-  bool profile_bus = false;
+  // Without bus= (or with bus=profile): open_device models the bus the profile's [interface] names.
+  bool profile_bus = true;
 };
 // Parses a mock:// URI; throws InvalidArgument naming the bad parameter. The profile is not
 // loaded here (model::load_profile_with_text does that).
