@@ -57,7 +57,7 @@ sleep 1
 if kill -0 "$relay" 2>/dev/null; then
   export MRSKIN_VM_UDEV=1
 fi
-run_part usb_gadget 120 "$usb_test"
+run_part usb_gadget 240 "$usb_test"
 kill "$relay" 2>/dev/null || true
 wait "$relay" 2>/dev/null || true
 touch "$results/guest.done"

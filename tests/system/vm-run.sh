@@ -17,7 +17,7 @@
 # Environment: MRSKIN_VM_QEMU (the qemu-system-x86_64 to run), MRSKIN_VM_CACHE (default
 # ${XDG_CACHE_HOME:-$HOME/.cache}/mrskin-vm; not under /tmp, /var/tmp, /run or /dev, which
 # the guest covers with tmpfs), MRSKIN_VM_MEM (MB, 1024), MRSKIN_VM_SMP (2),
-# MRSKIN_VM_TIMEOUT (seconds, 240). Inside, the command sees MRSKIN_VM=1 and
+# MRSKIN_VM_TIMEOUT (seconds, 420). Inside, the command sees MRSKIN_VM=1 and
 # MRSKIN_VM_MODULES (the unpacked kernel's root).
 #
 # Exit codes: COMMAND's; 77 when the VM cannot be run here (qemu-system-x86, busybox-static
@@ -28,7 +28,7 @@ set -euo pipefail
 here=$(cd "$(dirname "${BASH_SOURCE[0]}")" && pwd)
 work=""
 modules=""
-timeout_s=${MRSKIN_VM_TIMEOUT:-240}
+timeout_s=${MRSKIN_VM_TIMEOUT:-420}
 while [ $# -gt 0 ]; do
   case $1 in
     --work) work=$2; shift 2 ;;
