@@ -133,6 +133,10 @@ std::vector<LogEntry> DeviceSession::Impl::decode_log(const std::vector<TrafficR
       e.kind = "config ack";
       e.detail =
           fmt::format("{} at {}: {}", config_key_name(ca->key), ca->offset, config_status_name(ca->status));
+    } else if (const auto* us = std::get_if<proto::UsbSlots>(&p.message)) {
+      e.kind = "usb slots";
+      e.detail = fmt::format("{} reports of {} bytes every {} us", us->reports_per_interval, us->report_bytes,
+                             us->interval_us);
     }
     out.push_back(std::move(e));
   }

@@ -13,7 +13,7 @@ MessageType type_of(const Message& m) noexcept {
       MessageType::cell_targets,     MessageType::telemetry,   MessageType::time_sync,
       MessageType::status,           MessageType::heartbeat,   MessageType::state_request,
       MessageType::config_read,      MessageType::config_data, MessageType::config_write,
-      MessageType::config_ack};
+      MessageType::config_ack,       MessageType::usb_slots};
   static_assert(std::size(kTypes) == std::variant_size_v<Message>);
   return kTypes[m.index()];
 }
@@ -80,6 +80,16 @@ Error check(const ConfigChunk& m) noexcept {
   return Error::ok;
 }
 Error check(const ConfigAck& m) noexcept { return m.status > 4 ? Error::out_of_range : Error::ok; }
+Error check(const UsbSlots& m) noexcept {
+  const bool interval_ok =
+      m.interval_us == 125 || m.interval_us == 250 || m.interval_us == 500 || m.interval_us == 1000;
+  if (m.report_bytes < kUsbSlotsMinReportBytes || m.report_bytes > kUsbSlotsMaxReportBytes ||
+      m.reports_per_interval == 0 || m.reports_per_interval > kUsbSlotsMaxReportsPerInterval ||
+      !interval_ok) {
+    return Error::out_of_range;
+  }
+  return Error::ok;
+}
 
 }  // namespace
 

@@ -29,7 +29,7 @@ bool PacketWalker::next(PacketDecoded& out) noexcept {
   if (ended_) {
     return false;
   }
-  if (report_.size() > kPacketMaxBytes) {
+  if (report_.size() > kUsbSlotsMaxReportBytes) {
     out = PacketDecoded{};
     out.error = Error::too_long;
     broken_ = ended_ = true;
@@ -39,7 +39,9 @@ bool PacketWalker::next(PacketDecoded& out) noexcept {
     ended_ = true;
     return false;
   }
-  const std::span<const std::uint8_t> rest = report_.subspan(offset_);
+  // A packet is at most kPacketMaxBytes, whatever the report's size (UsbSlots: up to 1024).
+  const std::span<const std::uint8_t> rest =
+      report_.subspan(offset_, std::min(kPacketMaxBytes, report_.size() - offset_));
   out = decode_packet(rest);
   // decode_packet checks the framing (length, version, CRC) before the content: these errors
   // come after the CRC matched, so the packet's length is the one its sender wrote.

@@ -92,6 +92,11 @@ void put(Writer& w, const ConfigAck& m) noexcept {
   w.u16(m.offset);
   w.u8(m.status);
 }
+void put(Writer& w, const UsbSlots& m) noexcept {
+  w.u16(m.report_bytes);
+  w.u8(m.reports_per_interval);
+  w.u16(m.interval_us);
+}
 
 // Each get() reads the payload and returns the length the payload must have.
 std::size_t get(Reader& r, IdentifyRequest& m) noexcept {
@@ -190,6 +195,12 @@ std::size_t get(Reader& r, ConfigAck& m) noexcept {
   m.key = r.u16();
   m.offset = r.u16();
   m.status = r.u8();
+  return 5;
+}
+std::size_t get(Reader& r, UsbSlots& m) noexcept {
+  m.report_bytes = r.u16();
+  m.reports_per_interval = r.u8();
+  m.interval_us = r.u16();
   return 5;
 }
 

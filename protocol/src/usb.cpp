@@ -1,5 +1,6 @@
 #include "mrskin/protocol/usb.hpp"
 
+#include <cmath>
 #include <cstddef>
 
 namespace mrskin::protocol {
@@ -11,6 +12,14 @@ std::string format_usb_serial(std::uint32_t serial) {
     text[7 - i] = kHex[(serial >> (4U * i)) & 0xFU];
   }
   return text;
+}
+
+UsbSlots usb_slots_message(const UsbInterruptSlots& slots) noexcept {
+  UsbSlots m;
+  m.report_bytes = static_cast<std::uint16_t>(slots.report_bytes);
+  m.reports_per_interval = static_cast<std::uint8_t>(slots.reports_per_interval);
+  m.interval_us = static_cast<std::uint16_t>(std::lround(slots.interval_s * 1e6));
+  return m;
 }
 
 std::optional<std::uint32_t> parse_usb_serial(std::string_view text) noexcept {

@@ -76,7 +76,7 @@ inline const char* check_packed_report(std::span<const std::uint8_t> in) noexcep
     if (packets == 0 && in.size() <= p::kPacketMaxBytes && d.error != p::decode_packet(in).error) {
       return "PacketWalker's first packet disagrees with decode_packet";
     }
-    if (++packets > p::kPacketMaxBytes / (p::kPacketHeaderBytes + p::kPacketCrcBytes) + 1) {
+    if (++packets > p::kUsbSlotsMaxReportBytes / (p::kPacketHeaderBytes + p::kPacketCrcBytes) + 1) {
       return "PacketWalker handed out more packets than a report holds";
     }
     if (walker.broken()) {

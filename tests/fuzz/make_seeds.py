@@ -52,7 +52,7 @@ def write(decoder, name, data):
 
 def main():
     v = golden()
-    for name in ["heartbeat", "valve_currents", "telemetry", "identity", "cell_targets", "config_data"]:
+    for name in ["heartbeat", "valve_currents", "telemetry", "identity", "cell_targets", "config_data", "usb_slots"]:
         write("packet", name, bytes.fromhex(v[(name, "packet")][0]))
     report = bytes.fromhex(v[("status", "packet")][0])
     write("packet", "status_hid_report", report + bytes(64 - len(report)))
@@ -61,6 +61,10 @@ def main():
         report = bytes.fromhex(v[(name, "report")][0])
         write("packet", name, report)
         write("packet", name + "_hid", report + bytes(64 - len(report)))
+    # A high-speed unit's 1024-byte report (UsbSlots): packed device reports back to back.
+    device = bytes.fromhex(v[("packed_device_report", "report")][0])
+    big = device * (1024 // len(device))
+    write("packet", "packed_report_1024", big + bytes(1024 - len(big)))
     v2 = bytearray(bytes.fromhex(v[("heartbeat", "packet")][0]))
     v2[0] = 2
     write("packet", "version2_heartbeat", bytes(v2))

@@ -11,7 +11,7 @@ build=${2:-build/clang}
 jobs=${3:-2}
 here=$(cd "$(dirname "$0")" && pwd)
 work=$(mktemp -d "${TMPDIR:-/tmp}/mrskin-fuzz.XXXXXX")
-declare -A max_len=([packet]=128 [can_classic]=1024 [can_fd]=1024 [quantize]=64 [control_line]=8192
+declare -A max_len=([packet]=1100 [can_classic]=1024 [can_fd]=1024 [quantize]=64 [control_line]=8192
                     [config]=8192 [profile]=8192 [calibration]=4096 [replay]=8192 [igtl]=8192 [udp]=128
                     [recording]=16384)
 fuzzers=(packet can_classic can_fd quantize control_line config profile calibration replay recording igtl udp)

@@ -169,7 +169,7 @@ TEST(ProtocolMalformed, BadCrcInsideSegmentedTransfer) {
 // ---- unknown type --------------------------------------------------------------------
 
 TEST(ProtocolMalformed, UnknownPacketType) {
-  for (const int type : {0x00, 0x03, 0x12, 0x22, 0x33, 0x44, 0xFF}) {
+  for (const int type : {0x00, 0x04, 0x12, 0x22, 0x33, 0x44, 0xFF}) {
     auto p = heartbeat_packet();
     p[1] = static_cast<std::uint8_t>(type);
     fix_crc(p);
@@ -306,6 +306,15 @@ TEST(ProtocolMalformed, OutOfRangeOnEncode) {
   w.length = kMaxConfigBytes + 1;
   EXPECT_EQ(encode_error(w), Error::out_of_range);
   EXPECT_EQ(encode_error(ConfigAck{1, 0, 5}), Error::out_of_range);
+  // UsbSlots: 64..1024 bytes, 1..3 reports, an interval of 125, 250, 500 or 1000 us.
+  EXPECT_EQ(encode_error(UsbSlots{64, 1, 1000}), Error::ok);
+  EXPECT_EQ(encode_error(UsbSlots{1024, 3, 125}), Error::ok);
+  EXPECT_EQ(encode_error(UsbSlots{63, 1, 1000}), Error::out_of_range);
+  EXPECT_EQ(encode_error(UsbSlots{1025, 1, 1000}), Error::out_of_range);
+  EXPECT_EQ(encode_error(UsbSlots{64, 0, 1000}), Error::out_of_range);
+  EXPECT_EQ(encode_error(UsbSlots{64, 4, 125}), Error::out_of_range);
+  EXPECT_EQ(encode_error(UsbSlots{64, 1, 2000}), Error::out_of_range);
+  EXPECT_EQ(encode_error(UsbSlots{64, 1, 0}), Error::out_of_range);
 
   Identity id{1, 0, 0, 0, 0, 5, 5, 13, 12, 12, 1, 1000, 4095, 0, 1000, 100, 1000};
   EXPECT_EQ(encode_error(id), Error::ok);
@@ -680,7 +689,8 @@ TEST(ProtocolMalformedPacked, EmptyOverlongAndTruncatedReports) {
   EXPECT_TRUE(walk({}).errors.empty());
   const std::array<std::uint8_t, kHidReportBytes> zeros{};
   EXPECT_TRUE(walk(zeros).errors.empty());  // all padding: no packet, no error
-  const std::vector<std::uint8_t> overlong(kHidReportBytes + 1, 0x01);
+  // Longer than the largest report a unit may declare (UsbSlots, 1024 bytes).
+  const std::vector<std::uint8_t> overlong(kUsbSlotsMaxReportBytes + 1, 0x01);
   const Walked o = walk(overlong);
   ASSERT_EQ(o.errors.size(), 1U);
   EXPECT_EQ(o.errors[0], Error::too_long);
@@ -689,6 +699,39 @@ TEST(ProtocolMalformedPacked, EmptyOverlongAndTruncatedReports) {
   const Walked t = walk(r);
   ASSERT_EQ(t.errors.size(), 2U);
   EXPECT_EQ(t.errors[1], Error::short_buffer);
+}
+
+// A high-speed unit's report (UsbSlots: up to 1024 bytes) holds as many whole packets as fit,
+// and the walk hands every one out, in order.
+TEST(ProtocolMalformedPacked, AReportOfTheLargestDeclaredSizeWalksToEveryPacket) {
+  std::vector<std::uint8_t> report(kUsbSlotsMaxReportBytes, 0xCC);
+  std::size_t used = 0;
+  std::uint8_t sequence = 0;
+  Telemetry t;
+  t.count = kMaxTelemetryValues;  // 63-byte packets (57 payload bytes): 16 fit in 1024 bytes
+  for (;;) {
+    t.first = static_cast<std::uint16_t>(sequence * kMaxTelemetryValues);
+    const EncodeResult e = append_packet(t, sequence, report, used);
+    if (e.error != Error::ok) {
+      EXPECT_EQ(e.error, Error::short_buffer);
+      break;
+    }
+    used += e.bytes;
+    ++sequence;
+  }
+  EXPECT_EQ(sequence, kUsbSlotsMaxReportBytes / 63);
+  EXPECT_EQ(report[used], 0x00);  // the padding that ends the report
+  PacketWalker walker(report);
+  PacketDecoded d;
+  std::uint8_t walked = 0;
+  while (walker.next(d)) {
+    ASSERT_EQ(d.error, Error::ok);
+    EXPECT_EQ(d.sequence, walked);
+    EXPECT_EQ(std::get<Telemetry>(d.message).first, walked * kMaxTelemetryValues);
+    ++walked;
+  }
+  EXPECT_EQ(walked, sequence);
+  EXPECT_FALSE(walker.broken());
 }
 
 TEST(ProtocolMalformedPacked, AppendRefusesWhatDoesNotFitAndLeavesTheReport) {

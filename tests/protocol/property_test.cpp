@@ -126,7 +126,7 @@ Chunk gen_chunk() {
 }
 
 Message gen_message(Fit fit) {
-  switch (in<int>(0, 12)) {
+  switch (in<int>(0, 13)) {
     case 0:
       return IdentifyRequest{any<std::uint8_t>(), any<std::uint8_t>()};
     case 1:
@@ -152,8 +152,14 @@ Message gen_message(Fit fit) {
       return gen_chunk<ConfigData>();
     case 11:
       return gen_chunk<ConfigWrite>();
-    default:
+    case 12:
       return ConfigAck{any<std::uint16_t>(), any<std::uint16_t>(), in<std::uint8_t>(0, 4)};
+    default: {
+      static constexpr std::uint16_t kIntervals_us[] = {125, 250, 500, 1000};
+      return UsbSlots{in<std::uint16_t>(kUsbSlotsMinReportBytes, kUsbSlotsMaxReportBytes),
+                      in<std::uint8_t>(1, kUsbSlotsMaxReportsPerInterval),
+                      kIntervals_us[in<std::size_t>(0, 3)]};
+    }
   }
 }
 

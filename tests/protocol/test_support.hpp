@@ -108,6 +108,11 @@ inline std::ostream& operator<<(std::ostream& os, const ConfigAck& m) {
   return os << "ConfigAck{key=" << m.key << " offset=" << m.offset << " status=" << test_detail::u(m.status)
             << '}';
 }
+inline std::ostream& operator<<(std::ostream& os, const UsbSlots& m) {
+  return os << "UsbSlots{report_bytes=" << m.report_bytes
+            << " reports_per_interval=" << test_detail::u(m.reports_per_interval)
+            << " interval_us=" << m.interval_us << '}';
+}
 inline std::ostream& operator<<(std::ostream& os, const Message& m) {
   std::visit([&os](const auto& v) { os << v; }, m);
   return os;
@@ -204,6 +209,7 @@ inline bool is_segmented_type(const Message& m) {
     case MessageType::config_data:
     case MessageType::config_write:
     case MessageType::config_ack:
+    case MessageType::usb_slots:
       return true;
     default:
       return false;
@@ -293,6 +299,7 @@ inline std::vector<NamedMessage> golden_messages() {
   out.push_back({"config_write", w});
 
   out.push_back({"config_ack", ConfigAck{1, 0, 0}});
+  out.push_back({"usb_slots", UsbSlots{1024, 3, 125}});  // high speed, 3 x 1024 bytes a microframe
   return out;
 }
 

@@ -13,12 +13,14 @@
 namespace mrskin::protocol {
 
 inline constexpr std::uint8_t kVersionMajor = 1;
-// 1.1: StateRequest degauss, Status flag degaussing. 1.2: packed reports (packed_report.hpp).
+// 1.1: StateRequest degauss, Status flag degaussing. 1.2: packed reports (packed_report.hpp) and
+// UsbSlots, a USB unit's declared report size and rate.
 inline constexpr std::uint8_t kVersionMinor = 2;
 
 enum class MessageType : std::uint8_t {
   identify_request = 0x01,
   identity = 0x02,
+  usb_slots = 0x03,  // 1.2
   valve_currents = 0x10,
   cell_targets = 0x11,
   telemetry = 0x20,
@@ -187,8 +189,24 @@ struct ConfigAck {
   bool operator==(const ConfigAck&) const = default;
 };
 
-using Message = std::variant<IdentifyRequest, Identity, ValveCurrents, CellTargets, Telemetry, TimeSync,
-                             Status, Heartbeat, StateRequest, ConfigRead, ConfigData, ConfigWrite, ConfigAck>;
+// 1.2, USB only: what the unit's interrupt endpoints carry each way, at most reports_per_interval
+// reports of at most report_bytes bytes every interval_us (usb.hpp, UsbInterruptSlots). A 1.2 unit
+// sends it right after its Identity once the host said 1.2; until it comes (and from a 1.1 unit)
+// the host assumes full speed: one 64-byte report a 1 ms frame. Packets stay at most 64 bytes; a
+// larger report carries several, packed (packed_report.hpp).
+struct UsbSlots {
+  std::uint16_t report_bytes = 64;        // 64..1024
+  std::uint8_t reports_per_interval = 1;  // 1..3
+  std::uint16_t interval_us = 1000;       // 125, 250, 500 or 1000
+  bool operator==(const UsbSlots&) const = default;
+};
+inline constexpr std::uint16_t kUsbSlotsMinReportBytes = 64;
+inline constexpr std::uint16_t kUsbSlotsMaxReportBytes = 1024;
+inline constexpr std::uint8_t kUsbSlotsMaxReportsPerInterval = 3;
+
+using Message =
+    std::variant<IdentifyRequest, Identity, ValveCurrents, CellTargets, Telemetry, TimeSync, Status,
+                 Heartbeat, StateRequest, ConfigRead, ConfigData, ConfigWrite, ConfigAck, UsbSlots>;
 
 MRSKIN_PROTOCOL_API MessageType type_of(const Message& m) noexcept;
 

@@ -39,8 +39,8 @@ MRSKIN_PROTOCOL_API EncodeResult append_packet(const Message& message, std::uint
 // type; out_of_range) is handed out with its error and the walk goes on past it. A packet whose
 // framing is broken (short_buffer, wrong_version, bad_length over 58, bad_crc) is handed out
 // with its error and ends the walk: its length cannot be trusted, so nothing after it is read.
-// The packets before it were handed out already. A report longer than kPacketMaxBytes gives one
-// too_long.
+// The packets before it were handed out already. A report longer than kUsbSlotsMaxReportBytes
+// (the largest a unit may declare) gives one too_long.
 class MRSKIN_PROTOCOL_API PacketWalker {
  public:
   explicit PacketWalker(std::span<const std::uint8_t> report) noexcept : report_(report) {}
@@ -48,7 +48,7 @@ class MRSKIN_PROTOCOL_API PacketWalker {
   bool next(PacketDecoded& out) noexcept;
   // Bytes of the report the walk has consumed: the packets with intact framing so far.
   [[nodiscard]] std::size_t offset() const noexcept { return offset_; }
-  // The walk ended on a packet with broken framing (or a report over kPacketMaxBytes).
+  // The walk ended on a packet with broken framing (or a report over kUsbSlotsMaxReportBytes).
   [[nodiscard]] bool broken() const noexcept { return broken_; }
 
  private:

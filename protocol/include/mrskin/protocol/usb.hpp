@@ -12,6 +12,7 @@
 #include <string_view>
 
 #include "mrskin/protocol/export.hpp"
+#include "mrskin/protocol/messages.hpp"
 
 namespace mrskin::protocol {
 
@@ -38,10 +39,19 @@ inline constexpr double kUsbHighSpeedMicroframe_s = 125e-6;
 inline constexpr std::size_t kUsbHighSpeedMaxReportsPerMicroframe = 3;
 inline constexpr std::size_t kUsbHighSpeedMaxReportBytes = 1024;
 inline constexpr UsbInterruptSlots kUsbFullSpeedSlots{kUsbFullSpeedFrame_s, 1, kUsbMaxPacketBytes};
-// What a high-speed unit may declare at most. Protocol 1.2 declares nothing yet: until the
-// message that declares it (a later minor version), the mock's hid-hs bus takes this figure.
+// What a high-speed unit may declare at most (1.2's UsbSlots message, messages.hpp).
 inline constexpr UsbInterruptSlots kUsbHighSpeedMaxSlots{
     kUsbHighSpeedMicroframe_s, kUsbHighSpeedMaxReportsPerMicroframe, kUsbHighSpeedMaxReportBytes};
+static_assert(kUsbSlotsMaxReportBytes == kUsbHighSpeedMaxReportBytes &&
+              kUsbSlotsMaxReportsPerInterval == kUsbHighSpeedMaxReportsPerMicroframe);
+
+// The slots a UsbSlots message declares (a valid one: encode_packet and decode_packet check it).
+constexpr UsbInterruptSlots usb_interrupt_slots(const UsbSlots& declared) noexcept {
+  return {static_cast<double>(declared.interval_us) * 1e-6, declared.reports_per_interval,
+          declared.report_bytes};
+}
+// The UsbSlots message that declares slots (interval rounded to whole microseconds).
+MRSKIN_PROTOCOL_API UsbSlots usb_slots_message(const UsbInterruptSlots& slots) noexcept;
 // Reports the slots carry per second, and bytes (reports full to report_bytes) per second.
 constexpr double usb_reports_per_s(const UsbInterruptSlots& slots) noexcept {
   return static_cast<double>(slots.reports_per_interval) / slots.interval_s;
