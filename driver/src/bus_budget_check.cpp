@@ -69,6 +69,14 @@ BusBudgetCheck check_bus_budget(const DeviceInfo& info, const Transport& transpo
   }
   c.limited = true;
   c.bus = *bus;
+  // A USB unit's declared reports (1.2's UsbSlots) are the bus this session uses.
+  if (info.usb_slots &&
+      (c.bus.kind == protocol::BusKind::hid_full_speed || c.bus.kind == protocol::BusKind::hid_high_speed)) {
+    c.bus.usb = *info.usb_slots;
+    c.bus.kind = info.usb_slots->interval_s < protocol::kUsbFullSpeedFrame_s
+                     ? protocol::BusKind::hid_high_speed
+                     : protocol::BusKind::hid_full_speed;
+  }
   c.traffic = cyclic_traffic_of(info, update_rate_hz);
   c.budget = protocol::compute_bus_budget(c.bus, c.traffic);
   c.highest_rate_hz = protocol::highest_update_rate_hz(c.bus, c.traffic);

@@ -263,6 +263,18 @@ void DeviceSession::Impl::apply_identity(const proto::Identity& id) {
   sensor_lsb_ = info_.sensor_lsb;
 }
 
+// A USB unit's declared reports (1.2): this session's reports grow to their size. Only once 1.2 is
+// agreed (a unit sends it only then) and never on CAN, whose frames hold 64 bytes.
+void DeviceSession::Impl::apply_usb_slots(const proto::UsbSlots& declared) noexcept {
+  const std::optional<proto::BusSpec> bus = transport_->bus();
+  const bool can = bus && (bus->kind == proto::BusKind::can_classic || bus->kind == proto::BusKind::can_fd);
+  if (!packing_ || can) {
+    return;
+  }
+  info_.usb_slots = proto::usb_interrupt_slots(declared);
+  report_capacity_ = std::min<std::size_t>(declared.report_bytes, report_.size());
+}
+
 bool DeviceSession::Impl::same_unit(const proto::Identity& id) const noexcept {
   return id.serial == identity_.serial && id.rows == identity_.rows && id.cols == identity_.cols &&
          id.fluid_cells == identity_.fluid_cells && id.valves == identity_.valves &&
@@ -291,7 +303,7 @@ void DeviceSession::Impl::await_identity(TimePoint deadline) {
       proto::PacketWalker walker(bytes);
       proto::PacketDecoded p;
       if (!walker.next(p)) {
-        p = proto::decode_packet(bytes);  // an empty report: its error
+        p = proto::decode_first_packet(bytes);  // an empty report: its error
       }
       if (p.error == proto::Error::wrong_version) {
         log(d, false, now);
@@ -311,13 +323,12 @@ void DeviceSession::Impl::await_identity(TimePoint deadline) {
         if (packing_) {
           // A 1.2 unit packs the first status (or more) behind the Identity: this session's
           // first traffic, in sequence after the Identity.
-          Datagram head;  // the Identity, then the rest as a report of its own
+          // The Identity, then the rest as a report of its own.
+          const auto head_length = static_cast<std::uint16_t>(walker.offset());
           Datagram rest;
-          head.length = static_cast<std::uint8_t>(walker.offset());
-          rest.length = static_cast<std::uint8_t>(d.length - head.length);
-          std::copy_n(d.bytes.begin(), head.length, head.bytes.begin());
-          std::copy_n(d.bytes.begin() + head.length, rest.length, rest.bytes.begin());
-          log(head, false, now);
+          rest.length = static_cast<std::uint16_t>(d.length - head_length);
+          std::copy_n(d.bytes.begin() + head_length, rest.length, rest.bytes.begin());
+          log(std::span<const std::uint8_t>(d.bytes.data(), head_length), false, now);
           rx_last_sequence_ = p.sequence;
           if (rest.length > 0 && rest.bytes[0] != 0) {
             handle(rest, now);
@@ -382,31 +393,33 @@ void DeviceSession::Impl::load_profile() {
 
 // --- DeviceSession: the tick ----------------------------------------------------------------
 
-void DeviceSession::Impl::log(const Datagram& d, bool sent, TimePoint now) noexcept {
+void DeviceSession::Impl::log(std::span<const std::uint8_t> bytes, bool sent, TimePoint now) noexcept {
   TrafficRecord& r = ring_[ring_next_];
   r.time = now;
   r.sent = sent;
-  r.datagram = d;
+  r.packet.length = static_cast<std::uint8_t>(std::min(bytes.size(), r.packet.bytes.size()));
+  std::copy_n(bytes.begin(), r.packet.length, r.packet.bytes.begin());
   ring_next_ = (ring_next_ + 1) % ring_.size();
   ring_size_ = std::min(ring_size_ + 1, ring_.size());
 }
 
 ResultCode DeviceSession::Impl::send_packet(const proto::Message& message, bool hold) noexcept {
   if (packing_) {
-    proto::EncodeResult r = proto::append_packet(message, tx_sequence_, report_, report_used_);
+    const std::span<std::uint8_t> report = std::span<std::uint8_t>(report_).first(report_capacity_);
+    proto::EncodeResult r = proto::append_packet(message, tx_sequence_, report, report_used_);
     if (r.error == proto::Error::short_buffer && report_used_ > 0) {
       // Full: the report goes as it is, this packet starts the next one.
       if (const ResultCode rc = flush_report(); rc != ResultCode::ok) {
         return rc;
       }
-      r = proto::append_packet(message, tx_sequence_, report_, report_used_);
+      r = proto::append_packet(message, tx_sequence_, report, report_used_);
     }
     if (r.error != proto::Error::ok) {
       ++counters_.invalid_commands;
       return ResultCode::invalid_value;
     }
     report_used_ += r.bytes;
-    report_ends_[report_packets_++] = static_cast<std::uint8_t>(report_used_);
+    report_ends_[report_packets_++] = static_cast<std::uint16_t>(report_used_);
     ++tx_sequence_;
     return hold ? ResultCode::ok : flush_report();
   }
@@ -416,7 +429,7 @@ ResultCode DeviceSession::Impl::send_packet(const proto::Message& message, bool 
     ++counters_.invalid_commands;
     return ResultCode::invalid_value;
   }
-  d.length = static_cast<std::uint8_t>(r.bytes);
+  d.length = static_cast<std::uint16_t>(r.bytes);
   const ResultCode rc = transport_->send(std::span<const std::uint8_t>(d.bytes.data(), r.bytes));
   if (rc == ResultCode::ok) {
     ++tx_sequence_;
@@ -440,10 +453,8 @@ ResultCode DeviceSession::Impl::flush_report() noexcept {
     const TimePoint now = clock_.now();
     std::size_t begin = 0;
     for (std::size_t i = 0; i < report_packets_; ++i) {
-      Datagram d;  // the ring log keeps packets, as the log's decoder reads them
-      d.length = static_cast<std::uint8_t>(report_ends_[i] - begin);
-      std::copy_n(report_.begin() + static_cast<std::ptrdiff_t>(begin), d.length, d.bytes.begin());
-      log(d, true, now);
+      // The ring log keeps packets, as the log's decoder reads them.
+      log(std::span<const std::uint8_t>(report_).subspan(begin, report_ends_[i] - begin), true, now);
       begin = report_ends_[i];
     }
     report_used_ = report_packets_ = 0;
@@ -467,7 +478,7 @@ void DeviceSession::Impl::handle(const Datagram& d, TimePoint now) noexcept {
   ++counters_.reports_received;
   if (!packing_) {
     log(d, false, now);
-    handle_packet(proto::decode_packet(bytes), now);
+    handle_packet(proto::decode_first_packet(bytes), now);
     return;
   }
   // Every packet of the report, each logged on its own; a broken one ends the walk.
@@ -478,16 +489,13 @@ void DeviceSession::Impl::handle(const Datagram& d, TimePoint now) noexcept {
   while (walker.next(p)) {
     any = true;
     const std::size_t end = walker.broken() ? bytes.size() : walker.offset();
-    Datagram one;
-    one.length = static_cast<std::uint8_t>(end - begin);
-    std::copy_n(bytes.begin() + static_cast<std::ptrdiff_t>(begin), one.length, one.bytes.begin());
-    log(one, false, now);
+    log(bytes.subspan(begin, end - begin), false, now);
     begin = end;
     handle_packet(p, now);
   }
   if (!any) {
     log(d, false, now);
-    handle_packet(proto::decode_packet(bytes), now);  // an empty report: counted undecodable
+    handle_packet(proto::decode_first_packet(bytes), now);  // an empty report: counted undecodable
   }
 }
 
@@ -570,6 +578,8 @@ void DeviceSession::Impl::handle_packet(const proto::PacketDecoded& p, TimePoint
     c.have[index] = 1;
     ++c.received;
     c.progress = true;
+  } else if (const auto* us = std::get_if<proto::UsbSlots>(&p.message)) {
+    apply_usb_slots(*us);
   } else if (const auto* ca = std::get_if<proto::ConfigAck>(&p.message)) {
     if (config_.active && ca->key == config_.key) {
       config_.acked = true;
@@ -604,6 +614,7 @@ ResultCode DeviceSession::Impl::poll(TimePoint now) noexcept {
       identify_pending_ = false;
       packing_ = false;  // the unit reboots: it packs again only after the next handshake
       drop_report();
+      report_capacity_ = proto::kHidReportBytes;  // until it declares its reports again
       ++counters_.disconnects;
       backoff_ = options_.reconnect_backoff_min;
       next_reconnect_ = now + backoff_;

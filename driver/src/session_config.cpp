@@ -24,7 +24,8 @@ constexpr std::size_t kMinConfigChunkBeside = 8;
 
 std::size_t DeviceSession::Impl::config_chunk_bytes() const {
   const std::optional<proto::BusSpec> bus = transport_->bus();
-  if (!packing_ || !bus || bus->kind == proto::BusKind::can_classic || bus->kind == proto::BusKind::can_fd) {
+  if (!options_.config_reads_beside_telemetry || !packing_ || !bus ||
+      bus->kind == proto::BusKind::can_classic || bus->kind == proto::BusKind::can_fd) {
     return proto::kMaxConfigBytes;
   }
   // A bus with a spare slot for each sample carries full replies in slots of their own.

@@ -78,8 +78,12 @@ class __attribute__((visibility("hidden"))) DeviceSession::Impl {
   void drop_report() noexcept;
   void handle(const Datagram& d, TimePoint now) noexcept;
   void handle_packet(const protocol::PacketDecoded& p, TimePoint now) noexcept;
-  void log(const Datagram& d, bool sent, TimePoint now) noexcept;
+  void log(std::span<const std::uint8_t> bytes, bool sent, TimePoint now) noexcept;
+  void log(const Datagram& d, bool sent, TimePoint now) noexcept {
+    log(std::span<const std::uint8_t>(d.bytes.data(), d.length), sent, now);
+  }
   void apply_identity(const protocol::Identity& id);
+  void apply_usb_slots(const protocol::UsbSlots& declared) noexcept;
   [[nodiscard]] bool same_unit(const protocol::Identity& id) const noexcept;
   std::string read_config(protocol::ConfigKey key);
   // The bytes a configuration read asks for at a time: docs/protocol.md, "Configuration reads
@@ -129,10 +133,12 @@ class __attribute__((visibility("hidden"))) DeviceSession::Impl {
   // Protocol 1.2 packed reports: agreed when the device's Identity says 1.2 and this host is 1.2.
   bool packing_ = false;
   std::array<std::uint8_t, kMaxDatagramBytes> report_{};
+  // The bytes of report_ a report may use: 64 (full speed) until the unit declares more (UsbSlots).
+  std::size_t report_capacity_ = protocol::kHidReportBytes;
   std::size_t report_used_ = 0;
   std::size_t report_packets_ = 0;
   // Where each packet of the report ends (a packet has at least a header and a CRC).
-  std::array<std::uint8_t, kMaxDatagramBytes / (protocol::kPacketHeaderBytes + protocol::kPacketCrcBytes)>
+  std::array<std::uint16_t, kMaxDatagramBytes / (protocol::kPacketHeaderBytes + protocol::kPacketCrcBytes)>
       report_ends_{};
   int rx_last_sequence_ = -1;
   SessionCounters counters_;

@@ -47,13 +47,13 @@ std::vector<LogEntry> DeviceSession::Impl::decode_log(const std::vector<TrafficR
     e.host_time = r.time;
     e.sent = r.sent;
     const proto::PacketDecoded p =
-        proto::decode_packet(std::span<const std::uint8_t>(r.datagram.bytes.data(), r.datagram.length));
+        proto::decode_packet(std::span<const std::uint8_t>(r.packet.bytes.data(), r.packet.length));
     if (p.error != proto::Error::ok) {
       e.kind = "undecodable";
       e.error = proto::to_string(p.error);
       std::string hex;
-      for (std::size_t i = 0; i < r.datagram.length; ++i) {
-        hex += fmt::format("{}{:02x}", i == 0 ? "" : " ", r.datagram.bytes[i]);
+      for (std::size_t i = 0; i < r.packet.length; ++i) {
+        hex += fmt::format("{}{:02x}", i == 0 ? "" : " ", r.packet.bytes[i]);
       }
       e.detail = hex;
       out.push_back(std::move(e));

@@ -114,6 +114,27 @@ TEST(BusBudgetAtOpen, TheBridgeRefusesARateItsBusCannotCarry) {
     EXPECT_TRUE(bridge.bus_budget().budget.fits(0.8));
     EXPECT_TRUE(bridge.bus_budget().warning.empty()) << bridge.bus_budget().warning;
   }
+  {
+    // A high-speed unit's declared reports (1.2's UsbSlots) are its bus: the 16x16's 128 valves at
+    // 10 kHz take five 64-byte reports a tick (50,000 a second, over the 24,000 slots) but one
+    // 1024-byte report.
+    BridgeOptions at_10kHz;
+    at_10kHz.rate_hz = 10000.0;
+    auto touch = make_scene("demo");
+    {
+      // (One unit at a time: a mock's lock names its profile and seed.)
+      OpenedDevice small = open_device("mock://fingertip-16x16?seed=7&report_bytes=64", clock, open);
+      ASSERT_TRUE(small.session->info().usb_slots.has_value());
+      EXPECT_EQ(small.session->info().usb_slots->report_bytes, 64U);
+      EXPECT_THROW(Bridge(*small.session, *touch, at_10kHz), BusOverloaded);
+    }
+    OpenedDevice large = open_device("mock://fingertip-16x16?seed=7", clock, open);
+    ASSERT_TRUE(large.session->info().usb_slots.has_value());
+    EXPECT_EQ(large.session->info().usb_slots->report_bytes, 1024U);
+    Bridge bridge(*large.session, *touch, at_10kHz);
+    EXPECT_EQ(bridge.bus_budget().bus.usb.report_bytes, 1024U);
+    EXPECT_TRUE(bridge.bus_budget().budget.fits(0.8)) << bridge.bus_budget().warning;
+  }
   // An ideal link (bus=none) has nothing to check.
   OpenedDevice ideal = open_device("mock://?seed=7&bus=none", clock, open);
   EXPECT_FALSE(Bridge(*ideal.session, *scene).bus_budget().limited);

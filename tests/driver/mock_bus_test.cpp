@@ -59,7 +59,7 @@ Datagram packet(const proto::Message& m, std::uint8_t sequence = 0) {
   Datagram d;
   const proto::EncodeResult r = proto::encode_packet(m, sequence, d.bytes);
   EXPECT_EQ(r.error, proto::Error::ok);
-  d.length = static_cast<std::uint8_t>(r.bytes);
+  d.length = static_cast<std::uint16_t>(r.bytes);
   return d;
 }
 
@@ -137,6 +137,24 @@ TEST(MockBusUri, BadValuesAreRefusedSayingWhatIsAccepted) {
             std::string::npos);
   EXPECT_NE(refusal("mock://?bus=canfd&bitrate=1000000/20000000").find("outside"), std::string::npos);
   EXPECT_NE(refusal("mock://?bus=can&bitrate=").find("needs a value"), std::string::npos);
+  // report_bytes: what a high-speed unit declares (UsbSlots), 64..1024 whole bytes.
+  EXPECT_EQ(parse_mock_uri("mock://?bus=hid-hs&report_bytes=512").options.bus.usb_report_bytes, 512U);
+  for (const char* bad : {"63", "1025", "100.5", "nan", "x"}) {
+    EXPECT_NE(refusal(std::string("mock://?bus=hid-hs&report_bytes=") + bad).find("report_bytes"),
+              std::string::npos)
+        << bad;
+  }
+  SimulatedClock clock;
+  OpenOptions open;
+  open.synchronous_mock = true;
+  try {
+    (void)open_device("mock://?bus=hid-fs&report_bytes=512", clock, open);
+    ADD_FAILURE() << "report_bytes on a full-speed unit";
+  } catch (const InvalidArgument& e) {
+    EXPECT_NE(std::string(e.what()).find("applies to a high-speed unit (bus=hid-hs), not bus=hid-fs"),
+              std::string::npos)
+        << e.what();
+  }
 }
 
 // --- USB ---------------------------------------------------------------------------------------
@@ -411,7 +429,7 @@ Datagram packed(std::initializer_list<proto::Message> messages) {
   for (const proto::Message& m : messages) {
     const proto::EncodeResult r = proto::append_packet(m, sequence++, d.bytes, d.length);
     EXPECT_EQ(r.error, proto::Error::ok);
-    d.length = static_cast<std::uint8_t>(d.length + r.bytes);
+    d.length = static_cast<std::uint16_t>(d.length + r.bytes);
   }
   return d;
 }

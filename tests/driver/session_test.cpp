@@ -61,7 +61,7 @@ class ScriptedTransport final : public Transport {
   ResultCode send(std::span<const std::uint8_t> /*bytes*/) noexcept override {
     Datagram d;
     std::copy(reply_.begin(), reply_.end(), d.bytes.begin());
-    d.length = static_cast<std::uint8_t>(reply_.size());
+    d.length = static_cast<std::uint16_t>(reply_.size());
     queue_.push_back(d);
     return ResultCode::ok;
   }
@@ -419,8 +419,8 @@ TEST(RingLog, FaultReportIsDecodedIntoSiUnits) {
   }
   // An undecodable record is shown as such, with its bytes.
   std::vector<TrafficRecord> bad(1);
-  bad[0].datagram.length = 3;
-  bad[0].datagram.bytes = {1, 2, 3};
+  bad[0].packet.length = 3;
+  bad[0].packet.bytes = {1, 2, 3};
   EXPECT_NE(session.format_log(bad).find("undecodable"), std::string::npos);
 }
 
@@ -931,6 +931,76 @@ TEST(SessionPacked, ALargerGridOnItsHighSpeedBusLosesNoTelemetryBlock) {
   EXPECT_EQ(r.bus.host_to_device.dropped, 0U);
 }
 
+// 1.2 on USB: the unit declares its reports (UsbSlots) and both sides pack up to them. A 16x16's
+// sample (six Telemetry packets, 378 bytes) and its currents (five packets) each fit one of the
+// high-speed unit's 1024-byte reports, where 64-byte reports take a report a packet.
+TEST(SessionPacked, AHighSpeedUnitsDeclaredReportsCarryATicksPacketsInOne) {
+  const PackedRun large = run_enabled("mock://fingertip-16x16?seed=1", {}, 300);
+  const PackedRun small = run_enabled("mock://fingertip-16x16?seed=1&report_bytes=64", {}, 300);
+  ASSERT_TRUE(large.info.usb_slots.has_value());
+  EXPECT_EQ(large.info.usb_slots->report_bytes, 1024U);
+  EXPECT_EQ(large.info.usb_slots->reports_per_interval, 3U);
+  EXPECT_DOUBLE_EQ(large.info.usb_slots->interval_s, 125e-6);
+  ASSERT_TRUE(small.info.usb_slots.has_value());
+  EXPECT_EQ(small.info.usb_slots->report_bytes, 64U);
+  for (const PackedRun* r : {&large, &small}) {
+    EXPECT_EQ(r->state, DeviceState::enabled);
+    EXPECT_EQ(r->counters.sequence_gaps, 0U);
+    EXPECT_EQ(r->counters.decode_errors, 0U);
+    EXPECT_GE(r->counters.telemetry, 6U * 290U);
+    EXPECT_EQ(r->bus.device_to_host.dropped, 0U);
+    EXPECT_EQ(r->bus.host_to_device.dropped, 0U);
+  }
+  // Both ways, at least three times fewer reports for the same packets.
+  EXPECT_LT(3 * large.bus.host_to_device.carried, small.bus.host_to_device.carried);
+  EXPECT_LT(3 * large.bus.device_to_host.carried, small.bus.device_to_host.carried);
+  EXPECT_GE(large.counters.telemetry, small.counters.telemetry);
+}
+
+// A full-speed unit declares full speed; a 1.1 host is sent no UsbSlots (it would not know it) and
+// gets 64-byte reports from a high-speed unit.
+TEST(SessionPacked, AFullSpeedUnitDeclaresFullSpeedAndAOnePointOneHostHearsNothing) {
+  const PackedRun fs = run_enabled("mock://?seed=1&bus=hid-fs", {}, 100);
+  ASSERT_TRUE(fs.info.usb_slots.has_value());
+  EXPECT_EQ(fs.info.usb_slots->report_bytes, 64U);
+  EXPECT_EQ(fs.info.usb_slots->reports_per_interval, 1U);
+  EXPECT_DOUBLE_EQ(fs.info.usb_slots->interval_s, 1e-3);
+  SessionOptions v11;
+  v11.protocol_minor = 1;
+  const PackedRun old = run_enabled("mock://fingertip-16x16?seed=1", v11, 100);
+  EXPECT_FALSE(old.packed);
+  EXPECT_FALSE(old.info.usb_slots.has_value());
+  EXPECT_EQ(old.counters.decode_errors, 0U);
+  EXPECT_EQ(old.state, DeviceState::enabled);
+  // No bus, nothing declared.
+  EXPECT_FALSE(run_enabled("mock://?seed=1&bus=none", {}, 50).info.usb_slots.has_value());
+  // CAN units never declare USB reports.
+  EXPECT_FALSE(run_enabled("mock://?seed=1&bus=canfd", {}, 50).info.usb_slots.has_value());
+}
+
+// Configuration reads beside the telemetry (an option): on full-speed USB the unit answers each
+// 14-byte chunk in a sample's report; the default reads 48-byte chunks in reports of their own.
+TEST(SessionPacked, ConfigurationReadsBesideTheTelemetryRideWithTheSamples) {
+  SessionOptions beside;
+  beside.config_reads_beside_telemetry = true;
+  for (const bool ride : {true, false}) {
+    MonotonicClock clock;  // a real-time unit: it streams samples while the host reads
+    OpenOptions open;
+    open.session = ride ? beside : SessionOptions{};
+    open.session.time_scale = 10.0;  // sanitizer builds
+    const OpenedDevice dev = open_device("mock://?seed=1&bus=hid-fs", clock, open);
+    ASSERT_NE(dev.session->profile(), nullptr);
+    EXPECT_EQ(dev.session->info().profile, model::load_profile_with_text("mr-skin-5x5").text);
+    const sim::MockBusStats bus = sim::mock_of(dev)->bus_stats();
+    const double chunks = static_cast<double>(dev.session->info().profile.size()) / 14.0;
+    // Riding: every chunk shared a sample's report, so at least as many packets beyond the reports.
+    if (ride) {
+      EXPECT_GE(static_cast<double>(bus.device_to_host.packets - bus.device_to_host.carried), chunks);
+    }
+    EXPECT_EQ(dev.session->counters().sequence_gaps, 0U);
+  }
+}
+
 TEST(SessionPacked, CanFdCarriesPackedReportsInOneFrame) {
   const PackedRun r = run_enabled("mock://?seed=1&bus=canfd", {}, 500);
   EXPECT_TRUE(r.packed);
@@ -943,8 +1013,9 @@ TEST(SessionPacked, CanFdCarriesPackedReportsInOneFrame) {
 
 TEST(SessionPacked, ALargerGridSendsWhatDoesNotFitInTheNextReport) {
   // 128 valves and sensors: five ValveCurrents and six Telemetry packets a tick, most too big to
-  // share a report; whatever is packed or not, every packet arrives once and in order.
-  const PackedRun r = run_enabled("mock://fingertip-16x16?seed=1", {}, 300);
+  // share a 64-byte report (a high-speed unit that declares 64-byte reports); whatever is packed or
+  // not, every packet arrives once and in order.
+  const PackedRun r = run_enabled("mock://fingertip-16x16?seed=1&report_bytes=64", {}, 300);
   EXPECT_TRUE(r.packed);
   EXPECT_EQ(r.state, DeviceState::enabled);
   EXPECT_EQ(r.counters.decode_errors, 0U);

@@ -220,7 +220,7 @@ bool UhidUnit::read_bus(int timeout_ms, const std::function<void(const Datagram&
           --size;
         }
         Datagram d;
-        d.length = static_cast<std::uint8_t>(std::min<std::size_t>(size, kMaxDatagramBytes));
+        d.length = static_cast<std::uint16_t>(std::min<std::size_t>(size, kMaxDatagramBytes));
         std::copy_n(data, d.length, d.bytes.begin());
         deliver(d);
         break;
@@ -310,7 +310,7 @@ bool GadgetUnit::read_bus(int timeout_ms, const std::function<void(const Datagra
       break;
     }
     Datagram d;
-    d.length = static_cast<std::uint8_t>(n);
+    d.length = static_cast<std::uint16_t>(n);
     std::copy_n(report.begin(), d.length, d.bytes.begin());
     deliver(d);
   }

@@ -518,7 +518,7 @@ void ControlServer::handle_line(Client& c, std::string_view line) {
         R"(every N ms until stop; grid adds per-cell force, displacement, target and per-valve current, )"
         R"(coil temperature",)"
         R"("stop":"end a telemetry subscription",)"
-        R"("lease":"disable, then this connection carries the device's datagrams (u8 length + bytes) until it )"
+        R"("lease":"disable, then this connection carries the device's datagrams (u16 LE length + bytes) until it )"
         R"(closes; the bridge stays halted after",)"
         R"("help":"this"}})");
   } else {
@@ -526,23 +526,26 @@ void ControlServer::handle_line(Client& c, std::string_view line) {
   }
 }
 
-// Leased: each datagram is one length byte (1..kMaxDatagramBytes) then its bytes, both ways. A
-// zero or oversized length is a broken client: it loses the lease.
+// Leased: each datagram is its length (u16, little-endian, 1..kMaxDatagramBytes: a high-speed
+// unit's reports reach 1024 bytes) then its bytes, both ways. A zero or oversized length is a
+// broken client: it loses the lease.
 void ControlServer::read_frames(Client& c) noexcept {
   Transport* t = backend_->leased_transport();
   std::size_t at = 0;
-  while (t != nullptr && at < c.in.size()) {
-    const auto length = static_cast<std::uint8_t>(c.in[at]);
+  while (t != nullptr && c.in.size() - at >= kLeaseLengthBytes) {
+    const std::size_t length = static_cast<std::uint8_t>(c.in[at]) |
+                               (static_cast<std::size_t>(static_cast<std::uint8_t>(c.in[at + 1])) << 8U);
     if (length == 0 || length > kMaxDatagramBytes) {
       c.dead = true;
       return;
     }
-    if (c.in.size() - at < 1U + length) {
+    if (c.in.size() - at < kLeaseLengthBytes + length) {
       break;
     }
-    const auto* bytes = reinterpret_cast<const std::uint8_t*>(c.in.data() + at + 1);  // NOLINT
+    const auto* bytes =
+        reinterpret_cast<const std::uint8_t*>(c.in.data() + at + kLeaseLengthBytes);  // NOLINT
     (void)t->send(std::span<const std::uint8_t>(bytes, length));  // a full queue drops it, as a bus would
-    at += 1U + length;
+    at += kLeaseLengthBytes + length;
   }
   c.in.erase(0, at);
 }
@@ -552,7 +555,8 @@ void ControlServer::pump_lease(Client& c) noexcept {
   Datagram d;
   while (t != nullptr && !c.dead && t->receive(d) == ResultCode::ok) {
     try {
-      c.out.push_back(static_cast<char>(d.length));
+      c.out.push_back(static_cast<char>(d.length & 0xFFU));
+      c.out.push_back(static_cast<char>(d.length >> 8U));
       c.out.append(reinterpret_cast<const char*>(d.bytes.data()), d.length);  // NOLINT
     } catch (...) {
       c.dead = true;

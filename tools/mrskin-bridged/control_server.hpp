@@ -61,7 +61,8 @@ bool parse_request(std::string_view line, ControlRequest& out, std::string& erro
 
 class ControlServer {
  public:
-  static constexpr std::size_t kMaxLine = 4096;  // longer request lines: error, closed
+  static constexpr std::size_t kMaxLine = 4096;        // longer request lines: error, closed
+  static constexpr std::size_t kLeaseLengthBytes = 2;  // a leased datagram's length prefix, u16 LE
   static constexpr std::size_t kMaxPending =
       std::size_t{256} * 1024;  // unsent bytes before a client is dropped
 

@@ -69,10 +69,12 @@ class TunnelTransport final : public Transport {
     if (fd_ < 0) {
       return ResultCode::disconnected;
     }
-    std::array<std::uint8_t, kMaxDatagramBytes + 1> frame{};
-    frame[0] = static_cast<std::uint8_t>(bytes.size());
-    std::copy(bytes.begin(), bytes.end(), frame.begin() + 1);
-    const std::size_t total = bytes.size() + 1;
+    // The lease's framing: the length (u16, little-endian), then the bytes (docs/daemon.md).
+    std::array<std::uint8_t, kMaxDatagramBytes + 2> frame{};
+    frame[0] = static_cast<std::uint8_t>(bytes.size() & 0xFFU);
+    frame[1] = static_cast<std::uint8_t>(bytes.size() >> 8U);
+    std::copy(bytes.begin(), bytes.end(), frame.begin() + 2);
+    const std::size_t total = bytes.size() + 2;
     std::size_t done = 0;
     // A frame is never left half-written (it would shift every frame after it): a full socket
     // buffer is waited out for up to 100 ms, then the lease counts as lost.
@@ -105,23 +107,23 @@ class TunnelTransport final : public Transport {
         lost();  // the daemon closed the lease (it stopped, or dropped us)
       }
     }
-    if (in_length_ == 0) {
+    if (in_length_ < 2) {
       return fd_ < 0 ? ResultCode::disconnected : ResultCode::would_block;
     }
-    const std::size_t length = in_[0];
+    const std::size_t length = in_[0] | (static_cast<std::size_t>(in_[1]) << 8U);
     if (length == 0 || length > kMaxDatagramBytes) {
       ++counters_.malformed;
       lost();
       in_length_ = 0;
       return ResultCode::disconnected;
     }
-    if (in_length_ < 1 + length) {
+    if (in_length_ < 2 + length) {
       return fd_ < 0 ? ResultCode::disconnected : ResultCode::would_block;
     }
-    std::copy_n(in_.begin() + 1, length, out.bytes.begin());
-    out.length = static_cast<std::uint8_t>(length);
-    std::memmove(in_.data(), in_.data() + 1 + length, in_length_ - 1 - length);
-    in_length_ -= 1 + length;
+    std::copy_n(in_.begin() + 2, length, out.bytes.begin());
+    out.length = static_cast<std::uint16_t>(length);
+    std::memmove(in_.data(), in_.data() + 2 + length, in_length_ - 2 - length);
+    in_length_ -= 2 + length;
     ++counters_.received;
     return ResultCode::ok;
   }

@@ -28,16 +28,6 @@ void raise(std::atomic<std::int64_t>& value, std::int64_t candidate) noexcept {
   }
 }
 
-// The slots the mock's unit has: v1's 64-byte reports, one per full-speed frame, or as many per
-// high-speed microframe as a unit may declare.
-proto::UsbInterruptSlots usb_slots(MockBusKind kind) noexcept {
-  if (kind == MockBusKind::hid_hs) {
-    return {proto::kUsbHighSpeedMicroframe_s, proto::kUsbHighSpeedMaxReportsPerMicroframe,
-            proto::kHidReportBytes};
-  }
-  return proto::kUsbFullSpeedSlots;
-}
-
 // Whether every packet of the report is telemetry: a newer sample may take its place. A packed
 // report (protocol 1.2) that also carries a status or an echo keeps its place.
 bool is_telemetry(const Datagram& d) noexcept {
@@ -114,7 +104,7 @@ MockBus::MockBus(const MockBusOptions& options)
       device_codec_(CanRole::device, options.can_node, options.kind == MockBusKind::canfd),
       host_(can() ? options.can_send_queue_packets : 0, can() ? options.can_txqueuelen_frames : 0),
       device_(can() ? options.can_send_queue_packets : 0, can() ? options.can_txqueuelen_frames : 0) {
-  const proto::UsbInterruptSlots slots = usb_slots(options.kind);
+  const proto::UsbInterruptSlots slots = declared_usb_slots(options).value_or(proto::kUsbFullSpeedSlots);
   interval_ns_ = std::llround(slots.interval_s * 1e9);
   reports_per_interval_ = slots.reports_per_interval;
   report_bytes_per_s_ = proto::usb_report_bytes_per_s(slots);
@@ -403,7 +393,7 @@ void MockBus::can_complete(BusSink& sink) noexcept {
   Counters& c = on_bus_.from_host ? to_device_ : to_host_;
   const CanPacket& p = node.packets.front();
   Datagram d;  // the packet (or the FD frame's packed report) this frame completes
-  d.length = static_cast<std::uint8_t>(f.packet_end - f.packet_begin);
+  d.length = static_cast<std::uint16_t>(f.packet_end - f.packet_begin);
   std::copy_n(p.datagram.bytes.begin() + f.packet_begin, d.length, d.bytes.begin());
   c.packets.bump(packets_in(d));
   c.waited(on_bus_.end_ns - p.submit_ns);
@@ -523,6 +513,18 @@ MockBusStats MockBus::stats() const noexcept {
   fill(to_host_, s.device_to_host);
   s.enobufs = enobufs_.value();
   return s;
+}
+
+std::optional<protocol::UsbInterruptSlots> declared_usb_slots(const MockBusOptions& bus) noexcept {
+  if (bus.kind == MockBusKind::hid_hs) {
+    return proto::UsbInterruptSlots{
+        proto::kUsbHighSpeedMicroframe_s, proto::kUsbHighSpeedMaxReportsPerMicroframe,
+        bus.usb_report_bytes == 0 ? proto::kUsbHighSpeedMaxReportBytes : bus.usb_report_bytes};
+  }
+  if (bus.kind == MockBusKind::hid_fs) {
+    return proto::kUsbFullSpeedSlots;
+  }
+  return std::nullopt;
 }
 
 std::optional<protocol::BusSpec> bus_spec_of(const MockBusOptions& bus) noexcept {

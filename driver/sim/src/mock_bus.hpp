@@ -201,7 +201,11 @@ class __attribute__((visibility("hidden"))) MockBus {
 };
 
 // The bus the model stands for, as the bus budget sees it (docs/protocol.md, "Bus budget"):
-// nullopt for none (an ideal link); hid-hs with 1.1's 64-byte reports, as the model carries them.
+// nullopt for none (an ideal link); hid-hs with 64-byte reports, what a host assumes until the unit
+// declares its reports (1.2's UsbSlots, which the session's budget then takes).
 std::optional<protocol::BusSpec> bus_spec_of(const MockBusOptions& bus) noexcept;
+// The reports a unit on this USB bus declares in 1.2's UsbSlots (hid_fs: full speed; hid_hs: 3 a
+// microframe of usb_report_bytes); nullopt on CAN and on the ideal link.
+std::optional<protocol::UsbInterruptSlots> declared_usb_slots(const MockBusOptions& bus) noexcept;
 
 }  // namespace mrskin::sim

@@ -81,7 +81,7 @@ class MockDevice::Impl::HostTransport final : public Transport {
     }
     Datagram d;
     std::copy(bytes.begin(), bytes.end(), d.bytes.begin());
-    d.length = static_cast<std::uint8_t>(bytes.size());
+    d.length = static_cast<std::uint16_t>(bytes.size());
     return device_.to_device_.try_push(d) ? ResultCode::ok : ResultCode::would_block;
   }
   ResultCode receive(Datagram& out) noexcept override {
@@ -439,16 +439,17 @@ void MockDevice::Impl::send_message(const proto::Message& message, bool hold) no
     return;
   }
   if (packing_) {
-    proto::EncodeResult r = proto::append_packet(message, tx_sequence_, report_.bytes, report_.length);
+    const std::span<std::uint8_t> report = std::span<std::uint8_t>(report_.bytes).first(report_capacity_);
+    proto::EncodeResult r = proto::append_packet(message, tx_sequence_, report, report_.length);
     if (r.error == proto::Error::short_buffer && report_.length > 0) {
       flush_report();  // full: this packet starts the next report
-      r = proto::append_packet(message, tx_sequence_, report_.bytes, report_.length);
+      r = proto::append_packet(message, tx_sequence_, report, report_.length);
     }
     if (r.error != proto::Error::ok) {
       return;
     }
     ++tx_sequence_;
-    report_.length = static_cast<std::uint8_t>(report_.length + r.bytes);
+    report_.length = static_cast<std::uint16_t>(report_.length + r.bytes);
     if (!hold) {
       flush_report();
     }
@@ -460,7 +461,7 @@ void MockDevice::Impl::send_message(const proto::Message& message, bool hold) no
     return;
   }
   ++tx_sequence_;
-  d.length = static_cast<std::uint8_t>(r.bytes);
+  d.length = static_cast<std::uint16_t>(r.bytes);
   emit(d, last_step_);
 }
 
@@ -606,13 +607,67 @@ void MockDevice::Impl::deliver_to_device(Datagram d, TimePoint at) noexcept {
 void MockDevice::Impl::handle(const std::uint8_t* bytes, std::size_t length, TimePoint now) noexcept {
   const std::span<const std::uint8_t> report(bytes, length);
   if (!packing_) {
-    handle_packet(proto::decode_packet(report), now);  // 1.1: the rest of a report is padding
+    handle_packet(proto::decode_first_packet(report), now);  // 1.1: the rest of a report is padding
     return;
   }
   proto::PacketWalker walker(report);
   proto::PacketDecoded p;
   while (walker.next(p)) {
     handle_packet(p, now);
+  }
+}
+
+void MockDevice::Impl::answer_identify(const proto::IdentifyRequest& request) noexcept {
+  // The Identity goes first in its report: a host reads it before it knows the unit packs.
+  // Packing follows from this request on, as both sides declared. When every slot carries a
+  // sample, the Identity's report takes the next sample's slot (that sample is skipped:
+  // emit_telemetry), and what the previous session left waiting for telemetry (status,
+  // echoes) is dropped rather than sent in a slot of its own (a status follows the Identity).
+  const bool packs = proto::reads_packed_reports(options_.protocol_major, options_.protocol_minor) &&
+                     proto::reads_packed_reports(request.host_major, request.host_minor);
+  const bool tight = slots_taken_by_samples();
+  if (tight) {
+    report_.length = 0;
+    held_status_at_ = kNoHeldStatus;
+  } else {
+    flush_report();
+  }
+  packing_ = packs && tight;  // packed and tight: the status joins the Identity's report
+  pending_read_count_ = 0;    // a new session asks again
+  proto::Identity id;
+  id.fw_major = kFirmwareMajor;
+  id.fw_minor = kFirmwareMinor;
+  id.fw_patch = kFirmwarePatch;
+  id.rows = static_cast<std::uint8_t>(layout_.rows());
+  id.cols = static_cast<std::uint8_t>(layout_.cols());
+  id.fluid_cells = static_cast<std::uint16_t>(layout_.fluid_cell_count());
+  id.valves = static_cast<std::uint16_t>(layout_.valve_count());
+  id.sensors = static_cast<std::uint16_t>(sensor_si_.size());
+  id.serial = options_.serial;
+  id.proto_major = options_.protocol_major;
+  id.proto_minor = options_.protocol_minor;
+  id.current_lsb_nA = static_cast<std::uint32_t>(std::lround(current_lsb_A_ * 1e9));
+  id.current_max_counts = static_cast<std::uint16_t>(
+      std::min<long>(std::lround(max_current_A_ / current_lsb_A_), proto::kCurrentCountMax));
+  id.sensor_quantity = static_cast<std::uint8_t>(wire_quantity(profile_.sensors.front().quantity));
+  id.sensor_lsb_nano = static_cast<std::uint32_t>(std::lround(sensor_lsb_ * 1e9));
+  id.heartbeat_timeout_ms =
+      static_cast<std::uint16_t>(std::lround(options_.heartbeat_timeout_s * options_.time_scale * 1e3));
+  id.telemetry_rate_hz = static_cast<std::uint16_t>(std::lround(1.0 / options_.telemetry_period_s));
+  report_capacity_ = proto::kHidReportBytes;  // the Identity's report: the host assumes full speed
+  send_message(id, /*hold=*/true);
+  packing_ = packs;
+  const std::optional<proto::UsbInterruptSlots> slots = declared_usb_slots(options_.bus);
+  if (packs && slots) {
+    // 1.2 on USB: the unit declares its reports, then uses them (docs/protocol.md, UsbSlots).
+    send_message(proto::usb_slots_message(*slots), /*hold=*/true);
+  }
+  send_status();
+  if (tight) {
+    flush_report();  // the next sample finds the slot taken and is skipped (emit_telemetry)
+  }
+  if (packs && slots) {
+    report_capacity_ = slots->report_bytes;
   }
 }
 
@@ -623,48 +678,7 @@ void MockDevice::Impl::handle_packet(const proto::PacketDecoded& p, TimePoint no
   last_heartbeat_ = now;  // any valid packet proves the host is alive
   const auto state = static_cast<proto::DeviceState>(state_.load(std::memory_order_relaxed));
   if (const auto* request = std::get_if<proto::IdentifyRequest>(&p.message)) {
-    // The Identity goes first in its report: a host reads it before it knows the unit packs.
-    // Packing follows from this request on, as both sides declared. When every slot carries a
-    // sample, the Identity's report takes the next sample's slot (that sample is skipped:
-    // emit_telemetry), and what the previous session left waiting for telemetry (status,
-    // echoes) is dropped rather than sent in a slot of its own (a status follows the Identity).
-    const bool packs = proto::reads_packed_reports(options_.protocol_major, options_.protocol_minor) &&
-                       proto::reads_packed_reports(request->host_major, request->host_minor);
-    const bool tight = slots_taken_by_samples();
-    if (tight) {
-      report_.length = 0;
-      held_status_at_ = kNoHeldStatus;
-    } else {
-      flush_report();
-    }
-    packing_ = packs && tight;  // packed and tight: the status joins the Identity's report
-    pending_read_count_ = 0;    // a new session asks again
-    proto::Identity id;
-    id.fw_major = kFirmwareMajor;
-    id.fw_minor = kFirmwareMinor;
-    id.fw_patch = kFirmwarePatch;
-    id.rows = static_cast<std::uint8_t>(layout_.rows());
-    id.cols = static_cast<std::uint8_t>(layout_.cols());
-    id.fluid_cells = static_cast<std::uint16_t>(layout_.fluid_cell_count());
-    id.valves = static_cast<std::uint16_t>(layout_.valve_count());
-    id.sensors = static_cast<std::uint16_t>(sensor_si_.size());
-    id.serial = options_.serial;
-    id.proto_major = options_.protocol_major;
-    id.proto_minor = options_.protocol_minor;
-    id.current_lsb_nA = static_cast<std::uint32_t>(std::lround(current_lsb_A_ * 1e9));
-    id.current_max_counts = static_cast<std::uint16_t>(
-        std::min<long>(std::lround(max_current_A_ / current_lsb_A_), proto::kCurrentCountMax));
-    id.sensor_quantity = static_cast<std::uint8_t>(wire_quantity(profile_.sensors.front().quantity));
-    id.sensor_lsb_nano = static_cast<std::uint32_t>(std::lround(sensor_lsb_ * 1e9));
-    id.heartbeat_timeout_ms =
-        static_cast<std::uint16_t>(std::lround(options_.heartbeat_timeout_s * options_.time_scale * 1e3));
-    id.telemetry_rate_hz = static_cast<std::uint16_t>(std::lround(1.0 / options_.telemetry_period_s));
-    send_message(id, /*hold=*/true);
-    packing_ = packs;
-    send_status();
-    if (tight) {
-      flush_report();  // the next sample finds the slot taken and is skipped (emit_telemetry)
-    }
+    answer_identify(*request);
   } else if (const auto* r = std::get_if<proto::StateRequest>(&p.message)) {
     if (degaussing_ && r->request != static_cast<std::uint8_t>(proto::StateRequestCode::degauss)) {
       release_valves();  // any other request ends the degauss first
@@ -863,6 +877,7 @@ void MockDevice::Impl::step(TimePoint now) noexcept {
     }
     bus_.reset();
     packing_ = false;  // a unit that boots again packs only after the next IdentifyRequest
+    report_capacity_ = proto::kHidReportBytes;
     pending_read_count_ = 0;
     report_.length = 0;
     held_status_at_ = kNoHeldStatus;

@@ -127,13 +127,14 @@ proto::ConfigData MockDevice::Impl::config_data_for(const proto::ConfigRead& r) 
 void MockDevice::Impl::append_pending_config_replies() noexcept {
   std::size_t done = 0;
   for (; done < pending_read_count_; ++done) {
-    const proto::EncodeResult e = proto::append_packet(config_data_for(pending_reads_[done]), tx_sequence_,
-                                                       report_.bytes, report_.length);
+    const proto::EncodeResult e =
+        proto::append_packet(config_data_for(pending_reads_[done]), tx_sequence_,
+                             std::span<std::uint8_t>(report_.bytes).first(report_capacity_), report_.length);
     if (e.error != proto::Error::ok) {
       break;  // no room left in this report: the next sample's carries it
     }
     ++tx_sequence_;
-    report_.length = static_cast<std::uint8_t>(report_.length + e.bytes);
+    report_.length = static_cast<std::uint16_t>(report_.length + e.bytes);
   }
   std::copy(pending_reads_.begin() + static_cast<std::ptrdiff_t>(done),
             pending_reads_.begin() + static_cast<std::ptrdiff_t>(pending_read_count_),

@@ -84,6 +84,7 @@ struct __attribute__((visibility("hidden"))) MockDevice::Impl {
   [[nodiscard]] protocol::ConfigData config_data_for(const protocol::ConfigRead& r) const noexcept;
   void append_pending_config_replies() noexcept;  // into report_, as many as fit, in order
   void handle_packet(const protocol::PacketDecoded& p, TimePoint now) noexcept;
+  void answer_identify(const protocol::IdentifyRequest& request) noexcept;  // Identity, UsbSlots, status
   void send_status() noexcept;
   void release_valves() noexcept;
   void emit_telemetry(TimePoint now) noexcept;
@@ -184,6 +185,8 @@ struct __attribute__((visibility("hidden"))) MockDevice::Impl {
   std::uint8_t tx_sequence_ = 0;
   bool packing_ = false;  // the host's IdentifyRequest declared 1.2 and this unit speaks it
   Datagram report_{};     // packed report being filled (length: bytes used)
+  // The bytes report_ may use: 64 until this unit has declared larger reports (UsbSlots, 1.2).
+  std::size_t report_capacity_ = protocol::kHidReportBytes;
   static constexpr std::size_t kNoHeldStatus = ~std::size_t{0};
   std::size_t held_status_at_ = kNoHeldStatus;  // where the status waiting in report_ starts
   // ConfigReads waiting for a telemetry report (config_replies_ride_telemetry), oldest first; a

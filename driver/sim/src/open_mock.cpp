@@ -234,6 +234,15 @@ MockUri parse_mock_uri(std::string_view uri) {
     } else if (key == "bus") {
       parsed.profile_bus = value == "profile";
       options.bus.kind = parsed.profile_bus ? MockBusKind::none : parse_bus_kind(value);
+    } else if (key == "report_bytes") {
+      const auto bytes = parse_number<double>("report_bytes", value);
+      if (!(bytes >= 64 && bytes <= 1024) || bytes != std::floor(bytes)) {
+        throw InvalidArgument(fmt::format(
+            "mock:// report_bytes '{}' is not a whole number of bytes from 64 to 1024 (the reports a "
+            "high-speed unit declares)",
+            value));
+      }
+      options.bus.usb_report_bytes = static_cast<std::size_t>(bytes);
     } else if (key == "bitrate") {
       bitrate = value;
       if (value.empty()) {
@@ -246,7 +255,7 @@ MockUri parse_mock_uri(std::string_view uri) {
     } else {
       throw InvalidArgument("mock:// parameter '" + std::string(key) +
                             "' is unknown: use seed, perturbation, faults, time_scale, bipolar, "
-                            "protocol_major, protocol_minor, finger, bus or bitrate");
+                            "protocol_major, protocol_minor, finger, bus, bitrate or report_bytes");
     }
   }
   if (!bitrate.empty()) {
@@ -263,6 +272,11 @@ OpenedDevice open_mock(std::string_view uri, Clock& clock, const OpenOptions& op
   const model::LoadedProfile profile = model::load_profile_with_text(parsed.profile);
   if (parsed.profile_bus) {
     parsed.options.bus.kind = mock_bus_kind_of(profile.profile.bus);
+  }
+  if (parsed.options.bus.usb_report_bytes != 0 && parsed.options.bus.kind != MockBusKind::hid_hs) {
+    throw InvalidArgument(
+        fmt::format("mock:// report_bytes applies to a high-speed unit (bus=hid-hs), not bus={}",
+                    to_string(parsed.options.bus.kind)));
   }
   OpenedDevice opened;
   opened.lock = std::make_unique<DeviceLock>(uri);

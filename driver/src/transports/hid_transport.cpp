@@ -28,8 +28,12 @@ namespace {
 
 constexpr std::string_view kScheme = "hid://";
 // hid_write() takes the report-ID byte (0x00: the unit declares no report IDs) first.
-constexpr std::size_t kWriteBytes = protocol::kHidReportBytes + 1;
-static_assert(protocol::kHidReportBytes == kMaxDatagramBytes);
+// hid_write() takes the report-ID byte, then the report: 64 bytes at full speed, or up to the
+// 1024 a unit declares (UsbSlots), as long as its packets (a short transfer, which USB allows).
+constexpr std::size_t kMaxWriteBytes = kMaxDatagramBytes + 1;
+constexpr std::size_t write_bytes(std::size_t datagram_bytes) noexcept {
+  return 1 + std::max(datagram_bytes, protocol::kHidReportBytes);
+}
 
 std::uint16_t parse_id(std::string_view what, std::string_view text, std::string_view uri) {
   unsigned value = 0;
@@ -327,7 +331,7 @@ class HidTransport final : public QueuedTransport {
       }
       const HidIoResult r = reader_->read_timeout(d.bytes, read_timeout_ms_);
       if (r.result > 0) {
-        d.length = static_cast<std::uint8_t>(std::min(r.result, static_cast<int>(kMaxDatagramBytes)));
+        d.length = static_cast<std::uint16_t>(std::min(r.result, static_cast<int>(kMaxDatagramBytes)));
         deliver(d);
         errors = 0;
       } else if (r.result == 0) {
@@ -340,13 +344,14 @@ class HidTransport final : public QueuedTransport {
     }
   }
 
-  // Writer thread, under write_mutex_: one datagram as one 65-byte hid_write().
+  // Writer thread, under write_mutex_: one datagram as one hid_write() (65 bytes at full speed).
   void write_one(const Datagram& d, int& errors) noexcept {
-    report_.fill(0);
+    const std::size_t n = write_bytes(d.length);
+    std::fill_n(report_.begin(), n, std::uint8_t{0});
     report_[0] = protocol::kHidReportId;
     std::copy_n(d.bytes.begin(), d.length, report_.begin() + 1);
-    const HidIoResult r = writer_->write(report_);
-    if (r.result == static_cast<int>(kWriteBytes)) {
+    const HidIoResult r = writer_->write(std::span<const std::uint8_t>(report_).first(n));
+    if (r.result == static_cast<int>(n)) {
       counters_.sent.bump();
       errors = 0;
       return;
@@ -405,7 +410,7 @@ class HidTransport final : public QueuedTransport {
   // The writer's handle: written by the writer thread; replaced by the reader, under the lock.
   std::mutex write_mutex_;
   std::unique_ptr<HidDevice> writer_;
-  std::array<std::uint8_t, kWriteBytes> report_{};
+  std::array<std::uint8_t, kMaxWriteBytes> report_{};
   std::atomic<bool> writer_failed_{false};  // the writer's handle failed: the reader closes it
 
   mutable std::mutex problem_mutex_;

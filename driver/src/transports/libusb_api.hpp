@@ -56,6 +56,9 @@ class LibusbApi {
   // defaults). The default returns those defaults (0x81, 0x01).
   virtual int get_interrupt_endpoints(libusb_device* device, std::uint8_t interface, std::uint8_t& in,
                                       std::uint8_t& out);
+  // An endpoint's wMaxPacketSize (libusb_get_max_packet_size), or an error: the bytes of one IN
+  // transfer, since a full packet does not end an interrupt transfer. The default returns 64.
+  virtual int get_max_packet_size(libusb_device* device, std::uint8_t endpoint);
   virtual std::uint8_t get_bus_number(libusb_device* device) = 0;
   virtual std::uint8_t get_device_address(libusb_device* device) = 0;
   virtual int get_port_numbers(libusb_device* device, std::span<std::uint8_t> out) = 0;  // count

@@ -83,7 +83,7 @@ ResultCode QueuedTransport::send(std::span<const std::uint8_t> bytes) noexcept {
   }
   Datagram d;
   std::memcpy(d.bytes.data(), bytes.data(), bytes.size());
-  d.length = static_cast<std::uint8_t>(bytes.size());
+  d.length = static_cast<std::uint16_t>(bytes.size());
   if (!outgoing_.try_push(d)) {
     counters_.send_would_block.bump();
     return ResultCode::would_block;

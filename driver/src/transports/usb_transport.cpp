@@ -26,13 +26,17 @@ int LibusbApi::get_interrupt_endpoints(libusb_device* /*device*/, std::uint8_t /
   out = protocol::kUsbEndpointOut;
   return 0;
 }
+int LibusbApi::get_max_packet_size(libusb_device* /*device*/, std::uint8_t /*endpoint*/) {
+  return static_cast<int>(protocol::kUsbMaxPacketBytes);
+}
 namespace {
 
 namespace proto = protocol;
 using SteadyClock = std::chrono::steady_clock;
 
 constexpr int kInterface = proto::kUsbInterface;
-constexpr std::size_t kReportBytes = proto::kHidReportBytes;
+// A report: 64 bytes at full speed, up to 1024 on a high-speed unit (UsbSlots).
+constexpr std::size_t kReportBytes = kMaxDatagramBytes;
 constexpr std::string_view kScheme = "usb://";
 constexpr const char* kUriForm = "usb://VID:PID[?serial=XXXXXXXX], e.g. usb://1209:4d52";
 
@@ -180,6 +184,9 @@ class RealLibusb final : public LibusbApi {
     }
     libusb_free_config_descriptor(config);
     return found;
+  }
+  int get_max_packet_size(libusb_device* device, std::uint8_t endpoint) override {
+    return libusb_get_max_packet_size(device, endpoint);
   }
   std::uint8_t get_bus_number(libusb_device* device) override { return libusb_get_bus_number(device); }
   std::uint8_t get_device_address(libusb_device* device) override {
@@ -347,6 +354,7 @@ class UsbTransport final : public QueuedTransport {
   libusb_device_handle* handle_ = nullptr;
   std::uint8_t endpoint_in_ = protocol::kUsbEndpointIn;  // from the descriptor at each open
   std::uint8_t endpoint_out_ = protocol::kUsbEndpointOut;
+  std::size_t in_transfer_bytes_ = protocol::kHidReportBytes;  // the IN endpoint's wMaxPacketSize
   libusb_device* device_ = nullptr;
   bool detached_ = false;
   std::string serial_;  // of the unit opened first: a reopen takes the same unit
@@ -499,6 +507,11 @@ OpenOutcome UsbTransport::try_open() {
     endpoint_out_ = proto::kUsbEndpointOut;
     // The descriptor's own endpoints; on failure the protocol's defaults stand.
     (void)api_->get_interrupt_endpoints(device, proto::kUsbInterface, endpoint_in_, endpoint_out_);
+    // An IN transfer of exactly one packet: a full one would not end a longer transfer.
+    const int in_bytes = api_->get_max_packet_size(device, endpoint_in_);
+    in_transfer_bytes_ = in_bytes > 0
+                             ? std::min<std::size_t>(static_cast<std::size_t>(in_bytes), kReportBytes)
+                             : proto::kHidReportBytes;
     outcome = claim(handle, node);
     if (outcome.status == OpenStatus::ok) {
       serial_ = std::move(serial);
@@ -574,7 +587,7 @@ bool UsbTransport::submit_in() noexcept {
       continue;
     }
     libusb_fill_interrupt_transfer(s.transfer, handle_, endpoint_in_, s.buffer.data(),
-                                   static_cast<int>(s.buffer.size()), &UsbTransport::on_transfer, &s, 0);
+                                   static_cast<int>(in_transfer_bytes_), &UsbTransport::on_transfer, &s, 0);
     if (const int rc = api_->submit_transfer(s.transfer); rc != LIBUSB_SUCCESS) {
       if (rc != LIBUSB_ERROR_NO_DEVICE) {
         counters_.io_errors.bump();
@@ -622,7 +635,7 @@ void UsbTransport::completed(Slot& slot) noexcept {
       } else if (t.actual_length > 0) {
         // The report as it came: no report-ID byte on libusb; decoding ignores the padding.
         Datagram d;
-        d.length = static_cast<std::uint8_t>(std::min<int>(t.actual_length, static_cast<int>(kReportBytes)));
+        d.length = static_cast<std::uint16_t>(std::min<int>(t.actual_length, static_cast<int>(kReportBytes)));
         std::memcpy(d.bytes.data(), t.buffer, d.length);
         deliver(d);
       } else {
@@ -742,17 +755,19 @@ void UsbTransport::clear_halts() noexcept {
   }
 }
 
-// OUT reports are always 64 bytes: the packet, zero padded, and no report-ID byte.
+// OUT reports are the packets, zero padded to 64 bytes (a larger report of a high-speed unit goes
+// as long as its packets), without a report-ID byte.
 void UsbTransport::pump_outgoing() noexcept {
   Datagram d;
   while (!free_out_.empty() && !halt_out_ && !lost_.load(std::memory_order_relaxed) && take_outgoing(d)) {
     Slot& s = *free_out_.back();
     free_out_.pop_back();
+    const std::size_t n = std::max<std::size_t>(d.length, proto::kHidReportBytes);
     std::memcpy(s.buffer.data(), d.bytes.data(), d.length);
-    std::fill(s.buffer.begin() + d.length, s.buffer.end(), 0);
+    std::fill(s.buffer.begin() + d.length, s.buffer.begin() + static_cast<std::ptrdiff_t>(n), 0);
     libusb_fill_interrupt_transfer(
-        s.transfer, handle_, endpoint_out_, s.buffer.data(), static_cast<int>(s.buffer.size()),
-        &UsbTransport::on_transfer, &s,
+        s.transfer, handle_, endpoint_out_, s.buffer.data(), static_cast<int>(n), &UsbTransport::on_transfer,
+        &s,
         static_cast<unsigned>(std::chrono::ceil<std::chrono::milliseconds>(options_.out_timeout).count()));
     const int rc = api_->submit_transfer(s.transfer);
     if (rc == LIBUSB_SUCCESS) {

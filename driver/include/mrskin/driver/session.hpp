@@ -8,6 +8,7 @@
 #include <array>
 #include <cstdint>
 #include <memory>
+#include <optional>
 #include <span>
 #include <string>
 #include <string_view>
@@ -20,7 +21,9 @@
 #include "mrskin/driver/model/profile.hpp"
 #include "mrskin/driver/transport.hpp"
 #include "mrskin/protocol/messages.hpp"
+#include "mrskin/protocol/packet.hpp"
 #include "mrskin/protocol/units.hpp"
+#include "mrskin/protocol/usb.hpp"
 
 namespace mrskin {
 
@@ -46,6 +49,9 @@ struct DeviceInfo {
   std::string sensor_unit;      // "m", "N" or "Pa"
   double heartbeat_timeout_s = 0.0;
   double telemetry_rate_hz = 0.0;
+  // Protocol 1.2, USB: the reports the unit declared (UsbSlots), which this session packs up to;
+  // nullopt until it does (and from a 1.1 unit): full speed, 64-byte reports, is assumed.
+  std::optional<protocol::UsbInterruptSlots> usb_slots;
   std::string profile;      // profile text stored on the device (DeviceSession::profile() parses it)
   std::string calibration;  // calibration text stored on the device (versioned)
 };
@@ -64,6 +70,12 @@ struct SessionOptions {
   // Read profile and calibration during the handshake; the configuration read fails with
   // Timeout when no chunk arrives within handshake_timeout.
   bool read_configuration = true;
+  // Protocol 1.2 on a bus whose every slot carries a sample (full-speed USB at 1 kHz): read the
+  // configuration in chunks that fit beside a sample (14 bytes for the 5x5), which displace no
+  // sample but take one sample each: about 0.3 s at 1 kHz, and as long as a lagging unit (a
+  // simulation on a loaded machine: seconds) takes to send them. Off: full 48-byte chunks in
+  // reports of their own, each taking a sample's slot.
+  bool config_reads_beside_telemetry = true;
   std::size_t ring_log_packets = 256;  // N of the ring log (1..65536)
   // The protocol minor version this host declares in its IdentifyRequest, 0..kVersionMinor:
   // 1 makes it a 1.1 host (no packed reports either way), for tests against older peers.
@@ -95,11 +107,18 @@ struct SessionCounters {
   std::int64_t last_round_trip_ns = 0;  // the latest of those, ns
 };
 
+// One packet's bytes in the ring log (a packet is at most 64 bytes, whatever the report that
+// carried it); a report that did not decode keeps its first 64 bytes.
+struct LoggedPacket {
+  std::array<std::uint8_t, protocol::kPacketMaxBytes> bytes{};
+  std::uint8_t length = 0;
+};
+
 // One packet in the ring log, as it crossed the link.
 struct TrafficRecord {
   TimePoint time{};
   bool sent = false;  // host -> device
-  Datagram datagram{};
+  LoggedPacket packet{};
 };
 
 // A ring-log record decoded into SI units with the device's identity (DeviceSession::decode_log).

@@ -1,7 +1,8 @@
-// One transport interface for every bus: datagrams of at most 64 bytes (one HID report,
-// one packet). send() and receive() are non-blocking and allocation-free, so the session
-// may call them from the tick thread; transports whose OS calls block run their I/O on
-// their own thread (QueuedTransport). receive_for() waits, for setup code only.
+// One transport interface for every bus: datagrams of at most 1024 bytes (one USB-HID report: 64
+// bytes at full speed, up to 1024 once a unit declares them in 1.2's UsbSlots; one packet on CAN). send() and
+// receive() are non-blocking and allocation-free, so the session may call them from the tick thread;
+// transports whose OS calls block run their I/O on their own thread (QueuedTransport). receive_for() waits,
+// for setup code only.
 #pragma once
 
 #include <array>
@@ -16,14 +17,15 @@
 #include "mrskin/driver/errors.hpp"
 #include "mrskin/driver/export.hpp"
 #include "mrskin/protocol/bus_budget.hpp"
+#include "mrskin/protocol/messages.hpp"
 
 namespace mrskin {
 
-inline constexpr std::size_t kMaxDatagramBytes = 64;
+inline constexpr std::size_t kMaxDatagramBytes = protocol::kUsbSlotsMaxReportBytes;
 
 struct Datagram {
   std::array<std::uint8_t, kMaxDatagramBytes> bytes{};
-  std::uint8_t length = 0;
+  std::uint16_t length = 0;
 };
 
 // open: datagrams flow. disconnected: the device is gone (unplugged, interface down); the

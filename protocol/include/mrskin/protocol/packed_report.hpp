@@ -6,6 +6,7 @@
 // no allocation, no exceptions.
 #pragma once
 
+#include <algorithm>
 #include <cstddef>
 #include <cstdint>
 #include <span>
@@ -41,6 +42,12 @@ MRSKIN_PROTOCOL_API EncodeResult append_packet(const Message& message, std::uint
 // with its error and ends the walk: its length cannot be trusted, so nothing after it is read.
 // The packets before it were handed out already. A report longer than kUsbSlotsMaxReportBytes
 // (the largest a unit may declare) gives one too_long.
+// A report's first packet, as a 1.0 or 1.1 receiver reads a report: decode_packet over its first
+// kPacketMaxBytes bytes (the rest is padding to it, whatever the report's size).
+inline PacketDecoded decode_first_packet(std::span<const std::uint8_t> report) noexcept {
+  return decode_packet(report.first(std::min(report.size(), kPacketMaxBytes)));
+}
+
 class MRSKIN_PROTOCOL_API PacketWalker {
  public:
   explicit PacketWalker(std::span<const std::uint8_t> report) noexcept : report_(report) {}

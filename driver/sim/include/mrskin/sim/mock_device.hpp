@@ -79,6 +79,9 @@ struct MockBusOptions {
   // The unit's IN queue gets as many, and keeps one telemetry report waiting at most: a newer
   // sample takes its place (counted dropped).
   std::size_t usb_queue_reports = 64;
+  // hid_hs: the bytes of the reports the unit declares in 1.2's UsbSlots (64..1024; 0: 1024, the
+  // most a unit may declare), mock://?report_bytes=N. hid_fs: 64 always.
+  std::size_t usb_report_bytes = 0;
   // Frames each node queues for the bus: a CAN netdev's default txqueuelen (10) on the host, and
   // as many in the unit's transmit queue, which it feeds from its packets as frames leave.
   std::size_t can_txqueuelen_frames = 10;
