@@ -327,6 +327,9 @@ CanEncodeResult encode_canfd_report(std::span<const std::uint8_t> report, std::u
   if (node < kCanNodeMin || node > kCanNodeMax) {
     return {Error::out_of_range, 0};
   }
+  if (report.size() > kPacketMaxBytes) {
+    return {Error::too_long, 0};  // one FD frame holds 64 bytes (a USB report may hold 1024)
+  }
   PacketWalker walker(report);
   PacketDecoded p;
   std::size_t packets = 0;

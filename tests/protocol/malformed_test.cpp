@@ -734,6 +734,27 @@ TEST(ProtocolMalformedPacked, AReportOfTheLargestDeclaredSizeWalksToEveryPacket)
   EXPECT_FALSE(walker.broken());
 }
 
+// A CAN FD frame holds 64 bytes: a longer report (a USB unit's may hold 1024) is refused, never
+// copied into the frame.
+TEST(ProtocolMalformedPacked, CanFdRefusesAReportLongerThanAFrame) {
+  std::vector<std::uint8_t> report(kUsbSlotsMaxReportBytes, 0);
+  std::size_t used = 0;
+  for (std::uint8_t s = 0; s < 3; ++s) {
+    Heartbeat h{s};
+    used += append_packet(h, s, report, used).bytes;
+  }
+  ValveCurrents v;
+  v.count = kMaxValveCurrents;  // 63 bytes: the report passes 64
+  used += append_packet(v, 3, report, used).bytes;
+  ASSERT_GT(used, kPacketMaxBytes);
+  CanFrame f;
+  EXPECT_EQ(
+      encode_canfd_report(std::span<const std::uint8_t>(report).first(used), 5, Direction::host_to_device, f)
+          .error,
+      Error::too_long);
+  EXPECT_EQ(encode_canfd_report(report, 5, Direction::host_to_device, f).error, Error::too_long);
+}
+
 TEST(ProtocolMalformedPacked, AppendRefusesWhatDoesNotFitAndLeavesTheReport) {
   std::array<std::uint8_t, kHidReportBytes> report{};
   report.fill(0xCC);

@@ -497,8 +497,9 @@ void ControlServer::handle_line(Client& c, std::string_view line) {
             ctl::json_number(b->data_bitrate_bit_per_s));
       }
     }
-    send(c, fmt::format(
-                R"({{"ok":true,"cmd":"lease","framing":"u8 length, then the datagram, both ways"{}}})", bus));
+    send(c,
+         fmt::format(
+             R"({{"ok":true,"cmd":"lease","framing":"u16le length, then the datagram, both ways"{}}})", bus));
     c.leased = true;
     event(fmt::format("control socket: the device is leased to {} (bridge halted)", c.who));
   } else if (r.cmd == "stop") {

@@ -1,9 +1,9 @@
 // The device of a running mrskin-bridged, leased over its control socket ("lease" request): the
 // daemon disables the bridge, keeps its tick off the device and carries the device's datagrams
-// over this connection, one length byte then the bytes, both ways, until the connection closes
-// (the bridge then stays halted until enabled). A DeviceSession on it is an ordinary session, so
-// set, selftest and calibrate run through the daemon as on a free device (without the mock's
-// press fixture: it lives in the daemon's process).
+// over this connection, a two-byte little-endian length then the bytes, both ways, until the connection
+// closes (the bridge then stays halted until enabled). A DeviceSession on it is an ordinary session, so set,
+// selftest and calibrate run through the daemon as on a free device (without the mock's press fixture: it
+// lives in the daemon's process).
 #pragma once
 
 #include <poll.h>

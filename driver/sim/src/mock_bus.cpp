@@ -519,7 +519,9 @@ std::optional<protocol::UsbInterruptSlots> declared_usb_slots(const MockBusOptio
   if (bus.kind == MockBusKind::hid_hs) {
     return proto::UsbInterruptSlots{
         proto::kUsbHighSpeedMicroframe_s, proto::kUsbHighSpeedMaxReportsPerMicroframe,
-        bus.usb_report_bytes == 0 ? proto::kUsbHighSpeedMaxReportBytes : bus.usb_report_bytes};
+        bus.usb_report_bytes == 0 ? proto::kUsbHighSpeedMaxReportBytes
+                                  : std::clamp<std::size_t>(bus.usb_report_bytes, proto::kHidReportBytes,
+                                                            proto::kUsbHighSpeedMaxReportBytes)};
   }
   if (bus.kind == MockBusKind::hid_fs) {
     return proto::kUsbFullSpeedSlots;

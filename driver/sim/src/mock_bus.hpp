@@ -111,8 +111,8 @@ class __attribute__((visibility("hidden"))) MockBus {
     bool fd = false;
     // The frame that completes a packet: its bytes [packet_begin, packet_end) in the datagram
     // (a packed report on classic CAN delivers each packet when its own last frame ends).
-    std::uint8_t packet_begin = 0;
-    std::uint8_t packet_end = 0;  // 0: completes none
+    std::uint16_t packet_begin = 0;
+    std::uint16_t packet_end = 0;  // 0: completes none
   };
   struct CanPacket {
     Datagram datagram{};

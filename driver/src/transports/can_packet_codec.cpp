@@ -71,7 +71,11 @@ proto::Error CanPacketCodec::check(CanRole role, bool fd, std::span<const std::u
 
 CanPacketCodec::Encoded CanPacketCodec::encode(std::span<const std::uint8_t> packet,
                                                std::span<proto::CanFrame, kMaxFrames> out) noexcept {
-  // The packets of the datagram: one in protocol 1.1, several in a packed report (1.2).
+  // The packets of the datagram: one in protocol 1.1, several in a packed report (1.2), at most 64
+  // bytes on CAN (only a USB report is longer).
+  if (packet.size() > proto::kPacketMaxBytes) {
+    return {proto::Error::too_long, 0};
+  }
   proto::PacketWalker walker(packet);
   proto::PacketDecoded p;
   std::size_t packets = 0;

@@ -508,7 +508,9 @@ OpenOutcome UsbTransport::try_open() {
     // The descriptor's own endpoints; on failure the protocol's defaults stand.
     (void)api_->get_interrupt_endpoints(device, proto::kUsbInterface, endpoint_in_, endpoint_out_);
     // An IN transfer of exactly one packet: a full one would not end a longer transfer.
-    const int in_bytes = api_->get_max_packet_size(device, endpoint_in_);
+    // Bits 0-10 of wMaxPacketSize (bits 11-12 count a high-bandwidth endpoint's extra transactions).
+    const int max_packet = api_->get_max_packet_size(device, endpoint_in_);
+    const int in_bytes = max_packet > 0 ? (max_packet & 0x7FF) : max_packet;
     in_transfer_bytes_ = in_bytes > 0
                              ? std::min<std::size_t>(static_cast<std::size_t>(in_bytes), kReportBytes)
                              : proto::kHidReportBytes;
