@@ -27,9 +27,8 @@ namespace mrskin {
 namespace {
 
 constexpr std::string_view kScheme = "hid://";
-// hid_write() takes the report-ID byte (0x00: the unit declares no report IDs) first.
-// hid_write() takes the report-ID byte, then the report: 64 bytes at full speed, or up to the
-// 1024 a unit declares (UsbSlots), as long as its packets (a short transfer, which USB allows).
+// hid_write() takes the report-ID byte (0x00: no report IDs), then the report: 64 bytes at full speed, or up
+// to the 1024 a unit declares (UsbSlots), as long as its packets (a short transfer, which USB allows).
 constexpr std::size_t kMaxWriteBytes = kMaxDatagramBytes + 1;
 constexpr std::size_t write_bytes(std::size_t datagram_bytes) noexcept {
   return 1 + std::max(datagram_bytes, protocol::kHidReportBytes);
