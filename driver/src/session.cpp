@@ -324,14 +324,11 @@ void DeviceSession::Impl::await_identity(TimePoint deadline) {
           // A 1.2 unit packs the first status (or more) behind the Identity: this session's
           // first traffic, in sequence after the Identity.
           // The Identity, then the rest as a report of its own.
-          const auto head_length = static_cast<std::uint16_t>(walker.offset());
-          Datagram rest;
-          rest.length = static_cast<std::uint16_t>(d.length - head_length);
-          std::copy_n(d.bytes.begin() + head_length, rest.length, rest.bytes.begin());
-          log(std::span<const std::uint8_t>(d.bytes.data(), head_length), false, now);
+          const std::size_t head = walker.offset();
+          log(bytes.first(head), false, now);
           rx_last_sequence_ = p.sequence;
-          if (rest.length > 0 && rest.bytes[0] != 0) {
-            handle(rest, now);
+          if (head < bytes.size() && bytes[head] != 0x00) {
+            handle_packed(bytes.subspan(head), now);
           }
         } else {
           log(d, false, now);
@@ -476,11 +473,28 @@ void DeviceSession::Impl::drop_report() noexcept {
 void DeviceSession::Impl::handle(const Datagram& d, TimePoint now) noexcept {
   const std::span<const std::uint8_t> bytes(d.bytes.data(), d.length);
   ++counters_.reports_received;
-  if (!packing_) {
+  if (packing_) {
+    handle_packed(bytes, now);
+    return;
+  }
+  proto::PacketWalker walker(bytes);
+  proto::PacketDecoded p;
+  if (!walker.next(p) || p.error != proto::Error::ok || !std::holds_alternative<proto::Identity>(p.message)) {
     log(d, false, now);
     handle_packet(proto::decode_first_packet(bytes), now);
     return;
   }
+  // A reconnect's Identity may agree on 1.2: then the packets the unit packed behind it (its
+  // UsbSlots, a status) are read too.
+  const std::size_t head = walker.offset();
+  log(bytes.first(head), false, now);
+  handle_packet(p, now);
+  if (packing_ && head < bytes.size() && bytes[head] != 0x00) {
+    handle_packed(bytes.subspan(head), now);
+  }
+}
+
+void DeviceSession::Impl::handle_packed(std::span<const std::uint8_t> bytes, TimePoint now) noexcept {
   // Every packet of the report, each logged on its own; a broken one ends the walk.
   proto::PacketWalker walker(bytes);
   proto::PacketDecoded p;
@@ -494,7 +508,7 @@ void DeviceSession::Impl::handle(const Datagram& d, TimePoint now) noexcept {
     handle_packet(p, now);
   }
   if (!any) {
-    log(d, false, now);
+    log(bytes, false, now);
     handle_packet(proto::decode_first_packet(bytes), now);  // an empty report: counted undecodable
   }
 }
@@ -615,6 +629,7 @@ ResultCode DeviceSession::Impl::poll(TimePoint now) noexcept {
       packing_ = false;  // the unit reboots: it packs again only after the next handshake
       drop_report();
       report_capacity_ = proto::kHidReportBytes;  // until it declares its reports again
+      info_.usb_slots.reset();
       ++counters_.disconnects;
       backoff_ = options_.reconnect_backoff_min;
       next_reconnect_ = now + backoff_;

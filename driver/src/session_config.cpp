@@ -28,12 +28,14 @@ std::size_t DeviceSession::Impl::config_chunk_bytes() const {
       bus->kind == proto::BusKind::can_classic || bus->kind == proto::BusKind::can_fd) {
     return proto::kMaxConfigBytes;
   }
-  // A bus with a spare slot for each sample carries full replies in slots of their own.
-  const double slots_hz = static_cast<double>(bus->usb.reports_per_interval) / bus->usb.interval_s;
+  // The slots the unit declared (1.2's UsbSlots), else the transport's. A bus with a spare slot
+  // for each sample carries full replies in slots of their own.
+  const proto::UsbInterruptSlots usb = info_.usb_slots ? *info_.usb_slots : bus->usb;
+  const double slots_hz = static_cast<double>(usb.reports_per_interval) / usb.interval_s;
   if (slots_hz >= 2.0 * info_.telemetry_rate_hz) {
     return proto::kMaxConfigBytes;
   }
-  const std::size_t beside = proto::config_bytes_beside_telemetry(info_.sensors, bus->usb.report_bytes);
+  const std::size_t beside = proto::config_bytes_beside_telemetry(info_.sensors, usb.report_bytes);
   return beside >= kMinConfigChunkBeside ? beside : proto::kMaxConfigBytes;
 }
 

@@ -77,6 +77,8 @@ class __attribute__((visibility("hidden"))) DeviceSession::Impl {
   ResultCode flush_report() noexcept;
   void drop_report() noexcept;
   void handle(const Datagram& d, TimePoint now) noexcept;
+  // The packets of a 1.2 report (or of its part after a reconnect's Identity), in order.
+  void handle_packed(std::span<const std::uint8_t> bytes, TimePoint now) noexcept;
   void handle_packet(const protocol::PacketDecoded& p, TimePoint now) noexcept;
   void log(std::span<const std::uint8_t> bytes, bool sent, TimePoint now) noexcept;
   void log(const Datagram& d, bool sent, TimePoint now) noexcept {

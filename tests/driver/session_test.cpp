@@ -957,6 +957,40 @@ TEST(SessionPacked, AHighSpeedUnitsDeclaredReportsCarryATicksPacketsInOne) {
   EXPECT_GE(large.counters.telemetry, small.counters.telemetry);
 }
 
+// A reconnect's Identity comes with the unit's UsbSlots: on a full-speed bus whose every slot
+// carries a sample, packed behind it in one report, which the session reads whole (it read only
+// the Identity once). The session forgets the declaration while the unit is away. On high speed
+// both sides pack up to 1024 bytes again.
+TEST(SessionPacked, AReconnectReadsTheDeclaredReportsPackedBehindTheIdentity) {
+  for (const char* uri : {"mock://?seed=2&bus=hid-fs&faults=disconnect:0.2+0.1",
+                          "mock://fingertip-16x16?seed=2&faults=disconnect:0.2+0.1"}) {
+    SCOPED_TRACE(uri);
+    Rig rig(uri);
+    ASSERT_EQ(rig.dev.session->request_enable(), ResultCode::ok);
+    rig.run(250);
+    EXPECT_FALSE(rig.dev.session->connected());
+    EXPECT_FALSE(rig.dev.session->info().usb_slots.has_value());
+    rig.run(300);
+    const SessionCounters& c = rig.dev.session->counters();
+    EXPECT_EQ(c.reconnects, 1U);
+    ASSERT_TRUE(rig.dev.session->connected());
+    ASSERT_TRUE(rig.dev.session->info().usb_slots.has_value());
+    EXPECT_EQ(c.decode_errors, 0U);
+    EXPECT_EQ(rig.dev.session->state(), DeviceState::enabled);
+    if (rig.dev.session->info().usb_slots->report_bytes < 1024U) {
+      continue;
+    }
+    // A sample's six blocks in one report, and a tick's five packets of currents in one.
+    const std::uint64_t received = c.received;
+    const std::uint64_t reports_received = c.reports_received;
+    const std::uint64_t sent = c.sent;
+    const std::uint64_t reports_sent = c.reports_sent;
+    rig.run(100);
+    EXPECT_GT(c.received - received, 4 * (c.reports_received - reports_received));
+    EXPECT_GT(c.sent - sent, 3 * (c.reports_sent - reports_sent));
+  }
+}
+
 // A full-speed unit declares full speed; a 1.1 host is sent no UsbSlots (it would not know it) and
 // gets 64-byte reports from a high-speed unit.
 TEST(SessionPacked, AFullSpeedUnitDeclaresFullSpeedAndAOnePointOneHostHearsNothing) {

@@ -619,10 +619,11 @@ void MockDevice::Impl::handle(const std::uint8_t* bytes, std::size_t length, Tim
 
 void MockDevice::Impl::answer_identify(const proto::IdentifyRequest& request) noexcept {
   // The Identity goes first in its report: a host reads it before it knows the unit packs.
-  // Packing follows from this request on, as both sides declared. When every slot carries a
-  // sample, the Identity's report takes the next sample's slot (that sample is skipped:
-  // emit_telemetry), and what the previous session left waiting for telemetry (status,
-  // echoes) is dropped rather than sent in a slot of its own (a status follows the Identity).
+  // Packing follows from this request on, as both sides declared: a 1.2 host reads the UsbSlots
+  // and the status packed behind the Identity. When every slot carries a sample, the Identity's
+  // report takes the next sample's slot (that sample is skipped: emit_telemetry), and what the
+  // previous session left waiting for telemetry (status, echoes) is dropped rather than sent in a
+  // slot of its own (a status follows the Identity).
   const bool packs = proto::reads_packed_reports(options_.protocol_major, options_.protocol_minor) &&
                      proto::reads_packed_reports(request.host_major, request.host_minor);
   const bool tight = slots_taken_by_samples();
@@ -632,8 +633,8 @@ void MockDevice::Impl::answer_identify(const proto::IdentifyRequest& request) no
   } else {
     flush_report();
   }
-  packing_ = packs && tight;  // packed and tight: the status joins the Identity's report
-  pending_read_count_ = 0;    // a new session asks again
+  packing_ = packs;
+  pending_read_count_ = 0;  // a new session asks again
   proto::Identity id;
   id.fw_major = kFirmwareMajor;
   id.fw_minor = kFirmwareMinor;
@@ -663,9 +664,7 @@ void MockDevice::Impl::answer_identify(const proto::IdentifyRequest& request) no
     send_message(proto::usb_slots_message(*slots), /*hold=*/true);
   }
   send_status();
-  if (tight) {
-    flush_report();  // the next sample finds the slot taken and is skipped (emit_telemetry)
-  }
+  flush_report();  // tight: the next sample finds the slot taken and is skipped (emit_telemetry)
   if (packs && slots) {
     report_capacity_ = slots->report_bytes;
   }
