@@ -504,4 +504,36 @@ double can_frame_time_worst_case_s(std::size_t data_bytes, bool fd, double nomin
   return static_cast<double>(bits.nominal_bits) / nominal_bitrate_bit_per_s + data_s;
 }
 
+std::uint16_t CanDeltaBlocks::select(std::span<const std::uint16_t, kValues> values, std::size_t first_block,
+                                     std::size_t end_block) noexcept {
+  if (end_block > kCanMaxBlocks || first_block >= end_block) {
+    return 0;
+  }
+  const auto block_values = [](auto& array, std::size_t b) {
+    return std::span(array).subspan(b * kCanValuesPerBlock, kCanValuesPerBlock);
+  };
+  std::uint16_t changed = 0;
+  for (std::size_t b = first_block; b < end_block; ++b) {
+    const auto now = block_values(values, b);
+    const auto sent = block_values(sent_, b);
+    if (!std::equal(now.begin(), now.end(), sent.begin())) {
+      changed = static_cast<std::uint16_t>(changed | (1U << b));
+    }
+  }
+  const bool refresh = repeat_refreshes_ && changed == 0;  // the host's same values again
+  std::uint16_t send = 0;
+  for (std::size_t b = first_block; b < end_block; ++b) {
+    const bool due = unsent_updates_[b] == kNeverSent || unsent_updates_[b] + 1U >= kCanDeltaRefreshUpdates;
+    if (refresh || due || (changed & (1U << b)) != 0) {
+      send = static_cast<std::uint16_t>(send | (1U << b));
+      const auto now = block_values(values, b);
+      std::copy(now.begin(), now.end(), block_values(sent_, b).begin());
+      unsent_updates_[b] = 0;
+    } else {
+      ++unsent_updates_[b];
+    }
+  }
+  return send;
+}
+
 }  // namespace mrskin::protocol

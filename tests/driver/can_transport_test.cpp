@@ -1166,6 +1166,9 @@ class SimNode {
   SimNode(FakeCan& bus, sim::MockDevice& mock, const Clock& clock, std::uint8_t node, bool fd)
       : bus_(bus), codec_(CanRole::device, node, fd), link_(mock.connect(true, &clock)) {}
   void on_host_frame(const proto::CanFrame& f) {
+    if (drop && drop(f)) {
+      return;  // lost on the bus
+    }
     const CanPacketCodec::Decoded d = codec_.decode(f);
     if (d.complete) {
       (void)link_->send(std::span<const std::uint8_t>(d.packet.bytes.data(), d.packet.length));
@@ -1185,6 +1188,8 @@ class SimNode {
       }
     }
   }
+  [[nodiscard]] const CanPacketCodec& codec() const noexcept { return codec_; }
+  std::function<bool(const proto::CanFrame&)> drop;  // host frames the bus loses
 
  private:
   FakeCan& bus_;
@@ -1236,7 +1241,7 @@ class LockstepClock final : public Clock {
 };
 
 struct CanRig {
-  explicit CanRig(bool fd) : bus(std::make_shared<FakeCan>()) {
+  explicit CanRig(bool fd, SessionOptions options = {}) : bus(std::make_shared<FakeCan>()) {
     bus->interfaces["vcan0"].mtu = fd ? CANFD_MTU : CAN_MTU;
     sim::MockOptions mo;
     mo.seed = 11;
@@ -1253,7 +1258,7 @@ struct CanRig {
       return tc.sent + s.dropped_packets == c->taken() && bus->drained() &&
              bus->read_count() == s.frames_read;
     };
-    session = std::make_unique<DeviceSession>(std::move(wrapper), clock);
+    session = std::make_unique<DeviceSession>(std::move(wrapper), clock, options);
   }
   ~CanRig() {
     session.reset();
@@ -1339,6 +1344,66 @@ TEST_P(CanSession, HandshakeEnableCurrentsAndTelemetryOverTheBus) {
 
 INSTANTIATE_TEST_SUITE_P(ClassicAndFd, CanSession, ::testing::Values(false, true),
                          [](const ::testing::TestParamInfo<bool>& i) { return i.param ? "fd" : "classic"; });
+
+// Protocol 1.2's delta blocks over real frames both ways (the transport's codec and the unit's):
+// with only valve 0 changing, a 1.2 host sends its block every tick and the other two every 10th,
+// against every block every tick from a 1.1 host; the unit holds the commanded currents either
+// way, and a lost frame heals at the block's refresh.
+TEST(CanDelta, OnlyChangedBlocksGoAndALostFrameHealsAtTheRefresh) {
+  std::uint64_t valve_frames[2] = {0, 0};
+  for (const std::uint8_t minor : {std::uint8_t{2}, std::uint8_t{1}}) {
+    SCOPED_TRACE(static_cast<int>(minor));
+    SessionOptions options;
+    options.protocol_minor = minor;
+    CanRig rig(false, options);
+    const std::size_t valves = rig.session->info().valves;
+    ASSERT_EQ(valves, 12U);
+    ASSERT_EQ(rig.session->request_enable(), ResultCode::ok);
+    std::uint64_t frames = 0;
+    int lost_at = -1;
+    rig.node->drop = [&](const proto::CanFrame& f) {
+      const bool valve = (f.id >> 8U) == static_cast<unsigned>(proto::CanFunction::valve_block);
+      frames += valve ? 1 : 0;
+      // Block 2 (valves 8..11) at the tick valve 8 changes: lost once.
+      return valve && ((f.id >> 4U) & 0xFU) == 2 && lost_at < 0 && rig.currents[8] > 0.05 &&
+             (lost_at = static_cast<int>(rig.clock.now().count() / 1'000'000)) >= 0;
+    };
+    std::vector<double> commanded(valves, 0.0);
+    std::vector<double> applied(valves);
+    int wrong_ticks = 0;
+    for (int k = 0; k < 200; ++k) {
+      rig.currents.assign(valves, 0.04);
+      rig.currents[0] = 0.001 * (k % 20);        // block 0 changes every tick
+      rig.currents[8] = k >= 100 ? 0.06 : 0.04;  // block 2 changes once, at tick 100
+      rig.run(1);
+      rig.mock->applied_currents(applied);
+      if (k >= 10) {  // what the unit applies at a step is what it was sent the tick before
+        bool right = true;
+        for (std::size_t v = 0; v < valves; ++v) {
+          right = right && std::abs(applied[v] - commanded[v]) < 1e-4;
+        }
+        wrong_ticks += right ? 0 : 1;
+      }
+      commanded = rig.currents;
+    }
+    EXPECT_EQ(rig.node->codec().delta_blocks(), minor == 2);
+    valve_frames[minor == 2 ? 0 : 1] = frames;
+    ASSERT_GE(lost_at, 0);
+    if (minor == 2) {
+      // Block 2 is wrong from the lost frame to its refresh: at most 10 updates.
+      EXPECT_GE(wrong_ticks, 1);
+      EXPECT_LE(wrong_ticks, static_cast<int>(proto::kCanDeltaRefreshUpdates));
+    } else {
+      EXPECT_EQ(wrong_ticks, 1);  // the next tick sends every block again
+    }
+    EXPECT_EQ(rig.session->state(), DeviceState::enabled);
+    EXPECT_EQ(rig.session->counters().decode_errors, 0U);
+  }
+  // 200 ticks: 1.1 sends 3 valve frames a tick; 1.2 one, plus two refreshes every 10 ticks.
+  EXPECT_GE(valve_frames[1], 3U * 200U);
+  EXPECT_LE(valve_frames[0], 200U + 2U * 20U + 10U);
+  EXPECT_GE(valve_frames[0], 200U + 2U * 18U);
+}
 
 // ================================================================================= listing
 

@@ -144,6 +144,11 @@ TEST(MockBusUri, BadValuesAreRefusedSayingWhatIsAccepted) {
               std::string::npos)
         << bad;
   }
+  // deadband: the unit's sensor deadband in counts, 0..100 whole.
+  EXPECT_EQ(parse_mock_uri("mock://?bus=can&deadband=2").options.sensor_deadband_counts, 2);
+  for (const char* bad : {"-1", "101", "1.5", "nan", "x"}) {
+    EXPECT_NE(refusal(std::string("mock://?deadband=") + bad).find("deadband"), std::string::npos) << bad;
+  }
   SimulatedClock clock;
   OpenOptions open;
   open.synchronous_mock = true;

@@ -356,6 +356,43 @@ TEST(ProtocolGoldenByHand, ValveBlocksOnClassicCan) {
   EXPECT_EQ(pg->tokens[0].substr(0, 10), "115#214365");
 }
 
+// Protocol 1.2's delta blocks on classic CAN, worked by hand over three blocks (valves 0..11).
+TEST(ProtocolGoldenByHand, DeltaBlocksGoWhenChangedAndEveryTenUpdates) {
+  CanDeltaBlocks delta(/*repeat_refreshes=*/true);  // the host's valve blocks
+  std::array<std::uint16_t, CanDeltaBlocks::kValues> v{};
+  std::fill(v.begin(), v.begin() + 12, 100);
+  EXPECT_EQ(delta.select(v, 0, 3), 0b111U);  // never sent: all
+  // Only block 1 (valves 4..7) changes from here on: block 0 and 2 go again at update 11, after
+  // 9 updates unsent, so a frame lost at update 1 heals 10 updates later.
+  for (int update = 2; update <= 10; ++update) {
+    v[5] = static_cast<std::uint16_t>(100 + update);
+    EXPECT_EQ(delta.select(v, 0, 3), 0b010U) << update;
+  }
+  v[5] = 111;
+  EXPECT_EQ(delta.select(v, 0, 3), 0b111U);
+  v[5] = 112;
+  v[11] = 7;  // block 2's last value
+  EXPECT_EQ(delta.select(v, 0, 3), 0b110U);
+  EXPECT_EQ(delta.select(v, 0, 3), 0b111U);  // the same values again: a refresh, whole
+  v[0] = 1;
+  EXPECT_EQ(delta.select(v, 0, 1), 0b001U);  // an update of block 0 alone (a packet's range)
+  delta.reset();
+  v[0] = 2;
+  EXPECT_EQ(delta.select(v, 0, 3), 0b111U);  // a new link: all
+  EXPECT_EQ(delta.select(v, 3, 3), 0U);      // empty or impossible ranges: nothing
+  EXPECT_EQ(delta.select(v, 15, 17), 0U);
+  // The unit's sensor blocks: a quiet sample sends only what is due.
+  CanDeltaBlocks sensors(/*repeat_refreshes=*/false);
+  EXPECT_EQ(sensors.select(v, 0, 3), 0b111U);
+  for (int update = 2; update <= 10; ++update) {
+    EXPECT_EQ(sensors.select(v, 0, 3), 0U) << update;
+  }
+  EXPECT_EQ(sensors.select(v, 0, 3), 0b111U);  // each block 10 updates after it last went
+  EXPECT_TRUE(reads_delta_blocks(1, 2));
+  EXPECT_FALSE(reads_delta_blocks(1, 1));
+  EXPECT_FALSE(reads_delta_blocks(2, 2));
+}
+
 TEST(ProtocolGoldenByHand, SensorBlocksOnClassicCan) {
   const GoldenLine* g = find_line("telemetry", "can");
   ASSERT_EQ(g->tokens.size(), 3U);

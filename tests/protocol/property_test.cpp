@@ -562,6 +562,50 @@ RC_GTEST_PROP(ProtocolProperty, QuantizeWithinHalfLsb, ()) {
   RC_ASSERT(mrskin::fuzz::within_half_lsb(back.validity_s, target.validity_s, kValidityLsb_s));
 }
 
+// Delta blocks (1.2, classic CAN) against a receiver that keeps each block's last values, on a
+// link that loses frames: a changed block always goes, every host update sends a block, every
+// block goes at least once in any kCanDeltaRefreshUpdates updates, and once frames stop being lost
+// the receiver holds the sender's values within kCanDeltaRefreshUpdates updates.
+RC_GTEST_PROP(ProtocolProperty, DeltaBlocksHealWithinTheRefresh, ()) {
+  const auto blocks = *rc::gen::inRange<std::size_t>(1, kCanMaxBlocks + 1);
+  const auto updates = *rc::gen::inRange(1, 60);
+  const auto change_percent = *rc::gen::inRange(0, 101);
+  const auto loss_percent = *rc::gen::inRange(0, 60);
+  const bool host = *rc::gen::arbitrary<bool>();
+  CanDeltaBlocks delta(host);
+  std::array<std::uint16_t, CanDeltaBlocks::kValues> sender{};
+  std::array<std::uint16_t, CanDeltaBlocks::kValues> receiver{};
+  std::array<int, kCanMaxBlocks> unsent_run{};
+  const int total = updates + static_cast<int>(kCanDeltaRefreshUpdates);
+  for (int u = 0; u < total; ++u) {
+    const bool lossy = u < updates;
+    std::uint16_t changed = 0;
+    for (std::size_t b = 0; b < blocks; ++b) {
+      if (*rc::gen::inRange(0, 100) < change_percent) {
+        const auto i = b * kCanValuesPerBlock + *rc::gen::inRange<std::size_t>(0, kCanValuesPerBlock);
+        const auto value = *rc::gen::inRange<std::uint16_t>(0, 4096);
+        changed = static_cast<std::uint16_t>(changed | (value != sender[i] ? 1U << b : 0U));
+        sender[i] = value;
+      }
+    }
+    const std::uint16_t sent = delta.select(sender, 0, blocks);
+    RC_ASSERT(!host || sent != 0);
+    RC_ASSERT((sent & changed) == changed);
+    for (std::size_t b = 0; b < blocks; ++b) {
+      if ((sent & (1U << b)) == 0) {
+        RC_ASSERT(++unsent_run[b] < static_cast<int>(kCanDeltaRefreshUpdates));
+        continue;
+      }
+      unsent_run[b] = 0;
+      if (!(lossy && *rc::gen::inRange(0, 100) < loss_percent)) {
+        const auto at = static_cast<std::ptrdiff_t>(b * kCanValuesPerBlock);
+        std::copy_n(sender.begin() + at, kCanValuesPerBlock, receiver.begin() + at);
+      }
+    }
+  }
+  RC_ASSERT(std::equal(sender.begin(), sender.end(), receiver.begin()));
+}
+
 RC_GTEST_PROP(ProtocolProperty, QuantizeAnyDoubles, ()) {
   // Arbitrary doubles (NaN, Inf, huge, denormal) through the quantize fuzzer's entry.
   std::vector<std::uint8_t> bytes;

@@ -102,6 +102,7 @@ MockBus::MockBus(const MockBusOptions& options)
                              : 0),
       host_codec_(CanRole::host, options.can_node, options.kind == MockBusKind::canfd),
       device_codec_(CanRole::device, options.can_node, options.kind == MockBusKind::canfd),
+      trial_codec_(device_codec_),
       host_(can() ? options.can_send_queue_packets : 0, can() ? options.can_txqueuelen_frames : 0),
       device_(can() ? options.can_send_queue_packets : 0, can() ? options.can_txqueuelen_frames : 0) {
   const proto::UsbInterruptSlots slots = declared_usb_slots(options).value_or(proto::kUsbFullSpeedSlots);
@@ -167,7 +168,17 @@ MockBus::UsbPlace MockBus::usb_place(UsbLane& lane, BusRing<Waiting>& waiting, C
   return UsbPlace::later;
 }
 
+void MockBus::note_handshake(const Datagram& d, CanRole sender) noexcept {
+  // Both codecs learn both versions (1.2's delta blocks), the handshake before the bus starts too.
+  if (can()) {
+    const std::span<const std::uint8_t> bytes(d.bytes.data(), d.length);
+    host_codec_.note_handshake(bytes, sender);
+    device_codec_.note_handshake(bytes, sender);
+  }
+}
+
 void MockBus::host_sent(const Datagram& d, TimePoint t, BusSink& sink) noexcept {
+  note_handshake(d, CanRole::host);
   if (!started_) {
     sink.deliver_to_device(d, t);  // before the unit's first step: an ideal link, not counted
     return;
@@ -208,6 +219,7 @@ bool MockBus::device_slot_free(TimePoint t) const noexcept {
 }
 
 void MockBus::device_sent(const Datagram& d, TimePoint t, BusSink& sink) noexcept {
+  note_handshake(d, CanRole::device);
   if (!started_) {
     sink.deliver_to_host(d, t);
     return;
@@ -260,9 +272,14 @@ void MockBus::can_device_sent(const Datagram& d, TimePoint t) noexcept {
     for (std::size_t i = node.packets.size(); i > node.written; --i) {
       CanPacket& waiting = node.packets.at(i - 1);
       if (!(i - 1 == node.written && node.next_frame > 0) && telemetry_block_of(waiting.datagram) == block) {
-        if (!encode(device_codec_, d, scratch_) || scratch_.frame_count != waiting.frame_count) {
+        // A trial on a copy: the codec's counters and delta blocks move only if the sample goes.
+        // With delta blocks the replaced sample's blocks count as sent: a block that changed in it
+        // alone reaches the host's codec at its refresh (the bus delivers the packet whole).
+        trial_codec_ = device_codec_;
+        if (!encode(trial_codec_, d, scratch_) || scratch_.frame_count != waiting.frame_count) {
           break;
         }
+        device_codec_ = trial_codec_;
         const std::int64_t submitted = waiting.submit_ns;
         waiting = scratch_;
         waiting.submit_ns = submitted;

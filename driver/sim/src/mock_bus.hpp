@@ -167,6 +167,7 @@ class __attribute__((visibility("hidden"))) MockBus {
   void can_start(std::int64_t t_ns) noexcept;
   void can_complete(BusSink& sink) noexcept;
   void note_time(std::int64_t t_ns) noexcept;
+  void note_handshake(const Datagram& d, CanRole sender) noexcept;
 
   MockBusOptions options_;
   // USB
@@ -181,6 +182,7 @@ class __attribute__((visibility("hidden"))) MockBus {
   // CAN
   CanPacketCodec host_codec_;
   CanPacketCodec device_codec_;
+  CanPacketCodec trial_codec_;  // device_codec_'s copy for a trial encode
   CanNode host_;
   CanNode device_;
   std::int64_t backoff_min_ns_ = 0;

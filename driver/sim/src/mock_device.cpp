@@ -4,6 +4,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <cstdlib>
 #include <filesystem>
 #include <fstream>
 #include <set>
@@ -195,6 +196,8 @@ MockDevice::Impl::Impl(const model::DeviceProfile& profile, std::string_view pro
   config_bytes_beside_telemetry_ =
       proto::config_bytes_beside_telemetry(sensor_si_.size(), proto::kHidReportBytes);
   reported_.assign(plant_->sensor_count(), 0.0);
+  block_sent_counts_.assign(plant_->sensor_count(), 0);
+  sample_counts_.assign(plant_->sensor_count(), 0);
   for (auto& f : finger_m_) {
     f.store(0.0);
   }
@@ -739,7 +742,9 @@ void MockDevice::Impl::handle_packet(const proto::PacketDecoded& p, TimePoint no
       rendering_targets_ = true;
     }
   } else if (const auto* h = std::get_if<proto::Heartbeat>(&p.message)) {
-    send_message(proto::Heartbeat{h->counter}, wait_for_telemetry());  // echo: the host times round trips
+    if (options_.bus.kind != MockBusKind::can) {  // classic CAN has no echo: it would cost a sequence number
+      send_message(proto::Heartbeat{h->counter}, wait_for_telemetry());  // echo: the host times round trips
+    }
   } else {
     handle_config(p.message);
   }
@@ -808,6 +813,21 @@ void MockDevice::Impl::emit_telemetry(TimePoint now) noexcept {
   const MockFaults& f = options_.faults;
   const auto time_us =
       static_cast<std::uint32_t>(static_cast<std::uint64_t>(now.count() / 1000) & 0xFFFFFFFFULL);
+  for (std::size_t s = 0; s < sensor_si_.size(); ++s) {
+    const double sigma =
+        static_cast<int>(s) == f.noisy_sensor ? f.noisy_sensor_noise_lsb * sensor_lsb_ : sensor_noise_[s];
+    double value = sensor_si_[s] + sigma * gaussian(noise_state_);
+    if (static_cast<int>(s) == f.stuck_sensor) {
+      value = stuck_value_[s];
+    }
+    if (static_cast<int>(s) == f.offset_sensor) {
+      value += f.offset_sensor_lsb * sensor_lsb_;
+    }
+    const double counts = std::nearbyint(value / sensor_lsb_);
+    sample_counts_[s] = static_cast<std::int16_t>(std::clamp(
+        counts, static_cast<double>(proto::kSensorCountMin), static_cast<double>(proto::kSensorCountMax)));
+  }
+  apply_sensor_deadband();
   std::size_t first = 0;
   while (first < sensor_si_.size()) {
     proto::Telemetry t;
@@ -815,20 +835,8 @@ void MockDevice::Impl::emit_telemetry(TimePoint now) noexcept {
     t.first = static_cast<std::uint16_t>(first);
     t.count = static_cast<std::uint8_t>(std::min(proto::kMaxTelemetryValues, sensor_si_.size() - first));
     for (std::size_t i = 0; i < t.count; ++i) {
-      const std::size_t s = first + i;
-      const double sigma =
-          static_cast<int>(s) == f.noisy_sensor ? f.noisy_sensor_noise_lsb * sensor_lsb_ : sensor_noise_[s];
-      double value = sensor_si_[s] + sigma * gaussian(noise_state_);
-      if (static_cast<int>(s) == f.stuck_sensor) {
-        value = stuck_value_[s];
-      }
-      if (static_cast<int>(s) == f.offset_sensor) {
-        value += f.offset_sensor_lsb * sensor_lsb_;
-      }
-      const double counts = std::nearbyint(value / sensor_lsb_);
-      t.counts[i] = static_cast<std::int16_t>(std::clamp(counts, static_cast<double>(proto::kSensorCountMin),
-                                                         static_cast<double>(proto::kSensorCountMax)));
-      reported_[s] = static_cast<double>(t.counts[i]) * sensor_lsb_;
+      t.counts[i] = sample_counts_[first + i];
+      reported_[first + i] = static_cast<double>(t.counts[i]) * sensor_lsb_;
     }
     send_message(t, /*hold=*/true);
     first += t.count;
@@ -837,6 +845,28 @@ void MockDevice::Impl::emit_telemetry(TimePoint now) noexcept {
     append_pending_config_replies();
   }
   flush_report();  // with what waited for it: status, heartbeat echoes, configuration replies
+}
+
+void MockDevice::Impl::apply_sensor_deadband() noexcept {
+  const int band = options_.sensor_deadband_counts;
+  if (band <= 0) {
+    return;
+  }
+  constexpr std::size_t kBlock = proto::kCanValuesPerBlock;
+  for (std::size_t first = 0; first < sample_counts_.size(); first += kBlock) {
+    const std::size_t end = std::min(first + kBlock, sample_counts_.size());
+    bool inside = true;
+    for (std::size_t s = first; s < end; ++s) {
+      inside = inside && std::abs(sample_counts_[s] - block_sent_counts_[s]) <= band;
+    }
+    const auto b = static_cast<std::ptrdiff_t>(first);
+    const auto e = static_cast<std::ptrdiff_t>(end);
+    if (inside) {
+      std::copy(block_sent_counts_.begin() + b, block_sent_counts_.begin() + e, sample_counts_.begin() + b);
+    } else {
+      std::copy(sample_counts_.begin() + b, sample_counts_.begin() + e, block_sent_counts_.begin() + b);
+    }
+  }
 }
 
 void MockDevice::Impl::apply_link_faults(TimePoint now) noexcept {

@@ -243,6 +243,13 @@ MockUri parse_mock_uri(std::string_view uri) {
             value));
       }
       options.bus.usb_report_bytes = static_cast<std::size_t>(bytes);
+    } else if (key == "deadband") {
+      const auto counts = parse_number<double>("deadband", value);
+      if (!(counts >= 0 && counts <= 100) || counts != std::floor(counts)) {
+        throw InvalidArgument(fmt::format(
+            "mock:// deadband '{}' is not a whole number of sensor counts from 0 (off) to 100", value));
+      }
+      options.sensor_deadband_counts = static_cast<int>(counts);
     } else if (key == "bitrate") {
       bitrate = value;
       if (value.empty()) {
@@ -255,7 +262,7 @@ MockUri parse_mock_uri(std::string_view uri) {
     } else {
       throw InvalidArgument("mock:// parameter '" + std::string(key) +
                             "' is unknown: use seed, perturbation, faults, time_scale, bipolar, "
-                            "protocol_major, protocol_minor, finger, bus, bitrate or report_bytes");
+                            "protocol_major, protocol_minor, finger, bus, bitrate, report_bytes or deadband");
     }
   }
   if (!bitrate.empty()) {

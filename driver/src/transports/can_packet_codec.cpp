@@ -61,7 +61,7 @@ bool is_segmented_id(std::uint32_t id) noexcept {
 }  // namespace
 
 CanPacketCodec::CanPacketCodec(CanRole role, std::uint8_t node, bool fd) noexcept
-    : role_(role), node_(node), fd_(fd), decoder_(node) {}
+    : role_(role), node_(node), fd_(fd), decoder_(node), delta_(role == CanRole::host) {}
 
 proto::Error CanPacketCodec::check(CanRole role, bool fd, std::span<const std::uint8_t> packet) noexcept {
   CanPacketCodec scratch(role, proto::kCanNodeMin, fd);
@@ -91,6 +91,7 @@ CanPacketCodec::Encoded CanPacketCodec::encode(std::span<const std::uint8_t> pac
   if (packets == 0) {
     return {proto::decode_packet(packet).error, 0};  // the error a lone packet would give
   }
+  note_handshake(packet, role_);
   if (fd_ && packets > 1) {
     const auto dir =
         role_ == CanRole::host ? proto::Direction::host_to_device : proto::Direction::device_to_host;
@@ -162,6 +163,10 @@ CanPacketCodec::Encoded CanPacketCodec::encode_blocks(const proto::Message& m,
   for (std::size_t i = 0; i < count; ++i) {
     shadow_[first + i] = v != nullptr ? v->counts[i] : static_cast<std::uint16_t>(t->counts[i]);
   }
+  const std::size_t first_block = first / proto::kCanValuesPerBlock;
+  const std::size_t end_block = (end + proto::kCanValuesPerBlock - 1) / proto::kCanValuesPerBlock;
+  // 1.2 deltas: the blocks that go (every one in 1.1; see CanDeltaBlocks).
+  const std::uint16_t send = delta_blocks() ? delta_.select(shadow_, first_block, end_block) : 0xFFFFU;
   const auto counter = static_cast<std::uint8_t>(tx_blocks_ & 0xFU);
   ++tx_blocks_;
   std::size_t n = 0;
@@ -173,7 +178,10 @@ CanPacketCodec::Encoded CanPacketCodec::encode_blocks(const proto::Message& m,
     }
     n = 1;
   }
-  for (std::size_t b = first / proto::kCanValuesPerBlock; b * proto::kCanValuesPerBlock < end; ++b) {
+  for (std::size_t b = first_block; b < end_block; ++b) {
+    if ((send & (1U << b)) == 0) {
+      continue;
+    }
     const std::size_t start = b * proto::kCanValuesPerBlock;
     const auto values = static_cast<std::uint8_t>(std::min(proto::kCanValuesPerBlock, end - start));
     const proto::Message block = v != nullptr ? proto::Message(valve_block(start, values))
@@ -243,6 +251,7 @@ CanPacketCodec::Decoded CanPacketCodec::decode(const proto::CanFrame& frame) noe
     out.error = proto::Error::unknown_type;
     return out;
   }
+  note_handshake(m, false);
   if (frame.fd) {
     // The peer's own packet and sequence, end to end.
     finish(out, m, d.sequence);
@@ -295,6 +304,49 @@ void CanPacketCodec::reset() noexcept {
   status_counter_.reset();
   have_time_ = false;
   lost_ = 0;
+  peer_major_ = peer_minor_ = 0;
+  delta_.reset();
+}
+
+bool CanPacketCodec::delta_blocks() const noexcept {
+  return !fd_ && proto::reads_delta_blocks(own_major_, own_minor_) &&
+         proto::reads_delta_blocks(peer_major_, peer_minor_);
+}
+
+void CanPacketCodec::note_handshake(std::span<const std::uint8_t> packet, CanRole sender) noexcept {
+  // The handshake's packets go first in their report (and alone on CAN): only the first is read,
+  // and only when its type byte says IdentifyRequest or Identity.
+  constexpr std::size_t kTypeByte = 1;
+  if (packet.size() <= kTypeByte ||
+      (packet[kTypeByte] != static_cast<std::uint8_t>(proto::MessageType::identify_request) &&
+       packet[kTypeByte] != static_cast<std::uint8_t>(proto::MessageType::identity))) {
+    return;
+  }
+  const proto::PacketDecoded p = proto::decode_first_packet(packet);
+  if (p.error == proto::Error::ok) {
+    note_handshake(p.message, sender == role_);
+  }
+}
+
+void CanPacketCodec::note_handshake(const proto::Message& m, bool own) noexcept {
+  std::uint8_t major = 0;
+  std::uint8_t minor = 0;
+  if (const auto* request = std::get_if<proto::IdentifyRequest>(&m)) {
+    major = request->host_major;
+    minor = request->host_minor;
+    // A new handshake: the unit's answer decides again, and every block goes at its next update.
+    if (own) {
+      peer_major_ = peer_minor_ = 0;
+    }
+    delta_.reset();
+  } else if (const auto* id = std::get_if<proto::Identity>(&m)) {
+    major = id->proto_major;
+    minor = id->proto_minor;
+  } else {
+    return;
+  }
+  (own ? own_major_ : peer_major_) = major;
+  (own ? own_minor_ : peer_minor_) = minor;
 }
 
 CanIdFilters can_receive_filters(CanRole role, std::uint8_t node) noexcept {

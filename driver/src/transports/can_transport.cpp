@@ -318,7 +318,11 @@ class CanTransport final : public QueuedTransport {
         next_frame_ = 0;
         frame_count_ = e.frames;
         if (e.frames == 0) {
-          stats_.dropped_packets.bump();  // nothing on this framing (a classic heartbeat echo)
+          if (e.unsent > 0) {
+            stats_.dropped_packets.bump();  // nothing on this framing (a classic heartbeat echo)
+          } else {
+            counters_.sent.bump();  // nothing the peer lacks
+          }
           continue;
         }
       }

@@ -89,6 +89,50 @@ MRSKIN_PROTOCOL_API CanEncodeResult encode_canfd_report(std::span<const std::uin
                                                         std::uint8_t node, Direction direction,
                                                         CanFrame& out) noexcept;
 
+// Protocol 1.2, classic CAN: delta blocks (docs/protocol.md, "Delta blocks (1.2)"). Between two
+// 1.2 peers the sender of a cyclic update (valve blocks, host to device; sensor blocks with their
+// TimeSync, device to host) sends a block only when one of its values differs from those last
+// sent, or when the block went unsent for kCanDeltaRefreshUpdates - 1 updates, so that a lost
+// frame heals within kCanDeltaRefreshUpdates updates (inside the 16-value rolling counter). The
+// host sends currents at will, so its update equal in every value to the last one is a refresh
+// and goes whole (the bridge's resend of unchanged currents): a host's update always carries a
+// block. The unit sends a sample every period: a quiet sample sends only its due blocks, after
+// its TimeSync. The frames keep 1.1's layout; only which of them go changes.
+inline constexpr std::size_t kCanDeltaRefreshUpdates = 10;
+inline constexpr std::uint8_t kCanDeltaBlocksMinor = 2;
+
+// Whether a peer that declared major.minor in the handshake reads delta blocks.
+constexpr bool reads_delta_blocks(std::uint8_t major, std::uint8_t minor) noexcept {
+  return major == kVersionMajor && minor >= kCanDeltaBlocksMinor;
+}
+
+// The sender's side of delta blocks for one kind of block (a node's 16 blocks of 4 values).
+// Pure arithmetic, no allocation.
+class MRSKIN_PROTOCOL_API CanDeltaBlocks {
+ public:
+  static constexpr std::size_t kValues = kCanMaxBlocks * kCanValuesPerBlock;
+  // repeat_refreshes: an update equal to the last goes whole (the host's valve blocks); false for
+  // the unit's sensor blocks.
+  explicit CanDeltaBlocks(bool repeat_refreshes) noexcept : repeat_refreshes_(repeat_refreshes) {}
+  // The blocks [first_block, end_block) of an update whose values (all 64, as the sender now
+  // holds them) are values: bit b of the result is set for each block to send. Records what
+  // goes as sent. end_block <= 16 and first_block < end_block, else 0.
+  std::uint16_t select(std::span<const std::uint16_t, kValues> values, std::size_t first_block,
+                       std::size_t end_block) noexcept;
+  // Every block goes at its next update (a new link, a new handshake).
+  void reset() noexcept { unsent_updates_.fill(kNeverSent); }
+
+ private:
+  static constexpr std::uint8_t kNeverSent = 0xFF;
+  bool repeat_refreshes_;
+  std::array<std::uint16_t, kValues> sent_{};
+  std::array<std::uint8_t, kCanMaxBlocks> unsent_updates_ = [] {
+    std::array<std::uint8_t, kCanMaxBlocks> a{};
+    a.fill(kNeverSent);
+    return a;
+  }();
+};
+
 struct CanDecoded {
   Error error = Error::ok;
   bool complete = false;      // a message is ready (false while a segmented transfer runs)

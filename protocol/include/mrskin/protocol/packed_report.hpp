@@ -33,6 +33,12 @@ constexpr bool reads_packed_reports(std::uint8_t major, std::uint8_t minor) noex
 MRSKIN_PROTOCOL_API EncodeResult append_packet(const Message& message, std::uint8_t sequence,
                                                std::span<std::uint8_t> report, std::size_t used) noexcept;
 
+// A report's first packet, as a 1.0 or 1.1 receiver reads a report: decode_packet over its first
+// kPacketMaxBytes bytes (the rest is padding to it, whatever the report's size).
+inline PacketDecoded decode_first_packet(std::span<const std::uint8_t> report) noexcept {
+  return decode_packet(report.first(std::min(report.size(), kPacketMaxBytes)));
+}
+
 // Walks the packets of one report (a hid_read() report, a CAN FD frame's data), in order; each
 // packet gets decode_packet's checks. The walk ends at the end of the bytes or at a 0x00 where a
 // packet would start. A packet whose framing holds (version, length within the report, CRC) but
@@ -42,12 +48,6 @@ MRSKIN_PROTOCOL_API EncodeResult append_packet(const Message& message, std::uint
 // with its error and ends the walk: its length cannot be trusted, so nothing after it is read.
 // The packets before it were handed out already. A report longer than kUsbSlotsMaxReportBytes
 // (the largest a unit may declare) gives one too_long.
-// A report's first packet, as a 1.0 or 1.1 receiver reads a report: decode_packet over its first
-// kPacketMaxBytes bytes (the rest is padding to it, whatever the report's size).
-inline PacketDecoded decode_first_packet(std::span<const std::uint8_t> report) noexcept {
-  return decode_packet(report.first(std::min(report.size(), kPacketMaxBytes)));
-}
-
 class MRSKIN_PROTOCOL_API PacketWalker {
  public:
   explicit PacketWalker(std::span<const std::uint8_t> report) noexcept : report_(report) {}

@@ -60,6 +60,10 @@ enum class CanRole : std::uint8_t { host, device };
 //    go one frame per cell, Status, Heartbeat and StateRequest as single frames, identity
 //    and configuration as segmented transfers. There is no Heartbeat echo on classic CAN:
 //    the device role sends none.
+//  - Classic CAN between two 1.2 sides (protocol 1.2's delta blocks, docs/protocol.md): a block
+//    goes only when its values changed, or every kCanDeltaRefreshUpdates updates, or (host) when
+//    the whole update repeats the last (a refresh). The codec learns both sides' versions from the
+//    handshake it carries (IdentifyRequest, Identity); a 1.1 side gets every block.
 //  - CAN FD: one frame per packet, the packet's bytes and sequence unchanged.
 //  - Packets from CAN FD frames keep the peer's sequence. On classic CAN every packet handed
 //    on (single frames and segmented transfers alike) is numbered by the codec: one more
@@ -102,9 +106,16 @@ class MRSKIN_DRIVER_API CanPacketCodec {
   // and change nothing but the loss accounting of this node's own frames.
   Decoded decode(const protocol::CanFrame& frame) noexcept;
 
-  // Forgets transfers, counters and the TimeSync (the link was lost); keeps the values last
-  // sent.
+  // Forgets transfers, counters, the TimeSync and the peer's version (the link was lost); keeps
+  // the values last sent, and sends every block at the next update.
   void reset() noexcept;
+
+  // A packet or report that `sender` sent and this codec neither encoded nor decoded (the mock's
+  // bus carries packets whole): the handshake's versions, which decide delta blocks. encode() and
+  // decode() note their own.
+  void note_handshake(std::span<const std::uint8_t> packet, CanRole sender) noexcept;
+  // Whether cyclic blocks go as deltas now (classic CAN, both sides 1.2).
+  [[nodiscard]] bool delta_blocks() const noexcept;
 
   [[nodiscard]] CanRole role() const noexcept { return role_; }
   [[nodiscard]] std::uint8_t node() const noexcept { return node_; }
@@ -117,6 +128,7 @@ class MRSKIN_DRIVER_API CanPacketCodec {
   [[nodiscard]] protocol::ValveCurrents valve_block(std::size_t start, std::uint8_t values) const noexcept;
   [[nodiscard]] protocol::Telemetry sensor_block(std::size_t start, std::uint8_t values) const noexcept;
   static void finish(Decoded& d, const protocol::Message& message, std::uint8_t sequence) noexcept;
+  void note_handshake(const protocol::Message& message, bool own) noexcept;
 
   CanRole role_;
   std::uint8_t node_;
@@ -128,6 +140,12 @@ class MRSKIN_DRIVER_API CanPacketCodec {
   std::uint8_t tx_heartbeat_ = 0;
   std::uint8_t tx_state_ = 0;                         // state requests (host) or status (device)
   std::array<std::uint16_t, kBlockValues> shadow_{};  // values last sent, for partial blocks
+  // The versions each side declared in the handshake (0.0: not seen yet).
+  std::uint8_t own_major_ = 0;
+  std::uint8_t own_minor_ = 0;
+  std::uint8_t peer_major_ = 0;
+  std::uint8_t peer_minor_ = 0;
+  protocol::CanDeltaBlocks delta_;
   // Receiving side.
   std::uint8_t rx_sequence_ = 0;                 // next number for a packet rebuilt from a single frame
   std::uint32_t lost_ = 0;                       // losses seen since the last packet handed on

@@ -122,6 +122,11 @@ struct MockOptions {
   double status_period_s = 0.1;      // status also goes out on every change
   double heartbeat_timeout_s = 0.1;  // valves released after this silence
   double sensor_noise_scale = 1.0;   // multiplies the profile's noise_std (0: noise-free)
+  // A sensor deadband in the unit's firmware, in counts (mock://?deadband=N, 0 to 100; 0: off):
+  // a block of 4 sensors (a classic CAN sensor block) whose every reading is within N counts of
+  // the values last sent in it is sent with those values again, so 1.2's delta blocks leave it
+  // out. The host sees readings up to N counts stale (docs/protocol.md, "Delta blocks (1.2)").
+  int sensor_deadband_counts = 0;
   std::uint32_t serial = 0x4D520001;
   double slew_time_s = 2.5e-3;  // current driver's slew limit: a full-scale step takes this long
   // Coil thermal model: C dT/dt = R I^2 + P_extra - (T - T_ambient) / R_th (R: the profile's).
