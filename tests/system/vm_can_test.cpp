@@ -4,19 +4,24 @@
 // frames, which the session survives. Needs vcan0 up with MTU 72 (guest-tests.sh).
 #include <gtest/gtest.h>
 
+#include <algorithm>
 #include <array>
+#include <cmath>
 #include <cstdint>
 #include <fstream>
 #include <map>
+#include <numeric>
 #include <optional>
 #include <set>
 #include <span>
 #include <sstream>
 #include <string>
 #include <thread>
+#include <tuple>
 #include <vector>
 
 #include "mrskin/driver/device.hpp"
+#include "mrskin/protocol/bus_budget.hpp"
 #include "mrskin/protocol/can.hpp"
 #include "mrskin/protocol/packed_report.hpp"
 #include "vm_support.hpp"
@@ -108,6 +113,11 @@ struct CheckReport {
   std::size_t injected_seen = 0;
   std::map<std::string, std::size_t> kinds;
   std::vector<std::string> problems;
+  // Classic CAN, per cyclic update: the sensor blocks after each TimeSync (the last sample, which
+  // the recording's end may cut short, left out), the valve blocks of each rolling-counter value
+  // (the session is closed before the recording ends: every update is whole).
+  std::vector<int> sensor_blocks_per_sample;
+  std::vector<int> valve_blocks_per_update;
 };
 
 // Every frame except markers and injected ones must be a protocol-v1 frame of node kNode on
@@ -120,6 +130,9 @@ CheckReport check_recording(const std::vector<LoggedFrame>& frames, bool fd,
   std::map<std::string, int> last;  // rolling counter / sequence per stream
   int last_valve_block = -1;
   int timesync_counter = -1;
+  int sensor_blocks = -1;  // since the last TimeSync (-1: none yet)
+  int valve_counter = -1;
+  int valve_blocks = 0;
   const auto problem = [&r](const LoggedFrame& f, const std::string& what) {
     if (r.problems.size() < 20) {
       r.problems.push_back(f.text + ": " + what);
@@ -198,9 +211,18 @@ CheckReport check_recording(const std::vector<LoggedFrame>& frames, bool fd,
         // Blocks of one update share a counter; the next update starts at a lower block.
         follow(f, "valve counter", counter, 16, block > last_valve_block);
         last_valve_block = block;
+        if (counter != valve_counter) {
+          if (valve_counter >= 0) {
+            r.valve_blocks_per_update.push_back(valve_blocks);
+          }
+          valve_counter = counter;
+          valve_blocks = 0;
+        }
+        ++valve_blocks;
         break;
       case proto::CanFunction::sensor_block:
         ++r.kinds["sensor block"];
+        sensor_blocks += sensor_blocks >= 0 ? 1 : 0;
         if (counter != timesync_counter) {
           problem(f, "sensor block counter " + std::to_string(counter) + " is not its TimeSync's " +
                          std::to_string(timesync_counter));
@@ -224,6 +246,10 @@ CheckReport check_recording(const std::vector<LoggedFrame>& frames, bool fd,
             ++r.kinds["time sync"];
             follow(f, "sample counter", counter, 16, false);
             timesync_counter = counter;
+            if (sensor_blocks >= 0) {
+              r.sensor_blocks_per_sample.push_back(sensor_blocks);
+            }
+            sensor_blocks = 0;
             break;
           case proto::CanManagement::state_request:
             ++r.kinds["state request"];
@@ -243,17 +269,28 @@ CheckReport check_recording(const std::vector<LoggedFrame>& frames, bool fd,
         problem(f, "unknown function");
     }
   }
+  if (valve_counter >= 0) {
+    r.valve_blocks_per_update.push_back(valve_blocks);
+  }
   return r;
 }
 
-class CanVm : public ::testing::TestWithParam<bool> {};
+// The framing and the host's protocol minor version (1.2: packed FD frames, classic delta blocks).
+struct CanVmCase {
+  bool fd = false;
+  std::uint8_t host_minor = proto::kVersionMinor;
+};
+
+class CanVm : public ::testing::TestWithParam<CanVmCase> {};
 
 TEST_P(CanVm, SessionOnVcanIsRecordedFrameByFrameAndSurvivesInjectedFrames) {
-  const bool fd = GetParam();
+  const bool fd = GetParam().fd;
+  const std::uint8_t host_minor = GetParam().host_minor;
   const std::string uri = std::string("can://vcan0?node=3") + (fd ? "&fd=1" : "");
   // Recorded to the guest's tmpfs (a 9p write per line would make candump drop frames),
   // with a large receive buffer; copied to the output folder afterwards.
-  const std::string name = fd ? "candump-fd.log" : "candump-classic.log";
+  const std::string name = std::string(fd ? "candump-fd" : "candump-classic") +
+                           (host_minor < 2 ? "-1." + std::to_string(host_minor) : "") + ".log";
   const std::string log = "/tmp/" + name;
 
   // The recorder, ready once it has logged a marker frame.
@@ -269,7 +306,9 @@ TEST_P(CanVm, SessionOnVcanIsRecordedFrameByFrameAndSurvivesInjectedFrames) {
   MonotonicClock clock;
   auto mock = start_mock(clock);
   auto node = std::make_unique<CanNode>(mock, uri);
-  auto opened = open_device(uri, clock);
+  OpenOptions open;
+  open.session.protocol_minor = host_minor;
+  auto opened = open_device(uri, clock, open);
   DeviceSession& session = *opened.session;
 
   // Handshake (identity and profile over the bus), enable, currents the plant's coils follow,
@@ -323,6 +362,8 @@ TEST_P(CanVm, SessionOnVcanIsRecordedFrameByFrameAndSurvivesInjectedFrames) {
       static_cast<unsigned long long>(c.decode_errors), static_cast<unsigned long long>(c.sequence_gaps),
       static_cast<unsigned long long>(node->to_bus()), static_cast<unsigned long long>(node->from_bus()),
       static_cast<unsigned long long>(node->dropped()));
+  const std::size_t valves = session.info().valves;
+  const std::size_t sensors = session.info().sensors;
   opened.session.reset();
   node.reset();
   mock->stop();
@@ -343,6 +384,45 @@ TEST_P(CanVm, SessionOnVcanIsRecordedFrameByFrameAndSurvivesInjectedFrames) {
   }
   EXPECT_GT(r.protocol_frames, 100U);
   EXPECT_EQ(r.injected_seen, inject.size());
+  if (!fd) {
+    // The frames of each update against the bus budget's full update (docs/protocol.md, "Bus
+    // budget"): equal in 1.1; in 1.2 (delta blocks) at most that, all of it at least once.
+    proto::CyclicTraffic traffic;
+    traffic.valves = valves;
+    traffic.sensors = sensors;
+    const proto::BusBudget budget =
+        proto::compute_bus_budget(proto::default_bus_spec(proto::BusKind::can_classic), traffic);
+    const int valve_budget = static_cast<int>(
+        std::lround((budget.host_to_device.units_per_s - traffic.heartbeat_hz) / traffic.update_rate_hz));
+    const int sensor_budget =
+        static_cast<int>(std::lround((budget.device_to_host.units_per_s - traffic.status_hz) /
+                                     traffic.telemetry_rate_hz)) -
+        1;  // less the TimeSync
+    const auto summary = [](const std::vector<int>& v) {
+      const double mean =
+          v.empty() ? 0.0 : std::accumulate(v.begin(), v.end(), 0.0) / static_cast<double>(v.size());
+      return std::tuple(v.empty() ? 0 : *std::min_element(v.begin(), v.end()),
+                        v.empty() ? 0 : *std::max_element(v.begin(), v.end()), mean, v.size());
+    };
+    const auto [s_min, s_max, s_mean, samples] = summary(r.sensor_blocks_per_sample);
+    const auto [v_min, v_max, v_mean, updates] = summary(r.valve_blocks_per_update);
+    std::printf(
+        "vm-can[classic, host 1.%d]: budget per update: %d valve blocks, TimeSync + %d sensor blocks; "
+        "recorded: %zu samples, sensor blocks per sample min %d max %d mean %.2f; %zu valve updates, "
+        "blocks per update min %d max %d mean %.2f\n",
+        host_minor, valve_budget, sensor_budget, samples, s_min, s_max, s_mean, updates, v_min, v_max,
+        v_mean);
+    EXPECT_GT(samples, 100U);
+    EXPECT_GE(updates, 1U);  // the session sends its currents once
+    EXPECT_EQ(s_max, sensor_budget);
+    EXPECT_EQ(v_max, valve_budget);
+    if (host_minor < 2) {
+      EXPECT_EQ(s_min, sensor_budget);
+      EXPECT_EQ(v_min, valve_budget);
+    } else {
+      EXPECT_GE(v_min, 1);  // a host's update always carries a block
+    }
+  }
   if (fd) {
     EXPECT_GT(r.kinds.count("device packets") != 0 ? r.kinds.at("device packets") : 0U, 50U);
     EXPECT_GT(r.kinds.count("host packets") != 0 ? r.kinds.at("host packets") : 0U, 3U);
@@ -355,8 +435,13 @@ TEST_P(CanVm, SessionOnVcanIsRecordedFrameByFrameAndSurvivesInjectedFrames) {
   }
 }
 
-INSTANTIATE_TEST_SUITE_P(Vcan, CanVm, ::testing::Values(false, true),
-                         [](const ::testing::TestParamInfo<bool>& p) { return p.param ? "fd" : "classic"; });
+INSTANTIATE_TEST_SUITE_P(Vcan, CanVm,
+                         ::testing::Values(CanVmCase{false, proto::kVersionMinor}, CanVmCase{false, 1},
+                                           CanVmCase{true, proto::kVersionMinor}),
+                         [](const ::testing::TestParamInfo<CanVmCase>& p) {
+                           return std::string(p.param.fd ? "fd" : "classic") +
+                                  (p.param.host_minor < 2 ? "_host_1_1" : "");
+                         });
 
 }  // namespace
 }  // namespace mrskin::vmtest
