@@ -367,6 +367,20 @@ TEST_F(MrskinctlBridge, ARefusalIsExit1AndGarbageDoesNotCrash) {
   }
 }
 
+// A daemon whose lease names another framing (or none: a release before the u16 length) is
+// refused before a datagram is framed wrongly.
+TEST_F(MrskinctlBridge, ALeaseInAnotherFramingIsRefused) {
+  for (const char* answer :
+       {"{\"ok\":true,\"cmd\":\"lease\"}\n", "{\"ok\":true,\"cmd\":\"lease\",\"framing\":\"u8 length\"}\n"}) {
+    fs::remove(socket_);
+    const FakeDaemon fake(socket_, {answer});
+    const Result r = ctl({"selftest", "--bridge", socket_});
+    EXPECT_NE(r.code, 0) << answer << r.out << r.err;
+    EXPECT_NE(r.err.find("frames its device lease as"), std::string::npos) << r.err;
+    EXPECT_NE(r.err.find("of the same mrskin release"), std::string::npos) << r.err;
+  }
+}
+
 TEST(ControlRequestGrid, TelemetryTakesAGridFlag) {
   mrskin::bridged::ControlRequest r;
   std::string error;

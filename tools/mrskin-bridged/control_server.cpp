@@ -20,6 +20,7 @@
 
 #include "json_reply.hpp"
 #include "json_text.hpp"
+#include "lease_framing.hpp"
 
 namespace mrskin::bridged {
 namespace {
@@ -497,9 +498,7 @@ void ControlServer::handle_line(Client& c, std::string_view line) {
             ctl::json_number(b->data_bitrate_bit_per_s));
       }
     }
-    send(c,
-         fmt::format(
-             R"({{"ok":true,"cmd":"lease","framing":"u16le length, then the datagram, both ways"{}}})", bus));
+    send(c, fmt::format(R"({{"ok":true,"cmd":"lease","framing":"{}"{}}})", tools::kLeaseFraming, bus));
     c.leased = true;
     event(fmt::format("control socket: the device is leased to {} (bridge halted)", c.who));
   } else if (r.cmd == "stop") {

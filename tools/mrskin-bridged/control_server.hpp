@@ -12,6 +12,7 @@
 #include <thread>
 #include <vector>
 
+#include "lease_framing.hpp"
 #include "mrskin/driver/errors.hpp"
 #include "mrskin/driver/transport.hpp"
 
@@ -61,8 +62,9 @@ bool parse_request(std::string_view line, ControlRequest& out, std::string& erro
 
 class ControlServer {
  public:
-  static constexpr std::size_t kMaxLine = 4096;        // longer request lines: error, closed
-  static constexpr std::size_t kLeaseLengthBytes = 2;  // a leased datagram's length prefix, u16 LE
+  static constexpr std::size_t kMaxLine = 4096;  // longer request lines: error, closed
+  static constexpr std::size_t kLeaseLengthBytes =
+      tools::kLeaseLengthBytes;  // a leased datagram's length prefix
   static constexpr std::size_t kMaxPending =
       std::size_t{256} * 1024;  // unsent bytes before a client is dropped
 

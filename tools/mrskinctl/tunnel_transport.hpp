@@ -22,6 +22,7 @@
 #include <string_view>
 
 #include "bridge_client.hpp"
+#include "lease_framing.hpp"
 #include "mrskin/driver/errors.hpp"
 #include "mrskin/driver/transport.hpp"
 #include "mrskin/protocol/bus_budget.hpp"
@@ -44,6 +45,13 @@ class TunnelTransport final : public Transport {
     if (reply.text("ok") != "true") {
       throw DeviceBusy(fmt::format("mrskin-bridged on {} refused the device lease: {}", socket_path,
                                    reply.text("error").value_or(*ack)));
+    }
+    if (const std::optional<std::string> framing = reply.text("framing"); framing != tools::kLeaseFraming) {
+      throw Error(fmt::format(
+          "mrskin-bridged on {} frames its device lease as '{}', this mrskinctl as '{}': use mrskinctl "
+          "and mrskin-bridged of the same mrskin release",
+          socket_path, framing.value_or("(not said: an older daemon, one length byte)"),
+          tools::kLeaseFraming));
     }
     bus_ = bus_of(reply);
     auto [fd, rest] = c.release();
