@@ -252,6 +252,9 @@ bool UhidUnit::write_bus(const Datagram& d) {
   if (!present_.load()) {
     return false;  // unplugged: the packet is lost with the cable
   }
+  if (d.length > protocol::kHidReportBytes) {
+    return false;  // the unit's descriptor has 64-byte reports: a larger datagram has no form here
+  }
   uhid_event ev{};
   ev.type = UHID_INPUT2;
   ev.u.input2.size = static_cast<std::uint16_t>(protocol::kHidReportBytes);
@@ -318,8 +321,8 @@ bool GadgetUnit::read_bus(int timeout_ms, const std::function<void(const Datagra
 }
 
 bool GadgetUnit::write_bus(const Datagram& d) {
-  if (fd_ < 0) {
-    return false;
+  if (fd_ < 0 || d.length > protocol::kHidReportBytes) {
+    return false;  // the gadget's reports are 64 bytes (full speed): a larger datagram has no form
   }
   std::array<std::uint8_t, protocol::kHidReportBytes> report{};
   std::copy_n(d.bytes.begin(), d.length, report.begin());
