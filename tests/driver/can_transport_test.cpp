@@ -1355,19 +1355,30 @@ TEST(CanDelta, OnlyChangedBlocksGoAndALostFrameHealsAtTheRefresh) {
     SCOPED_TRACE(static_cast<int>(minor));
     SessionOptions options;
     options.protocol_minor = minor;
+    // Written by the transport's I/O thread (under the bus's lock), read here: declared before the
+    // rig, which outlives them otherwise.
+    std::atomic<std::uint64_t> frames{0};
+    std::atomic<bool> lose_block2{false};
+    std::atomic<bool> lost{false};
     CanRig rig(false, options);
     const std::size_t valves = rig.session->info().valves;
     ASSERT_EQ(valves, 12U);
     ASSERT_EQ(rig.session->request_enable(), ResultCode::ok);
-    std::uint64_t frames = 0;
-    int lost_at = -1;
-    rig.node->drop = [&](const proto::CanFrame& f) {
-      const bool valve = (f.id >> 8U) == static_cast<unsigned>(proto::CanFunction::valve_block);
-      frames += valve ? 1 : 0;
-      // Block 2 (valves 8..11) at the tick valve 8 changes: lost once.
-      return valve && ((f.id >> 4U) & 0xFU) == 2 && lost_at < 0 && rig.currents[8] > 0.05 &&
-             (lost_at = static_cast<int>(rig.clock.now().count() / 1'000'000)) >= 0;
-    };
+    {
+      const std::lock_guard lock(rig.bus->mu);
+      rig.node->drop = [&frames, &lose_block2, &lost](const proto::CanFrame& f) {
+        if ((f.id >> 8U) != static_cast<unsigned>(proto::CanFunction::valve_block)) {
+          return false;
+        }
+        frames.fetch_add(1);
+        // Block 2 (valves 8..11) at the tick valve 8 changes: lost once.
+        if (((f.id >> 4U) & 0xFU) == 2 && lose_block2.exchange(false)) {
+          lost = true;
+          return true;
+        }
+        return false;
+      };
+    }
     std::vector<double> commanded(valves, 0.0);
     std::vector<double> applied(valves);
     int wrong_ticks = 0;
@@ -1375,6 +1386,9 @@ TEST(CanDelta, OnlyChangedBlocksGoAndALostFrameHealsAtTheRefresh) {
       rig.currents.assign(valves, 0.04);
       rig.currents[0] = 0.001 * (k % 20);        // block 0 changes every tick
       rig.currents[8] = k >= 100 ? 0.06 : 0.04;  // block 2 changes once, at tick 100
+      if (k == 100) {
+        lose_block2 = true;  // the frame that carries the change is lost
+      }
       rig.run(1);
       rig.mock->applied_currents(applied);
       if (k >= 10) {  // what the unit applies at a step is what it was sent the tick before
@@ -1386,9 +1400,12 @@ TEST(CanDelta, OnlyChangedBlocksGoAndALostFrameHealsAtTheRefresh) {
       }
       commanded = rig.currents;
     }
-    EXPECT_EQ(rig.node->codec().delta_blocks(), minor == 2);
-    valve_frames[minor == 2 ? 0 : 1] = frames;
-    ASSERT_GE(lost_at, 0);
+    {
+      const std::lock_guard lock(rig.bus->mu);
+      EXPECT_EQ(rig.node->codec().delta_blocks(), minor == 2);
+    }
+    valve_frames[minor == 2 ? 0 : 1] = frames.load();
+    ASSERT_TRUE(lost.load());
     if (minor == 2) {
       // Block 2 is wrong from the lost frame to its refresh: at most 10 updates.
       EXPECT_GE(wrong_ticks, 1);
