@@ -208,7 +208,10 @@ Bridge::Impl::Impl(DeviceSession& session, SlaveSource& source, BridgeOptions op
   sensor_reading_.assign(profile->sensors.size(), 0.0);
   model_ = std::make_unique<model::DeviceModel>(model::apply_calibration(*profile, calibration));
   observer_ = std::make_unique<model::CellObserver>(*model_, options_.observer);
-  sensor_faults_ = std::make_unique<SensorFaultMonitor>(*profile, layout_, options_.sensor_faults);
+  // A unit's declared deadband (protocol 1.2) repeats readings: no evidence of a stuck sensor.
+  const double reading_deadband = session.info().sensor_deadband_counts * session.info().sensor_lsb;
+  sensor_faults_ =
+      std::make_unique<SensorFaultMonitor>(*profile, layout_, options_.sensor_faults, reading_deadband);
   inverse_ = std::make_unique<model::CellInverse>(*model_, options_.inverse);
   valve_gain_.assign(layout_.valve_count(), 1.0);
   for (std::size_t v = 0; v < valve_gain_.size(); ++v) {

@@ -48,7 +48,8 @@ std::size_t stuck_run_for(double noise_std, double resolution, double p) {
 // The monitor's state, behind SensorFaultMonitor's one pointer (docs/api.md, "ABI").
 class __attribute__((visibility("hidden"))) SensorFaultMonitor::Impl {
  public:
-  Impl(const model::DeviceProfile& profile, const GridLayout& layout, const SensorFaultOptions& options);
+  Impl(const model::DeviceProfile& profile, const GridLayout& layout, const SensorFaultOptions& options,
+       double reading_deadband);
 
   std::size_t update(std::span<const double> readings, std::span<const double> residual_sigma) noexcept;
   void reset() noexcept;
@@ -79,6 +80,7 @@ class __attribute__((visibility("hidden"))) SensorFaultMonitor::Impl {
   SensorFaultOptions options_;
   std::vector<unsigned char> watched_;  // displacement sensors
   std::vector<double> sigma_;           // noise and quantisation, in the reading's unit
+  std::vector<double> deadband_sigma_;  // the unit's deadband in sigma_ (0: none)
   std::vector<std::size_t> stuck_run_;
   std::vector<std::size_t> cells_begin_;
   std::vector<std::size_t> cells_;
@@ -98,8 +100,11 @@ class __attribute__((visibility("hidden"))) SensorFaultMonitor::Impl {
 };
 
 SensorFaultMonitor::Impl::Impl(const model::DeviceProfile& profile, const GridLayout& layout,
-                               const SensorFaultOptions& options)
+                               const SensorFaultOptions& options, double reading_deadband)
     : options_(options) {
+  if (!(reading_deadband >= 0.0) || !std::isfinite(reading_deadband)) {
+    throw InvalidArgument("sensor fault monitor: the sensor deadband must be finite and >= 0 (0: none)");
+  }
   if (!(options.false_alarm_probability > 0.0 && options.false_alarm_probability < 1.0) ||
       !(options.noise_ratio_limit > 1.0) || !(options.noise_window_readings >= 1.0) ||
       !(options.offset_limit_sigma > 0.0) || !(options.offset_window_readings >= 1.0)) {
@@ -111,6 +116,7 @@ SensorFaultMonitor::Impl::Impl(const model::DeviceProfile& profile, const GridLa
   const std::size_t cells = layout.fluid_cell_count();
   watched_.assign(n, 0);
   sigma_.assign(n, 0.0);
+  deadband_sigma_.assign(n, 0.0);
   stuck_run_.assign(n, npos);
   readers_of_cell_.assign(cells, 0);
   cells_begin_.push_back(0);
@@ -120,6 +126,7 @@ SensorFaultMonitor::Impl::Impl(const model::DeviceProfile& profile, const GridLa
       watched_[k] = 1;
       sigma_[k] = std::sqrt(s.noise_std * s.noise_std + s.resolution * s.resolution / 12.0);
       stuck_run_[k] = stuck_run_for(s.noise_std, s.resolution, options.false_alarm_probability);
+      deadband_sigma_[k] = sigma_[k] > 0.0 ? reading_deadband / sigma_[k] : 0.0;
       if (s.place == model::PlaceKind::fluid_cell) {
         cells_.push_back(s.index);
       } else {
@@ -214,7 +221,13 @@ std::size_t SensorFaultMonitor::Impl::update(std::span<const double> readings,
     if (!std::isfinite(y)) {
       continue;  // the observer refuses the tick; nothing to judge
     }
-    run_[k] = seen_[k] > 0 && y == last_[k] ? run_[k] + 1 : 1;
+    const double r = residual_sigma[k];
+    if (seen_[k] == 0 || y != last_[k]) {
+      run_[k] = 1;
+    } else if (deadband_sigma_[k] == 0.0 ||
+               (std::isfinite(r) && std::abs(r) > deadband_sigma_[k] + kDeadbandMarginSigma)) {
+      ++run_[k];  // a repeat the deadband does not explain
+    }             // else: a repeat within the band is no evidence either way; the run holds
     if (seen_[k] >= 2) {
       const double d2 = y - 2.0 * last_[k] + before_last_[k];
       // One jump (a finger's tap, a gap in the readings) must not pass for noise: each reading
@@ -226,7 +239,7 @@ std::size_t SensorFaultMonitor::Impl::update(std::span<const double> readings,
     before_last_[k] = last_[k];
     last_[k] = y;
     seen_[k] = std::min<std::size_t>(seen_[k] + 1, 2);
-    if (const double r = residual_sigma[k]; std::isfinite(r)) {
+    if (std::isfinite(r)) {
       const double cap = kOutlierCap * options_.offset_limit_sigma;
       mean_residual_[k] += offset_alpha * (std::clamp(r, -cap, cap) - mean_residual_[k]);
     }
@@ -265,8 +278,8 @@ std::size_t SensorFaultMonitor::Impl::update(std::span<const double> readings,
 // --- the public face: one pointer to the state ---------------------------------------------
 
 SensorFaultMonitor::SensorFaultMonitor(const model::DeviceProfile& profile, const GridLayout& layout,
-                                       const SensorFaultOptions& options)
-    : impl_(std::make_unique<Impl>(profile, layout, options)) {}
+                                       const SensorFaultOptions& options, double reading_deadband)
+    : impl_(std::make_unique<Impl>(profile, layout, options, reading_deadband)) {}
 SensorFaultMonitor::SensorFaultMonitor(const SensorFaultMonitor& other)
     : impl_(std::make_unique<Impl>(*other.impl_)) {}
 SensorFaultMonitor& SensorFaultMonitor::operator=(const SensorFaultMonitor& other) {

@@ -594,6 +594,10 @@ void DeviceSession::Impl::handle_packet(const proto::PacketDecoded& p, TimePoint
     c.progress = true;
   } else if (const auto* us = std::get_if<proto::UsbSlots>(&p.message)) {
     apply_usb_slots(*us);
+  } else if (const auto* sd = std::get_if<proto::SensorDeadband>(&p.message)) {
+    if (packing_) {  // a unit declares it only once 1.2 is agreed
+      info_.sensor_deadband_counts = sd->counts;
+    }
   } else if (const auto* ca = std::get_if<proto::ConfigAck>(&p.message)) {
     if (config_.active && ca->key == config_.key) {
       config_.acked = true;
@@ -630,6 +634,7 @@ ResultCode DeviceSession::Impl::poll(TimePoint now) noexcept {
       drop_report();
       report_capacity_ = proto::kHidReportBytes;  // until it declares its reports again
       info_.usb_slots.reset();
+      info_.sensor_deadband_counts = 0;  // until it declares one again
       ++counters_.disconnects;
       backoff_ = options_.reconnect_backoff_min;
       next_reconnect_ = now + backoff_;

@@ -137,6 +137,9 @@ std::vector<LogEntry> DeviceSession::Impl::decode_log(const std::vector<TrafficR
       e.kind = "usb slots";
       e.detail = fmt::format("{} reports of {} bytes every {} us", us->reports_per_interval, us->report_bytes,
                              us->interval_us);
+    } else if (const auto* sd = std::get_if<proto::SensorDeadband>(&p.message)) {
+      e.kind = "sensor deadband";
+      e.detail = fmt::format("{} counts", sd->counts);
     }
     out.push_back(std::move(e));
   }

@@ -58,7 +58,7 @@ bool is_segmented(const Message& m) noexcept {
   return std::holds_alternative<IdentifyRequest>(m) || std::holds_alternative<Identity>(m) ||
          std::holds_alternative<ConfigRead>(m) || std::holds_alternative<ConfigData>(m) ||
          std::holds_alternative<ConfigWrite>(m) || std::holds_alternative<ConfigAck>(m) ||
-         std::holds_alternative<UsbSlots>(m);
+         std::holds_alternative<UsbSlots>(m) || std::holds_alternative<SensorDeadband>(m);
 }
 bool host_to_device(const Message& m) noexcept {
   return std::holds_alternative<IdentifyRequest>(m) || std::holds_alternative<ConfigRead>(m) ||

@@ -13,7 +13,7 @@ MessageType type_of(const Message& m) noexcept {
       MessageType::cell_targets,     MessageType::telemetry,   MessageType::time_sync,
       MessageType::status,           MessageType::heartbeat,   MessageType::state_request,
       MessageType::config_read,      MessageType::config_data, MessageType::config_write,
-      MessageType::config_ack,       MessageType::usb_slots};
+      MessageType::config_ack,       MessageType::usb_slots,   MessageType::sensor_deadband};
   static_assert(std::size(kTypes) == std::variant_size_v<Message>);
   return kTypes[m.index()];
 }
@@ -89,6 +89,10 @@ Error check(const UsbSlots& m) noexcept {
     return Error::out_of_range;
   }
   return Error::ok;
+}
+
+Error check(const SensorDeadband& m) noexcept {
+  return m.counts > kSensorDeadbandMaxCounts ? Error::out_of_range : Error::ok;
 }
 
 }  // namespace

@@ -97,6 +97,7 @@ void put(Writer& w, const UsbSlots& m) noexcept {
   w.u8(m.reports_per_interval);
   w.u16(m.interval_us);
 }
+void put(Writer& w, const SensorDeadband& m) noexcept { w.u8(m.counts); }
 
 // Each get() reads the payload and returns the length the payload must have.
 std::size_t get(Reader& r, IdentifyRequest& m) noexcept {
@@ -202,6 +203,10 @@ std::size_t get(Reader& r, UsbSlots& m) noexcept {
   m.reports_per_interval = r.u8();
   m.interval_us = r.u16();
   return 5;
+}
+std::size_t get(Reader& r, SensorDeadband& m) noexcept {
+  m.counts = r.u8();
+  return 1;
 }
 
 // Default-constructed alternatives, built at compile time: copying one is a trivial copy

@@ -132,6 +132,41 @@ TEST_F(Monitor, AStuckSensorIsFoundWithinItsRun) {
   EXPECT_EQ(m.healthy_count(), profile.sensors.size() - 1);
 }
 
+// A unit's declared deadband (protocol 1.2's SensorDeadband: 2 counts, 5 um here) holds a
+// healthy reading for as long as its value stays within the band: no run of such repeats is a
+// stuck sensor. A stuck one is found once the observer's residual for it leaves what the band
+// explains, within its run.
+TEST_F(Monitor, ARepeatWithinADeadbandIsNoEvidenceOfAStuckSensor) {
+  const double band_m = 2 * profile.sensors[3].resolution;
+  SensorFaultMonitor m(profile, layout, {}, band_m);
+  const std::size_t run = m.stuck_run_readings(3);
+  const double sigma = std::sqrt(std::pow(profile.sensors[3].noise_std, 2) +
+                                 std::pow(profile.sensors[3].resolution, 2) / 12.0);
+  const double band_sigma = band_m / sigma;
+  std::vector<double> residual(profile.sensors.size(), 0.0);
+  // Every reading held (the band at rest), with residuals up to what the band explains.
+  const std::vector<double> held = readings(0.0);
+  for (std::size_t k = 0; k < 100 * run; ++k) {
+    residual[3] = (k % 2 == 0 ? 1.0 : -1.0) * (band_sigma + SensorFaultMonitor::kDeadbandMarginSigma);
+    ASSERT_EQ(m.update(held, residual), SensorFaultMonitor::npos) << "reading " << k;
+  }
+  // The finger moves; sensor 3 stays where it was, and its residual grows past the band.
+  residual[3] = band_sigma + SensorFaultMonitor::kDeadbandMarginSigma + 1.0;
+  std::size_t found = SensorFaultMonitor::npos;
+  std::size_t at = 0;
+  for (std::size_t k = 0; k < 2 * run && found == SensorFaultMonitor::npos; ++k) {
+    std::vector<double> y = readings(50e-6);
+    y[3] = held[3];
+    found = m.update(y, residual);
+    at = k + 1;
+  }
+  EXPECT_EQ(found, 3U);
+  EXPECT_EQ(m.fault(3), SensorFault::stuck);
+  EXPECT_LE(at, run);  // the held readings before counted for nothing, and reset nothing either
+  EXPECT_THROW(SensorFaultMonitor(profile, layout, {}, -1e-6), InvalidArgument);
+  EXPECT_THROW(SensorFaultMonitor(profile, layout, {}, std::nan("")), InvalidArgument);
+}
+
 TEST_F(Monitor, ANoisySensorIsFound) {
   SensorFaultMonitor m(profile, layout, {});
   const std::vector<double> residual(profile.sensors.size(), 0.0);
@@ -387,6 +422,41 @@ TEST(SensorFaults, NoFalseAlarmOnTheScenes) {
     std::printf("%-8s max noise ratio %.2f  max |mean residual| %.2f sigma\n", std::string(name).c_str(),
                 noise, residual);
   }
+}
+
+// Classic CAN's unit declares a 2-count sensor deadband (protocol 1.2): its held readings raise no
+// false alarm on the scenes. A stuck sensor is found once the finger moves its cells, within its
+// run of the residual leaving the band: sensor 3 (under the demo's press) within 200 ms. At rest
+// it cannot be told from a healthy one, and reads right within the band: sensor 11, whose cells
+// only `tumour` presses, is found there, and on the demo is never found and does no harm.
+TEST(SensorFaults, BehindAClassicCanDeadbandNoFalseAlarmAndAStuckSensorIsFoundOncePressed) {
+  for (const std::string_view name : scene_names()) {
+    const FaultRun r = run(std::string(name), kFull ? 6.0 : 2.0, "mock://?seed=7&bus=can");
+    EXPECT_EQ(r.stats.sensor_faults, 0U) << name;
+    for (const SensorFaultEvent& e : r.events) {
+      ADD_FAILURE() << name << ": sensor " << e.sensor << " " << to_string(e.fault) << " at " << e.at_s
+                    << " s";
+    }
+  }
+  const FaultRun pressed = run("demo", 1.0, "mock://?seed=7&bus=can&faults=stuck:3");
+  ASSERT_EQ(pressed.events.size(), 1U);
+  EXPECT_EQ(pressed.events[0].sensor, 3U);
+  EXPECT_EQ(pressed.events[0].fault, SensorFault::stuck);
+  EXPECT_LE(pressed.events[0].at_s, 0.2);
+  EXPECT_FALSE(pressed.halted);
+  const FaultRun at_rest = run("demo", 4.0, "mock://?seed=7&bus=can&faults=stuck:11");
+  EXPECT_TRUE(at_rest.events.empty());
+  EXPECT_LE(at_rest.stats.force_rms_error_N(), 0.04);
+  EXPECT_LE(at_rest.stats.true_state_rms_error_N(), 0.04);
+  const FaultRun tumour = run("tumour", 3.5, "mock://?seed=7&bus=can&faults=stuck:11");
+  ASSERT_EQ(tumour.events.size(), 1U);
+  EXPECT_EQ(tumour.events[0].sensor, 11U);
+  EXPECT_EQ(tumour.events[0].fault, SensorFault::stuck);
+  std::printf(
+      "stuck:3 on the demo found at %.3f s; stuck:11 on tumour at %.3f s; on the demo unfound, "
+      "rms %.4f N (true state %.4f N)\n",
+      pressed.events[0].at_s, tumour.events[0].at_s, at_rest.stats.force_rms_error_N(),
+      at_rest.stats.true_state_rms_error_N());
 }
 
 // The leak is not seen (docs/reliability.md): the pads follow the finger whatever the valves

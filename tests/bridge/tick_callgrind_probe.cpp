@@ -16,11 +16,15 @@
 //         grid100   64 x 64, every fluid cell loading at 1 mm/s
 // The firmware adds the profile's sensor noise (seeded: the counts repeat). Prints "ticks N"
 // (the number of collected ticks) for the gate to divide by, and the bridge's state at the end.
+// For measurements (docs/protocol.md, "Sensor deadband (1.2)"): MRSKIN_PROBE_DEADBAND=N gives the
+// unit a declared sensor deadband of N counts, MRSKIN_PROBE_NO_SENSOR_FAULTS=1 turns the bridge's
+// sensor-fault tests off.
 #include <valgrind/callgrind.h>
 
 #include <algorithm>
 #include <cmath>
 #include <cstdio>
+#include <cstdlib>
 #include <memory>
 #include <numeric>
 #include <span>
@@ -190,12 +194,18 @@ int main(int argc, char** argv) {
   sim::MockOptions mock_options;
   mock_options.seed = 11;
   mock_options.calibration_error = -1.0;  // the nominal calibration: no plant to measure
+  // MRSKIN_PROBE_DEADBAND=N: the unit's declared sensor deadband in counts (mock://?deadband=N).
+  if (const char* band = std::getenv("MRSKIN_PROBE_DEADBAND"); band != nullptr) {
+    mock_options.sensor_deadband_counts = std::atoi(band);
+  }
   auto mock = std::make_shared<sim::MockDevice>(loaded.profile, loaded.text, mock_options,
                                                 std::make_unique<PatternPlant>(loaded.profile));
   SimulatedClock clock;
   DeviceSession session(mock->connect(true, &clock), clock, SessionOptions{});
   SteadySlave slave(c.stiffness_N_per_m);
-  bridge::Bridge loop(session, slave);
+  bridge::BridgeOptions options;
+  options.sensor_faults.enabled = std::getenv("MRSKIN_PROBE_NO_SENSOR_FAULTS") == nullptr;
+  bridge::Bridge loop(session, slave, options);
   loop.set_perf_clock(&clock);
   std::vector<double> finger(cells, 0.0);
   auto finger_at = [&](int k) {

@@ -1003,6 +1003,43 @@ TEST(SessionPacked, AReconnectReadsTheDeclaredReportsPackedBehindTheIdentity) {
   }
 }
 
+// Protocol 1.2's SensorDeadband: a classic CAN unit declares its deadband (2 counts by default)
+// to a 1.2 host and then leaves out the sensor blocks the band holds, so its frames fall below
+// the TimeSync and 3 blocks of every sample; with no deadband, or to a 1.1 host (which would not
+// know), every sample goes whole. The declaration is cleared while the unit is away and comes
+// back with its Identity.
+TEST(SessionPacked, AClassicCanUnitDeclaresItsSensorDeadbandToAOnePointTwoHostOnly) {
+  const auto frames_per_ms = [](const PackedRun& r) {
+    return static_cast<double>(r.bus.device_to_host.carried) / (r.bus.elapsed_s / 1e-3);
+  };
+  const PackedRun banded = run_enabled("mock://?seed=1&bus=can", {}, 500);
+  EXPECT_EQ(banded.info.sensor_deadband_counts, 2);
+  EXPECT_LT(frames_per_ms(banded), 2.5);  // at rest the band holds most blocks
+  EXPECT_EQ(banded.state, DeviceState::enabled);
+  const PackedRun none = run_enabled("mock://?seed=1&bus=can&deadband=0", {}, 500);
+  EXPECT_EQ(none.info.sensor_deadband_counts, 0);
+  EXPECT_GT(frames_per_ms(none), 3.5);
+  SessionOptions v11;
+  v11.protocol_minor = 1;
+  const PackedRun old = run_enabled("mock://?seed=1&bus=can", v11, 500);
+  EXPECT_EQ(old.info.sensor_deadband_counts, 0);
+  EXPECT_GT(frames_per_ms(old), 3.9);  // every sample whole: a TimeSync and 3 blocks
+  EXPECT_EQ(old.counters.decode_errors, 0U);
+  // Any bus may carry it: on USB only when asked for (mock://?deadband=N).
+  EXPECT_EQ(run_enabled("mock://?seed=1&bus=hid-fs", {}, 50).info.sensor_deadband_counts, 0);
+  EXPECT_EQ(run_enabled("mock://?seed=1&bus=hid-fs&deadband=3", {}, 50).info.sensor_deadband_counts, 3);
+
+  Rig rig("mock://?seed=2&bus=can&faults=disconnect:0.2+0.1");
+  ASSERT_EQ(rig.dev.session->request_enable(), ResultCode::ok);
+  rig.run(250);
+  EXPECT_FALSE(rig.dev.session->connected());
+  EXPECT_EQ(rig.dev.session->info().sensor_deadband_counts, 0);
+  rig.run(300);
+  ASSERT_TRUE(rig.dev.session->connected());
+  EXPECT_EQ(rig.dev.session->counters().reconnects, 1U);
+  EXPECT_EQ(rig.dev.session->info().sensor_deadband_counts, 2);
+}
+
 // A full-speed unit declares full speed; a 1.1 host is sent no UsbSlots (it would not know it) and
 // gets 64-byte reports from a high-speed unit.
 TEST(SessionPacked, AFullSpeedUnitDeclaresFullSpeedAndAOnePointOneHostHearsNothing) {

@@ -52,7 +52,8 @@ def write(decoder, name, data):
 
 def main():
     v = golden()
-    for name in ["heartbeat", "valve_currents", "telemetry", "identity", "cell_targets", "config_data", "usb_slots"]:
+    for name in ["heartbeat", "valve_currents", "telemetry", "identity", "cell_targets", "config_data", "usb_slots",
+                 "sensor_deadband"]:
         write("packet", name, bytes.fromhex(v[(name, "packet")][0]))
     report = bytes.fromhex(v[("status", "packet")][0])
     write("packet", "status_hid_report", report + bytes(64 - len(report)))

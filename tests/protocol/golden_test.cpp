@@ -456,6 +456,19 @@ TEST(ProtocolGoldenByHand, SegmentedConfigWrite) {
   EXPECT_EQ(find_line("identity", "can")->tokens[0].substr(0, 4), "055#");
 }
 
+TEST(ProtocolGoldenByHand, SensorDeadbandPacketInOneSegmentedFrame) {
+  // 1.2: type 0x04, one payload byte, the deadband in counts (2). Device->host, segmented on
+  // classic CAN (block 5): a 7-byte packet fits one single frame (ISO-TP style: 0L + L bytes).
+  const auto p = with_crc16({0x01, 0x04, 0x2A, 0x01, 0x02});
+  ASSERT_EQ(p.size(), 7U);
+  EXPECT_EQ(find_line("sensor_deadband", "packet")->tokens[0], hex(p));
+  const GoldenLine* g = find_line("sensor_deadband", "can");
+  ASSERT_EQ(g->tokens.size(), 1U);
+  std::vector<std::uint8_t> f0{0x07};
+  f0.insert(f0.end(), p.begin(), p.end());
+  EXPECT_EQ(g->tokens[0], "055#" + hex(f0));
+}
+
 TEST(ProtocolGoldenByHand, CanFdCarriesThePacket) {
   // Valve currents host->device: function 4, block 0, node 5 = 0x405; 33-byte packet
   // padded to the FD length 48. Telemetry device->host: 0x505, 37 bytes -> 48.

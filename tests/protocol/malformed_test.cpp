@@ -169,7 +169,7 @@ TEST(ProtocolMalformed, BadCrcInsideSegmentedTransfer) {
 // ---- unknown type --------------------------------------------------------------------
 
 TEST(ProtocolMalformed, UnknownPacketType) {
-  for (const int type : {0x00, 0x04, 0x12, 0x22, 0x33, 0x44, 0xFF}) {
+  for (const int type : {0x00, 0x05, 0x12, 0x22, 0x33, 0x44, 0xFF}) {
     auto p = heartbeat_packet();
     p[1] = static_cast<std::uint8_t>(type);
     fix_crc(p);
@@ -315,6 +315,10 @@ TEST(ProtocolMalformed, OutOfRangeOnEncode) {
   EXPECT_EQ(encode_error(UsbSlots{64, 4, 125}), Error::out_of_range);
   EXPECT_EQ(encode_error(UsbSlots{64, 1, 2000}), Error::out_of_range);
   EXPECT_EQ(encode_error(UsbSlots{64, 1, 0}), Error::out_of_range);
+  // SensorDeadband: 0 (none) to kSensorDeadbandMaxCounts.
+  EXPECT_EQ(encode_error(SensorDeadband{0}), Error::ok);
+  EXPECT_EQ(encode_error(SensorDeadband{kSensorDeadbandMaxCounts}), Error::ok);
+  EXPECT_EQ(encode_error(SensorDeadband{kSensorDeadbandMaxCounts + 1}), Error::out_of_range);
 
   Identity id{1, 0, 0, 0, 0, 5, 5, 13, 12, 12, 1, 1000, 4095, 0, 1000, 100, 1000};
   EXPECT_EQ(encode_error(id), Error::ok);

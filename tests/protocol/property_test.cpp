@@ -126,7 +126,7 @@ Chunk gen_chunk() {
 }
 
 Message gen_message(Fit fit) {
-  switch (in<int>(0, 13)) {
+  switch (in<int>(0, 14)) {
     case 0:
       return IdentifyRequest{any<std::uint8_t>(), any<std::uint8_t>()};
     case 1:
@@ -154,6 +154,8 @@ Message gen_message(Fit fit) {
       return gen_chunk<ConfigWrite>();
     case 12:
       return ConfigAck{any<std::uint16_t>(), any<std::uint16_t>(), in<std::uint8_t>(0, 4)};
+    case 13:
+      return SensorDeadband{in<std::uint8_t>(0, kSensorDeadbandMaxCounts)};
     default: {
       static constexpr std::uint16_t kIntervals_us[] = {125, 250, 500, 1000};
       return UsbSlots{in<std::uint16_t>(kUsbSlotsMinReportBytes, kUsbSlotsMaxReportBytes),

@@ -113,6 +113,9 @@ inline std::ostream& operator<<(std::ostream& os, const UsbSlots& m) {
             << " reports_per_interval=" << test_detail::u(m.reports_per_interval)
             << " interval_us=" << m.interval_us << '}';
 }
+inline std::ostream& operator<<(std::ostream& os, const SensorDeadband& m) {
+  return os << "SensorDeadband{counts=" << test_detail::u(m.counts) << '}';
+}
 inline std::ostream& operator<<(std::ostream& os, const Message& m) {
   std::visit([&os](const auto& v) { os << v; }, m);
   return os;
@@ -210,6 +213,7 @@ inline bool is_segmented_type(const Message& m) {
     case MessageType::config_write:
     case MessageType::config_ack:
     case MessageType::usb_slots:
+    case MessageType::sensor_deadband:
       return true;
     default:
       return false;
@@ -300,6 +304,7 @@ inline std::vector<NamedMessage> golden_messages() {
 
   out.push_back({"config_ack", ConfigAck{1, 0, 0}});
   out.push_back({"usb_slots", UsbSlots{1024, 3, 125}});  // high speed, 3 x 1024 bytes a microframe
+  out.push_back({"sensor_deadband", SensorDeadband{2}});
   return out;
 }
 

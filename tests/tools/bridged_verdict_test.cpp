@@ -122,11 +122,29 @@ TEST(BridgedVerdict, ACountedBusOverloadNamesTheProtocolAndTheModel) {
 
 TEST(BridgedVerdict, AModelledBusIsHeldTo80PercentOfItsCapacity) {
   BridgeStats s = good_run();
+  s.bus.kind = "hid-fs";
+  s.bus.device_to_host.load = s.bus_load = 0.853;
+  std::vector<std::string> v = verdict_lines(s, true, 1e-3);
+  EXPECT_TRUE(contains(v, "bus NOT MET: 85.3 % (limit 80 %)")) << v.back();
+  EXPECT_TRUE(contains(v, "of the hid-fs bus"));
+  s.bus.device_to_host.load = s.bus_load = 0.586;
+  EXPECT_TRUE(contains(verdict_lines(s, true, 1e-3), "bus met: 58.6 %"));
+  // CAN: one bus both directions share, held to their sum; classic CAN to half of it.
   s.bus.kind = "can";
-  s.bus_load = 0.953;
-  const std::vector<std::string> v = verdict_lines(s, true, 1e-3);
-  EXPECT_TRUE(contains(v, "bus NOT MET: 95.3 % (limit 80 %)")) << v.back();
-  EXPECT_TRUE(contains(v, "of the can bus"));
+  s.bus.host_to_device.load = 0.184;
+  s.bus.device_to_host.load = s.bus_load = 0.537;
+  v = verdict_lines(s, true, 1e-3);
+  EXPECT_TRUE(contains(v, "bus NOT MET: 72.1 % of the shared can bus, both directions (limit 50 %)"))
+      << v.back();
+  EXPECT_TRUE(contains(v, "sensor deadband"));
+  s.bus.device_to_host.load = s.bus_load = 0.223;
+  v = verdict_lines(s, true, 1e-3);
+  EXPECT_TRUE(contains(v, "bus met: 40.7 % of the shared can bus, both directions")) << v.back();
+  s.bus.kind = "canfd";
+  s.bus.device_to_host.load = s.bus_load = 0.7;
+  EXPECT_TRUE(contains(verdict_lines(s, true, 1e-3),
+                       "bus NOT MET: 88.4 % of the shared canfd bus, both "
+                       "directions (limit 80 %)"));
 }
 
 TEST(BridgedVerdict, WithoutTheTruthTheRenderingIsNotScored) {

@@ -97,32 +97,41 @@ std::vector<std::string> verdict_lines(const bridge::BridgeStats& s, bool truth_
     parts.emplace_back("real time met: 0 overruns");
   }
 
-  // The bus: measured on the mock's model (bytes or time against limits.bus_load), or counted
-  // as reports per 1 ms frame (full-speed USB-HID carries one each way).
-  const bool modelled = std::string_view(s.bus.kind) != "none";
+  // The bus: measured on the mock's model (bytes or time against limits.bus_load; on CAN, one bus
+  // both directions share, their sum), or counted as reports per 1 ms frame (full-speed USB-HID
+  // carries one each way).
+  const std::string_view kind = s.bus.kind;
+  const bool modelled = kind != "none";
+  const bool shared = kind == "can" || kind == "canfd";
+  const double load = shared ? s.bus.host_to_device.load + s.bus.device_to_host.load : s.bus_load;
+  const double bus_limit = kind == "can" ? limits.classic_can_load : limits.bus_load;
+  const std::string what =
+      shared ? fmt::format(" of the shared {} bus, both directions", kind) : std::string();
   // Counted over a finite run, a report more or less at either end is not a rate: half a percent.
-  const double limit = modelled ? limits.bus_load : limits.reports_per_frame * 1.005;
-  if (s.bus_load > limit) {
+  const double limit = modelled ? bus_limit : limits.reports_per_frame * 1.005;
+  if (load > limit) {
     all_met = false;
-    parts.push_back(modelled ? fmt::format("bus NOT MET: {:.1f} % (limit {:.0f} %)", 100.0 * s.bus_load,
-                                           100.0 * limits.bus_load)
-                             : fmt::format("bus NOT MET: {:.2f} reports a frame (limit {:.0f})", s.bus_load,
+    parts.push_back(modelled ? fmt::format("bus NOT MET: {:.1f} %{} (limit {:.0f} %)", 100.0 * load, what,
+                                           100.0 * bus_limit)
+                             : fmt::format("bus NOT MET: {:.2f} reports a frame (limit {:.0f})", load,
                                            limits.reports_per_frame));
     why.push_back(
         modelled
             ? fmt::format("bus: the traffic needs {:.1f} % of the {} bus (dropped {} host to device, {} "
-                          "device to host): a real unit on that bus would see the same delay and loss",
-                          100.0 * s.bus_load, s.bus.kind, s.bus.host_to_device.dropped,
-                          s.bus.device_to_host.dropped)
+                          "device to host): a real unit on that bus would see the same delay and loss{}",
+                          100.0 * load, kind, s.bus.host_to_device.dropped, s.bus.device_to_host.dropped,
+                          kind == "can" ? "; a classic CAN unit's sensor deadband (protocol 1.2, "
+                                          "docs/protocol.md \"Sensor deadband (1.2)\") halves it"
+                                        : "")
             : fmt::format("bus: the link carried {:.2f} reports a 1 ms frame, more than the one a "
                           "full-speed USB-HID unit carries (protocol 1.1 sends status and heartbeat echoes "
                           "in reports of their own; 1.2 packs them); the mock carries them anyway, a real "
                           "full-speed unit would queue and drop them (mock://?bus=hid-fs models it; "
                           "docs/protocol.md, \"Bus budget\")",
-                          s.bus_load));
+                          load));
   } else {
-    parts.push_back(modelled ? fmt::format("bus met: {:.1f} %", 100.0 * s.bus_load)
-                             : fmt::format("bus met: {:.2f} reports a frame", s.bus_load));
+    parts.push_back(modelled ? fmt::format("bus met: {:.1f} %{}", 100.0 * load, what)
+                             : fmt::format("bus met: {:.2f} reports a frame", load));
   }
   if (s.device_faults > 0) {
     why.push_back(fmt::format(

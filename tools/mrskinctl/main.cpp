@@ -139,13 +139,14 @@ int cmd_info(const InfoOptions& o) {
         i.sensors, i.sensor_quantity, i.sensor_unit, sensor_places(profile));
     out += fmt::format(
         "\"current_lsb_a\": {}, \"max_current_a\": {}, \"sensor_lsb_si\": {}, \"sensor_min_si\": {}, "
-        "\"sensor_max_si\": {}, \"heartbeat_timeout_s\": {}, \"telemetry_rate_hz\": {}, \"state\": \"{}\", "
+        "\"sensor_max_si\": {}, \"sensor_deadband_counts\": {}, \"heartbeat_timeout_s\": {}, "
+        "\"telemetry_rate_hz\": {}, \"state\": \"{}\", "
         "\"fault\": \"{}\", \"valves_released\": {}, \"derated\": {}, \"calibration\": \"{}\", ",
         json_number(i.current_lsb_A), json_number(i.max_current_A), json_number(i.sensor_lsb),
-        json_number(sensor_min), json_number(sensor_max), json_number(i.heartbeat_timeout_s),
-        json_number(i.telemetry_rate_hz), mrskin::to_string(session.state()),
-        mrskin::fault_name(session.fault_code()), session.valves_released(), session.derated(),
-        json_escape(i.calibration));
+        json_number(sensor_min), json_number(sensor_max), i.sensor_deadband_counts,
+        json_number(i.heartbeat_timeout_s), json_number(i.telemetry_rate_hz),
+        mrskin::to_string(session.state()), mrskin::fault_name(session.fault_code()),
+        session.valves_released(), session.derated(), json_escape(i.calibration));
     out += fmt::format(
         "\"stats\": {{\"sample_s\": {}, \"sent\": {}, \"received\": {}, \"telemetry\": {}, \"crc_errors\": "
         "{}, "
@@ -178,11 +179,15 @@ int cmd_info(const InfoOptions& o) {
       i.fluid_cells, i.valves, i.sensors, i.sensor_quantity, i.sensor_unit, sensor_places(profile));
   fmt::print(
       "limits       current 0..{:.4f} A in steps of {:.1f} uA; sensors {:.4g}..{:.4g} {} in steps of {:.4g} "
-      "{}\n"
+      "{}{}\n"
       "             heartbeat timeout {:.3f} s; telemetry {:.0f} Hz\n"
       "state        {} (fault: {}){}{}\n",
       i.max_current_A, i.current_lsb_A * 1e6, sensor_min, sensor_max, i.sensor_unit, i.sensor_lsb,
-      i.sensor_unit, i.heartbeat_timeout_s, i.telemetry_rate_hz, mrskin::to_string(session.state()),
+      i.sensor_unit,
+      i.sensor_deadband_counts > 0
+          ? fmt::format("; deadband {} counts (readings up to that stale)", i.sensor_deadband_counts)
+          : std::string(),
+      i.heartbeat_timeout_s, i.telemetry_rate_hz, mrskin::to_string(session.state()),
       mrskin::fault_name(session.fault_code()), session.valves_released() ? ", valves released" : "",
       session.derated() ? ", derated" : "");
   fmt::print("calibration\n");

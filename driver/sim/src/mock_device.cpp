@@ -7,6 +7,7 @@
 #include <cstdlib>
 #include <filesystem>
 #include <fstream>
+#include <limits>
 #include <set>
 #include <sstream>
 #include <string>
@@ -29,6 +30,8 @@ constexpr std::uint8_t kFirmwareMajor = 0;
 constexpr std::uint8_t kFirmwareMinor = 2;
 constexpr std::uint8_t kFirmwarePatch = 0;
 constexpr std::size_t kDelayLineCapacity = 4096;
+// A block's values last sent before any was: no 12-bit reading lies within a deadband of it.
+constexpr std::int16_t kNoBlockSent = std::numeric_limits<std::int16_t>::min();
 constexpr std::size_t kAnswerReserve = 64;  // device->host slots telemetry may not take
 constexpr std::size_t kStatusPacketBytes = proto::kPacketHeaderBytes + 5 + proto::kPacketCrcBytes;
 
@@ -196,7 +199,10 @@ MockDevice::Impl::Impl(const model::DeviceProfile& profile, std::string_view pro
   config_bytes_beside_telemetry_ =
       proto::config_bytes_beside_telemetry(sensor_si_.size(), proto::kHidReportBytes);
   reported_.assign(plant_->sensor_count(), 0.0);
-  block_sent_counts_.assign(plant_->sensor_count(), 0);
+  block_sent_counts_.assign(plant_->sensor_count(), kNoBlockSent);
+  sensor_deadband_counts_ = options.sensor_deadband_counts >= 0    ? options.sensor_deadband_counts
+                            : options.bus.kind == MockBusKind::can ? kClassicCanSensorDeadbandCounts
+                                                                   : 0;
   sample_counts_.assign(plant_->sensor_count(), 0);
   for (auto& f : finger_m_) {
     f.store(0.0);
@@ -666,6 +672,11 @@ void MockDevice::Impl::answer_identify(const proto::IdentifyRequest& request) no
     // 1.2 on USB: the unit declares its reports, then uses them (docs/protocol.md, UsbSlots).
     send_message(proto::usb_slots_message(*slots), /*hold=*/true);
   }
+  // 1.2: the deadband, declared before it applies; every block goes whole first.
+  std::fill(block_sent_counts_.begin(), block_sent_counts_.end(), kNoBlockSent);
+  if (packs && sensor_deadband_counts_ > 0) {
+    send_message(proto::SensorDeadband{static_cast<std::uint8_t>(sensor_deadband_counts_)}, /*hold=*/true);
+  }
   send_status();
   flush_report();  // tight: the next sample finds the slot taken and is skipped (emit_telemetry)
   if (packs && slots) {
@@ -848,8 +859,8 @@ void MockDevice::Impl::emit_telemetry(TimePoint now) noexcept {
 }
 
 void MockDevice::Impl::apply_sensor_deadband() noexcept {
-  const int band = options_.sensor_deadband_counts;
-  if (band <= 0) {
+  const int band = sensor_deadband_counts_;
+  if (band <= 0 || !packing_) {  // declared to a 1.2 host only, and only then applied
     return;
   }
   constexpr std::size_t kBlock = proto::kCanValuesPerBlock;

@@ -88,7 +88,7 @@ struct __attribute__((visibility("hidden"))) MockDevice::Impl {
   void send_status() noexcept;
   void release_valves() noexcept;
   void emit_telemetry(TimePoint now) noexcept;
-  // MockOptions::sensor_deadband_counts on sample_counts_, block by block.
+  // The deadband (sensor_deadband_counts_) on sample_counts_, block by block, once 1.2 is agreed.
   void apply_sensor_deadband() noexcept;
   void emit(const Datagram& d, TimePoint now) noexcept;
   void flush_delayed(TimePoint now) noexcept;
@@ -118,7 +118,8 @@ struct __attribute__((visibility("hidden"))) MockDevice::Impl {
   std::vector<model::CellState> render_states_;
   bool rendering_targets_ = false;
   std::vector<double> reported_;                 // last telemetry sent, SI (what the host saw)
-  std::vector<std::int16_t> block_sent_counts_;  // sensor_deadband_counts: each block's values last sent
+  std::vector<std::int16_t> block_sent_counts_;  // the deadband: each block's values last sent
+  int sensor_deadband_counts_ = 0;               // MockOptions::sensor_deadband_counts, resolved
   std::vector<std::int16_t> sample_counts_;      // this sample's readings, counts
   std::unique_ptr<Plant> plant_;
   // The bus between host and unit (mock_bus.hpp) and where it delivers.

@@ -25,7 +25,8 @@ bool sent_by_device(const proto::Message& m) noexcept {
   return std::holds_alternative<proto::Identity>(m) || std::holds_alternative<proto::Telemetry>(m) ||
          std::holds_alternative<proto::TimeSync>(m) || std::holds_alternative<proto::Status>(m) ||
          std::holds_alternative<proto::Heartbeat>(m) || std::holds_alternative<proto::ConfigData>(m) ||
-         std::holds_alternative<proto::ConfigAck>(m) || std::holds_alternative<proto::UsbSlots>(m);
+         std::holds_alternative<proto::ConfigAck>(m) || std::holds_alternative<proto::UsbSlots>(m) ||
+         std::holds_alternative<proto::SensorDeadband>(m);
 }
 bool sent_by(CanRole role, const proto::Message& m) noexcept {
   return role == CanRole::host ? sent_by_host(m) : sent_by_device(m);

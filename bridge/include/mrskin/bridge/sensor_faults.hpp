@@ -4,7 +4,11 @@
 //     the run length is set so that a healthy sensor repeats that long with probability
 //     false_alarm_probability (from the profile's noise and resolution). A profile whose noise is
 //     far below its resolution cannot tell a stuck sensor at rest: stuck_run_readings() says how
-//     long it takes.
+//     long it takes. A unit with a declared deadband (protocol 1.2's SensorDeadband) repeats a
+//     reading for as long as the value stays within the band: a repeat counts towards the run only
+//     while the observer's residual for the sensor lies beyond what the band explains (the band in
+//     sigmas plus kDeadbandMarginSigma), so a stuck sensor is found once the finger moves its
+//     value away from the stuck one, and never while a healthy one rests inside the band.
 //   - noisy: the mean square of the reading's second difference (6 sigma^2 for white noise, and
 //     next to nothing from a finger's motion at 1 kHz) over noise_ratio_limit times its expected
 //     value.
@@ -48,9 +52,14 @@ class MRSKIN_BRIDGE_API SensorFaultMonitor {
  public:
   static constexpr std::size_t npos = std::numeric_limits<std::size_t>::max();
 
-  // Setup: throws InvalidArgument on options out of range.
+  // A repeat within the deadband counts towards a stuck run only past this many sigmas beyond it.
+  static constexpr double kDeadbandMarginSigma = 4.0;
+
+  // Setup: throws InvalidArgument on options out of range. reading_deadband: the unit's declared
+  // sensor deadband in the readings' SI unit (DeviceInfo::sensor_deadband_counts x sensor_lsb),
+  // 0 for none.
   SensorFaultMonitor(const model::DeviceProfile& profile, const GridLayout& layout,
-                     const SensorFaultOptions& options);
+                     const SensorFaultOptions& options, double reading_deadband = 0.0);
   // Copies are deep (each has its own state); a moved-from monitor can only be assigned to or
   // destroyed.
   SensorFaultMonitor(const SensorFaultMonitor& other);

@@ -52,6 +52,9 @@ struct DeviceInfo {
   // Protocol 1.2, USB: the reports the unit declared (UsbSlots), which this session packs up to;
   // nullopt until it does (and from a 1.1 unit): full speed, 64-byte reports, is assumed.
   std::optional<protocol::UsbInterruptSlots> usb_slots;
+  // Protocol 1.2: the unit's declared sensor deadband (SensorDeadband), in sensor counts (each
+  // sensor_lsb); 0 when it declared none (and from a 1.1 unit). A reading may be this stale.
+  int sensor_deadband_counts = 0;
   std::string profile;      // profile text stored on the device (DeviceSession::profile() parses it)
   std::string calibration;  // calibration text stored on the device (versioned)
 };

@@ -13,14 +13,16 @@
 namespace mrskin::protocol {
 
 inline constexpr std::uint8_t kVersionMajor = 1;
-// 1.1: StateRequest degauss, Status flag degaussing. 1.2: packed reports (packed_report.hpp) and
-// UsbSlots, a USB unit's declared report size and rate.
+// 1.1: StateRequest degauss, Status flag degaussing. 1.2: packed reports (packed_report.hpp),
+// UsbSlots, a USB unit's declared report size and rate, delta blocks on classic CAN (can.hpp) and
+// SensorDeadband, a unit's declared sensor deadband.
 inline constexpr std::uint8_t kVersionMinor = 2;
 
 enum class MessageType : std::uint8_t {
   identify_request = 0x01,
   identity = 0x02,
-  usb_slots = 0x03,  // 1.2
+  usb_slots = 0x03,        // 1.2
+  sensor_deadband = 0x04,  // 1.2
   valve_currents = 0x10,
   cell_targets = 0x11,
   telemetry = 0x20,
@@ -204,9 +206,22 @@ inline constexpr std::uint16_t kUsbSlotsMinReportBytes = 64;
 inline constexpr std::uint16_t kUsbSlotsMaxReportBytes = 1024;
 inline constexpr std::uint8_t kUsbSlotsMaxReportsPerInterval = 3;
 
-using Message =
-    std::variant<IdentifyRequest, Identity, ValveCurrents, CellTargets, Telemetry, TimeSync, Status,
-                 Heartbeat, StateRequest, ConfigRead, ConfigData, ConfigWrite, ConfigAck, UsbSlots>;
+// 1.2, any bus: the unit sends a block of sensor readings (kCanValuesPerBlock of them, the blocks
+// of classic CAN's frames, on every bus) with the values it last sent in that block while every
+// reading of the block lies within `counts` of them, so that classic CAN's delta blocks can leave
+// it out. A 1.2 unit with a deadband sends this right after its Identity (and UsbSlots) once the
+// host said 1.2, and applies the deadband only then; a unit without one sends nothing, and a 1.1
+// host gets every reading as sampled. A host reads a repeat within the band as no evidence of a
+// stuck sensor, and its readings as up to `counts` stale.
+struct SensorDeadband {
+  std::uint8_t counts = 0;  // 0 (none) .. kSensorDeadbandMaxCounts
+  bool operator==(const SensorDeadband&) const = default;
+};
+inline constexpr std::uint8_t kSensorDeadbandMaxCounts = 100;
+
+using Message = std::variant<IdentifyRequest, Identity, ValveCurrents, CellTargets, Telemetry, TimeSync,
+                             Status, Heartbeat, StateRequest, ConfigRead, ConfigData, ConfigWrite, ConfigAck,
+                             UsbSlots, SensorDeadband>;
 
 MRSKIN_PROTOCOL_API MessageType type_of(const Message& m) noexcept;
 

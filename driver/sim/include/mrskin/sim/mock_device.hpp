@@ -111,6 +111,10 @@ struct MockBusStats {
   double elapsed_s = 0.0;     // simulated time the loads are over
 };
 
+// A classic CAN unit's default sensor deadband, in counts (docs/protocol.md, "Sensor deadband
+// (1.2)"): what brings the 5x5's traffic under half the bus at 1 Mbit/s.
+inline constexpr int kClassicCanSensorDeadbandCounts = 2;
+
 // How the unit behaves. What it is (grid, current range and resolution, sensors, coil
 // resistance) comes from its device profile, not from here.
 struct MockOptions {
@@ -122,11 +126,13 @@ struct MockOptions {
   double status_period_s = 0.1;      // status also goes out on every change
   double heartbeat_timeout_s = 0.1;  // valves released after this silence
   double sensor_noise_scale = 1.0;   // multiplies the profile's noise_std (0: noise-free)
-  // A sensor deadband in the unit's firmware, in counts (mock://?deadband=N, 0 to 100; 0: off):
-  // a block of 4 sensors (a classic CAN sensor block) whose every reading is within N counts of
-  // the values last sent in it is sent with those values again, so 1.2's delta blocks leave it
-  // out. The host sees readings up to N counts stale (docs/protocol.md, "Delta blocks (1.2)").
-  int sensor_deadband_counts = 0;
+  // The unit's sensor deadband, in counts (mock://?deadband=N, 0 to 100; 0: none), declared to a
+  // 1.2 host (protocol 1.2's SensorDeadband) and applied only once one said 1.2: a block of 4
+  // sensors (a classic CAN sensor block) whose every reading is within N counts of the values last
+  // sent in it is sent with those values again, so 1.2's delta blocks leave it out. The host sees
+  // readings up to N counts stale (docs/protocol.md, "Sensor deadband (1.2)"). -1: the bus's
+  // default, kClassicCanSensorDeadbandCounts on classic CAN (bus.kind can), none elsewhere.
+  int sensor_deadband_counts = -1;
   std::uint32_t serial = 0x4D520001;
   double slew_time_s = 2.5e-3;  // current driver's slew limit: a full-scale step takes this long
   // Coil thermal model: C dT/dt = R I^2 + P_extra - (T - T_ambient) / R_th (R: the profile's).
