@@ -91,6 +91,7 @@ class __attribute__((visibility("hidden"))) DeviceSession::Impl {
   // The bytes a configuration read asks for at a time: docs/protocol.md, "Configuration reads
   // beside the telemetry".
   [[nodiscard]] std::size_t config_chunk_bytes() const;
+  [[nodiscard]] std::size_t config_window() const;  // configuration chunks in flight
   void await_config_ack(std::uint16_t offset);
   ResultCode send_state_request(protocol::StateRequestCode request) noexcept;
   void await_identity(TimePoint deadline);

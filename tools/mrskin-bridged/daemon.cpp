@@ -90,6 +90,9 @@ Daemon::Daemon(Settings settings, MonotonicClock& clock)
   t0_ = clock_.now();
   // The handshake and the configuration read are not the loop's traffic.
   reports_at_start_ = {dev_.session->counters().reports_sent, dev_.session->counters().reports_received};
+  if (mock_ != nullptr) {
+    bus_at_start_ = mock_->bus_stats();
+  }
   last_thermal_ = t0_;
   if (source_.scene != nullptr) {
     source_.scene->set_start(t0_);
@@ -791,7 +794,8 @@ bridge::BridgeStats Daemon::final_stats() const {
   const ReportsPerFrame counted = reports_per_frame();
   stats.bus_load = std::max(counted.host_to_device, counted.device_to_host);
   if (mock_ != nullptr) {
-    eval::fill_bus_stats(*mock_, stats);  // measured on the bus model: the `bus` object and bus_load
+    // Measured on the bus model since the loop started: the `bus` object and bus_load.
+    eval::fill_bus_stats(*mock_, stats, bus_at_start_);
   }
   stats.link = {link.sequence_gaps,      link.duplicates,  link.decode_errors, link.crc_errors,
                 link.telemetry_timeouts, link.disconnects, link.reconnects};

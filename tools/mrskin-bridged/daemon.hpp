@@ -193,6 +193,7 @@ class Daemon final : public bridge::Tickable, public ControlBackend {
   std::unique_ptr<bridge::RealtimeLoop> loop_;
   std::vector<double> finger_;
   std::pair<std::uint64_t, std::uint64_t> reports_at_start_{};  // sent, received
+  sim::MockBusStats bus_at_start_{};                            // the mock's bus when the loop started
   TimePoint t0_{};
   bool warned_ = false;
 

@@ -259,11 +259,16 @@ void print_run_report(const mrskin::bridged::Daemon& daemon, const mrskin::bridg
   if (std::string_view(stats.bus.kind) != "none") {
     const auto& h2d = stats.bus.host_to_device;
     const auto& d2h = stats.bus.device_to_host;
+    // CAN is one bus both directions share: its load is their sum; USB's directions are apart.
+    const std::string_view kind = stats.bus.kind;
+    const bool shared = kind == "can" || kind == "canfd";
     fmt::print(
-        "bus load   {:.1f} % of the modelled {} bus (host to device {:.1f} %, device to host {:.1f} %); "
-        "dropped {} and {}, longest wait {:.1f} and {:.1f} ms\n",
-        100.0 * stats.bus_load, stats.bus.kind, 100.0 * h2d.load, 100.0 * d2h.load, h2d.dropped, d2h.dropped,
-        1e3 * h2d.max_wait_s, 1e3 * d2h.max_wait_s);
+        "bus load   {:.1f} % of the modelled {}{} bus since the loop started (host to device {:.1f} %, "
+        "device "
+        "to host {:.1f} %); dropped {} and {}, longest wait {:.1f} and {:.1f} ms\n",
+        100.0 * (shared ? h2d.load + d2h.load : stats.bus_load), shared ? "shared " : "", kind,
+        100.0 * h2d.load, 100.0 * d2h.load, h2d.dropped, d2h.dropped, 1e3 * h2d.max_wait_s,
+        1e3 * d2h.max_wait_s);
   } else {
     fmt::print(
         "bus load   {:.2f} reports a 1 ms frame, counted (host to device {:.2f}, device to host {:.2f}; "
