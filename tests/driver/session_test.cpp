@@ -325,7 +325,10 @@ TEST(Session, EstopReleasesEverythingAndLatches) {
   std::fill(rig.currents.begin(), rig.currents.end(), 0.05);
   rig.run(20);
   ASSERT_EQ(rig.dev.session->request_estop(), ResultCode::ok);
-  rig.run(2);  // on the 5x5's full-speed bus the request may wait a frame behind the tick's report
+  // On the 5x5's full-speed bus the request may wait a frame behind the tick's report, and the
+  // unit's FAULT status rides in its next telemetry report, a frame later still (with
+  // config_reads_beside_telemetry off the open ends at another phase of the frames: 3 ms).
+  rig.run(3);
   std::vector<double> applied(rig.currents.size());
   sim::mock_of(rig.dev)->applied_currents(applied);
   for (const double a : applied) {
