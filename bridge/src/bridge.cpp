@@ -274,6 +274,8 @@ void Bridge::Impl::watch_sensors(TimePoint now) noexcept {
   const std::uint64_t gaps = link.telemetry_timeouts + link.reconnects;
   if (!watched_last_tick_ || gaps != link_gaps_seen_) {
     sensor_faults_->restart_history();  // readings from before a gap are no history for these tests
+    // A reconnected unit declared its deadband anew (and a bridge built while it was away read 0).
+    sensor_faults_->set_reading_deadband(session_.info().sensor_deadband_counts * session_.info().sensor_lsb);
     link_gaps_seen_ = gaps;
   }
   watched_last_tick_ = true;

@@ -54,6 +54,12 @@ class __attribute__((visibility("hidden"))) SensorFaultMonitor::Impl {
   std::size_t update(std::span<const double> readings, std::span<const double> residual_sigma) noexcept;
   void reset() noexcept;
   void restart_history() noexcept;
+  void set_reading_deadband(double reading_deadband) noexcept {
+    const double band = std::isfinite(reading_deadband) ? std::max(0.0, reading_deadband) : 0.0;
+    for (std::size_t k = 0; k < deadband_sigma_.size(); ++k) {
+      deadband_sigma_[k] = residual_sigma_[k] > 0.0 ? band / residual_sigma_[k] : 0.0;
+    }
+  }
   [[nodiscard]] SensorFault fault(std::size_t sensor) const noexcept {
     return sensor < fault_.size() ? fault_[sensor] : SensorFault::none;
   }
@@ -80,7 +86,8 @@ class __attribute__((visibility("hidden"))) SensorFaultMonitor::Impl {
   SensorFaultOptions options_;
   std::vector<unsigned char> watched_;  // displacement sensors
   std::vector<double> sigma_;           // noise and quantisation, in the reading's unit
-  std::vector<double> deadband_sigma_;  // the unit's deadband in sigma_ (0: none)
+  std::vector<double> residual_sigma_;  // the observer's sigma for the residual (its definition)
+  std::vector<double> deadband_sigma_;  // the unit's deadband in residual_sigma_ (0: none)
   std::vector<std::size_t> stuck_run_;
   std::vector<std::size_t> cells_begin_;
   std::vector<std::size_t> cells_;
@@ -116,6 +123,7 @@ SensorFaultMonitor::Impl::Impl(const model::DeviceProfile& profile, const GridLa
   const std::size_t cells = layout.fluid_cell_count();
   watched_.assign(n, 0);
   sigma_.assign(n, 0.0);
+  residual_sigma_.assign(n, 0.0);
   deadband_sigma_.assign(n, 0.0);
   stuck_run_.assign(n, npos);
   readers_of_cell_.assign(cells, 0);
@@ -126,7 +134,8 @@ SensorFaultMonitor::Impl::Impl(const model::DeviceProfile& profile, const GridLa
       watched_[k] = 1;
       sigma_[k] = std::sqrt(s.noise_std * s.noise_std + s.resolution * s.resolution / 12.0);
       stuck_run_[k] = stuck_run_for(s.noise_std, s.resolution, options.false_alarm_probability);
-      deadband_sigma_[k] = sigma_[k] > 0.0 ? reading_deadband / sigma_[k] : 0.0;
+      // The observer's residual is in max(noise, resolution / sqrt 12) (CellObserver).
+      residual_sigma_[k] = std::max(s.noise_std, s.resolution / std::sqrt(12.0));
       if (s.place == model::PlaceKind::fluid_cell) {
         cells_.push_back(s.index);
       } else {
@@ -141,6 +150,7 @@ SensorFaultMonitor::Impl::Impl(const model::DeviceProfile& profile, const GridLa
       ++readers_of_cell_[cells_[e]];
     }
   }
+  set_reading_deadband(reading_deadband);
   fault_.assign(n, SensorFault::none);
   evidence_.assign(n, 0.0);
   last_.assign(n, 0.0);
@@ -293,6 +303,9 @@ std::size_t SensorFaultMonitor::update(std::span<const double> readings,
   return impl_->update(readings, residual_sigma);
 }
 void SensorFaultMonitor::reset() noexcept { impl_->reset(); }
+void SensorFaultMonitor::set_reading_deadband(double reading_deadband) noexcept {
+  impl_->set_reading_deadband(reading_deadband);
+}
 void SensorFaultMonitor::restart_history() noexcept { impl_->restart_history(); }
 SensorFault SensorFaultMonitor::fault(std::size_t sensor) const noexcept { return impl_->fault(sensor); }
 std::size_t SensorFaultMonitor::faulty_count() const noexcept { return impl_->faulty_count(); }

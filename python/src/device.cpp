@@ -87,6 +87,7 @@ class Device {
     d["sensor_lsb"] = i.sensor_lsb;
     d["sensor_quantity"] = i.sensor_quantity;
     d["sensor_unit"] = i.sensor_unit;
+    d["sensor_deadband_counts"] = i.sensor_deadband_counts;  // protocol 1.2: readings up to this stale
     d["heartbeat_timeout_s"] = i.heartbeat_timeout_s;
     d["telemetry_rate_hz"] = i.telemetry_rate_hz;
     return d;

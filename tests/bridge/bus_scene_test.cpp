@@ -210,10 +210,10 @@ TEST(BusScene, DISABLED_MeasurePackedReports) {
 
 // Classic CAN at 1 Mbit/s with protocol 1.1 (every block every tick), 1.2's delta blocks alone
 // (deadband=0), and 1.2 with the unit's declared sensor deadband (1, 2: the classic CAN unit's
-// default, and 4 counts), each scene, seed 7, 8 s, with the sensor-fault tests on: the share of the
-// bus each way and together (one shared bus), the closed loop's RMS error against the (clamped)
-// target and against the true state beside an ideal link's, and the sensor faults found. A
-// measurement: prints a Markdown table, asserts nothing.
+// default, and 4 counts), and the 2-count unit on the ideal link (bus=none), each scene, seed 7, 8 s, with
+// the sensor-fault tests on: the share of the bus each way and together (one shared bus), the closed loop's
+// RMS error against the (clamped) target and against the true state beside an ideal link's, and the sensor
+// faults found. A measurement: prints a Markdown table, asserts nothing.
 //   build/release/tests/bridge/bridge_bus_scene_test --gtest_also_run_disabled_tests
 //       --gtest_filter='*MeasureClassicCanDeltas*'   (one line)
 TEST(BusScene, DISABLED_MeasureClassicCanDeltas) {
@@ -228,9 +228,12 @@ TEST(BusScene, DISABLED_MeasureClassicCanDeltas) {
     const double rms0 = ideal.stats.force_rms_error_N();
     const double true0 = ideal.stats.true_state_rms_error_N();
     const double p950 = 100.0 * ideal.stats.relative_error.percentile(0.95);
-    for (const char* unit : {"protocol_minor=1", "deadband=0", "deadband=1", "deadband=2", "deadband=4"}) {
-      const test::SceneRun r = test::run_scene(
-          std::string(name), 8.0, std::string("mock://?seed=7&bus=can&") + unit, nullptr, 0, unchecked());
+    // The last: the same unit (its deadband) on the ideal link, to tell the bus's share of the
+    // difference from the deadband's.
+    for (const char* unit : {"bus=can&protocol_minor=1", "bus=can&deadband=0", "bus=can&deadband=1",
+                             "bus=can&deadband=2", "bus=can&deadband=4", "bus=none&deadband=2"}) {
+      const test::SceneRun r = test::run_scene(std::string(name), 8.0, std::string("mock://?seed=7&") + unit,
+                                               nullptr, 0, unchecked());
       const BridgeStats::Bus& b = r.stats.bus;
       const double rms = r.stats.force_rms_error_N();
       const double true_rms = r.stats.true_state_rms_error_N();

@@ -149,6 +149,12 @@ TEST(MockBusUri, BadValuesAreRefusedSayingWhatIsAccepted) {
   for (const char* bad : {"-1", "101", "1.5", "nan", "x"}) {
     EXPECT_NE(refusal(std::string("mock://?deadband=") + bad).find("deadband"), std::string::npos) << bad;
   }
+  // Built directly, a unit refuses a band it could not declare (SensorDeadband holds 0..100).
+  for (const int bad : {-2, 101, 258}) {
+    MockOptions o;
+    o.sensor_deadband_counts = bad;
+    EXPECT_THROW((void)MockDevice::make(o), InvalidArgument) << bad;
+  }
   SimulatedClock clock;
   OpenOptions open;
   open.synchronous_mock = true;

@@ -120,9 +120,10 @@ std::vector<std::string> verdict_lines(const bridge::BridgeStats& s, bool truth_
             ? fmt::format("bus: the traffic needs {:.1f} % of the {} bus (dropped {} host to device, {} "
                           "device to host): a real unit on that bus would see the same delay and loss{}",
                           100.0 * load, kind, s.bus.host_to_device.dropped, s.bus.device_to_host.dropped,
-                          kind == "can" ? "; a classic CAN unit's sensor deadband (protocol 1.2, "
-                                          "docs/protocol.md \"Sensor deadband (1.2)\") halves it"
-                                        : "")
+                          kind == "can"
+                              ? "; a unit's declared sensor deadband (protocol 1.2, docs/protocol.md "
+                                "\"Sensor deadband (1.2)\") halves a typical scene's"
+                              : "")
             : fmt::format("bus: the link carried {:.2f} reports a 1 ms frame, more than the one a "
                           "full-speed USB-HID unit carries (protocol 1.1 sends status and heartbeat echoes "
                           "in reports of their own; 1.2 packs them); the mock carries them anyway, a real "

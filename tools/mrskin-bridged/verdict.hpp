@@ -1,4 +1,4 @@
-// The run's verdict against the product's figures (../shared/BRIEF.md section 5, docs/daemon.md
+// The run's verdict against the product's figures (docs/requirements.md, docs/daemon.md
 // "Verdict"): the rendered-force error, real time and the bus, each met or not, with a plain
 // explanation of every figure beyond its limit. The last line is the verdict itself.
 #pragma once
@@ -13,9 +13,9 @@ namespace mrskin::bridged {
 struct VerdictLimits {
   double rms_error_N = 0.04;   // RMS rendered-force error, loading and holding
   double relative_p95 = 0.07;  // 95th-percentile relative error where the target >= 0.3 N
-  double bus_load = 0.80;      // each direction, of the bus's capacity (a modelled USB bus)
+  double bus_load = 0.80;      // of the bus's capacity: each direction on USB, both on CAN FD
   // CAN is one bus both directions share: their loads together, of its capacity. Classic CAN is
-  // held to half of it (../shared/BRIEF.md section 5, a typical palpation scene), CAN FD to bus_load.
+  // held to half of it (docs/requirements.md: a typical palpation scene), CAN FD to bus_load.
   double classic_can_load = 0.50;
   double reports_per_frame = 1.0;  // counted on an unmodelled link: a full-speed frame carries one
 };

@@ -200,6 +200,12 @@ MockDevice::Impl::Impl(const model::DeviceProfile& profile, std::string_view pro
       proto::config_bytes_beside_telemetry(sensor_si_.size(), proto::kHidReportBytes);
   reported_.assign(plant_->sensor_count(), 0.0);
   block_sent_counts_.assign(plant_->sensor_count(), kNoBlockSent);
+  if (options.sensor_deadband_counts < -1 ||
+      options.sensor_deadband_counts > proto::kSensorDeadbandMaxCounts) {
+    throw InvalidArgument(
+        fmt::format("mock device: sensor deadband {} counts is outside 0..{} (-1: the bus's default)",
+                    options.sensor_deadband_counts, proto::kSensorDeadbandMaxCounts));
+  }
   sensor_deadband_counts_ = options.sensor_deadband_counts >= 0    ? options.sensor_deadband_counts
                             : options.bus.kind == MockBusKind::can ? kClassicCanSensorDeadbandCounts
                                                                    : 0;

@@ -7,7 +7,8 @@
 //     long it takes. A unit with a declared deadband (protocol 1.2's SensorDeadband) repeats a
 //     reading for as long as the value stays within the band: a repeat counts towards the run only
 //     while the observer's residual for the sensor lies beyond what the band explains (the band in
-//     sigmas plus kDeadbandMarginSigma), so a stuck sensor is found once the finger moves its
+//     the residual's sigmas, the observer's: max(noise, resolution / sqrt 12), plus
+//     kDeadbandMarginSigma), so a stuck sensor is found once the finger moves its
 //     value away from the stuck one, and never while a healthy one rests inside the band.
 //   - noisy: the mean square of the reading's second difference (6 sigma^2 for white noise, and
 //     next to nothing from a finger's motion at 1 kHz) over noise_ratio_limit times its expected
@@ -74,6 +75,9 @@ class MRSKIN_BRIDGE_API SensorFaultMonitor {
   // the observer has left the faulty one out). Real-time safe.
   std::size_t update(std::span<const double> readings, std::span<const double> residual_sigma) noexcept;
   void reset() noexcept;
+  // The unit's declared deadband again (after a reconnect: the unit declares it anew), in the
+  // readings' unit; a negative or non-finite value is taken as 0. Real-time safe.
+  void set_reading_deadband(double reading_deadband) noexcept;
   // After a gap in the readings (the bridge halted, the link down): the tests start again from
   // the next reading, the latched faults stay.
   void restart_history() noexcept;
