@@ -826,6 +826,7 @@ bool wait_for_force_near(SlaveSource& src, double force_N, SlaveSample& out) {
   return eventually([&] { return src.latest(TimePoint{}, out) && std::abs(out.force_N - force_N) < 1e-12; });
 }
 
+// The source counts a drop before its event is published (another thread): callers wait for it.
 bool has_event(const StreamSource& src, std::string_view a, std::string_view b = {}) {
   const std::vector<SourceEvent> events = src.events_after(0);
   return std::any_of(events.begin(), events.end(), [&](const SourceEvent& e) {
@@ -842,7 +843,9 @@ TEST(IgtlField, DeviceNamesComeFromTheUriAndStarTakesAny) {
   robot.send(sensor_message("FTSensor", {0.5}, 2));
   ASSERT_TRUE(wait_for_force(*src, 0.5, out));
   EXPECT_EQ(src->stats().of(DropReason::device), 1U);
-  EXPECT_TRUE(has_event(*src, "SENSOR from device 'ContactForce' ignored", "set force_device=ContactForce"));
+  EXPECT_TRUE(eventually([&] {
+    return has_event(*src, "SENSOR from device 'ContactForce' ignored", "set force_device=ContactForce");
+  }));
   EXPECT_NE(src->last_warning().find("force_device=ContactForce"), std::string::npos) << src->last_warning();
 
   auto any = open_stream("igtl-listen://127.0.0.1:0?force_device=*");
@@ -883,7 +886,9 @@ TEST(IgtlField, ForceVectorsAndWrenchesGiveTheNormalComponentInTheTissueFrame) {
   // Two values are neither a force nor a vector nor a wrench.
   robot.send(sensor_message("FT", {0.1, 0.2}, 4));
   ASSERT_TRUE(eventually([&] { return src->stats().of(DropReason::length) == 1U; }));
-  EXPECT_TRUE(has_event(*src, "SENSOR from 'FT' with 2 values dropped", "send 1 (the normal force), 3"));
+  EXPECT_TRUE(eventually([&] {
+    return has_event(*src, "SENSOR from 'FT' with 2 values dropped", "send 1 (the normal force), 3");
+  }));
 }
 
 TEST(IgtlField, UnitPrefixesAreConvertedAndOtherUnitsRefusedWithTheFix) {
@@ -897,7 +902,7 @@ TEST(IgtlField, UnitPrefixesAreConvertedAndOtherUnitsRefusedWithTheFix) {
   ASSERT_TRUE(wait_for_force_near(*src, 0.5, out));
   robot.send(sensor_message("ContactForce", {0.3}, 3, igtl::Unit::SI_PREFIX_NONE, false));  // no unit
   ASSERT_TRUE(eventually([&] { return src->stats().of(DropReason::unit) == 1U; }));
-  EXPECT_TRUE(has_event(*src, "its unit is not a force", "send newtons"));
+  EXPECT_TRUE(eventually([&] { return has_event(*src, "its unit is not a force", "send newtons"); }));
 }
 
 // TDATA and QTDATA: the tool taken by name, every element's name listed when it is missing.
@@ -948,7 +953,8 @@ TEST(IgtlField, TrackingDataGivesThePoseOfTheNamedTool) {
   // A tracker that does not carry the tool.
   robot.send(tdata("Needle", -1.0F, 3));
   ASSERT_TRUE(eventually([&] { return src->stats().of(DropReason::device) == 1U; }));
-  EXPECT_TRUE(has_event(*src, "TDATA from 'Tracker' has no tool 'Probe'", "'Reference', 'Needle'"));
+  EXPECT_TRUE(eventually(
+      [&] { return has_event(*src, "TDATA from 'Tracker' has no tool 'Probe'", "'Reference', 'Needle'"); }));
 }
 
 // A pose in the robot's frame: rotated, then offset by the robot's origin in the tissue frame.
@@ -980,7 +986,7 @@ TEST(IgtlField, ARefusedConnectionIsReportedAtOnceAndRetried) {
   o.reconnect_max_s = 0.02;
   auto src = open_stream("igtl://127.0.0.1:" + std::to_string(port), o);
   ASSERT_TRUE(eventually([&] { return src->stats().connect_failures >= 3U; }));
-  EXPECT_TRUE(has_event(*src, "cannot connect: Connection refused", "retrying"));
+  EXPECT_TRUE(eventually([&] { return has_event(*src, "cannot connect: Connection refused", "retrying"); }));
   EXPECT_EQ(src->event_count(), 1U);  // once, not once per attempt
   EXPECT_NE(src->last_warning().find("Connection refused"), std::string::npos);
 }
