@@ -1,11 +1,18 @@
 #include "allocate_stage.hpp"
 
 #include <algorithm>
+#include <cmath>
 #include <limits>
+
+#include "mrskin/driver/model/coil.hpp"
 
 namespace mrskin::bridge::detail {
 namespace {
 constexpr double kNotLoaded = std::numeric_limits<double>::quiet_NaN();  // no envelope to show
+constexpr double kSealReleaseLoading_s = 0.01;
+constexpr double kFallSmoothing_s = 3e-3;  // the fall rate's smoothing (observer force noise)
+constexpr double kHighestSealFraction =
+    0.95;  // of the highest current: the delay stays finite  // a sealed cell loading this long is pressed on
 }  // namespace
 
 bool valves_open(const GridLayout& layout, std::span<const double> current_A, std::size_t cell,
@@ -18,14 +25,26 @@ bool valves_open(const GridLayout& layout, std::span<const double> current_A, st
 AllocateStage::AllocateStage(const BridgeOptions& options, const GridLayout& layout,
                              const model::DeviceModel& model, model::CellInverse& inverse,
                              const model::CellObserver& observer, std::span<const double> valve_gain,
-                             double max_current_A) noexcept
+                             double max_current_A)
     : options_(options),
       layout_(layout),
       model_(model),
       inverse_(inverse),
       observer_(observer),
       valve_gain_(valve_gain),
-      max_current_A_(max_current_A) {}
+      max_current_A_(max_current_A),
+      coil_tau_s_(model::coil_time_constant_s(model.profile().coil)),
+      drain_phase_(layout.fluid_cell_count(), DrainPhase::none),
+      last_force_N_(layout.fluid_cell_count(), 0.0),
+      fall_N_(layout.fluid_cell_count(), 0.0),
+      loading_ticks_(layout.fluid_cell_count(), 0) {
+  retune_rate();
+}
+
+void AllocateStage::retune_rate() noexcept {
+  fall_smoothing_ = 1.0 - std::exp(-1.0 / (options_.rate_hz * kFallSmoothing_s));
+  seal_release_ticks_ = std::max(1, static_cast<int>(std::lround(kSealReleaseLoading_s * options_.rate_hz)));
+}
 
 void AllocateStage::run(const Rendering& rendered, std::span<const double> force_N, double since_start_s,
                         BridgeStats& stats, Allocation& out) noexcept {
@@ -37,6 +56,9 @@ void AllocateStage::run(const Rendering& rendered, std::span<const double> force
   const std::span<const double> currents = inverse_.currents_A();
   std::copy(currents.begin(), currents.end(), out.current_A.begin());
   lock_short_cells(rendered, force_N, out.current_A);
+  if (options_.drain_then_seal) {
+    drain_then_seal(rendered, force_N, out);
+  }
   if (options_.compensate_hysteresis) {
     compensate_hysteresis(out.current_A);
   }
@@ -55,8 +77,6 @@ void AllocateStage::lock_short_cells(const Rendering& rendered, std::span<const 
   // across the two passages of a chamber), so no volume leaves before the finger has pushed the
   // pressure there.
   const std::span<const model::CellSolution> cells = inverse_.cells();
-  const model::ContactPatch& patch = model_.contact();
-  const double per_passage_Pa_per_Pa = model_.valve_law().yield_pressure_Pa(1.0);
   for (std::size_t i = 0; i < cells.size(); ++i) {
     const model::CellSolution& c = cells[i];
     const bool holding = c.role == model::CellRole::holding;
@@ -71,19 +91,104 @@ void AllocateStage::lock_short_cells(const Rendering& rendered, std::span<const 
     if (!loaded || !(c.clamped_high || margin > 0.0 || short_of_request)) {
       continue;
     }
-    const model::Result<double> membrane_N =
-        model::pad_membrane_force_N(patch, rendered.state[i].indentation_m);
-    if (!membrane_N.ok() || patch.effective_area_m2 <= 0.0) {
+    for (const std::size_t v : layout_.valves_of_cell(i)) {
+      const double lock_current_A =
+          threshold_current_A(v, (1.0 + margin) * c.requested_force_N, rendered.state[i].indentation_m);
+      current_A[v] = std::max(current_A[v], lock_current_A);
+    }
+  }
+}
+
+double AllocateStage::threshold_current_A(std::size_t valve, double force_N, double depth_m) const noexcept {
+  // The cell's pressure at that force (p = (F - F_membrane) / A_eff) held across the two passages
+  // of a chamber; the highest allowed current where the law has no answer.
+  const model::ContactPatch& patch = model_.contact();
+  const model::Result<double> membrane_N = model::pad_membrane_force_N(patch, depth_m);
+  if (!membrane_N.ok() || patch.effective_area_m2 <= 0.0) {
+    return 0.0;
+  }
+  const double pressure_Pa = (force_N - membrane_N.value) / patch.effective_area_m2;
+  const double yield_Pa = std::max(0.0, pressure_Pa) / (2.0 * model_.valve_law().yield_pressure_Pa(1.0));
+  const model::Result<double> lock_A = inverse_.current_for_yield_stress_A(yield_Pa / valve_gain_[valve]);
+  return std::min(lock_A.ok() ? lock_A.value : max_current_A_, max_current_A_);
+}
+
+void AllocateStage::drain_then_seal(const Rendering& rendered, std::span<const double> force_N,
+                                    Allocation& out) noexcept {
+  // A held cell well above its target (a fast press left it above the law: the open-valve drag
+  // while the finger moved) drains fastest with every valve open, and is sealed as it reaches
+  // the target: a semi-active cell cannot win back force it let go at rest. The inverse's
+  // threshold currents instead approach the target slowly from above, and the feedback winds
+  // the request down meanwhile, so the cell ended below its target (docs/bridge.md, Settling).
+  // Drain and seal last until the finger leaves or presses on (loading for seal_release_ticks_:
+  // the role flickers to loading on single ticks of rate noise while the finger holds).
+  const std::span<const model::CellSolution> cells = inverse_.cells();
+  for (std::size_t i = 0; i < cells.size(); ++i) {
+    const model::CellRole role = cells[i].role;
+    out.drain_held[i] = 0;
+    if (role != model::CellRole::holding && role != model::CellRole::loading) {
+      drain_phase_[i] = DrainPhase::none;  // no finger holds it: nothing to drain or seal
+      loading_ticks_[i] = 0;
+      fall_N_[i] = 0.0;
+      last_force_N_[i] = force_N[i];
       continue;
     }
-    const double pressure_Pa =
-        ((1.0 + margin) * c.requested_force_N - membrane_N.value) / patch.effective_area_m2;
-    const double yield_Pa = std::max(0.0, pressure_Pa) / (2.0 * per_passage_Pa_per_Pa);
-    for (const std::size_t v : layout_.valves_of_cell(i)) {
-      const model::Result<double> lock_A = inverse_.current_for_yield_stress_A(yield_Pa / valve_gain_[v]);
-      const double lock_current_A = lock_A.ok() ? lock_A.value : max_current_A_;
-      current_A[v] = std::max(current_A[v], std::min(lock_current_A, max_current_A_));
+    // The fall per tick, smoothed over a few ticks: the observer's force noise would seal early.
+    fall_N_[i] += fall_smoothing_ * ((last_force_N_[i] - force_N[i]) - fall_N_[i]);
+    last_force_N_[i] = force_N[i];
+    if (role == model::CellRole::loading) {
+      if (drain_phase_[i] != DrainPhase::none && ++loading_ticks_[i] < seal_release_ticks_) {
+        hold_valves(i, drain_phase_[i] == DrainPhase::draining ? 0.0 : max_current_A_, out.current_A);
+        out.drain_held[i] = 1;
+      } else {
+        drain_phase_[i] = DrainPhase::none;
+        loading_ticks_[i] = 0;
+      }
+      continue;
     }
+    loading_ticks_[i] = 0;
+    const double target_N = rendered.tissue_N[i];
+    if (!(target_N > 0.0)) {
+      drain_phase_[i] = DrainPhase::none;
+      continue;
+    }
+    if (force_N[i] > (1.0 + options_.drain_open_fraction) * target_N) {
+      drain_phase_[i] = DrainPhase::draining;
+    } else if (drain_phase_[i] == DrainPhase::draining) {
+      const double lead_N =
+          std::max(0.0, fall_N_[i]) * options_.rate_hz * seal_delay_s(i, target_N, rendered);
+      if (force_N[i] - lead_N <= target_N) {
+        drain_phase_[i] = DrainPhase::sealed;
+      }
+    }
+    if (drain_phase_[i] != DrainPhase::none) {
+      hold_valves(i, drain_phase_[i] == DrainPhase::draining ? 0.0 : max_current_A_, out.current_A);
+      out.drain_held[i] = 1;
+    }
+  }
+}
+
+double AllocateStage::seal_delay_s(std::size_t cell, double target_N,
+                                   const Rendering& rendered) const noexcept {
+  // Sent now, the seal holds the target once the coils have risen (first order, time constant
+  // tau) from 0 A to its threshold current: tau ln(1 / (1 - I / I_max)) with I_max sent, one
+  // tick later. The steel's play makes the current rising from 0 A hold less than the
+  // anhysteretic curve says: the compensated current is the one that counts.
+  double highest_A = 0.0;
+  for (const std::size_t v : layout_.valves_of_cell(cell)) {
+    const double threshold_A = threshold_current_A(v, target_N, rendered.state[cell].indentation_m);
+    highest_A = std::max(highest_A, options_.compensate_hysteresis && threshold_A > 0.0
+                                        ? observer_.hysteresis_compensated_current_A(v, threshold_A)
+                                        : threshold_A);
+  }
+  const double fraction = std::min(highest_A / max_current_A_, kHighestSealFraction);
+  return coil_tau_s_ * std::log(1.0 / (1.0 - fraction)) + 1.0 / options_.rate_hz;
+}
+
+void AllocateStage::hold_valves(std::size_t cell, double current_A,
+                                std::span<double> currents_A) const noexcept {
+  for (const std::size_t v : layout_.valves_of_cell(cell)) {
+    currents_A[v] = current_A;
   }
 }
 

@@ -231,6 +231,7 @@ Bridge::Impl::Impl(DeviceSession& session, SlaveSource& source, BridgeOptions op
   a.current_A.assign(layout_.valve_count(), 0.0);
   a.target_N.assign(cells, 0.0);
   a.below_floor.assign(cells, 0);
+  a.drain_held.assign(cells, 0);
   a.floor_N.assign(cells, std::numeric_limits<double>::quiet_NaN());
   a.ceiling_N.assign(cells, std::numeric_limits<double>::quiet_NaN());
   sent_A_.assign(layout_.valve_count(), 0.0);
@@ -337,8 +338,8 @@ void Bridge::Impl::render(TimePoint now) noexcept {
   render_->take_stream(source_, now, start_, stats_, record_.rendered);
   live_stiffness_.store(render_->estimate().model.tangent_stiffness_N_per_m(kReferenceDepth_m),
                         std::memory_order_relaxed);
-  render_->render(record_.observed, inverse_->cells(), record_.allocated.target_N, 1.0 / options_.rate_hz,
-                  record_.rendered);
+  render_->render(record_.observed, inverse_->cells(), record_.allocated.target_N,
+                  record_.allocated.drain_held, 1.0 / options_.rate_hz, record_.rendered);
 }
 
 // Allocate: the inverse and every correction of its currents (allocate_stage.hpp).
@@ -477,8 +478,10 @@ void Bridge::Impl::retune(const BridgeTuning& t) {
     loop_clock_ = nullptr;
   }
   apply_tuning(t, options_);
-  // What the rate sets: the unloading latch's smoothing (the observer's filters take dt per tick).
+  // What the rate sets: the unloading latch's smoothing and the drain's constants (the observer's
+  // filters take dt per tick).
   render_->retune_rate();
+  allocate_->retune_rate();
 }
 
 std::string Bridge::Impl::start(Clock& clock) {

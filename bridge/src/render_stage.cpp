@@ -120,7 +120,9 @@ double RenderStage::direction_rate(CellMemory& cell, bool contact, double depth_
 }
 
 void RenderStage::render(const Observation& observed, std::span<const model::CellSolution> last_solve,
-                         std::span<const double> last_target_N, double dt_s, Rendering& out) noexcept {
+                         std::span<const double> last_target_N,
+                         std::span<const unsigned char> last_drain_held, double dt_s,
+                         Rendering& out) noexcept {
   const std::span<const double> depth_m = observed.depth_m;
   const std::span<const double> force_N = observed.force_N;
   const std::span<const double> outflow = observed.outflow_m3_per_s;
@@ -156,7 +158,10 @@ void RenderStage::render(const Observation& observed, std::span<const model::Cel
       const bool sealed = i < outflow.size() && outflow[i] < options_.sealed_outflow_m3_per_s;
       const bool wound_up = (error_N > 0.0 && (last_solve[i].clamped_high || sealed)) ||
                             (error_N < 0.0 && last_solve[i].clamped_low) ||
-                            (options_.freeze_feedback_while_holding && role == model::CellRole::holding);
+                            (options_.freeze_feedback_while_holding && role == model::CellRole::holding) ||
+                            // The drain's open valves and the seal after it own the cell: a lower
+                            // request cannot drain it faster, a higher one cannot refill it.
+                            (i < last_drain_held.size() && last_drain_held[i] != 0);
       if (!wound_up) {
         cell.feedback_N = std::clamp(cell.feedback_N + options_.feedback_gain_per_s * dt_s * error_N,
                                      -options_.feedback_limit_N, options_.feedback_limit_N);

@@ -22,8 +22,10 @@ class RenderStage {
                    Rendering& out) noexcept;
   // Per cell: contact, direction, the law at the state and the feedback's shift of it.
   // last_solve: the inverse's last roles and clamps; last_target_N: the last allocation's targets.
+  // last_drain_held: cells whose valves the drain-then-seal held last tick (their feedback waits).
   void render(const Observation& observed, std::span<const model::CellSolution> last_solve,
-              std::span<const double> last_target_N, double dt_s, Rendering& out) noexcept;
+              std::span<const double> last_target_N, std::span<const unsigned char> last_drain_held,
+              double dt_s, Rendering& out) noexcept;
 
   void clear_feedback() noexcept;  // the valves were released: no integral carries over
   void retune_rate() noexcept;     // options' rate changed: the latch's smoothing follows it

@@ -14,8 +14,8 @@
 namespace mrskin::bridge {
 namespace {
 
-constexpr std::array<std::string_view, 10> kSceneNames = {"demo", "hand",    "neck",  "abdomen", "thigh",
-                                                          "back", "stomach", "sweep", "tumour",  "step"};
+constexpr std::array<std::string_view, 11> kSceneNames = {
+    "demo", "hand", "neck", "abdomen", "thigh", "back", "stomach", "sweep", "tumour", "step", "force_step"};
 
 constexpr double kTipRadius_m = 3e-3;
 constexpr double kStepHoldDepth_m = 1.5e-3;  // scene "step": the hold before the step
@@ -263,6 +263,25 @@ std::vector<Key> step_keys() {
           {.t_s = 3.5}};
 }
 
+// Two force steps of about 1 N for the settling figure (docs/bridge.md, Settling): up, a quick
+// press from a hold to a deeper hold (the elastic force); down, a press at a constant speed that
+// stops (the damping's force leaves).
+std::vector<Key> force_step_keys() {
+  return {{.t_s = 0.0},
+          {.t_s = 0.6, .depth_m = 1.5e-3},
+          {.t_s = 1.0, .depth_m = 1.5e-3},
+          {.t_s = 1.35, .depth_m = 4.8e-3},
+          {.t_s = 1.95, .depth_m = 4.8e-3},
+          {.t_s = 2.55},
+          {.t_s = 2.95},
+          {.t_s = 3.45, .depth_m = 1.0e-3},
+          {.t_s = 3.75, .depth_m = 1.0e-3},
+          {.t_s = 3.826, .depth_m = 2.9e-3, .linear = true},
+          {.t_s = 4.426, .depth_m = 2.9e-3},
+          {.t_s = 5.026},
+          {.t_s = 5.45}};
+}
+
 std::string name_list() {
   std::string s;
   for (const std::string_view n : kSceneNames) {
@@ -302,6 +321,13 @@ std::unique_ptr<Scene> make_scene(std::string_view name, const WorkspaceMapping&
     // k x + lambda x x': 0.15 N held at 1.5 mm, 0.45 N the moment it moves on at 5 mm/s.
     return std::make_unique<ScriptedScene>(
         scene, mapping, step_keys(), Tissue{.base = TissueModel::hunt_crossley(100.0, 1.0, 4.0e4)}, seed);
+  }
+  if (scene == "force_step") {
+    // k x + lambda x x': 0.45 N held at 1.5 mm, 1.44 N at 4.8 mm; 1.89 N pressing on at 25 mm/s at
+    // 2.9 mm, 0.87 N once it stops there (scene.hpp).
+    return std::make_unique<ScriptedScene>(scene, mapping, force_step_keys(),
+                                           Tissue{.base = TissueModel::hunt_crossley(300.0, 1.0, 1.4e4)},
+                                           seed);
   }
   if (scene == "tumour") {
     const Tissue tissue{.base = *find_preset("abdomen"),

@@ -40,6 +40,7 @@ struct Allocation {
   std::vector<unsigned char> below_floor;  // per cell: the law is below the open-valve floor
   std::vector<double> floor_N;             // per cell: the envelope target_N was clamped into...
   std::vector<double> ceiling_N;           // ...(NaN where not loaded)
+  std::vector<unsigned char> drain_held;   // per cell: drained or sealed after an overshoot
   bool solved = false;                     // this tick's solve succeeded
 };
 

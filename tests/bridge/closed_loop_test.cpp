@@ -53,19 +53,22 @@ struct Bound {
   double true_state_p95;
 };
 
-// Measured (seed 7, g++ 12 release): demo 0.012 N / 2.2 %; the organs 0.012-0.019 N RMS, p95
-// 2.0-3.9 %; sweep 0.024 N / 3.1 %; tumour 0.014 N / 2.0 %; step 0.077 N / 23 % (its force step is
-// faster than the device can follow, docs/bridge.md "Settling"). Bounds: the product's 0.04 N RMS
-// and 7 % p95 on every scene but step, which holds its measured value + ~20 %. Against the law at
-// the finger's true state every scene but step is within 0.001 N and 0.2 points of the above;
-// step reads 0.054 N / 13.9 %: a third of its 0.077 N is the target chattering with the observer's
-// rate noise (heavy damping), which the plant does not follow and the finger does not feel.
+// Measured (seed 7, g++ 12 release): demo 0.012 N / 2.2 %; the organs 0.012-0.018 N RMS, p95
+// 1.6-3.7 %; sweep 0.016 N / 2.8 %; tumour 0.011 N / 1.9 %; step 0.077 N / 23 % (its force step is
+// faster than the device can follow, docs/bridge.md "Settling"); force_step 0.053 N / 14.8 % (its
+// quick press lifts the force above the law by the open valves' drag). Bounds: the product's
+// 0.04 N RMS and 7 % p95 on every scene but the two step scenes, which hold their measured values
+// + ~20 %. Against the law at the finger's true state every other scene is within 0.001 N and 0.2
+// points of the above; step reads 0.050 N / 10.1 %: a third of its 0.077 N is the target
+// chattering with the observer's rate noise (heavy damping), which the plant does not follow and
+// the finger does not feel.
 constexpr Bound kBounds[] = {
-    {"demo", 10.0, 0.040, 0.07, 0.040, 0.07},   {"hand", 8.6, 0.040, 0.07, 0.040, 0.07},
-    {"neck", 8.6, 0.040, 0.07, 0.040, 0.07},    {"abdomen", 8.6, 0.040, 0.07, 0.040, 0.07},
-    {"thigh", 8.6, 0.040, 0.07, 0.040, 0.07},   {"back", 8.6, 0.040, 0.07, 0.040, 0.07},
-    {"stomach", 8.6, 0.040, 0.07, 0.040, 0.07}, {"sweep", 7.5, 0.040, 0.07, 0.040, 0.07},
-    {"tumour", 7.5, 0.040, 0.07, 0.040, 0.07},  {"step", 7.0, 0.095, 0.31, 0.065, 0.17},
+    {"demo", 10.0, 0.040, 0.07, 0.040, 0.07},       {"hand", 8.6, 0.040, 0.07, 0.040, 0.07},
+    {"neck", 8.6, 0.040, 0.07, 0.040, 0.07},        {"abdomen", 8.6, 0.040, 0.07, 0.040, 0.07},
+    {"thigh", 8.6, 0.040, 0.07, 0.040, 0.07},       {"back", 8.6, 0.040, 0.07, 0.040, 0.07},
+    {"stomach", 8.6, 0.040, 0.07, 0.040, 0.07},     {"sweep", 7.5, 0.040, 0.07, 0.040, 0.07},
+    {"tumour", 7.5, 0.040, 0.07, 0.040, 0.07},      {"step", 7.0, 0.095, 0.31, 0.065, 0.17},
+    {"force_step", 10.9, 0.065, 0.18, 0.065, 0.18},
 };
 
 class ClosedLoop : public ::testing::TestWithParam<Bound> {};

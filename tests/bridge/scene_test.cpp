@@ -29,7 +29,7 @@ constexpr double kNoiseBound_N = 0.025;  // 5 sigma of the slave's 5 mN force no
 constexpr std::int64_t kMs_ns = 1'000'000;
 
 bool is_organ(std::string_view name) {
-  return name != "demo" && name != "sweep" && name != "tumour" && name != "step";
+  return name != "demo" && name != "sweep" && name != "tumour" && name != "step" && name != "force_step";
 }
 
 TimePoint at_ms(std::int64_t k) { return TimePoint{k * kMs_ns}; }
@@ -62,8 +62,8 @@ double distance(CellPoint a, CellPoint b) { return std::hypot(a.row - b.row, a.c
 // ---- factory -----------------------------------------------------------------------------------
 
 TEST(SceneFactory, EveryNameMakesItsScene) {
-  const std::vector<std::string_view> expected = {"demo", "hand",    "neck",  "abdomen", "thigh",
-                                                  "back", "stomach", "sweep", "tumour",  "step"};
+  const std::vector<std::string_view> expected = {
+      "demo", "hand", "neck", "abdomen", "thigh", "back", "stomach", "sweep", "tumour", "step", "force_step"};
   ASSERT_EQ(std::vector<std::string_view>(scene_names().begin(), scene_names().end()), expected);
   for (const std::string_view name : scene_names()) {
     EXPECT_EQ(make_scene(name)->name(), name);
@@ -178,16 +178,19 @@ TEST(Scenes, SlaveForceIsTheTissueLawAtTheContact) {
       EXPECT_NEAR(cur.indentation_m, truth.indentation_m, 1e-12);  // demo: its own ns -> s rounding
       // The truth's rate is the indentation's derivative (central difference over the stream).
       const double rate_m_per_s = (next.indentation_m - prev.indentation_m) / 2e-3;
-      // (Up to 1.2e-5 m/s where a smooth segment starts: the difference sees its quadratic start.)
-      // "step" changes speed at once where its finger moves on (1.0 s) and stops (1.6 s): there the
-      // difference straddles the kink and sees half the step.
+      // (Up to 1.2e-5 m/s where a smooth segment starts: the difference sees its quadratic start;
+      // 5.5e-5 on force_step's 0.3 s press.) "step" changes speed at once where its finger moves
+      // on (1.0 s) and stops (1.6 s), force_step where it presses on at 25 mm/s (3.75 s) and stops
+      // (3.826 s): there the difference straddles the kink and sees half the change.
       const double in_cycle_s = std::fmod(t_s, scene->cycle_s());
-      const bool kink =
-          name == "step" && (std::fabs(in_cycle_s - 1.0) < 1.5e-3 || std::fabs(in_cycle_s - 1.6) < 1.5e-3);
+      const auto near = [in_cycle_s](double at_s) { return std::fabs(in_cycle_s - at_s) < 1.5e-3; };
+      const bool kink = (name == "step" && (near(1.0) || near(1.6))) ||
+                        (name == "force_step" && (near(3.75) || near(3.826)));
       ASSERT_NEAR(truth.rate_m_per_s, rate_m_per_s,
-                  kink             ? 2.6e-3
-                  : name == "demo" ? 2e-4
-                                   : 3e-5)
+                  kink                   ? (name == "step" ? 2.6e-3 : 12.6e-3)
+                  : name == "demo"       ? 2e-4
+                  : name == "force_step" ? 6e-5
+                                         : 3e-5)
           << name << " t " << t_s;
       const double law_N =
           scene->tissue_at(cur.contact_x_m, cur.contact_y_m).force_N(cur.indentation_m, truth.rate_m_per_s);

@@ -68,6 +68,11 @@ struct BridgeOptions {
   // threshold until the force gets there (the quasi-static feed-forward assumes the compliance
   // has filled). docs/bridge.md, "What the tuning measured".
   bool lock_while_short = true;
+  // A holding cell whose force is above its target by more than this fraction drains with every
+  // valve open and is sealed (highest allowed current) once it gets there, until the finger
+  // moves: the settling figure after a fast press (docs/bridge.md, Settling).
+  bool drain_then_seal = true;
+  double drain_open_fraction = 0.05;
   // A holding cell's valves stay at least this fraction above the threshold of its target, so
   // model error does not leak the trapped volume away. Off: slow loading that reads as a hold
   // then overshoots (docs/bridge.md, "What the tuning measured").

@@ -122,6 +122,14 @@ class MRSKIN_BRIDGE_API Scene : public SlaveSource {
 //   each cycle, then it rises to 1.35 N; hold 0.4 s (0.45 N: a step down, rendered as the
 //   envelope allows), release in 1 s, rest 0.5 s (cycle 3.5 s). For settling measurements.
 //
+// force_step: Hunt-Crossley tissue with n = 1 (k 300 N/m, lambda 1.4e4 N s/m^2) at the origin,
+//   two force steps of about 1 N a cycle (the settling figure, docs/bridge.md). Up: press to
+//   1.5 mm in 0.6 s, hold 0.4 s (0.45 N), press on to 4.8 mm in 0.35 s and hold 0.6 s (1.44 N),
+//   release in 0.6 s, rest 0.4 s. Down: press to 1 mm in 0.5 s, hold 0.3 s, press on at a
+//   constant 25 mm/s to 2.9 mm (1.89 N as it arrives), stop there for 0.6 s (0.87 N: the damping's
+//   1.0 N leaves at once), release in 0.6 s, rest (cycle 5.45 s). The slave's force peaks at
+//   about 1.9 N in the up press.
+//
 // Names: scene_names(); "scene://NAME" is accepted too. Throws InvalidArgument (listing the
 // names) for an unknown name, and for a mapping that is not valid().
 MRSKIN_BRIDGE_API std::unique_ptr<Scene> make_scene(std::string_view name,
