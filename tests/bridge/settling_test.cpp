@@ -67,6 +67,7 @@ struct StepWindow {
   std::vector<double> target_N;
   std::vector<double> true_N;
   std::vector<double> estimate_N;  // the observer's force
+  std::vector<double> law_N;       // the scene's tissue law at the slave's true state
 };
 
 // The fluid cells the scene's finger presses at either end of a step.
@@ -138,7 +139,8 @@ std::vector<StepWindow> run_steps(const StepCase& c, int first_cycle, int last_c
                                .contained = true,
                                .target_N = {},
                                .true_N = {},
-                               .estimate_N = {}});
+                               .estimate_N = {},
+                               .law_N = {}});
       if (actuation != Actuation::loop) {
         std::fill(ideal_A.begin(), ideal_A.end(), 0.0);
         for (std::size_t cell : cells) {
@@ -180,6 +182,7 @@ std::vector<StepWindow> run_steps(const StepCase& c, int first_cycle, int last_c
       out.back().target_N.push_back(target);
       out.back().true_N.push_back(sum_of(true_N));
       out.back().estimate_N.push_back(sum_of(bridge.observer().force_N()));
+      out.back().law_N.push_back(scene->slave_truth(t_s).force_N);
       if (++in_window == window_ticks) {
         in_window = -1;
         out.back().law_step_N = scene->slave_truth(t_s).force_N - law_before_N;
@@ -207,6 +210,7 @@ struct StepResponse {
   double ideal_s = 0.0;        // ideal actuation: first tick at the step's level (window if never)
   double error_after_N = 0.0;  // loop: mean |error| over the window's second half
   double peak_error_N = 0.0;   // loop: largest |error| in the window
+  int ideal_short_ticks = 0;   // ideal actuation: ticks more than 7 % below the law (law >= 0.3 N)
 };
 
 // Up: the step is the highest target in the first 20 ms less the last one before it, and the
@@ -239,6 +243,9 @@ StepResponse analyse(const StepWindow& loop, const StepWindow& ideal, bool up) {
   r.settling_s = (last_out + 1) * 1e-3;
   r.error_after_N = tail_sum / static_cast<double>(n - n / 2);
   r.ideal_s = static_cast<double>(n) * 1e-3;
+  for (std::size_t j = 0; j < ideal.true_N.size() && j < ideal.law_N.size(); ++j) {
+    r.ideal_short_ticks += ideal.law_N[j] >= 0.3 && ideal.true_N[j] < 0.93 * ideal.law_N[j] ? 1 : 0;
+  }
   if (!ideal.true_N.empty()) {
     const double level_N = up ? loop.before_N + r.step_N - band_N : ideal.true_N.back() + band_N;
     for (std::size_t j = 0; j < ideal.true_N.size(); ++j) {
@@ -283,9 +290,10 @@ Measured measure(const char* name, const StepCase& c) {
     const StepResponse r = analyse(loop[i], ideal[0], c.up);
     std::printf(
         "  step %zu: %+.3f N, loop settled after %5.1f ms, ideal actuation in the band after %5.1f ms "
-        "(window %.0f ms), peak |error| %.3f N, mean |error| in the second half %.4f N\n",
+        "(window %.0f ms), peak |error| %.3f N, mean |error| in the second half %.4f N; ideal actuation "
+        "more than 7 %% below the law for %d ms\n",
         i + 1, r.step_N, r.settling_s * 1e3, r.ideal_s * 1e3, c.window_s * 1e3, r.peak_error_N,
-        r.error_after_N);
+        r.error_after_N, r.ideal_short_ticks);
     m.steps.push_back(r);
   }
   return m;
@@ -469,6 +477,11 @@ TEST(Settling, ForceStepOnThePerturbedPlant) {
     // figure to rise by the step (it builds only as fast as the finger fills the cell's
     // compliance). Fails, and says so, if a plant or a profile ever makes the figure reachable.
     EXPECT_GT(r.ideal_s, m.limit_s) << "the figure is reachable on this plant: assert it";
+    // Even sealed from the step, the force stays more than 7 % below the law at the finger's true
+    // state for longer than 5 % of a cycle's scored ticks (1826 with the law at 0.3 N or more:
+    // tests/bridge/golden/scene_stats_seed7.txt, 4175 over 8 s): no actuation after the step
+    // brings step's p95 within 7 % (docs/bridge.md, "The damped step"). Measured 119-125 ms.
+    EXPECT_GT(r.ideal_short_ticks, 92) << "ideal actuation meets step's p95: hold the loop to it";
     // Regression bound (docs/bridge.md).
     EXPECT_LT(r.error_after_N, 0.12);  // measured 0.089-0.101 N: the target chatters (docs/bridge.md)
   }
