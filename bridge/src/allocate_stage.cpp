@@ -9,10 +9,9 @@
 namespace mrskin::bridge::detail {
 namespace {
 constexpr double kNotLoaded = std::numeric_limits<double>::quiet_NaN();  // no envelope to show
-constexpr double kSealReleaseLoading_s = 0.01;
-constexpr double kFallSmoothing_s = 3e-3;  // the fall rate's smoothing (observer force noise)
-constexpr double kHighestSealFraction =
-    0.95;  // of the highest current: the delay stays finite  // a sealed cell loading this long is pressed on
+constexpr double kSealReleaseLoading_s = 0.01;  // a sealed cell loading this long is pressed on
+constexpr double kFallSmoothing_s = 3e-3;       // the fall rate's smoothing (observer force noise)
+constexpr double kHighestSealFraction = 0.95;   // of the highest current: the seal's delay stays finite
 }  // namespace
 
 bool valves_open(const GridLayout& layout, std::span<const double> current_A, std::size_t cell,

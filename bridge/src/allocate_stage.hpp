@@ -1,8 +1,8 @@
 // The tick's third stage: the inverse's one allocation over the shared valves, then every
 // correction of its currents, in this order and only here: a loaded cell short of its request
-// locked at the request's threshold, a held cell above its target drained then sealed, the steel's
-// hysteresis compensated, and the targets clamped
-// into the envelope this tick can render (the open-valve floor included).
+// locked at the request's threshold, a held cell above its target drained then sealed, the
+// steel's hysteresis compensated, and the targets clamped into the envelope this tick can render
+// (the open-valve floor included).
 // Private to the bridge library (bridge.cpp runs it).
 #pragma once
 
