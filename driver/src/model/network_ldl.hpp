@@ -52,9 +52,10 @@ class SparseLdl {
   std::vector<double> lx_;
   std::vector<double> d_;
   std::vector<std::int64_t> parent_;
-  std::vector<std::uint32_t> lnz_;
-  std::vector<std::uint32_t> flag_;
-  std::vector<std::uint32_t> pattern_;
+  // The numeric pass's visits, row by row: column i of L and the slot row k writes in it.
+  std::vector<std::uint32_t> row_begin_;
+  std::vector<std::uint32_t> visit_column_;
+  std::vector<std::uint32_t> visit_slot_;
   std::vector<double> y_;
   std::vector<double> w_;  // solve()'s permuted right-hand side
 };
