@@ -220,6 +220,7 @@ DeviceSession::Impl::Impl(std::unique_ptr<Transport> transport, Clock& clock, Se
   }
   sensors_.assign(info_.sensors, 0.0);
   current_counts_.assign(info_.valves, 0);
+  pending_counts_.assign(info_.valves, 0);
   commanded_A_.assign(info_.valves, 0.0);
   targets_.assign(info_.fluid_cells, proto::CellTarget{});
   targeted_.assign(info_.fluid_cells, 0);
@@ -701,14 +702,17 @@ ResultCode DeviceSession::Impl::send_valve_currents(std::span<const double> curr
   proto::Identity scale;
   scale.current_lsb_nA = current_lsb_nA_;
   scale.current_max_counts = current_max_counts_;
-  for (const double a : current_A) {
-    if (proto::quantize_current(a, scale).error != proto::Error::ok) {
+  // Quantised once, kept only if every value is valid (a refused command changes nothing).
+  for (std::size_t v = 0; v < current_A.size(); ++v) {
+    const proto::Quantized<std::uint16_t> q = proto::quantize_current(current_A[v], scale);
+    if (q.error != proto::Error::ok) {
       ++counters_.invalid_commands;
       return ResultCode::invalid_value;
     }
+    pending_counts_[v] = q.counts;
   }
   for (std::size_t v = 0; v < current_A.size(); ++v) {
-    current_counts_[v] = proto::quantize_current(current_A[v], scale).counts;
+    current_counts_[v] = pending_counts_[v];
     commanded_A_[v] = static_cast<double>(current_counts_[v]) * info_.current_lsb_A;
   }
   currents_commanded_ = true;

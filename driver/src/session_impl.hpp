@@ -107,6 +107,7 @@ class __attribute__((visibility("hidden"))) DeviceSession::Impl {
   TargetSeeder seeder_;
   std::vector<double> sensors_;
   std::vector<std::uint16_t> current_counts_;
+  std::vector<std::uint16_t> pending_counts_;  // send_valve_currents: all quantised before any is kept
   std::vector<double> commanded_A_;
   bool currents_commanded_ = false;  // the host has sent currents since the handshake
   std::vector<protocol::CellTarget> targets_;

@@ -4,8 +4,10 @@
 #   - a 5 x 5 case (idle5, load5, hold5) costs more than LIMIT_5X5 instructions per tick, or
 #   - the 64 x 64 with 5 % of its cells in contact costs more than RATIO_PERCENT % of the 64 x 64
 #     in full contact (grid5 against grid100).
-# grid0 (64 x 64, no contact) is reported. Exits 77 (ctest: skipped) when valgrind is missing.
-#   tick_callgrind_gate.sh PROBE PROFILE_DIR OUT_DIR LIMIT_5X5 RATIO_PERCENT [CASE...]
+# grid0 (64 x 64, no contact) is reported. A case written CASE:N has a limit of its own (the
+# ratchets: what the tick costs today, so that no change raises it). Exits 77 (ctest: skipped)
+# when valgrind is missing.
+#   tick_callgrind_gate.sh PROBE PROFILE_DIR OUT_DIR LIMIT_5X5 RATIO_PERCENT [CASE[:N]...]
 probe=$1 profiles=$2 out=$3 limit=$4 ratio=$5
 shift 5
 cases=${*:-"idle5 load5 hold5 grid0 grid5 grid100"}
@@ -16,7 +18,10 @@ fi
 mkdir -p "$out" || exit 1
 failed=""
 grid5="" grid100=""
-for c in $cases; do
+for spec in $cases; do
+  c=${spec%%:*}
+  case_limit=$limit
+  [ "$spec" != "$c" ] && case_limit=${spec#*:}
   file=$out/callgrind.$c.out
   if ! log=$(valgrind --tool=callgrind --instr-atstart=no --collect-atstart=no --callgrind-out-file="$file" \
       "$probe" "$c" "$profiles" 2>"$file.log"); then
@@ -32,7 +37,7 @@ for c in $cases; do
   per=$((total / ticks))
   echo "$c: $per instructions per tick ($total over $ticks ticks); $(echo "$log" | sed -n 's/^cells //p')"
   case $c in
-    *5) if [ "$c" != grid5 ] && [ "$per" -gt "$limit" ]; then failed="$failed $c($per > $limit)"; fi ;;
+    *5) if [ "$c" != grid5 ] && [ "$per" -gt "$case_limit" ]; then failed="$failed $c($per > $case_limit)"; fi ;;
   esac
   [ "$c" = grid5 ] && grid5=$per
   [ "$c" = grid100 ] && grid100=$per
@@ -48,4 +53,4 @@ if [ -n "$failed" ]; then
   echo "over budget:$failed"
   exit 1
 fi
-echo "within budget: 5 x 5 <= $limit instructions per tick, grid5 <= $ratio % of grid100"
+echo "within budget: every case at or below its limit ($cases; default $limit), grid5 <= $ratio % of grid100"
