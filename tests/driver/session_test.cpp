@@ -3,11 +3,14 @@
 #include <unistd.h>
 
 #include <algorithm>
+#include <array>
 #include <cmath>
 #include <cstdio>
 #include <deque>
 #include <fstream>
 #include <functional>
+#include <memory>
+#include <span>
 #include <sstream>
 #include <string>
 #include <vector>
@@ -833,6 +836,108 @@ TEST(Firmware, RendersPerCellTargetsThenReleasesWhenTheyExpire) {
   rendered.run(5);
   EXPECT_FALSE(sim::mock_of(rendered.dev)->rendering_targets());
   EXPECT_NEAR(sim::mock_of(rendered.dev)->commanded_currents()[0], 0.01, 1e-9);
+}
+
+// Issue 21: a unit whose plant runs slower than real time (fingertip-16x16's on a loaded machine)
+// hears the host at its substeps' times, up to max_catch_up_s and a step's length behind the clock.
+// This plant costs three times its simulated time on the clock, and the host beats every 20 ms of
+// the clock meanwhile, as a session does from its own thread.
+class SlowPlant final : public sim::Plant {
+ public:
+  SlowPlant(std::size_t sensors, SimulatedClock& clock, std::function<void()> host)
+      : sensors_(sensors), clock_(clock), host_(std::move(host)) {}
+  [[nodiscard]] std::size_t sensor_count() const noexcept override { return sensors_; }
+  void set_valve_currents(std::span<const double> /*current_A*/) noexcept override {}
+  void set_finger_indentation(std::span<const double> /*indentation_m*/) noexcept override {}
+  void step(double dt_s) noexcept override {
+    clock_.advance(from_seconds(3.0 * dt_s));
+    host_();
+  }
+  void read_sensors(std::span<double> out) const noexcept override { std::fill(out.begin(), out.end(), 0.0); }
+  void contact_forces(std::span<double> out_N) const noexcept override {
+    std::fill(out_N.begin(), out_N.end(), 0.0);
+  }
+
+ private:
+  std::size_t sensors_;
+  SimulatedClock& clock_;
+  std::function<void()> host_;
+};
+
+struct BehindRun {
+  std::uint8_t state = 0;
+  std::uint8_t fault = 0;
+  double skipped_s = 0.0;
+  std::uint64_t beats = 0;
+  std::uint64_t host_to_device_dropped = 0;
+};
+
+// fingertip-16x16 on high-speed HID, enabled, 2 s of the clock on a SlowPlant. between_steps: the
+// host also beats just before each step (the unit books that at the step's start, at now).
+BehindRun run_behind(bool between_steps, double silent_from_s = 1e9) {
+  const model::LoadedProfile loaded = model::load_profile_with_text("fingertip-16x16");
+  sim::MockOptions options;
+  options.calibration_error = -1.0;  // no network plant to measure
+  options.bus.kind = sim::MockBusKind::hid_hs;
+  SimulatedClock clock;
+  std::unique_ptr<Transport> link;
+  std::uint8_t sequence = 0;
+  std::uint16_t beats = 0;
+  const auto send = [&](const proto::Message& message) {
+    std::array<std::uint8_t, kMaxDatagramBytes> bytes{};
+    const proto::EncodeResult r = proto::encode_packet(message, sequence++, bytes);
+    (void)link->send(std::span<const std::uint8_t>(bytes.data(), r.bytes));
+  };
+  TimePoint next_beat{0};
+  const auto host = [&] {
+    Datagram d;
+    while (link->receive(d) == ResultCode::ok) {
+    }
+    if (clock.now() >= next_beat && to_seconds(clock.now()) < silent_from_s) {
+      next_beat = clock.now() + std::chrono::milliseconds(20);
+      send(proto::Heartbeat{beats++});
+    }
+  };
+  auto mock = std::make_shared<sim::MockDevice>(
+      loaded.profile, loaded.text, options,
+      std::make_unique<SlowPlant>(loaded.profile.sensors.size(), clock, host));
+  link = mock->connect(/*synchronous=*/false);
+  mock->step(clock.now());
+  send(proto::StateRequest{static_cast<std::uint8_t>(proto::StateRequestCode::enable)});
+  clock.advance(std::chrono::milliseconds(1));
+  mock->step(clock.now());
+  EXPECT_EQ(mock->state(), static_cast<std::uint8_t>(proto::DeviceState::enabled));
+  while (clock.now() < std::chrono::seconds(2)) {
+    if (between_steps) {
+      send(proto::Heartbeat{beats++});
+    }
+    mock->step(clock.now());
+  }
+  return {mock->state(), mock->fault(), mock->skipped_time_s(), beats,
+          mock->bus_stats().host_to_device.dropped};
+}
+
+TEST(Firmware, AUnitBehindRealTimeKeepsItsWatchdogOnItsOwnClock) {
+  const BehindRun r = run_behind(false);
+  EXPECT_GT(r.skipped_s, 1.0);  // it fell behind and skipped, as the 16 x 16 does
+  EXPECT_GT(r.beats, 90U);      // the host beat every 20 ms of the clock
+  EXPECT_EQ(r.state, static_cast<std::uint8_t>(proto::DeviceState::enabled));
+  EXPECT_EQ(r.fault, 0U);  // not heartbeat_lost
+}
+
+TEST(Firmware, AUnitBehindRealTimeStillFaultsWhenTheHostFallsSilent) {
+  // The watchdog on the unit's clock must still see a host that really stopped.
+  const BehindRun r = run_behind(false, 0.5);
+  EXPECT_GT(r.skipped_s, 0.5);
+  EXPECT_EQ(r.state, static_cast<std::uint8_t>(proto::DeviceState::fault));
+  EXPECT_EQ(r.fault, static_cast<std::uint8_t>(proto::FaultCode::heartbeat_lost));
+}
+
+TEST(Firmware, AUnitBehindRealTimeDropsNoHostPacketBookedBehindAnother) {
+  const BehindRun r = run_behind(true);
+  EXPECT_GT(r.skipped_s, 1.0);
+  EXPECT_EQ(r.host_to_device_dropped, 0U);  // a queue of one or two is never 64 deep
+  EXPECT_EQ(r.state, static_cast<std::uint8_t>(proto::DeviceState::enabled));
 }
 
 // ---- protocol 1.2: packed reports, negotiated both ways --------------------------------

@@ -185,6 +185,9 @@ void MockBus::host_sent(const Datagram& d, TimePoint t, BusSink& sink) noexcept 
   }
   note_time(t.count());
   if (usb()) {
+    // The host's packets come in the order it sent them: none before one already handed over.
+    t = std::max(t, host_last_);
+    host_last_ = t;
     if (usb_place(to_device_lane_, to_device_waiting_, to_device_, d, t) == UsbPlace::now) {
       sink.deliver_to_device(d, t);
     }

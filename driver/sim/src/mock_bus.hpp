@@ -175,6 +175,7 @@ class __attribute__((visibility("hidden"))) MockBus {
   std::size_t reports_per_interval_ = 1;
   double report_bytes_per_s_ = 64'000.0;
   UsbLane to_device_lane_;
+  TimePoint host_last_{};  // the latest time a host packet was handed over
   UsbLane to_host_lane_;
   BusRing<Waiting> to_device_waiting_;
   BusRing<Waiting> to_host_waiting_;

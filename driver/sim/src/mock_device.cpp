@@ -934,8 +934,11 @@ void MockDevice::Impl::step(TimePoint now) noexcept {
   // What the bus delivers later than last_step_ reaches the unit within the substeps below.
   handle_host_input(now, last_step_);
   const auto state = static_cast<proto::DeviceState>(state_.load(std::memory_order_relaxed));
+  // The watchdog runs on the unit's own clock (last_step_), the one its packets are stamped with:
+  // behind real time, the unit hears the host at its substeps' times, and now - last_heartbeat_
+  // would count the unit's own lag as the host's silence (issue 21).
   if (state == proto::DeviceState::enabled &&
-      to_seconds(now - last_heartbeat_) > options_.heartbeat_timeout_s * options_.time_scale) {
+      to_seconds(last_step_ - last_heartbeat_) > options_.heartbeat_timeout_s * options_.time_scale) {
     enter_fault(proto::FaultCode::heartbeat_lost);
   }
   for (std::size_t i = 0; i < finger_m_.size(); ++i) {
@@ -948,6 +951,9 @@ void MockDevice::Impl::step(TimePoint now) noexcept {
     // Too slow for real time (an overloaded or sanitised build): skip whole substeps rather
     // than spiral, so the unit keeps answering; telemetry resumes at the new time.
     const auto substeps = (now - max_behind - last_step_) / dt;
+    if (last_heartbeat_ < last_step_) {
+      last_heartbeat_ += substeps * dt;  // time the unit skips is no silence it heard
+    }
     last_step_ += substeps * dt;
     skipped_ns_.fetch_add((substeps * dt).count(), std::memory_order_relaxed);
     const Duration period = from_seconds(options_.telemetry_period_s);
