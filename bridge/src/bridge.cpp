@@ -434,6 +434,7 @@ void apply_tuning(const BridgeTuning& t, BridgeOptions& o) noexcept {
   o.estimator.fade_s = t.stale_fade_s;
   o.realtime = t.realtime;
   o.rt_priority = t.rt_priority;
+  o.loop_cpu = t.loop_cpu;
 }
 
 BridgeTuning Bridge::Impl::tuning() const noexcept {
@@ -447,6 +448,7 @@ BridgeTuning Bridge::Impl::tuning() const noexcept {
   t.stale_fade_s = render_->estimator().options().fade_s;
   t.realtime = options_.realtime;
   t.rt_priority = options_.rt_priority;
+  t.loop_cpu = options_.loop_cpu;
   return t;
 }
 
@@ -473,7 +475,7 @@ void Bridge::Impl::retune(const BridgeTuning& t) {
   render_->estimator().set_stale_policy(t.stale_hold_s, t.stale_fade_s);  // throws before anything changed
   bus_budget_ = std::move(budget);
   if (t.rate_hz != options_.rate_hz || t.realtime != options_.realtime ||
-      t.rt_priority != options_.rt_priority) {
+      t.rt_priority != options_.rt_priority || t.loop_cpu != options_.loop_cpu) {
     loop_.reset();  // the library's loop is made again at start() with the new rate
     loop_clock_ = nullptr;
   }
@@ -493,6 +495,7 @@ std::string Bridge::Impl::start(Clock& clock) {
     lo.rate_hz = options_.rate_hz;
     lo.realtime = options_.realtime;
     lo.priority = options_.rt_priority;
+    lo.cpu = options_.loop_cpu;
     loop_ = std::make_unique<RealtimeLoop>(
         clock, [](void* self, TimePoint now) noexcept { return static_cast<Impl*>(self)->step(now); }, this,
         lo);

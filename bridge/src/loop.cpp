@@ -206,6 +206,13 @@ int RealtimeOs::lock_memory() noexcept {
   return mlockall(MCL_CURRENT | MCL_FUTURE) == 0 ? 0 : errno;
 }
 
+int RealtimeOs::pin_cpu(int cpu) noexcept {
+  cpu_set_t set;
+  CPU_ZERO(&set);
+  CPU_SET(static_cast<std::size_t>(cpu), &set);
+  return pthread_setaffinity_np(pthread_self(), sizeof(set), &set);
+}
+
 void RealtimeOs::query(int& policy, int& priority) noexcept {
   sched_param param{};
   if (pthread_getschedparam(pthread_self(), &policy, &param) != 0) {
@@ -245,6 +252,17 @@ SchedulerState apply_realtime(const LoopOptions& options, RealtimeOs& os, std::s
     }
   }
   os.query(state.policy, state.priority);
+  std::string pin_warning;
+  if (options.cpu >= 0) {
+    const int pin_error = os.pin_cpu(options.cpu);
+    state.cpu = pin_error == 0 ? options.cpu : -1;
+    if (pin_error != 0) {
+      pin_warning =
+          "mrskin: the loop thread could not be pinned to CPU " + std::to_string(options.cpu) + " (" +
+          errno_text(pin_error) + "): it runs on any CPU the process may use. A cpuset or " +
+          "systemd's CPUAffinity= may exclude it: pick a CPU from `taskset -pc $$`, or set cpu = -1.";
+    }
+  }
   if (!refused.empty()) {
     const std::string user = user_name();
     warning =
@@ -255,6 +273,9 @@ SchedulerState apply_realtime(const LoopOptions& options, RealtimeOs& os, std::s
         "  and log in again (`ulimit -r -l` shows them), or give the binary the " +
         "capabilities:\n    sudo setcap cap_sys_nice,cap_ipc_lock+ep " + executable_path() + "\n" +
         "  (in a container: --cap-add SYS_NICE --cap-add IPC_LOCK). Or set realtime = false to run without.";
+  }
+  if (!pin_warning.empty()) {
+    warning += warning.empty() ? pin_warning : "\n" + pin_warning;
   }
   return state;
 }
@@ -342,6 +363,24 @@ RealtimeLoop::Impl::Impl(Clock& clock, TickFunction tick, void* context, LoopOpt
   }
   if (tick_ == nullptr) {
     throw InvalidArgument("real-time loop: no tick function");
+  }
+  if (options_.cpu != -1) {
+    cpu_set_t allowed;
+    CPU_ZERO(&allowed);
+    const bool known = sched_getaffinity(0, sizeof(allowed), &allowed) == 0;
+    if (options_.cpu < -1 || options_.cpu >= CPU_SETSIZE ||
+        (known && !CPU_ISSET(static_cast<std::size_t>(options_.cpu), &allowed))) {
+      std::string list;
+      for (int c = 0; known && c < CPU_SETSIZE; ++c) {
+        if (CPU_ISSET(static_cast<std::size_t>(c), &allowed)) {
+          list += list.empty() ? "" : ",";
+          list += std::to_string(c);
+        }
+      }
+      throw InvalidArgument("real-time loop: CPU " + std::to_string(options_.cpu) +
+                            " is not one this process may run on (allowed: " + (known ? list : "unknown") +
+                            "); pick one of them, or -1 for no pinning");
+    }
   }
   if (waiter_ == nullptr) {
     if (dynamic_cast<MonotonicClock*>(&clock_) != nullptr) {

@@ -7,12 +7,15 @@
 #include <sched.h>
 
 #include <array>
+#include <atomic>
 #include <cerrno>
 #include <condition_variable>
 #include <cstdint>
 #include <cstdio>
 #include <mutex>
+#include <string>
 #include <thread>
+#include <vector>
 
 #include "counting_new.hpp"
 
@@ -110,6 +113,14 @@ class FakeOs final : public RealtimeOs {
   int lock_memory() noexcept override {
     ++lock_calls;
     return lock_result;
+  }
+  int pin_result = 0;
+  int pinned_cpu = -1;
+  int pin_calls = 0;
+  int pin_cpu(int cpu) noexcept override {
+    ++pin_calls;
+    pinned_cpu = pin_result == 0 ? cpu : pinned_cpu;
+    return pin_result;
   }
   void query(int& policy, int& priority) noexcept override {
     policy = policy_;
@@ -341,7 +352,104 @@ TEST(Loop, RejectsRatesAndPrioritiesOutOfRange) {
   EXPECT_NO_THROW(RealtimeLoop(clock, rec, options));
 }
 
+// The CPUs this process may run on (the test must not assume CPU 0 is one).
+std::vector<int> allowed_cpus() {
+  cpu_set_t set;
+  CPU_ZERO(&set);
+  std::vector<int> cpus;
+  if (sched_getaffinity(0, sizeof(set), &set) == 0) {
+    for (int c = 0; c < CPU_SETSIZE; ++c) {
+      if (CPU_ISSET(static_cast<std::size_t>(c), &set)) {
+        cpus.push_back(c);
+      }
+    }
+  }
+  return cpus;
+}
+
+TEST(Loop, RejectsACpuTheProcessMayNotRunOn) {
+  SimulatedClock clock;
+  Recorder rec;
+  for (const int cpu : {-2, CPU_SETSIZE, CPU_SETSIZE + 5}) {
+    LoopOptions options;
+    options.cpu = cpu;
+    try {
+      RealtimeLoop loop(clock, rec, options);
+      ADD_FAILURE() << "CPU " << cpu << " was taken";
+    } catch (const InvalidArgument& e) {
+      EXPECT_NE(std::string(e.what()).find("is not one this process may run on (allowed: "),
+                std::string::npos)
+          << e.what();
+    }
+  }
+  LoopOptions options;
+  options.cpu = allowed_cpus().front();
+  EXPECT_NO_THROW(RealtimeLoop(clock, rec, options));
+}
+
 // --- scheduling set-up --------------------------------------------------------------------
+
+TEST(LoopRealtime, PinsTheLoopThreadToTheCpuAskedEvenWithoutRealtime) {
+  FakeOs os;
+  LoopOptions options;
+  options.realtime = false;
+  options.cpu = 1;
+  std::string warning = "stale";
+  const SchedulerState state = apply_realtime(options, os, warning);
+  EXPECT_EQ(warning, "");
+  EXPECT_EQ(os.pin_calls, 1);
+  EXPECT_EQ(os.pinned_cpu, 1);
+  EXPECT_EQ(state.cpu, 1);
+  EXPECT_EQ(os.fifo_calls + os.lock_calls, 0);
+}
+
+TEST(LoopRealtime, ARefusedPinIsNamedAndTheStatsSayNotPinned) {
+  FakeOs os;
+  os.fifo_result = 0;
+  os.lock_result = 0;
+  os.pin_result = EINVAL;
+  LoopOptions options;
+  options.cpu = 3;
+  std::string warning;
+  const SchedulerState state = apply_realtime(options, os, warning);
+  EXPECT_EQ(state.cpu, -1);
+  EXPECT_TRUE(state.fifo());
+  EXPECT_NE(warning.find("could not be pinned to CPU 3"), std::string::npos) << warning;
+  EXPECT_NE(warning.find("taskset -pc"), std::string::npos) << warning;
+  EXPECT_EQ(warning.find("SCHED_FIFO priority"), std::string::npos) << warning;  // that part was granted
+}
+
+TEST(LoopThread, APinnedLoopTicksOnItsCpu) {
+  // The real sched_setaffinity on the last CPU the process may use (not SCHED_FIFO: a test
+  // process never asks for it).
+  const int cpu = allowed_cpus().back();
+  struct CpuRecorder final : Tickable {
+    std::atomic<int> seen{-2};
+    std::atomic<int> elsewhere{0};
+    ResultCode tick(TimePoint /*now*/) noexcept override {
+      const int c = sched_getcpu();
+      seen.store(c);
+      if (c != expected) {
+        elsewhere.fetch_add(1);
+      }
+      return ResultCode::ok;
+    }
+    int expected = -1;
+  } rec;
+  rec.expected = cpu;
+  MonotonicClock clock;
+  LoopOptions options;
+  options.rate_hz = 2'000.0;
+  options.realtime = false;
+  options.cpu = cpu;
+  RealtimeLoop loop(clock, rec, options);
+  EXPECT_EQ(loop.start(), "");
+  wait_for_ticks(loop, 50);
+  loop.stop();
+  EXPECT_EQ(loop.stats().scheduler.cpu, cpu);
+  EXPECT_EQ(rec.seen.load(), cpu);
+  EXPECT_EQ(rec.elsewhere.load(), 0);
+}
 
 TEST(LoopRealtime, RefusedGivesExactlyOneWarningWithTheFix) {
   SimulatedClock clock;

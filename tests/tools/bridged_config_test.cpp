@@ -1,6 +1,7 @@
 // mrskin-bridged's configuration: the TOML file, its errors (FILE:LINE and the key), flag
 // overrides, and the control-socket request parser.
 #include <gtest/gtest.h>
+#include <sched.h>
 #include <unistd.h>
 
 #include <atomic>
@@ -186,6 +187,36 @@ TEST_F(ConfigFile, TopicsAreReadAndBounded) {
   Settings bad = s;
   bad.topics_namespace = "/skin//left";  // --topics /skin//left
   EXPECT_THROW(mrskin::bridged::validate(bad, "flags"), ConfigError);
+}
+
+// [bridge] cpu / --cpu: the tick thread's CPU, one the process may run on, or -1.
+TEST_F(ConfigFile, TheLoopCpuIsOneTheProcessMayRunOn) {
+  cpu_set_t set;
+  CPU_ZERO(&set);
+  ASSERT_EQ(sched_getaffinity(0, sizeof(set), &set), 0);
+  int allowed = 0;
+  while (!CPU_ISSET(static_cast<std::size_t>(allowed), &set)) {
+    ++allowed;
+  }
+  Settings s = load_settings(write("[bridge]\ncpu = " + std::to_string(allowed) + "\n"));
+  EXPECT_EQ(s.cpu, allowed);
+  EXPECT_EQ(mrskin::bridged::bridge_tuning(s).loop_cpu, allowed);
+  EXPECT_EQ(Settings{}.cpu, -1);
+  std::string e = error_of(write("[bridge]\ncpu = 4096\n"));
+  EXPECT_NE(e.find(path_ + ":2: bridge.cpu"), std::string::npos) << e;
+  EXPECT_NE(e.find("a CPU this process may run on ("), std::string::npos) << e;
+  e = error_of(write("[bridge]\ncpu = -2\n"));
+  EXPECT_NE(e.find(path_ + ":2: bridge.cpu"), std::string::npos) << e;
+  mrskin::bridged::Overrides o;
+  o.cpu = 100000;  // --cpu 100000
+  mrskin::bridged::apply(o, s);
+  try {
+    mrskin::bridged::validate(s, "flags");
+    ADD_FAILURE() << "--cpu 100000 was taken";
+  } catch (const ConfigError& err) {
+    EXPECT_NE(std::string(err.what()).find("flags: cpu: 100000 is not a CPU"), std::string::npos)
+        << err.what();
+  }
 }
 
 TEST_F(ConfigFile, AMissingFileIsAUsageError) {

@@ -1,6 +1,7 @@
 #include "config.hpp"
 
 #include <fmt/format.h>
+#include <sched.h>
 #include <toml++/toml.h>
 #include <unistd.h>
 
@@ -16,6 +17,33 @@
 
 namespace mrskin::bridged {
 namespace {
+
+// Whether the process may run on cpu (its affinity mask; -1: no pinning asked).
+bool cpu_allowed(int cpu) {
+  if (cpu == -1) {
+    return true;
+  }
+  cpu_set_t set;
+  CPU_ZERO(&set);
+  return cpu >= 0 && cpu < CPU_SETSIZE && sched_getaffinity(0, sizeof(set), &set) == 0 &&
+         CPU_ISSET(static_cast<std::size_t>(cpu), &set);
+}
+
+std::string allowed_cpus() {
+  cpu_set_t set;
+  CPU_ZERO(&set);
+  if (sched_getaffinity(0, sizeof(set), &set) != 0) {
+    return "unknown";
+  }
+  std::string list;
+  for (int c = 0; c < CPU_SETSIZE; ++c) {
+    if (CPU_ISSET(static_cast<std::size_t>(c), &set)) {
+      list += list.empty() ? "" : ",";
+      list += std::to_string(c);
+    }
+  }
+  return list;
+}
 
 class Reader {
  public:
@@ -203,13 +231,16 @@ Settings load_settings(const std::string& path) {
   if (const toml::table* b = r.section(root, "bridge")) {
     r.check_keys(*b, "bridge",
                  {"feedback_gain_per_s", "footprint_cells", "resend_period_s", "realtime", "rt_priority",
-                  "stale_hold_s", "stale_fade_s"});
+                  "cpu", "stale_hold_s", "stale_fade_s"});
     r.get_checked(*b, "bridge", "feedback_gain_per_s", s.feedback_gain_per_s, non_negative, ">= 0");
     r.get_checked(*b, "bridge", "footprint_cells", s.footprint_cells, positive, "> 0");
     r.get_checked(*b, "bridge", "resend_period_s", s.resend_period_s, positive, "> 0 s");
     r.get(*b, "bridge", "realtime", s.realtime);
     r.get_checked(
         *b, "bridge", "rt_priority", s.rt_priority, [](int v) { return v >= 1 && v <= 99; }, "1 to 99");
+    r.get_checked(
+        *b, "bridge", "cpu", s.cpu, [](int v) { return cpu_allowed(v); },
+        "-1 (not pinned) or a CPU this process may run on (" + allowed_cpus() + ")");
     r.get_checked(
         *b, "bridge", "stale_hold_s", s.stale_hold_s, [](double v) { return v >= 0.0 && v <= 10.0; },
         "0 to 10 s: the stream watchdog must act");
@@ -248,6 +279,10 @@ void validate(const Settings& s, const std::string& origin) {
   if (!(s.duration_s >= 0.0 && s.duration_s <= kMaxDuration_s)) {
     bad("duration", "must be 0 to 1e8 s (0 runs until a signal)");
   }
+  if (!cpu_allowed(s.cpu)) {
+    bad("cpu", fmt::format("{} is not a CPU this process may run on (allowed: {}); -1: not pinned", s.cpu,
+                           allowed_cpus()));
+  }
   if (s.device.empty()) {
     bad("device", "empty device URI");
   }
@@ -272,6 +307,7 @@ void apply(const Overrides& o, Settings& s) {
   s.source = o.source.value_or(s.source);
   s.rate_hz = o.rate_hz.value_or(s.rate_hz);
   s.rate_given = s.rate_given || o.rate_hz.has_value();
+  s.cpu = o.cpu.value_or(s.cpu);
   s.duration_s = o.duration_s.value_or(s.duration_s);
   s.stats_json = o.stats_json.value_or(s.stats_json);
   s.record = o.record.value_or(s.record);
@@ -298,6 +334,7 @@ bridge::BridgeTuning bridge_tuning(const Settings& s) {
   t.stale_fade_s = s.stale_fade_s;
   t.realtime = s.realtime;
   t.rt_priority = s.rt_priority;
+  t.loop_cpu = s.cpu;
   return t;
 }
 

@@ -46,6 +46,7 @@ struct Settings {
   double resend_period_s = 0.05;
   bool realtime = true;
   int rt_priority = 80;
+  int cpu = -1;               // the tick thread pinned to this CPU; -1: not pinned
   double stale_hold_s = 0.1;  // stream watchdog: hold the last estimate this long...
   double stale_fade_s = 0.2;  // ...then fade to released over this
   // [topics]: the skin as ROS 2 topics over DDS (bridge/ros2_topics.hpp); namespace "" : off.
@@ -65,6 +66,7 @@ struct Overrides {
   std::optional<std::string> device;
   std::optional<std::string> source;
   std::optional<double> rate_hz;
+  std::optional<int> cpu;
   std::optional<double> duration_s;
   std::optional<std::string> stats_json;
   std::optional<std::string> record;

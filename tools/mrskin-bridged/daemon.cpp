@@ -180,6 +180,7 @@ bridge::LoopOptions loop_options(const Settings& s, bridge::Waiter* waiter) {
   lo.rate_hz = s.rate_hz;
   lo.realtime = s.realtime;
   lo.priority = s.rt_priority;
+  lo.cpu = s.cpu;
   return lo;
 }
 
@@ -853,8 +854,8 @@ Daemon::ReloadPlan Daemon::plan_reload(const Settings& next) const {
   plan.mapping_changed = !same_mapping(old.mapping, next.mapping);
   plan.source_changed = next.source != old.source || !same_source_options(next, old) ||
                         (plan.mapping_changed && source_.scene != nullptr);
-  plan.loop_changed =
-      next.rate_hz != old.rate_hz || next.realtime != old.realtime || next.rt_priority != old.rt_priority;
+  plan.loop_changed = next.rate_hz != old.rate_hz || next.realtime != old.realtime ||
+                      next.rt_priority != old.rt_priority || next.cpu != old.cpu;
   plan.bridge_changed = plan.loop_changed || plan.mapping_changed || plan.source_changed ||
                         next.feedback_gain_per_s != old.feedback_gain_per_s ||
                         next.footprint_cells != old.footprint_cells ||

@@ -277,10 +277,13 @@ void print_run_report(const mrskin::bridged::Daemon& daemon, const mrskin::bridg
   }
   if (const bridge::LoopStats* ls = daemon.loop_stats(); ls != nullptr) {
     fmt::print(
-        "scheduler  {} priority {}, memory {}; wake latency p50 {:.1f} us, p99 {:.1f} us, p99.9 {:.1f} us; "
+        "scheduler  {} priority {}, {}, memory {}; wake latency p50 {:.1f} us, p99 {:.1f} us, p99.9 {:.1f} "
+        "us; "
         "early wakes {} (a stream sample woke the loop before its deadline), {} refused (too soon, or ahead "
         "of the rate)\n",
         ls->scheduler.policy_name(), ls->scheduler.priority,
+        ls->scheduler.cpu >= 0 ? fmt::format("pinned to CPU {}", ls->scheduler.cpu)
+                               : std::string("not pinned"),
         ls->scheduler.memory_locked ? "locked" : "not locked", ls->wake_latency.percentile_ns(0.5) / 1e3,
         ls->wake_latency.percentile_ns(0.99) / 1e3, ls->wake_latency.percentile_ns(0.999) / 1e3,
         ls->early_wakes, ls->refused_wakes);
@@ -490,6 +493,8 @@ int guarded_main(int argc, char** argv) {
   app.add_option(
       "--rate", o.rate_hz,
       "loop rate, Hz (1 to 20000; default 1000, or 80 % of the highest rate the unit's bus carries)");
+  app.add_option("--cpu", o.cpu,
+                 "pin the tick thread to this CPU (-1: not pinned, the default; [bridge] cpu; docs/loop.md)");
   app.add_option("--stats-json", o.stats_json, "write loop statistics as JSON to this file at exit");
   app.add_option("--record", o.record,
                  "record the input stream to this file (replay:// format: play it back with "

@@ -80,6 +80,7 @@ struct BridgeOptions {
   bool realtime = true;           // SCHED_FIFO + mlockall on the library's loop thread (start())
   double resend_period_s = 0.05;  // unchanged currents are sent again only this often
   int rt_priority = 80;
+  int loop_cpu = -1;  // the library's loop thread pinned to this CPU (LoopOptions::cpu); -1: not pinned
   double feedback_limit_N = 0.5;
   model::ObserverOptions observer{};
   model::InverseOptions inverse{};
@@ -105,6 +106,7 @@ struct BridgeTuning {
   double stale_fade_s = 0.2;
   bool realtime = true;
   int rt_priority = 80;
+  int loop_cpu = -1;
 };
 
 // Writes the tuning into options (the rest of options unchanged).

@@ -91,6 +91,7 @@ struct MRSKIN_BRIDGE_API SchedulerState {
   int policy = 0;              // SCHED_OTHER, SCHED_FIFO, ... as sched_getscheduler(2)
   int priority = 0;            // sched_priority (0 unless real-time)
   bool memory_locked = false;  // mlockall(MCL_CURRENT | MCL_FUTURE) succeeded
+  int cpu = -1;                // the one CPU the thread is pinned to, -1: not pinned
   [[nodiscard]] bool fifo() const noexcept;
   [[nodiscard]] const char* policy_name() const noexcept;  // "SCHED_FIFO", "SCHED_OTHER", ...
 };
@@ -110,15 +111,21 @@ class MRSKIN_BRIDGE_API RealtimeOs {
   // limit is finite and CAP_IPC_LOCK is missing: MCL_FUTURE would make later allocations fail
   // once past the limit. Refused (ENOTSUP) in sanitizer builds, whose shadow memory is huge.
   virtual int lock_memory() noexcept;
+  // sched_setaffinity(2) of the calling thread to the one CPU.
+  virtual int pin_cpu(int cpu) noexcept;
   virtual void query(int& policy, int& priority) noexcept;
 };
 MRSKIN_BRIDGE_API RealtimeOs& system_realtime_os() noexcept;
 
 struct LoopOptions {
-  double rate_hz = 1000.0;   // 1 Hz .. 20 kHz
-  bool realtime = true;      // ask for SCHED_FIFO (and mlockall) on the loop thread
-  int priority = 80;         // SCHED_FIFO priority, 1..99
-  bool lock_memory = true;   // mlockall when realtime
+  double rate_hz = 1000.0;  // 1 Hz .. 20 kHz
+  bool realtime = true;     // ask for SCHED_FIFO (and mlockall) on the loop thread
+  int priority = 80;        // SCHED_FIFO priority, 1..99
+  bool lock_memory = true;  // mlockall when realtime
+  // Pin the loop thread to this CPU (with or without realtime): one the process may run on
+  // (sched_getaffinity), else the loop's constructor throws InvalidArgument. -1: not pinned.
+  // docs/loop.md: what pinning measured, and isolating the CPU (isolcpus, nohz_full, IRQs).
+  int cpu = -1;
   Waiter* waiter = nullptr;  // nullptr: MonotonicWaiter for a MonotonicClock, else SleepWaiter
   RealtimeOs* os = nullptr;  // nullptr: system_realtime_os()
 };
