@@ -117,6 +117,27 @@ TEST(ClosedLoopStalledFinger, AMissedFingerUpdateIsNotAPress) {
   }
 }
 
+// Issue 21: the 5x5 at 10 kHz, on high-speed USB (the bus that carries it), within the product's
+// figures. The mock samples at 1 kHz: the loop ticks ten times a sample. The finger moves every
+// 11 ticks, as the daemon's main thread moves it (every ~1.1 ms): scored with a still-hold of 5
+// ticks instead of 5 ms, its releases counted as presses and the demo read 0.101 N (the 0.107 N of
+// a real-time daemon run that issue 21 quotes).
+TEST(ClosedLoopTenKilohertz, RendersTheDemoWithinTheFigures) {
+  BridgeOptions options;
+  options.rate_hz = 10'000.0;
+  const LoopRun r =
+      test::run_scene("demo", kScored ? 10.0 : 2.0, "mock://?seed=7&bus=hid-hs", nullptr, 0, options, 11);
+  print("demo/10k", r);
+  if (kScored) {
+    EXPECT_LE(r.stats.force_rms_error_N(), 0.04);
+    EXPECT_LE(r.stats.relative_error.percentile(0.95), 0.07);
+  }
+  EXPECT_EQ(r.stats.active_ticks, 0U) << "the rendering gave energy";
+  EXPECT_EQ(r.stats.observer_errors, 0U);
+  EXPECT_EQ(r.stats.sensor_faults, 0U);
+  EXPECT_EQ(r.faults, 0U);
+}
+
 TEST(ClosedLoopNetwork, DelayJitterAndLossStayConsistentAndPassive) {
   ImpairmentOptions net;  // 50 ms +- 20 ms, 5 % loss
   net.seed = 3;

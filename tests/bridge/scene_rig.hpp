@@ -4,6 +4,8 @@
 
 #include <gtest/gtest.h>
 
+#include <chrono>
+#include <cmath>
 #include <memory>
 #include <string>
 #include <vector>
@@ -27,10 +29,11 @@ struct SceneRun {
 
 // network: nullptr for a direct stream, else the slave stream goes through ImpairedSource.
 // stall_every > 0: the finger's script is not advanced on every stall_every-th tick, as when a
-// daemon's thread moves it on its own ~1.1 ms period.
+// daemon's thread moves it on its own ~1.1 ms period. finger_every > 1: it is advanced only every
+// finger_every-th tick (that ~1.1 ms period at a loop rate above 1 kHz: 11 ticks at 10 kHz).
 inline SceneRun run_scene(const std::string& scene_name, double seconds, const std::string& device_uri,
                           const ImpairmentOptions* network = nullptr, int stall_every = 0,
-                          const BridgeOptions& options = {}) {
+                          const BridgeOptions& options = {}, int finger_every = 1) {
   SimulatedClock clock;
   OpenOptions open;
   open.synchronous_mock = true;
@@ -50,16 +53,19 @@ inline SceneRun run_scene(const std::string& scene_name, double seconds, const s
   scene->set_start(clock.now());
   EXPECT_EQ(loop.enable(), ResultCode::ok);
   std::vector<double> finger(sim::mock_of(dev)->layout().fluid_cell_count());
-  const auto ticks = static_cast<int>(seconds * 1000.0);
+  // One tick per loop period (options.rate_hz; the mock samples at its own telemetry rate).
+  const auto ticks = static_cast<int>(std::lround(seconds * options.rate_hz));
+  const auto period =
+      std::chrono::duration_cast<Duration>(std::chrono::duration<double>(1.0 / options.rate_hz));
   for (int k = 0; k < ticks; ++k) {
-    if (stall_every <= 0 || k % stall_every != 0) {
+    if ((stall_every <= 0 || k % stall_every != 0) && (finger_every <= 1 || k % finger_every == 0)) {
       mrskin::eval::press_scene_finger(*scene, to_seconds(clock.now() - scene->start()),
                                        sim::mock_of(dev)->layout(), finger);
       sim::mock_of(dev)->set_finger_indentation(finger);
     }
     sim::mock_of(dev)->step(clock.now());
     (void)loop.step(clock.now());
-    clock.advance(std::chrono::milliseconds(1));
+    clock.advance(period);
   }
   SceneRun r;
   r.stats = loop.stats();

@@ -27,6 +27,7 @@ void TruthScorer::on_tick(const bridge::TickView& tick, bridge::BridgeStats& sta
   const bool finger_known = truth_.finger_indentation(finger_m_);
   // The finger holds when it moves out slower than this (scenes hold exactly still).
   constexpr double kHoldRate_m_per_s = 1e-6;
+  const int still_ticks = std::max(1, static_cast<int>(std::lround(kStill_s / dt)));
   for (std::size_t i = 0; i < truth_N_.size(); ++i) {
     const model::CellSolution& c = solve[i];
     const bool role_loaded = c.role == model::CellRole::loading || c.role == model::CellRole::holding;
@@ -38,17 +39,17 @@ void TruthScorer::on_tick(const bridge::TickView& tick, bridge::BridgeStats& sta
       finger_rate = (finger_m_[i] - finger_prev_m_[i]) / dt;
       // A finger still for one tick in the middle of a retreat is one whose script was not
       // advanced that tick (the daemon moves it from another thread, every ~1.1 ms): it holds
-      // once it has been still for kStillTicks, not before (docs/bridge.md, "Scoring").
+      // once it has been still for kStill_s, not before (docs/bridge.md, "Scoring").
       if (finger_rate < -kHoldRate_m_per_s) {
         finger_still_ticks_[i] = 0;
         finger_retreated_[i] = 1;
       } else if (finger_rate > kHoldRate_m_per_s) {
         finger_still_ticks_[i] = 0;
         finger_retreated_[i] = 0;
-      } else if (finger_still_ticks_[i] < kStillTicks) {
+      } else if (finger_still_ticks_[i] < still_ticks) {
         ++finger_still_ticks_[i];
       }
-      const bool holding_still = finger_still_ticks_[i] >= kStillTicks || finger_retreated_[i] == 0;
+      const bool holding_still = finger_still_ticks_[i] >= still_ticks || finger_retreated_[i] == 0;
       pressing = touching && finger_rate >= -kHoldRate_m_per_s && holding_still;
       retreating = touching && !pressing;
     }

@@ -33,7 +33,9 @@ class MRSKIN_EVAL_API TruthScorer final : public bridge::TickWatcher {
   std::vector<double> finger_prev_m_;            // ...and last tick
   std::vector<int> finger_still_ticks_;          // per cell: ticks the true finger has not moved
   std::vector<unsigned char> finger_retreated_;  // per cell: its last move was out
-  static constexpr int kStillTicks = 5;          // still this long after a retreat: holding
+  // Still this long after a retreat: holding. A time, not a tick count: the daemon moves the
+  // finger every ~1.1 ms whatever the loop's rate (5 ticks at 1 kHz, 50 at 10 kHz).
+  static constexpr double kStill_s = 5e-3;
 };
 
 // The simulated finger following the scene at scene time t_s: a fingertip (sim::press_fingertip)
