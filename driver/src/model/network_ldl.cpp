@@ -105,7 +105,11 @@ SparseLdl::SparseLdl(std::size_t n, std::span<const Pair> pairs)
   d_.assign(n, 0.0);
   y_.assign(n, 0.0);
   w_.assign(n, 0.0);
+  plan_numeric(flag);
+}
 
+void SparseLdl::plan_numeric(std::vector<std::uint32_t>& flag) {
+  const std::size_t n = n_;
   // The numeric pass's bookkeeping, done once: ldl_numeric's row patterns (the etree reach of
   // each row, in the order it visits them) and the slot of L each visit writes. The pattern
   // is fixed, so factorize() replays the same arithmetic in the same order without walking
@@ -115,7 +119,7 @@ SparseLdl::SparseLdl(std::size_t n, std::span<const Pair> pairs)
   row_begin_.assign(n + 1, 0);
   for (std::size_t k = 0; k < n; ++k) {
     std::size_t top = n;
-    flag[k] = static_cast<std::uint32_t>(k + n);  // a stamp the symbolic pass above never used
+    flag[k] = static_cast<std::uint32_t>(k + n);  // a stamp the symbolic pass never used
     for (std::uint32_t p = ap_[k]; p < ap_[k + 1]; ++p) {
       std::size_t i = ai_[p];
       std::size_t len = 0;

@@ -38,6 +38,9 @@ class SparseLdl {
   void solve(std::span<double> x) noexcept;
 
  private:
+  // The row patterns and L slots factorize() replays (flag: the symbolic pass's stamps, < n).
+  void plan_numeric(std::vector<std::uint32_t>& flag);
+
   std::size_t n_;
   std::vector<std::uint32_t> new_of_old_;  // fill-reducing permutation
   // Upper triangle (diagonal included) of the permuted matrix, compressed by column.
