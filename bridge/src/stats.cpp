@@ -159,6 +159,21 @@ std::string clamped_json(const BridgeStats& s) {
       mean(c.ceiling_missed_sum_N, c.ceiling));
 }
 
+std::string threads_json(const BridgeStats& s) {
+  std::string out = fmt::format(R"({{"wall_s": {:.6g}, "by_name": [)", s.threads_wall_s);
+  for (std::size_t k = 0; k < s.threads.size(); ++k) {
+    const BridgeStats::ThreadCpu& t = s.threads[k];
+    std::string name;  // kernel thread names are short: keep printable ASCII, no quote or backslash
+    for (const char c : t.name) {
+      name += c >= 0x20 && c < 0x7f && c != '"' && c != '\\' ? c : '_';
+    }
+    out += fmt::format(R"({}{{"name": "{}", "threads": {}, "cpu_s": {:.6g}, "cpu_fraction": {:.6g}}})",
+                       k == 0 ? "" : ", ", name, t.count, t.cpu_s,
+                       s.threads_wall_s > 0.0 ? t.cpu_s / s.threads_wall_s : 0.0);
+  }
+  return out + "]}";
+}
+
 }  // namespace
 
 std::string to_json(const BridgeStats& s, double tick_period_s) {
@@ -201,7 +216,8 @@ std::string to_json(const BridgeStats& s, double tick_period_s) {
       "  \"device_faults\": {},\n"
       "  \"link_errors\": {{\"sequence_gaps\": {}, \"duplicates\": {}, \"undecodable\": {}, \"crc\": {}, "
       "\"telemetry_timeouts\": {}, \"disconnects\": {}, \"reconnects\": {}}},\n"
-      "  \"inverse\": {{\"errors\": {}, \"cached_ticks\": {}, \"mean_residual_n\": {:.6g}}}\n"
+      "  \"inverse\": {{\"errors\": {}, \"cached_ticks\": {}, \"mean_residual_n\": {:.6g}}},\n"
+      "  \"threads\": {}\n"
       "}}\n",
       kStatisticsFormatVersion, tick_period_s, s.ticks, s.overruns, s.skipped_periods, s.send_failures,
       s.unchanged_sends_skipped, s.slave_samples, s.samples_accepted, s.samples_dropped,
@@ -216,7 +232,7 @@ std::string to_json(const BridgeStats& s, double tick_period_s) {
       s.stream_disconnects, s.stream_restarts, s.device_faults, s.link.sequence_gaps, s.link.duplicates,
       s.link.undecodable, s.link.crc, s.link.telemetry_timeouts, s.link.disconnects, s.link.reconnects,
       s.inverse_errors, s.inverse_cached,
-      s.ticks == 0 ? 0.0 : s.inverse_residual_sum_N / static_cast<double>(s.ticks));
+      s.ticks == 0 ? 0.0 : s.inverse_residual_sum_N / static_cast<double>(s.ticks), threads_json(s));
 }
 
 }  // namespace mrskin::bridge

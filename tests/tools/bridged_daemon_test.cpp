@@ -289,6 +289,11 @@ TEST_F(BridgedDaemon, ControlSocketEstopFaultEnableThenSigtermFlushesStatistics)
   const std::optional<std::string> ticks = json_field(stats, "ticks");
   ASSERT_TRUE(ticks.has_value()) << stats;
   EXPECT_GT(std::stoull(*ticks), 0U);
+  // CPU per thread, by the names the threads give themselves.
+  const std::string threads = json_field(stats, "threads").value_or("");
+  EXPECT_NE(threads.find("\"mrskin-loop\""), std::string::npos) << threads;
+  EXPECT_NE(threads.find("\"mrskin-mock\""), std::string::npos) << threads;
+  EXPECT_NE(d.output().find("cpu        per thread"), std::string::npos) << d.output();
   EXPECT_FALSE(fs::exists(socket_)) << "the socket is removed at exit";
   EXPECT_NE(d.output().find("summary:"), std::string::npos) << d.output();
 }

@@ -3,6 +3,7 @@
 #include <fcntl.h>
 #include <fmt/format.h>
 #include <poll.h>
+#include <pthread.h>
 #include <sys/eventfd.h>
 #include <sys/socket.h>
 #include <sys/stat.h>
@@ -195,7 +196,10 @@ ControlServer::~ControlServer() {
 void ControlServer::start(ControlBackend& backend) {
   if (!thread_.joinable()) {
     backend_ = &backend;
-    thread_ = std::thread([this] { run(); });
+    thread_ = std::thread([this] {
+      (void)::pthread_setname_np(::pthread_self(), "mrskin-control");
+      run();
+    });
   }
 }
 

@@ -2,6 +2,7 @@
 
 #include <fmt/format.h>
 #include <fmt/ranges.h>
+#include <pthread.h>
 #include <spdlog/spdlog.h>
 
 #include <algorithm>
@@ -189,13 +190,20 @@ std::string Daemon::start() {
     loop_ = std::make_unique<bridge::RealtimeLoop>(clock_, *this, loop_options(settings_, waiter_.get()));
   }
   std::string warning = loop_->start();
+  if (thread_cpu_t0_ == TimePoint{}) {
+    thread_cpu_t0_ = clock_.now();
+    thread_cpu_.sample();  // the baseline: the start-up's CPU time is not the run's
+  }
   if (topics_ && !topics_thread_.joinable()) {
     {
       const std::lock_guard<std::mutex> lock(topics_mutex_);
       topics_stop_ = false;
     }
     topics_on_.store(true, std::memory_order_relaxed);
-    topics_thread_ = std::thread([this] { publish_topics(); });
+    topics_thread_ = std::thread([this] {
+      (void)::pthread_setname_np(::pthread_self(), "mrskin-topics");
+      publish_topics();
+    });
   }
   if (warned_) {
     return {};  // a reload's new loop would repeat it
@@ -784,8 +792,16 @@ Daemon::ReportsPerFrame Daemon::reports_per_frame() const noexcept {
           static_cast<double>(link.reports_received - reports_at_start_.second) / frames};
 }
 
+void Daemon::sample_threads() {
+  if (thread_cpu_t0_ != TimePoint{}) {
+    thread_cpu_.sample();
+  }
+}
+
 bridge::BridgeStats Daemon::final_stats() const {
   bridge::BridgeStats stats = bridge_->stats();
+  stats.threads = thread_cpu_.totals();
+  stats.threads_wall_s = thread_cpu_t0_ == TimePoint{} ? 0.0 : to_seconds(clock_.now() - thread_cpu_t0_);
   if (loop_) {
     stats.skipped_periods += loop_->stats().skipped_periods;
   }

@@ -32,6 +32,7 @@
 #include "mrskin/driver/relaxed_counter.hpp"
 #include "mrskin/eval/truth_scorer.hpp"
 #include "session_gate.hpp"
+#include "thread_cpu.hpp"
 
 namespace mrskin::bridged {
 
@@ -114,6 +115,9 @@ class Daemon final : public bridge::Tickable, public ControlBackend {
   [[nodiscard]] bool unrequested_fault() const noexcept;
   // After stop(): the run's statistics (since the last reload) with the bus load filled in.
   [[nodiscard]] bridge::BridgeStats final_stats() const;
+  // Main thread: reads each thread's CPU time (the first call, at start(), is the baseline; call
+  // it once more before stop(), which ends the loop's and the mock's threads).
+  void sample_threads();
   [[nodiscard]] const bridge::LoopStats* loop_stats() const noexcept {
     return loop_ ? &loop_->stats() : nullptr;
   }
@@ -195,6 +199,8 @@ class Daemon final : public bridge::Tickable, public ControlBackend {
   std::pair<std::uint64_t, std::uint64_t> reports_at_start_{};  // sent, received
   sim::MockBusStats bus_at_start_{};                            // the mock's bus when the loop started
   TimePoint t0_{};
+  ThreadCpuMeter thread_cpu_;
+  TimePoint thread_cpu_t0_{};
   bool warned_ = false;
 
   // Control -> tick: the operator's request, forwarded to the current Bridge at the next tick.

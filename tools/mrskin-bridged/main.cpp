@@ -57,7 +57,10 @@ class StartupSignalGuard {
  public:
   StartupSignalGuard() : sfd_(stop_signals_fd()), stop_(::eventfd(0, EFD_CLOEXEC | EFD_NONBLOCK)) {
     if (sfd_ >= 0 && stop_ >= 0) {
-      thread_ = std::thread([this] { watch(); });
+      thread_ = std::thread([this] {
+        (void)::pthread_setname_np(::pthread_self(), "mrskin-signals");
+        watch();
+      });
     }
   }
   StartupSignalGuard(const StartupSignalGuard&) = delete;
@@ -241,6 +244,7 @@ bool status_period(Console& console, mrskin::bridged::Daemon& daemon,
       spdlog::info("{}", e);
     }
   }
+  daemon.sample_threads();  // a thread that ends keeps its last reading
   if (daemon.device_lost(daemon.settings().device_lost_s)) {
     console.clear();
     spdlog::error("device {} lost for good (down for more than {} s, or another unit answered)",
@@ -287,6 +291,16 @@ void print_run_report(const mrskin::bridged::Daemon& daemon, const mrskin::bridg
         ls->scheduler.memory_locked ? "locked" : "not locked", ls->wake_latency.percentile_ns(0.5) / 1e3,
         ls->wake_latency.percentile_ns(0.99) / 1e3, ls->wake_latency.percentile_ns(0.999) / 1e3,
         ls->early_wakes, ls->refused_wakes);
+  }
+  if (!stats.threads.empty()) {
+    std::string line;
+    for (const bridge::BridgeStats::ThreadCpu& t : stats.threads) {
+      line += fmt::format("{}{}{} {:.2f} s ({:.0f} %)", line.empty() ? "" : ", ", t.name,
+                          t.count > 1 ? fmt::format(" x{}", t.count) : std::string(), t.cpu_s,
+                          stats.threads_wall_s > 0.0 ? 100.0 * t.cpu_s / stats.threads_wall_s : 0.0);
+    }
+    fmt::print("cpu        per thread over {:.1f} s since the loop started: {}\n", stats.threads_wall_s,
+               line);
   }
   if (const bridge::SampleRecorder* rec = daemon.recorder(); rec != nullptr) {
     fmt::print("recorded   {} samples to {} ({} dropped)\n", rec->written(), daemon.settings().record,
@@ -351,6 +365,7 @@ int finish(mrskin::bridged::Daemon& daemon, mrskin::bridged::ControlServer& serv
            int stop_signal, bool lost) {
   using namespace mrskin;
   server.stop();
+  daemon.sample_threads();  // before stop() ends the loop's and the mock's threads
   daemon.stop();
   console.end_status();
   for (const std::string& e : server.take_events()) {  // the last ones, not lost to the exit

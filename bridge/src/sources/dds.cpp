@@ -5,6 +5,7 @@
 // Staleness is measured from arrival (the mapped stamp never runs ahead of it); the header stamps
 // give the order. A writer lost (matched count down, or no writer alive) fades the bridge at once.
 #include <fmt/format.h>
+#include <pthread.h>
 
 #include <array>
 #include <cmath>
@@ -70,7 +71,10 @@ class DdsSource final : public QueuedSource {
       static_cast<DdsSource*>(self)->malformed(topic);
     });
     try {
-      thread_ = std::thread([this] { run(); });
+      thread_ = std::thread([this] {
+        (void)::pthread_setname_np(::pthread_self(), "mrskin-dds");
+        run();
+      });
     } catch (...) {
       dds::unwatch_malformed(this);  // no destructor runs: leave no hook to this object behind
       throw;

@@ -7,6 +7,7 @@
 #include <igtl_util.h>
 #include <netdb.h>
 #include <poll.h>
+#include <pthread.h>
 #include <sys/socket.h>
 #include <unistd.h>
 
@@ -348,7 +349,10 @@ class IgtlSource final : public QueuedSource {
       throw InvalidArgument(
           "igtl source: need tactile_pitch_m > 0 and 0 < reconnect_min_s <= reconnect_max_s");
     }
-    thread_ = std::thread([this] { listener_.valid() ? serve() : connect_loop(); });
+    thread_ = std::thread([this] {
+      (void)::pthread_setname_np(::pthread_self(), "mrskin-igtl");
+      listener_.valid() ? serve() : connect_loop();
+    });
   }
   IgtlSource(const IgtlSource&) = delete;
   IgtlSource& operator=(const IgtlSource&) = delete;

@@ -1,5 +1,6 @@
 // replay://FILE and SampleRecorder: the stream file, format v1 (docs/sources.md).
 #include <fmt/format.h>
+#include <pthread.h>
 
 #include <algorithm>
 #include <cerrno>
@@ -271,7 +272,10 @@ SampleRecorder::SampleRecorder(const std::string& path, std::size_t capacity)
     throw Error("sample recorder: cannot create '" + path + "': " + std::strerror(errno));
   }
   fmt::print(file_, "{}\n{}\n", kFileMagic, kColumns);
-  writer_ = std::thread([this] { run(); });
+  writer_ = std::thread([this] {
+    (void)::pthread_setname_np(::pthread_self(), "mrskin-record");
+    run();
+  });
 }
 
 SampleRecorder::~SampleRecorder() { close(); }

@@ -1,6 +1,7 @@
 // udp://HOST:PORT: one sample per datagram, format v1 (docs/sources.md).
 #include <fmt/format.h>
 #include <poll.h>
+#include <pthread.h>
 #include <sys/socket.h>
 
 #include <bit>
@@ -77,7 +78,10 @@ UdpSource::UdpSource(const Endpoint& where, const SourceOptions& options, Clock*
       port_(bound_port(socket_.get())),
       gate_(options.restart_after_out_of_order),
       mapper_(options.offset_drift_s_per_s) {
-  thread_ = std::thread([this] { run(); });
+  thread_ = std::thread([this] {
+    (void)::pthread_setname_np(::pthread_self(), "mrskin-udp");
+    run();
+  });
 }
 
 UdpSource::~UdpSource() {

@@ -1,6 +1,7 @@
 #include "mrskin/sim/mock_device.hpp"
 
 #include <fmt/format.h>
+#include <pthread.h>
 
 #include <algorithm>
 #include <cmath>
@@ -358,6 +359,7 @@ void MockDevice::Impl::start(Clock& clock) {
     return;
   }
   thread_ = std::thread([this, &clock] {
+    (void)::pthread_setname_np(::pthread_self(), "mrskin-mock");
     const Duration period = from_seconds(options_.physics_dt_s * 10.0);
     TimePoint next = clock.now();
     while (running_.load(std::memory_order_acquire)) {

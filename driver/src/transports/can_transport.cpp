@@ -4,6 +4,7 @@
 #include <linux/can.h>
 #include <linux/can/error.h>
 #include <net/if.h>
+#include <pthread.h>
 
 #include <algorithm>
 #include <atomic>
@@ -125,7 +126,10 @@ class CanTransport final : public QueuedTransport {
     }
     socket_ = r.fd;
     set_state(TransportState::open);
-    thread_ = std::thread([this] { run(); });
+    thread_ = std::thread([this] {
+      (void)::pthread_setname_np(::pthread_self(), "mrskin-can");
+      run();
+    });
   }
   CanTransport(const CanTransport&) = delete;
   CanTransport& operator=(const CanTransport&) = delete;

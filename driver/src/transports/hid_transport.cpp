@@ -1,6 +1,7 @@
 #include <fmt/format.h>
 #include <hidapi/hidapi.h>
 #include <poll.h>
+#include <pthread.h>
 #include <sys/eventfd.h>
 #include <unistd.h>
 
@@ -194,9 +195,15 @@ class HidTransport final : public QueuedTransport {
                                 a.path, uri_text, errno_text(a.error)));
     }
     install(std::move(a));
-    reader_thread_ = std::thread([this] { read_loop(); });
+    reader_thread_ = std::thread([this] {
+      (void)::pthread_setname_np(::pthread_self(), "mrskin-hid-read");
+      read_loop();
+    });
     try {
-      writer_thread_ = std::thread([this] { write_loop(); });
+      writer_thread_ = std::thread([this] {
+        (void)::pthread_setname_np(::pthread_self(), "mrskin-hid-wr");
+        write_loop();
+      });
     } catch (...) {
       stop();
       throw;

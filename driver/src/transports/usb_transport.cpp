@@ -1,6 +1,7 @@
 #include <fmt/format.h>
 #include <libusb.h>
 #include <poll.h>
+#include <pthread.h>
 #include <sys/eventfd.h>
 #include <unistd.h>
 
@@ -425,7 +426,10 @@ UsbTransport::UsbTransport(std::string_view uri, std::shared_ptr<LibusbApi> api,
       hotplug_ = false;  // fall back to polling after a loss
     }
     set_state(TransportState::open);
-    thread_ = std::thread([this] { run(); });
+    thread_ = std::thread([this] {
+      (void)::pthread_setname_np(::pthread_self(), "mrskin-usb");
+      run();
+    });
   } catch (...) {
     close_device();
     release_all();

@@ -4,6 +4,7 @@
 #include <array>
 #include <cstdint>
 #include <string>
+#include <vector>
 
 #include "mrskin/bridge/drop_reason.hpp"
 #include "mrskin/bridge/export.hpp"
@@ -157,6 +158,15 @@ struct MRSKIN_BRIDGE_API BridgeStats {
   std::uint64_t stream_connections = 0;
   std::uint64_t stream_disconnects = 0;
   std::uint64_t stream_restarts = 0;
+  // CPU time per thread name over the run, busiest first, and the run's wall time it is a share
+  // of: set by mrskin-bridged from /proc after the run (never on the tick thread); empty elsewhere.
+  struct ThreadCpu {
+    std::string name;         // as the thread named itself (mrskin-loop, mrskin-mock, ...)
+    std::uint64_t count = 0;  // threads of that name
+    double cpu_s = 0.0;
+  };
+  std::vector<ThreadCpu> threads;
+  double threads_wall_s = 0.0;
 
   [[nodiscard]] double force_rms_error_N() const noexcept;
   [[nodiscard]] double release_rms_error_N() const noexcept;
