@@ -47,6 +47,8 @@ class __attribute__((visibility("hidden"))) Bridge::Impl {
   [[nodiscard]] bool halted() const noexcept { return halted_.load(std::memory_order_acquire); }
   void retune(const BridgeTuning& tuning);
   [[nodiscard]] BridgeTuning tuning() const noexcept;
+  [[nodiscard]] const BridgeOptions& options() const noexcept { return options_; }
+  [[nodiscard]] DesignScale scale() const noexcept { return scale_; }
   // The tick's calls: inlined into the public functions, so the pointer costs no call.
   [[gnu::always_inline]] inline ResultCode step(TimePoint now) noexcept;
   std::string start(Clock& clock);
@@ -95,6 +97,7 @@ class __attribute__((visibility("hidden"))) Bridge::Impl {
   DeviceSession& session_;
   SlaveSource& source_;
   BridgeOptions options_;
+  DesignScale scale_{};  // the unit's design point against the reference's
   GridLayout layout_;
   // The unit's current limit, A: its Identity's, which a reconnect to the same unit keeps.
   double max_current_A_ = 0.0;
@@ -183,6 +186,10 @@ Bridge::Impl::Impl(DeviceSession& session, SlaveSource& source, BridgeOptions op
         "the bridge needs the device's profile: open the device with SessionOptions::read_configuration = "
         "true");
   }
+  if (options_.scale_to_design) {
+    scale_ = design_scale(profile->design);
+    options_ = scaled_to_design(options_, scale_);
+  }
   const std::size_t cells = layout_.fluid_cell_count();
   if (session.info().sensors != profile->sensors.size() || session.info().valves != layout_.valve_count() ||
       profile->rows != layout_.rows() || profile->cols != layout_.cols()) {
@@ -235,7 +242,7 @@ Bridge::Impl::Impl(DeviceSession& session, SlaveSource& source, BridgeOptions op
   a.floor_N.assign(cells, std::numeric_limits<double>::quiet_NaN());
   a.ceiling_N.assign(cells, std::numeric_limits<double>::quiet_NaN());
   sent_A_.assign(layout_.valve_count(), 0.0);
-  render_.emplace(options_, layout_);
+  render_.emplace(options_, layout_, scale_);
   allocate_.emplace(options_, layout_, *model_, *inverse_, *observer_, valve_gain_, max_current_A_);
   statistics_.emplace(options_, *inverse_, cells);
 }
@@ -523,6 +530,39 @@ void Bridge::request(Request r) noexcept { impl_->request(r); }
 bool Bridge::halted() const noexcept { return impl_->halted(); }
 void Bridge::retune(const BridgeTuning& tuning) { impl_->retune(tuning); }
 BridgeTuning Bridge::tuning() const noexcept { return impl_->tuning(); }
+const BridgeOptions& Bridge::options() const noexcept { return impl_->options(); }
+DesignScale Bridge::scale() const noexcept { return impl_->scale(); }
+
+DesignScale design_scale(const model::DesignPoint& design) noexcept {
+  DesignScale s;
+  if (design.indentation_m > 0.0 && std::isfinite(design.indentation_m)) {
+    s.length = design.indentation_m / kReferenceDesignIndentation_m;
+  }
+  if (design.force_range_N > 0.0 && std::isfinite(design.force_range_N)) {
+    s.force = design.force_range_N / kReferenceDesignForce_N;
+  }
+  return s;
+}
+
+BridgeOptions scaled_to_design(BridgeOptions o, DesignScale s) noexcept {
+  if (s.length == 1.0 && s.force == 1.0) {
+    return o;  // the reference design: bit for bit as given
+  }
+  for (double* length : {&o.contact_threshold_m, &o.unload_rate_m_per_s, &o.load_exit_rate_m_per_s,
+                         &o.unload_retreat_m, &o.inverse.hold_rate_tolerance_m_per_s,
+                         &o.inverse.indentation_tolerance_m, &o.inverse.rate_tolerance_m_per_s}) {
+    *length *= s.length;  // rates too: the same motion in the unit's own depth
+  }
+  // Not the observer's: its fit and its contact depth are set by the sensors' noise, which the
+  // profile states apart (a threshold of a few noise sigmas would find contact in the noise).
+  for (double* force : {&o.max_force_N, &o.contact_force_N, &o.feedback_limit_N, &o.relative_error_floor_N,
+                        &o.inverse.force_tolerance_N}) {
+    *force *= s.force;
+  }
+  o.passivity_tolerance_J *= s.force * s.length;
+  return o;
+}
+
 ResultCode Bridge::step(TimePoint now) noexcept { return impl_->step(now); }
 std::string Bridge::start(Clock& clock) { return impl_->start(clock); }
 void Bridge::stop() noexcept { impl_->stop(); }

@@ -11,10 +11,12 @@ double unload_filter_alpha(const BridgeOptions& o) noexcept {
 }
 }  // namespace
 
-RenderStage::RenderStage(const BridgeOptions& options, const GridLayout& layout)
+RenderStage::RenderStage(const BridgeOptions& options, const GridLayout& layout, DesignScale scale)
     : options_(options),
       layout_(layout),
       estimator_(options.estimator),
+      scale_(scale),
+      rescale_(scale.length != 1.0 || scale.force != 1.0),
       unload_filter_alpha_(unload_filter_alpha(options)),
       cell_(layout.fluid_cell_count()) {}
 
@@ -50,6 +52,9 @@ void RenderStage::take_stream(SlaveSource& source, TimePoint now, TimePoint star
   }
   const bool was_fresh = estimate_.freshness == TissueFreshness::fresh;
   estimate_ = estimator_.estimate(to_seconds(now - start));
+  if (rescale_) {
+    law_ = estimate_.model.rescaled(scale_.force, scale_.length);
+  }
   if (estimate_.freshness != TissueFreshness::fresh) {
     ++stats.stale_ticks;
     stats.stream_stalls += was_fresh ? 1 : 0;
@@ -61,11 +66,12 @@ void RenderStage::take_stream(SlaveSource& source, TimePoint now, TimePoint star
         options_.mapping.to_cell(slave_.contact_x_m, slave_.contact_y_m, layout_.rows(), layout_.cols());
     const double reach = std::max(options_.footprint_cells, options_.mapping.to_cells(slave_.tip_radius_m));
     const auto& cells = layout_.fluid_cells();
+    const TissueModel& fresh = law();
     for (std::size_t i = 0; i < cells.size(); ++i) {
       const double dr = cells[i].row - at.row;
       const double dc = cells[i].col - at.col;
       if (dr * dr + dc * dc <= reach * reach) {
-        cell_[i].mapped_model = estimate_.model;  // fresh: scale 1
+        cell_[i].mapped_model = fresh;  // fresh: scale 1
         cell_[i].mapped = 1;
       }
     }
@@ -126,6 +132,7 @@ void RenderStage::render(const Observation& observed, std::span<const model::Cel
   const std::span<const double> depth_m = observed.depth_m;
   const std::span<const double> force_N = observed.force_N;
   const std::span<const double> outflow = observed.outflow_m3_per_s;
+  const TissueModel& unmapped = law();  // the cells the instrument never mapped
   const double valid_until_s = estimate_.valid_until_s;
   for (std::size_t i = 0; i < cell_.size(); ++i) {
     CellMemory& cell = cell_[i];
@@ -142,7 +149,7 @@ void RenderStage::render(const Observation& observed, std::span<const model::Cel
     // scaled by the stale policy, changed passively while the finger is in the cell.
     PassiveTissueUpdate& law = cell.law;
     if (contact || law.surface_offset_m() > 0.0 || law.tank_J() > 0.0) {
-      law.update(cell.mapped != 0 ? cell.mapped_model.scaled(estimate_.scale) : estimate_.model,
+      law.update(cell.mapped != 0 ? cell.mapped_model.scaled(estimate_.scale) : unmapped,
                  state.indentation_m);
     }
     // What the finger should feel (the feedback's shift is not part of it); allocate clamps it

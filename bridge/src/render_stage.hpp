@@ -14,7 +14,8 @@ namespace mrskin::bridge::detail {
 class RenderStage {
  public:
   // Setup: sizes every per-cell array. options and layout are the bridge's and outlive this.
-  RenderStage(const BridgeOptions& options, const GridLayout& layout);
+  // scale: the unit's design point; the slave's tissue law is rendered through it.
+  RenderStage(const BridgeOptions& options, const GridLayout& layout, DesignScale scale);
 
   // The newest slave sample into the estimate; the cells under the mapped contact point take it.
   // Counts samples, stale ticks and stalls in stats; writes the fresh-sample fields of out.
@@ -41,6 +42,12 @@ class RenderStage {
   const GridLayout& layout_;
   TissueEstimator estimator_;
   TissueEstimate estimate_{};
+  // The estimate's law at the unit's design point: law_ on another design, the estimate's own on
+  // the reference (no copy a tick).
+  [[nodiscard]] const TissueModel& law() const noexcept { return rescale_ ? law_ : estimate_.model; }
+  DesignScale scale_{};
+  bool rescale_ = false;
+  TissueModel law_{};
   SlaveSample slave_{};  // the newest sample taken
   double unload_filter_alpha_ = 1.0;
   std::vector<CellMemory> cell_;

@@ -213,6 +213,22 @@ TissueModel TissueModel::scaled(double scale) const noexcept {
   return m;
 }
 
+TissueModel TissueModel::rescaled(double force_scale, double length_scale) const noexcept {
+  // F = elastic(x) + (b + lambda x^n) x': each term through x -> x / s, x' -> x' / s.
+  TissueModel m = *this;
+  const double per_length = 1.0 / length_scale;
+  const double depth_factor = std::pow(per_length, exponent);  // x^n -> x^n / s^n
+  m.damping_N_s_per_m *= force_scale * per_length;
+  m.hc_damping_N_s_per_m *= force_scale * depth_factor * per_length;
+  if (kind == TissueKind::exponential) {
+    m.exp_scale_N *= force_scale;
+    m.exp_rate_per_m *= per_length;
+  } else {
+    m.stiffness_N_per_m *= force_scale * depth_factor;  // k x^n
+  }
+  return m;
+}
+
 model::CellImpedanceTarget TissueModel::to_impedance_target(double depth_m, double surface_offset_m,
                                                             double force_ceiling_N,
                                                             double valid_until_s) const noexcept {

@@ -86,7 +86,7 @@ class Rig {
     if (mock_) {
       truth_.emplace(*mock_);
       cells_ = mock_->layout().fluid_cell_count();
-      scorer_ = std::make_unique<eval::TruthScorer>(*truth_, cells_, o.bridge);
+      scorer_ = std::make_unique<eval::TruthScorer>(*truth_, cells_, bridge_->options());
     } else {
       cells_ = dev_.session->info().fluid_cells;
     }
@@ -124,7 +124,8 @@ class Rig {
   // The simulated finger follows the script (the scene, or the mock's finger= scene).
   void press_finger() noexcept {
     if (mock_ && finger_ != nullptr) {
-      eval::press_scene_finger(*finger_, to_seconds(clock_.now() - t0_), mock_->layout(), finger_depth_m_);
+      eval::press_scene_finger(*finger_, to_seconds(clock_.now() - t0_), mock_->layout(), finger_depth_m_,
+                               bridge_->scale().length);
       mock_->set_finger_indentation(finger_depth_m_);
     }
   }

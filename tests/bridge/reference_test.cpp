@@ -155,12 +155,17 @@ TEST(Reference, EveryScenesStatisticsAtSeed7MatchTheGoldenFile) {
 TEST(Reference, DISABLED_MeasureEverySceneOnADevice) {
   const char* env = std::getenv("MRSKIN_REFERENCE_DEVICE");
   const std::string device = env != nullptr ? env : "mock://?seed=7";
-  std::printf("%s, %.0f s on the simulated clock, default BridgeOptions\n", device.c_str(), kSeconds);
+  std::printf("%s, %.0f s on the simulated clock, default BridgeOptions%s\n", device.c_str(), kSeconds,
+              std::getenv("MRSKIN_REFERENCE_AS_GIVEN") != nullptr ? " (scale_to_design off)" : "");
   std::printf(
       "| scene | clamped | RMS error | p95 relative | unclamped RMS | release RMS "
       "|\n|---|---|---|---|---|---|\n");
+  // MRSKIN_REFERENCE_AS_GIVEN set: BridgeOptions::scale_to_design off (the reference design's
+  // thresholds, laws and finger on any unit, as before the design scale).
+  BridgeOptions options;
+  options.scale_to_design = std::getenv("MRSKIN_REFERENCE_AS_GIVEN") == nullptr;
   for (const std::string_view name : scene_names()) {
-    const BridgeStats s = test::run_scene(std::string(name), kSeconds, device).stats;
+    const BridgeStats s = test::run_scene(std::string(name), kSeconds, device, nullptr, 0, options).stats;
     std::printf("| %s | %.1f %% | %.3f N | %.1f %% | %.3f N | %.3f N |\n", std::string(name).c_str(),
                 100.0 * s.clamped_fraction(), s.force_rms_error_N(),
                 100.0 * s.relative_error.percentile(0.95), s.unclamped_rms_error_N(),

@@ -47,7 +47,7 @@ inline SceneRun run_scene(const std::string& scene_name, double seconds, const s
   }
   Bridge loop(*dev.session, *source, options);
   sim::MockDeviceTruth truth(*sim::mock_of(dev));
-  eval::TruthScorer scorer(truth, sim::mock_of(dev)->layout().fluid_cell_count(), options);
+  eval::TruthScorer scorer(truth, sim::mock_of(dev)->layout().fluid_cell_count(), loop.options());
   loop.set_tick_watcher(&scorer);
   loop.set_perf_clock(&clock);  // deterministic: no wall time anywhere
   scene->set_start(clock.now());
@@ -60,7 +60,7 @@ inline SceneRun run_scene(const std::string& scene_name, double seconds, const s
   for (int k = 0; k < ticks; ++k) {
     if ((stall_every <= 0 || k % stall_every != 0) && (finger_every <= 1 || k % finger_every == 0)) {
       mrskin::eval::press_scene_finger(*scene, to_seconds(clock.now() - scene->start()),
-                                       sim::mock_of(dev)->layout(), finger);
+                                       sim::mock_of(dev)->layout(), finger, loop.scale().length);
       sim::mock_of(dev)->set_finger_indentation(finger);
     }
     sim::mock_of(dev)->step(clock.now());

@@ -43,7 +43,7 @@ FaultRun run(const std::string& scene_name, double seconds, const std::string& u
   auto scene = make_scene(scene_name);
   Bridge loop(*dev.session, *scene, options);
   sim::MockDeviceTruth truth(*sim::mock_of(dev));
-  eval::TruthScorer scorer(truth, sim::mock_of(dev)->layout().fluid_cell_count(), options);
+  eval::TruthScorer scorer(truth, sim::mock_of(dev)->layout().fluid_cell_count(), loop.options());
   loop.set_tick_watcher(&scorer);
   loop.set_perf_clock(&clock);
   scene->set_start(clock.now());
@@ -54,7 +54,7 @@ FaultRun run(const std::string& scene_name, double seconds, const std::string& u
   const auto ticks = static_cast<int>(seconds * 1000.0);
   for (int k = 0; k < ticks; ++k) {
     mrskin::eval::press_scene_finger(*scene, to_seconds(clock.now() - scene->start()),
-                                     sim::mock_of(dev)->layout(), finger);
+                                     sim::mock_of(dev)->layout(), finger, loop.scale().length);
     sim::mock_of(dev)->set_finger_indentation(finger);
     sim::mock_of(dev)->step(clock.now());
     (void)loop.step(clock.now());

@@ -99,7 +99,7 @@ std::vector<StepWindow> run_steps(const StepCase& c, int first_cycle, int last_c
   auto scene = make_scene(c.scene);
   Bridge bridge(*dev.session, *scene, c.options);
   sim::MockDeviceTruth truth(*sim::mock_of(dev));
-  eval::TruthScorer scorer(truth, sim::mock_of(dev)->layout().fluid_cell_count(), c.options);
+  eval::TruthScorer scorer(truth, sim::mock_of(dev)->layout().fluid_cell_count(), bridge.options());
   bridge.set_tick_watcher(&scorer);
   bridge.set_perf_clock(&clock);
   scene->set_start(clock.now());
@@ -150,7 +150,7 @@ std::vector<StepWindow> run_steps(const StepCase& c, int first_cycle, int last_c
         }
       }
     }
-    mrskin::eval::press_scene_finger(*scene, t_s, layout, finger);
+    mrskin::eval::press_scene_finger(*scene, t_s, layout, finger, bridge.scale().length);
     sim::mock_of(dev)->set_finger_indentation(finger);
     sim::mock_of(dev)->step(clock.now());
     if (actuation != Actuation::loop && in_window >= 0) {

@@ -12,6 +12,7 @@
 #include <random>
 #include <set>
 #include <string>
+#include <utility>
 
 #include "counting_new.hpp"
 #include "mrskin/driver/errors.hpp"
@@ -93,6 +94,34 @@ TEST(TissueModel, MonotoneWithConsistentTangentEnergyAndInverses) {
       EXPECT_NEAR(m.depth_for_energy_m(m.stored_energy_J(x)), x, 1e-10);
     }
   }
+}
+
+// A unit of another design point renders the law through a change of units (DesignScale):
+// F'(x, x') = f F(x / s, x' / s), exactly, for every kind, damping included.
+TEST(TissueModel, RescaledIsTheSameLawInTheUnitsOfAnotherDesign) {
+  TissueModel kv = TissueModel::kelvin_voigt(300.0, 2.0);
+  kv.hc_damping_N_s_per_m = 0.0;
+  TissueModel hc = TissueModel::hunt_crossley(4.0e4, 1.7, 1.4e4);
+  hc.damping_N_s_per_m = 0.5;  // both damping terms at once
+  const TissueModel laws[] = {kv, hc, TissueModel::hertz(2.0e5, 3.0e4),
+                              TissueModel::exponential(0.2, 600.0, 1.5)};
+  for (const TissueModel& law : laws) {
+    for (const auto& [f, s] : {std::pair{0.01, 0.06}, std::pair{0.025, 0.1}, std::pair{3.0, 2.5}}) {
+      const TissueModel scaled = law.rescaled(f, s);
+      EXPECT_EQ(scaled.kind, law.kind);
+      for (const double x_m : {0.0, 1e-4 * s, 1e-3 * s, 4e-3 * s}) {
+        for (const double v_m_per_s : {-5e-3 * s, 0.0, 2e-3 * s, 2e-2 * s}) {
+          const double want = f * law.force_N(x_m / s, v_m_per_s / s);
+          EXPECT_NEAR(scaled.force_N(x_m, v_m_per_s), want, 1e-12 + 1e-12 * want)
+              << to_string(law.kind) << " f " << f << " s " << s << " x " << x_m << " v " << v_m_per_s;
+        }
+      }
+    }
+  }
+  // Scale 1, 1: the law itself.
+  const TissueModel same = hc.rescaled(1.0, 1.0);
+  EXPECT_EQ(same.stiffness_N_per_m, hc.stiffness_N_per_m);
+  EXPECT_EQ(same.hc_damping_N_s_per_m, hc.hc_damping_N_s_per_m);
 }
 
 TEST(TissueModel, ConvertsToTheInversesImpedanceLaw) {

@@ -153,3 +153,16 @@ TEST(BridgedVerdict, WithoutTheTruthTheRenderingIsNotScored) {
 }
 
 }  // namespace
+
+// A unit of another design point is held to the figure at its own scale (fingertip-16x16: forces
+// times 0.01): 4 mN RMS is within 0.04 N but not within 0.4 mN.
+TEST(BridgedVerdict, ASmallerDesignIsHeldToItsOwnScale) {
+  BridgeStats s = good_run();
+  s.force_sq_error_sum_N2 = 100 * 0.004 * 0.004;
+  EXPECT_TRUE(contains(verdict_lines(s, true, 1e-3), "rendering met: 0.0040 N RMS (limit 0.04 N)"));
+  mrskin::bridged::VerdictLimits scaled;
+  scaled.rms_error_N *= 0.01;
+  const std::vector<std::string> lines = verdict_lines(s, true, 1e-3, scaled);
+  EXPECT_TRUE(contains(lines, "rendering NOT MET: 0.0040 N RMS (limit 0.0004 N)")) << lines.back();
+  EXPECT_TRUE(contains(lines, "beyond the product's 0.0004 N and 7 %"));
+}

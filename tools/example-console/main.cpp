@@ -22,7 +22,7 @@ int main() {
     bridge::Bridge loop(*dev.session, *scene);
     const std::shared_ptr<sim::MockDevice> mock = sim::mock_of(dev);  // the simulated finger's side
     sim::MockDeviceTruth truth(*mock);
-    eval::TruthScorer scorer(truth, mock->layout().fluid_cell_count(), bridge::BridgeOptions{});
+    eval::TruthScorer scorer(truth, mock->layout().fluid_cell_count(), loop.options());
     loop.set_tick_watcher(&scorer);
     loop.set_perf_clock(&clock);
     scene->set_start(clock.now());

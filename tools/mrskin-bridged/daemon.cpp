@@ -157,11 +157,11 @@ Daemon::~Daemon() {
 }
 
 // On mock://, a scorer of the new bridge against the unit's truth (nullptr otherwise).
-std::unique_ptr<eval::TruthScorer> Daemon::make_scorer(Bridge& b, const bridge::BridgeOptions& options) {
+std::unique_ptr<eval::TruthScorer> Daemon::make_scorer(Bridge& b) {
   if (!truth_) {
     return nullptr;
   }
-  auto scorer = std::make_unique<eval::TruthScorer>(*truth_, mock_->layout().fluid_cell_count(), options);
+  auto scorer = std::make_unique<eval::TruthScorer>(*truth_, mock_->layout().fluid_cell_count(), b.options());
   b.set_tick_watcher(scorer.get());
   return scorer;
 }
@@ -169,7 +169,7 @@ std::unique_ptr<eval::TruthScorer> Daemon::make_scorer(Bridge& b, const bridge::
 void Daemon::build_bridge(const Settings& s) {
   auto watched = std::make_unique<WatchedSource>(*source_.source, recorder_.get());
   auto b = std::make_unique<Bridge>(*dev_.session, *watched, bridge_options(s));
-  std::unique_ptr<eval::TruthScorer> scorer = make_scorer(*b, bridge_options(s));
+  std::unique_ptr<eval::TruthScorer> scorer = make_scorer(*b);
   bridge_ = std::move(b);  // the old bridge goes before the source wrapper it read, and its scorer
   scorer_ = std::move(scorer);
   watched_ = std::move(watched);
@@ -606,7 +606,8 @@ std::unique_ptr<bridge::Scene> open_finger_scene(const Settings& s) {
 void Daemon::drive_finger() {
   bridge::Scene* script = finger_scene_ ? finger_scene_.get() : source_.scene;
   if (mock_ && script != nullptr) {
-    mrskin::eval::press_scene_finger(*script, to_seconds(clock_.now() - t0_), mock_->layout(), finger_);
+    mrskin::eval::press_scene_finger(*script, to_seconds(clock_.now() - t0_), mock_->layout(), finger_,
+                                     bridge_->scale().length);
     mock_->set_finger_indentation(finger_);
   }
 }
@@ -916,7 +917,7 @@ bool Daemon::apply_reload(const Settings& next, const ReloadPlan& plan, std::vec
     loop_->stop();  // only the loop: the recording and the skin's topics go on across a reload
   }
   if (b) {
-    std::unique_ptr<eval::TruthScorer> scorer = make_scorer(*b, bridge_options(next));
+    std::unique_ptr<eval::TruthScorer> scorer = make_scorer(*b);
     if (const unsigned char halt = operator_halt_.load(); halt != 0) {
       b->request(static_cast<Bridge::Request>(halt));  // a reload never re-enables
     }

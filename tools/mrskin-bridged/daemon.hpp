@@ -122,6 +122,8 @@ class Daemon final : public bridge::Tickable, public ControlBackend {
     return loop_ ? &loop_->stats() : nullptr;
   }
   [[nodiscard]] double tick_period_s() const noexcept { return 1.0 / settings_.rate_hz; }
+  // The unit's design point against the default unit's (forces and lengths the bridge scales).
+  [[nodiscard]] bridge::DesignScale design_scale() const noexcept { return bridge_->scale(); }
   // The statistics' errors are against the device's true force (mock://), not an estimate.
   [[nodiscard]] bool truth_scored() const noexcept { return scorer_ != nullptr; }
   // Main thread, for the service watchdog: ticks since start (across reloads) and the current
@@ -167,7 +169,7 @@ class Daemon final : public bridge::Tickable, public ControlBackend {
   bool apply_reload(const Settings& next, const ReloadPlan& plan, std::vector<std::string>& log);
   void build_bridge(const Settings& s);  // setup, before the loop runs
   void fit_default_rate_to_bus();        // setup: rate_note_, default_rate_hz_
-  std::unique_ptr<eval::TruthScorer> make_scorer(bridge::Bridge& b, const bridge::BridgeOptions& options);
+  std::unique_ptr<eval::TruthScorer> make_scorer(bridge::Bridge& b);
   void publish(TimePoint now) noexcept;
   void publish_grid(TimePoint now) noexcept;
   void publish_topics() noexcept;  // the skin topics' thread

@@ -380,8 +380,10 @@ int finish(mrskin::bridged::Daemon& daemon, mrskin::bridged::ControlServer& serv
   print_summary(stats, final_cfg.rate_hz);
   print_stream_summary(stats);
   print_run_report(daemon, stats);
+  bridged::VerdictLimits limits;
+  limits.rms_error_N *= daemon.design_scale().force;  // the figure at the unit's design point
   for (const std::string& line :
-       bridged::verdict_lines(stats, daemon.truth_scored(), daemon.tick_period_s())) {
+       bridged::verdict_lines(stats, daemon.truth_scored(), daemon.tick_period_s(), limits)) {
     fmt::print("{}\n", line);
   }
   int code = kOk;

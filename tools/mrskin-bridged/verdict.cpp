@@ -49,7 +49,7 @@ std::vector<std::string> verdict_lines(const bridge::BridgeStats& s, bool truth_
     const double p95 = has_p95 ? s.relative_error.percentile(0.95) : 0.0;
     const bool met = rms <= limits.rms_error_N && (!has_p95 || p95 <= limits.relative_p95);
     all_met = all_met && met;
-    std::string part = fmt::format("rendering {}: {:.4f} N RMS (limit {:.2f} N)", met ? "met" : "NOT MET",
+    std::string part = fmt::format("rendering {}: {:.4f} N RMS (limit {:.2g} N)", met ? "met" : "NOT MET",
                                    rms, limits.rms_error_N);
     if (has_p95) {
       part += fmt::format(", p95 {:.1f} % (limit {:.0f} %)", 100.0 * p95, 100.0 * limits.relative_p95);
@@ -70,7 +70,7 @@ std::vector<std::string> verdict_lines(const bridge::BridgeStats& s, bool truth_
     if (!met) {
       why.push_back(fmt::format(
           "rendering: the force the skin rendered differs from the tissue's by {:.4f} N RMS (p95 {:.1f} %), "
-          "beyond the product's {:.2f} N and {:.0f} %",
+          "beyond the product's {:.2g} N and {:.0f} %",
           rms, 100.0 * p95, limits.rms_error_N, 100.0 * limits.relative_p95));
     }
     if (s.clamped_cell_ticks > 0) {

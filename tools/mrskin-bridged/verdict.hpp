@@ -11,8 +11,10 @@
 namespace mrskin::bridged {
 
 struct VerdictLimits {
-  double rms_error_N = 0.04;   // RMS rendered-force error, loading and holding
-  double relative_p95 = 0.07;  // 95th-percentile relative error where the target >= 0.3 N
+  // RMS rendered-force error, loading and holding: on the default unit; a unit of another design
+  // point holds it times its force scale (bridge::DesignScale: 0.4 mN on fingertip-16x16).
+  double rms_error_N = 0.04;
+  double relative_p95 = 0.07;  // 95th-percentile relative error where the target >= the scorer's floor
   double bus_load = 0.80;      // of the bus's capacity: each direction on USB, both on CAN FD
   // CAN is one bus both directions share: their loads together, of its capacity. Classic CAN is
   // held to half of it (docs/requirements.md: a typical palpation scene), CAN FD to bus_load.

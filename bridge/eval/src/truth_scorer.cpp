@@ -66,7 +66,7 @@ void TruthScorer::on_tick(const bridge::TickView& tick, bridge::BridgeStats& sta
       stats.force_sq_error_sum_N2 += e * e;
       stats.force_max_abs_error_N = std::max(stats.force_max_abs_error_N, std::abs(e));
       ++stats.force_samples;
-      if (target >= 0.3) {
+      if (target >= options_.relative_error_floor_N) {
         stats.relative_error.add(e / target);
       }
       // The same law and envelope at the finger's true state (without it: the estimated one).
@@ -82,7 +82,7 @@ void TruthScorer::on_tick(const bridge::TickView& tick, bridge::BridgeStats& sta
       }
       const double e_true = truth_N_[i] - true_state_N;
       stats.true_state_sq_error_sum_N2 += e_true * e_true;
-      if (true_state_N >= 0.3) {
+      if (true_state_N >= options_.relative_error_floor_N) {
         stats.true_state_relative_error.add(e_true / true_state_N);
       }
       // Against the law itself, neither clamped into the envelope nor floored by open valves.
@@ -95,10 +95,10 @@ void TruthScorer::on_tick(const bridge::TickView& tick, bridge::BridgeStats& sta
       const double e_law_true = truth_N_[i] - law_true_N;
       u.sq_error_sum_N2 += e_law * e_law;
       u.true_state_sq_error_sum_N2 += e_law_true * e_law_true;
-      if (law_N >= 0.3) {
+      if (law_N >= options_.relative_error_floor_N) {
         u.relative_error.add(e_law / law_N);
       }
-      if (law_true_N >= 0.3) {
+      if (law_true_N >= options_.relative_error_floor_N) {
         u.true_state_relative_error.add(e_law_true / law_true_N);
       }
     } else if (retreating) {
@@ -112,9 +112,9 @@ void TruthScorer::on_tick(const bridge::TickView& tick, bridge::BridgeStats& sta
 }
 
 void press_scene_finger(const bridge::Scene& scene, double t_s, const GridLayout& layout,
-                        std::span<double> indentation_m) noexcept {
+                        std::span<double> indentation_m, double depth_scale) noexcept {
   const bridge::Scene::SkinContact contact = scene.skin_contact(t_s, layout.rows(), layout.cols());
-  sim::press_fingertip(layout, contact.at.row, contact.at.col, contact.depth_m, indentation_m);
+  sim::press_fingertip(layout, contact.at.row, contact.at.col, contact.depth_m * depth_scale, indentation_m);
 }
 
 }  // namespace mrskin::eval

@@ -23,6 +23,7 @@
 #include "mrskin/driver/force_truth.hpp"
 #include "mrskin/driver/model/inverse.hpp"
 #include "mrskin/driver/model/observer.hpp"
+#include "mrskin/driver/model/profile.hpp"
 #include "mrskin/driver/session.hpp"
 
 namespace mrskin::bridge {
@@ -92,7 +93,27 @@ struct BridgeOptions {
   // BusOverloaded when the traffic does not fit the transport's bus; off only to measure what a
   // bus does with traffic that does not fit (the mock's bus model tests).
   bool check_bus_budget = true;
+  // Scoring (eval::TruthScorer): relative errors count where the target is at least this.
+  double relative_error_floor_N = 0.3;
+  // The lengths and forces above, and the scenes' tissue laws, are stated for the reference
+  // design (the default 5x5: 2 N at 5 mm). On a unit of another design point (profile [design])
+  // the bridge renders them at its own: lengths times indentation_m / 5 mm, forces times
+  // force_range_N / 2 N (design_scale; 1 and 1 on the default unit). Off: taken as they are.
+  bool scale_to_design = true;
 };
+
+// A unit's design point against the reference design (2 N at 5 mm): what BridgeOptions'
+// lengths and forces, and a tissue law's, are multiplied by on it.
+struct DesignScale {
+  double length = 1.0;
+  double force = 1.0;
+};
+inline constexpr double kReferenceDesignForce_N = 2.0;
+inline constexpr double kReferenceDesignIndentation_m = 5e-3;
+MRSKIN_BRIDGE_API DesignScale design_scale(const model::DesignPoint& design) noexcept;
+// options with its lengths, rates and forces scaled (what the Bridge renders with; identity for
+// a scale of 1 and 1).
+MRSKIN_BRIDGE_API BridgeOptions scaled_to_design(BridgeOptions options, DesignScale scale) noexcept;
 
 // What a running bridge can change without losing its state (Bridge::retune): a reload of these
 // is bumpless.
@@ -197,6 +218,10 @@ class MRSKIN_BRIDGE_API Bridge {
   // InvalidArgument for a value out of range (nothing changed then) or while start()ed. Setup.
   void retune(const BridgeTuning& tuning);
   [[nodiscard]] BridgeTuning tuning() const noexcept;
+  // The options the bridge renders with: as given, scaled to the unit's design point
+  // (BridgeOptions::scale_to_design). A scorer takes these.
+  [[nodiscard]] const BridgeOptions& options() const noexcept;
+  [[nodiscard]] DesignScale scale() const noexcept;
   // The bus budget at the current rate, checked at construction and at every retune (limited is
   // false on a link without a limit); its warning (above 80 % of the bus) for the owner to log.
   [[nodiscard]] const BusBudgetCheck& bus_budget() const noexcept;

@@ -60,6 +60,9 @@ struct MRSKIN_BRIDGE_API TissueModel {
   [[nodiscard]] double depth_for_energy_m(double energy_J) const noexcept;
   // Every force term scaled by `scale` (the stale policy's fade).
   [[nodiscard]] TissueModel scaled(double scale) const noexcept;
+  // The law through a change of units: F'(x, x') = force_scale F(x / length_scale, x' /
+  // length_scale), exactly, for every kind (a unit of another design point: DesignScale).
+  [[nodiscard]] TissueModel rescaled(double force_scale, double length_scale) const noexcept;
   // The inverse's law F = k x^n + b x' + lambda x^n x' with x = indentation - surface_offset_m.
   // Exact for kelvin_voigt, hunt_crossley and hertz. The exponential is replaced by the power law
   // tangent to it in log-log at the current depth x (same force and same tangent stiffness

@@ -39,8 +39,9 @@ class MRSKIN_EVAL_API TruthScorer final : public bridge::TickWatcher {
 };
 
 // The simulated finger following the scene at scene time t_s: a fingertip (sim::press_fingertip)
-// where the scene's mapping puts the slave's contact, as deep as the slave's indentation.
+// where the scene's mapping puts the slave's contact, as deep as the slave's indentation times
+// depth_scale (the unit's design point: Bridge::scale().length; 1 on the default unit).
 MRSKIN_EVAL_API void press_scene_finger(const bridge::Scene& scene, double t_s, const GridLayout& layout,
-                                        std::span<double> indentation_m) noexcept;
+                                        std::span<double> indentation_m, double depth_scale = 1.0) noexcept;
 
 }  // namespace mrskin::eval
