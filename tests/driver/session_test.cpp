@@ -777,6 +777,12 @@ TEST(MockUri, BadParametersAreNamed) {
   EXPECT_DOUBLE_EQ(o.faults.disconnect_at_s, 2.0);
   EXPECT_DOUBLE_EQ(o.faults.disconnect_for_s, 0.5);
   EXPECT_EQ(o.faults.overheat_valve, 4);
+  // The plant's substep (issue 21: a coarser one lets a large grid's plant keep real time).
+  EXPECT_DOUBLE_EQ(sim::parse_mock_uri("mock://?physics_dt=1e-3").options.physics_dt_s, 1e-3);
+  EXPECT_DOUBLE_EQ(sim::parse_mock_uri("mock://").options.physics_dt_s, 1e-4);
+  for (const char* bad : {"0", "1e-6", "2e-3", "nan", "-1e-4", "x"}) {
+    EXPECT_THROW(sim::parse_mock_uri(std::string("mock://?physics_dt=") + bad), InvalidArgument) << bad;
+  }
 }
 
 }  // namespace

@@ -360,7 +360,8 @@ void MockDevice::Impl::start(Clock& clock) {
   }
   thread_ = std::thread([this, &clock] {
     (void)::pthread_setname_np(::pthread_self(), "mrskin-mock");
-    const Duration period = from_seconds(options_.physics_dt_s * 10.0);
+    // Ten substeps a wake, but at least one telemetry packet: a coarse plant step must not batch them.
+    const Duration period = from_seconds(std::min(options_.physics_dt_s * 10.0, options_.telemetry_period_s));
     TimePoint next = clock.now();
     while (running_.load(std::memory_order_acquire)) {
       step(clock.now());

@@ -204,6 +204,13 @@ MockUri parse_mock_uri(std::string_view uri) {
       if (!(options.time_scale >= 1.0 && options.time_scale <= 1000.0)) {
         throw InvalidArgument("mock:// time_scale must be in [1, 1000]");
       }
+    } else if (key == "physics_dt") {
+      options.physics_dt_s = parse_number<double>(key, value);
+      if (!(options.physics_dt_s >= 1e-5 && options.physics_dt_s <= options.telemetry_period_s)) {
+        throw InvalidArgument(fmt::format(
+            "mock:// physics_dt must be in [1e-5, {}] s (the plant's substep, at most the telemetry period)",
+            options.telemetry_period_s));
+      }
     } else if (key == "protocol_major") {
       const auto major = parse_number<unsigned>(key, value);
       if (major < 1 || major > 255) {
