@@ -164,6 +164,12 @@ double TargetSeeder::displacement_m(std::size_t cell, std::span<const double> se
   return fit_m_[cell];
 }
 
+void TargetSeeder::fit_displacements(std::span<const double> sensors) const noexcept { fit(sensors); }
+
+double TargetSeeder::fitted_displacement_m(std::size_t cell) const noexcept {
+  return cell < fit_m_.size() ? fit_m_[cell] : 0.0;
+}
+
 double TargetSeeder::force_N(std::size_t cell, std::span<const double> sensors) const noexcept {
   if (cell + 1 >= force_begin_.size()) {
     return 0.0;
@@ -175,9 +181,17 @@ double TargetSeeder::force_N(std::size_t cell, std::span<const double> sensors) 
 
 proto::CellTarget TargetSeeder::seed(std::size_t cell, std::span<const double> sensors,
                                      std::uint8_t validity_counts) const noexcept {
+  if (cell < fit_m_.size()) {
+    fit(sensors);
+  }
+  return seed_from_fit(cell, sensors, validity_counts);
+}
+
+proto::CellTarget TargetSeeder::seed_from_fit(std::size_t cell, std::span<const double> sensors,
+                                              std::uint8_t validity_counts) const noexcept {
   proto::CellTarget t;
   t.stiffness = 0;
-  t.offset = clamp_counts(displacement_m(cell, sensors), proto::kOffsetLsb_m, proto::kOffsetCountMax);
+  t.offset = clamp_counts(fitted_displacement_m(cell), proto::kOffsetLsb_m, proto::kOffsetCountMax);
   t.ceiling = clamp_counts(force_N(cell, sensors), proto::kCeilingLsb_N, proto::kCeilingCountMax);
   t.validity = std::min(validity_counts, proto::kValidityCountMax);
   return t;
@@ -768,10 +782,11 @@ void DeviceSession::Impl::reseed_and_send() noexcept {
   }
   // Targets: one message per run of targeted cells, at most kMaxCellTargets long.
   proto::CellTargets m;
+  seeder_.fit_displacements(sensors_);  // once for every cell
   for (std::size_t c = 0; c <= targets_.size(); ++c) {
     const bool take = c < targets_.size() && targeted_[c] != 0;
     if (take) {
-      targets_[c] = seeder_.seed(c, sensors_, targets_[c].validity);
+      targets_[c] = seeder_.seed_from_fit(c, sensors_, targets_[c].validity);
       if (m.count == 0) {
         m.first = static_cast<std::uint16_t>(c);
       }

@@ -740,6 +740,21 @@ TEST(Enable, SeederUsesTheProfilesSensors) {
   }
   EXPECT_NEAR(seeder.force_N(centre, sensors), 0.75, 1e-15);
   EXPECT_EQ(seeder.force_N(0, sensors), 0.0);
+  // One fit for every cell (an enable's re-seed) gives each cell what a fit of its own gives.
+  seeder.fit_displacements(sensors);
+  std::vector<proto::CellTarget> from_fit;
+  std::vector<double> fitted;
+  for (std::size_t c = 0; c < 13; ++c) {
+    from_fit.push_back(seeder.seed_from_fit(c, sensors, 7));
+    fitted.push_back(seeder.fitted_displacement_m(c));
+  }
+  for (std::size_t c = 0; c < 13; ++c) {
+    const proto::CellTarget own = seeder.seed(c, sensors, 7);
+    EXPECT_EQ(from_fit[c].offset, own.offset) << c;
+    EXPECT_EQ(from_fit[c].ceiling, own.ceiling) << c;
+    EXPECT_EQ(fitted[c], seeder.displacement_m(c, sensors)) << c;
+  }
+  EXPECT_EQ(seeder.fitted_displacement_m(13), 0.0);  // past the cells
   const proto::CellTarget t = seeder.seed(centre, sensors, 7);
   EXPECT_EQ(t.stiffness, 0);
   EXPECT_NEAR(t.offset, 2e-3 / proto::kOffsetLsb_m, 1.0);

@@ -355,12 +355,15 @@ int monitor_device(const MonitorOptions& o, Renderer& out) {
       f.derated = session.derated() ? "true" : "false";
       const std::span<const double> sensors = session.sensors();
       f.sensors.assign(sensors.begin(), sensors.end());
+      if (observer == nullptr && displacement_sensors) {
+        session.seeder().fit_displacements(sensors);  // once for every cell
+      }
       for (std::size_t c = 0; c < info.fluid_cells; ++c) {
         f.force_N[c] = force_sensors ? session.seeder().force_N(c, sensors)
                        : observer    ? observer->force_N()[c]
                                      : NAN;
         f.displacement_m[c] = observer               ? observer->indentation_m()[c]
-                              : displacement_sensors ? session.seeder().displacement_m(c, sensors)
+                              : displacement_sensors ? session.seeder().fitted_displacement_m(c)
                                                      : NAN;
       }
       const std::span<const double> commanded = session.commanded_currents();

@@ -545,9 +545,10 @@ void MockDevice::Impl::reseed(TimePoint now) noexcept {
   // each cell's target is re-seeded from the last reading sent (TargetSeeder), its validity
   // starting now.
   std::fill(commanded_A_.begin(), commanded_A_.end(), 0.0);
-  rendering_targets_ = false;  // until the host commands again
+  rendering_targets_ = false;            // until the host commands again
+  seeder_.fit_displacements(reported_);  // once for every cell
   for (std::size_t c = 0; c < targets_held_.size(); ++c) {
-    targets_held_[c].target = seeder_.seed(c, reported_, targets_held_[c].target.validity);
+    targets_held_[c].target = seeder_.seed_from_fit(c, reported_, targets_held_[c].target.validity);
     targets_held_[c].validity_start = now;
   }
 }

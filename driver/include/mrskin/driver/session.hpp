@@ -163,6 +163,13 @@ class MRSKIN_DRIVER_API TargetSeeder {
   [[nodiscard]] double force_N(std::size_t cell, std::span<const double> sensors) const noexcept;
   [[nodiscard]] protocol::CellTarget seed(std::size_t cell, std::span<const double> sensors,
                                           std::uint8_t validity_counts) const noexcept;
+  // For a loop over the cells: fit once, then read each cell from that fit. displacement_m() and
+  // seed() fit anew on every call, which on the 2048 cells of palm-64x64 made one enable cost
+  // about 39 s (every cell a whole fit: issue 21).
+  void fit_displacements(std::span<const double> sensors) const noexcept;
+  [[nodiscard]] double fitted_displacement_m(std::size_t cell) const noexcept;
+  [[nodiscard]] protocol::CellTarget seed_from_fit(std::size_t cell, std::span<const double> sensors,
+                                                   std::uint8_t validity_counts) const noexcept;
 
  private:
   struct Term {
