@@ -122,6 +122,9 @@ class Daemon final : public bridge::Tickable, public ControlBackend {
     return loop_ ? &loop_->stats() : nullptr;
   }
   [[nodiscard]] double tick_period_s() const noexcept { return 1.0 / settings_.rate_hz; }
+  // mock:// only: simulated time the unit skipped because its plant fell behind real time, s
+  // (MockDevice::skipped_time_s); -1 on a real unit.
+  [[nodiscard]] double mock_skipped_s() const noexcept { return mock_ ? mock_->skipped_time_s() : -1.0; }
   // The unit's design point against the default unit's (forces and lengths the bridge scales).
   [[nodiscard]] bridge::DesignScale design_scale() const noexcept { return bridge_->scale(); }
   // The statistics' errors are against the device's true force (mock://), not an estimate.

@@ -292,6 +292,14 @@ void print_run_report(const mrskin::bridged::Daemon& daemon, const mrskin::bridg
         ls->wake_latency.percentile_ns(0.99) / 1e3, ls->wake_latency.percentile_ns(0.999) / 1e3,
         ls->early_wakes, ls->refused_wakes);
   }
+  if (const double skipped_s = daemon.mock_skipped_s(); skipped_s > 0.0) {
+    // The simulated unit, not the bridge: its plant could not keep real time on this machine.
+    fmt::print(
+        "mock       the simulated unit's plant fell behind real time and skipped {:.2f} s of its time: the "
+        "figures above are of a unit slower than real (its plant step: mock://...?physics_dt=, "
+        "docs/api.md)\n",
+        skipped_s);
+  }
   if (!stats.threads.empty()) {
     std::string line;
     for (const bridge::BridgeStats::ThreadCpu& t : stats.threads) {
