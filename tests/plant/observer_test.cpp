@@ -8,6 +8,8 @@
 #include <cmath>
 #include <cstdio>
 #include <limits>
+#include <random>
+#include <span>
 #include <utility>
 #include <vector>
 
@@ -15,6 +17,7 @@
 #include "mrskin/driver/errors.hpp"
 #include "mrskin/driver/model/device_model.hpp"
 #include "mrskin/driver/model/magnetic.hpp"
+#include "mrskin/driver/model/profile.hpp"
 #include "mrskin/sim/network_plant.hpp"
 
 namespace {
@@ -207,6 +210,97 @@ TEST(ObserverInputs, BadInputsAreRefusedAndStateKept) {
   ObserverOptions wrong;
   wrong.sweeps = 0;
   EXPECT_THROW(CellObserver(nominal, wrong), mrskin::InvalidArgument);
+}
+
+// Large grids' noise floor (ObserverOptions::noise_floor_sigma) on the 16x16 (128 fluid cells):
+// readings made from a depth map as the profile's sensors read it (the mean depth of the cells
+// a valve joins), plus Gaussian noise of the sensors' sigma (seeded).
+class NoiseFloor : public ::testing::Test {
+ protected:
+  NoiseFloor() : model_(mrskin::model::load_profile("fingertip-16x16")) {}
+
+  // Fraction of cell-ticks with depth, the largest depth off `pressed`, and the last depth there.
+  struct Seen {
+    double with_depth = 0.0;
+    double largest_elsewhere_m = 0.0;
+    double pressed_m = 0.0;
+  };
+  Seen run(const ObserverOptions& options, std::size_t pressed, double depth_m, int ticks) {
+    CellObserver observer(model_, options);
+    const mrskin::model::DeviceProfile& p = model_.profile();
+    std::vector<double> depth(model_.layout().fluid_cell_count(), 0.0);
+    depth[pressed] = depth_m;
+    std::vector<double> readings(p.sensors.size(), 0.0);
+    std::vector<double> current(model_.layout().valve_count(), 0.0);
+    std::mt19937 random(11);
+    Seen seen;
+    std::size_t touched = 0;
+    for (int tick = 0; tick < ticks; ++tick) {
+      for (std::size_t k = 0; k < p.sensors.size(); ++k) {
+        const mrskin::model::SensorSpec& s = p.sensors[k];
+        std::normal_distribution<double> noise(0.0, s.noise_std);
+        double mean_m = depth[s.index];
+        if (s.place == mrskin::model::PlaceKind::valve) {
+          const std::vector<std::size_t>& joined = model_.layout().cells_of_valve(s.index);
+          mean_m = 0.0;
+          for (const std::size_t c : joined) {
+            mean_m += depth[c] / static_cast<double>(joined.size());
+          }
+        }
+        readings[k] = mean_m + noise(random);
+      }
+      EXPECT_EQ(observer.update(readings, current, 1e-3), Status::ok);
+      const std::span<const double> d = observer.indentation_m();
+      for (std::size_t c = 0; c < d.size(); ++c) {
+        touched += d[c] > 0.0 ? 1 : 0;
+        if (c != pressed) {
+          seen.largest_elsewhere_m = std::max(seen.largest_elsewhere_m, d[c]);
+        }
+      }
+      seen.pressed_m = d[pressed];
+    }
+    seen.with_depth = static_cast<double>(touched) / static_cast<double>(ticks * depth.size());
+    return seen;
+  }
+
+  DeviceModel model_;
+};
+
+TEST_F(NoiseFloor, IdleNoiseLeavesTheCellsAtZero) {
+  ObserverOptions without;
+  without.noise_floor_sigma = 0.0;
+  const Seen spread = run(without, 40, 0.0, 300);
+  const Seen floor = run(ObserverOptions{}, 40, 0.0, 300);
+  std::printf(
+      "idle 16x16: cell-ticks with depth %.1f %% without the floor, %.2f %% with it; largest %.2f / %.2f "
+      "um\n",
+      100.0 * spread.with_depth, 100.0 * floor.with_depth, 1e6 * spread.largest_elsewhere_m,
+      1e6 * floor.largest_elsewhere_m);
+  EXPECT_GT(spread.with_depth, 0.2) << "without the floor noise spreads depth (the test would show nothing)";
+  EXPECT_LT(floor.with_depth, 0.01);
+  EXPECT_LT(floor.largest_elsewhere_m, 5e-6);
+}
+
+TEST_F(NoiseFloor, APressIsRecoveredWithinTheFloorsBias) {
+  // An interior cell under four valve sensors that each average four cells: the floor costs
+  // about 4 x 2 sigmas (4 um at 0.5 um) of its depth.
+  const double sigma_m = model_.profile().sensors.front().noise_std;
+  const std::size_t pressed = 60;
+  const Seen seen = run(ObserverOptions{}, pressed, 100e-6, 400);
+  std::printf("press 100 um on cell %zu: %.1f um estimated, at most %.2f um elsewhere\n", pressed,
+              1e6 * seen.pressed_m, 1e6 * seen.largest_elsewhere_m);
+  EXPECT_NEAR(seen.pressed_m, 100e-6 - 8.0 * sigma_m, 4.0 * sigma_m);
+  EXPECT_LT(seen.largest_elsewhere_m, 10.0 * sigma_m);
+}
+
+TEST_F(NoiseFloor, ABadFloorIsRefused) {
+  ObserverOptions bad;
+  bad.noise_floor_sigma = -1.0;
+  EXPECT_THROW(CellObserver(model_, bad), mrskin::InvalidArgument);
+  bad.noise_floor_sigma = std::numeric_limits<double>::quiet_NaN();
+  EXPECT_THROW(CellObserver(model_, bad), mrskin::InvalidArgument);
+  bad.noise_floor_sigma = std::numeric_limits<double>::infinity();
+  EXPECT_THROW(CellObserver(model_, bad), mrskin::InvalidArgument);
 }
 
 // Net outflow per fluid cell from the network model's passages: a press through open valves

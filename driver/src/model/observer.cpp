@@ -28,10 +28,12 @@ struct __attribute__((visibility("hidden"))) CellObserver::Impl {
     const std::size_t cells = grid.fluid_cell_count();
     if (!(o.prior_spread_m > 0.0) || !(o.sparsity_scale_m > 0.0) || o.sweeps < 1 ||
         !(o.rate_filter_time_constant_s >= 0.0) || !(o.contact_threshold_m >= 0.0) ||
-        !(o.sweep_tolerance_m >= 0.0) || !(o.hold_rate_m_per_s >= 0.0)) {
+        !(o.sweep_tolerance_m >= 0.0) || !(o.hold_rate_m_per_s >= 0.0) || !(o.noise_floor_sigma >= 0.0) ||
+        !std::isfinite(o.noise_floor_sigma)) {
       throw InvalidArgument(
           "observer options: prior_spread_m and sparsity_scale_m must be > 0, sweeps >= 1, "
-          "rate_filter_time_constant_s, contact_threshold_m, sweep_tolerance_m and hold_rate_m_per_s >= 0");
+          "rate_filter_time_constant_s, contact_threshold_m, sweep_tolerance_m, hold_rate_m_per_s and "
+          "noise_floor_sigma >= 0");
     }
     force_model = o.force_model;
     if (force_model == ObserverForceModel::automatic) {
@@ -96,6 +98,12 @@ struct __attribute__((visibility("hidden"))) CellObserver::Impl {
     prior_weight = 1.0 / (o.prior_spread_m * o.prior_spread_m);
     // One sensor sigma of misfit (cost 1) per sparsity_scale_m of summed depth.
     l1_weight = 1.0 / o.sparsity_scale_m;
+    if (cells > o.network_max_cells) {
+      // Noise alone must not give a cell depth: at least noise_floor_sigma of the least noisy
+      // sensor's standard deviations (sensor_scale is 1 / sigma) per unit of weighted reading.
+      const double finest = *std::max_element(sensor_scale.begin(), sensor_scale.end());
+      l1_weight = std::max(l1_weight, o.noise_floor_sigma * finest);
+    }
     residual.assign(rows.size(), 0.0);
     used_reading.assign(rows.size(), 0.0);
     row_changed.assign(rows.size(), 0);

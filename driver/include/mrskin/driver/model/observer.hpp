@@ -81,6 +81,15 @@ struct ObserverOptions {
   // Grids above network_max_cells: a sensor whose reading (in its standard deviations) is within
   // this of the reading last used counts as unchanged.
   double reading_deadband_sigma = 2.0;
+  // Grids above network_max_cells: the L1 weight is at least this many standard deviations of
+  // the least noisy sensor per unit of weighted reading, so a cell stays at zero depth until its
+  // sensors read more than noise can (a cell under four sensors that each average four cells:
+  // about 4 x this sigmas of depth, a bias of that much on a pressed depth; 4 um on the 16x16).
+  // Without it, noise spread micrometres of depth over the whole grid: each idle tick refitted
+  // most cells and the inverse solved contact that was not there (palm-64x64, instructions per
+  // tick: idle 4.0M -> 1.8M, a 5 % patch 16.2M -> 3.3M; docs/bridge.md). 0: the sparsity_scale_m
+  // weight alone, as on small grids.
+  double noise_floor_sigma = 2.0;
   // Local force model: filtered rates within +-this count as holding (the rate's noise is
   // ~0.5 mm/s RMS on the 5 x 5), m/s.
   double hold_rate_m_per_s = 1.5e-3;
