@@ -6,6 +6,7 @@
 
 #include <algorithm>
 #include <chrono>
+#include <ctime>
 #include <string>
 #include <thread>
 
@@ -45,10 +46,17 @@ TEST(ThreadCpu, MalformedTextIsRefused) {
   EXPECT_FALSE(parse_thread_cpu("4242 (x) S 1 2 3 4 5 6 7 8 9 10 -5 7", "", 100, name, cpu_s));
 }
 
+// Spins until this thread has used `cpu` of processor time (its own clock, not the wall's: a
+// loaded machine that preempts it makes the spin longer, never the CPU time shorter).
+double thread_cpu_s() {
+  timespec t{};
+  (void)::clock_gettime(CLOCK_THREAD_CPUTIME_ID, &t);
+  return static_cast<double>(t.tv_sec) + 1e-9 * static_cast<double>(t.tv_nsec);
+}
 void spin_for(std::chrono::milliseconds cpu) {
-  const auto end = std::chrono::steady_clock::now() + cpu;
+  const double end_s = thread_cpu_s() + 1e-3 * static_cast<double>(cpu.count());
   volatile unsigned sink = 0;
-  while (std::chrono::steady_clock::now() < end) {
+  while (thread_cpu_s() < end_s) {
     sink = sink + 1;
   }
 }
@@ -69,7 +77,7 @@ TEST(ThreadCpu, AnEndedThreadKeepsWhatItSpentAndTheBaselineIsNotCharged) {
       std::find_if(totals.begin(), totals.end(), [](const auto& t) { return t.name == "cpu-test-spin"; });
   ASSERT_NE(spin, totals.end());
   EXPECT_EQ(spin->count, 1U);
-  EXPECT_GE(spin->cpu_s, 0.1);  // spun 150 ms (less if the machine preempted it: a third of margin)
+  EXPECT_GE(spin->cpu_s, 0.14);  // it spun 150 ms of its own CPU time (stat: 10 ms ticks)
   EXPECT_LE(spin->cpu_s, 1.0);
   for (const auto& t : totals) {
     if (t.name != "cpu-test-spin") {
