@@ -57,4 +57,6 @@ if [ -n "$failed" ]; then
   echo "over budget:$failed"
   exit 1
 fi
-echo "within budget: every case at or below its limit ($cases; default $limit), grid5 <= $ratio % of grid100"
+ratio_note=""
+[ -n "$grid5" ] && [ -n "$grid100" ] && ratio_note=", grid5 <= $ratio % of grid100"
+echo "within budget: every case at or below its limit ($cases; default $limit)$ratio_note"
