@@ -1,6 +1,7 @@
 // `mrskinctl model ...` in process: JSON with unit-suffixed keys, clear errors, exit codes.
 #include <gtest/gtest.h>
 
+#include <CLI/CLI.hpp>
 #include <cstdio>
 #include <cstdlib>
 #include <string>
@@ -32,7 +33,7 @@ CliRun run(std::vector<std::string> args) {
   {
     CLI::App app{"test"};
     int code = 0;
-    mrskin::ctl::add_model_command(app, code, out, err);
+    mrskin::ctl::add_model_command(mrskin::ctl::CliCommand(app), code, out, err);
     args.insert(args.begin(), "model");
     std::vector<std::string> reversed(args.rbegin(), args.rend());
     try {

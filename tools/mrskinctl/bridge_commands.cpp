@@ -127,15 +127,15 @@ int run_fault(const BridgeOptions& o, const GlobalOptions& global) {
   return tools::kOk;
 }
 
-CLI::App* add_one(CLI::App& app, const char* name, const char* help, BridgeOptions& o) {
-  CLI::App* sub = app.add_subcommand(name, help);
-  sub->add_option(
+CliCommand add_one(CliCommand app, const char* name, const char* help, BridgeOptions& o) {
+  CliCommand sub = app.subcommand(name, help);
+  sub.option(
       "--bridge", o.socket,
       "the daemon's control socket (default: mrskin-bridged's, " + bridged::default_socket_path() + " here)");
-  sub->add_option("--timeout", o.timeout_s, "seconds to wait for the daemon's answer (and for --wait)")
-      ->check(CLI::Range(0.05, 600.0))
-      ->capture_default_str();
-  sub->footer(
+  sub.option("--timeout", o.timeout_s, "seconds to wait for the daemon's answer (and for --wait)")
+      .range(0.05, 600.0)
+      .show_default();
+  sub.footer(
       "Exit codes: 0 done; 1 the daemon refused or did not confirm (--wait); 2 bad arguments; 3 no "
       "mrskin-bridged answers on the socket.");
   return sub;
@@ -143,7 +143,7 @@ CLI::App* add_one(CLI::App& app, const char* name, const char* help, BridgeOptio
 
 }  // namespace
 
-void add_bridge_commands(CLI::App& app, const GlobalOptions& global, int& exit_code) {
+void add_bridge_commands(CliCommand app, const GlobalOptions& global, int& exit_code) {
   const struct {
     const char* name;
     const char* help;
@@ -156,19 +156,19 @@ void add_bridge_commands(CLI::App& app, const GlobalOptions& global, int& exit_c
   for (const auto& r : requests) {
     // Shared with the callback, which CLI11 keeps: the options outlive parsing.
     auto o = std::make_shared<BridgeOptions>();
-    CLI::App* sub = add_one(app, r.name, r.help, *o);
-    sub->add_flag("--wait", o->wait,
-                  "poll the daemon's status until the bridge shows the request done (up to --timeout)");
-    sub->callback(
+    CliCommand sub = add_one(app, r.name, r.help, *o);
+    sub.flag("--wait", o->wait,
+             "poll the daemon's status until the bridge shows the request done (up to --timeout)");
+    sub.callback(
         [name = std::string(r.name), o, &global, &exit_code] { exit_code = run_request(name, *o, global); });
   }
   auto fault_o = std::make_shared<BridgeOptions>();
-  CLI::App* fault =
+  CliCommand fault =
       add_one(app, "fault",
               "a running bridge's device state, fault cause and the ring log frozen at the last "
               "fault, decoded",
               *fault_o);
-  fault->callback([fault_o, &global, &exit_code] { exit_code = run_fault(*fault_o, global); });
+  fault.callback([fault_o, &global, &exit_code] { exit_code = run_fault(*fault_o, global); });
 }
 
 }  // namespace mrskin::ctl

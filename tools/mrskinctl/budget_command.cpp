@@ -108,24 +108,24 @@ int run_budget(const BudgetOptions& o, const GlobalOptions& global) {
 
 }  // namespace
 
-void add_budget_command(CLI::App& app, const GlobalOptions& global, int& exit_code) {
+void add_budget_command(CliCommand app, const GlobalOptions& global, int& exit_code) {
   auto o = std::make_shared<BudgetOptions>();
-  auto* sub = app.add_subcommand(
+  CliCommand sub = app.subcommand(
       "budget",
       "what a profile's cyclic traffic needs of each bus (hid-fs, hid-hs, can, canfd) at a loop rate, with "
       "protocol 1.1 and 1.2, and the highest rate each bus carries (docs/protocol.md, \"Bus budget\"). No "
       "device is opened. Exit 0, 2 bad argument or profile");
-  sub->add_option("--profile", o->profile,
-                  "device profile: a .toml file, or a name looked up in $MRSKIN_PROFILE_PATH and the shipped "
-                  "profiles")
-      ->capture_default_str();
-  sub->add_option("--rate", o->rate_hz, "loop rate: valve currents sent per second, Hz")
-      ->check(CLI::Range(1.0, 100000.0))
-      ->capture_default_str();
-  sub->add_option("--telemetry-rate", o->telemetry_rate_hz, "the unit's telemetry rate (its Identity's), Hz")
-      ->check(CLI::Range(1.0, 100000.0))
-      ->capture_default_str();
-  sub->callback([o, &global, &exit_code] { exit_code = run_budget(*o, global); });
+  sub.option("--profile", o->profile,
+             "device profile: a .toml file, or a name looked up in $MRSKIN_PROFILE_PATH and the shipped "
+             "profiles")
+      .show_default();
+  sub.option("--rate", o->rate_hz, "loop rate: valve currents sent per second, Hz")
+      .range(1.0, 100000.0)
+      .show_default();
+  sub.option("--telemetry-rate", o->telemetry_rate_hz, "the unit's telemetry rate (its Identity's), Hz")
+      .range(1.0, 100000.0)
+      .show_default();
+  sub.callback([o, &global, &exit_code] { exit_code = run_budget(*o, global); });
 }
 
 }  // namespace mrskin::ctl

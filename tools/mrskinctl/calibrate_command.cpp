@@ -596,9 +596,9 @@ int run_calibrate(const CalibrateOptions& o, const GlobalOptions& global) {
 
 }  // namespace
 
-void add_calibrate_command(CLI::App& app, const GlobalOptions& global, int& exit_code) {
+void add_calibrate_command(CliCommand app, const GlobalOptions& global, int& exit_code) {
   auto options = std::make_shared<CalibrateOptions>();
-  auto* sub = app.add_subcommand(
+  CliCommand sub = app.subcommand(
       "calibrate",
       "zero the sensors, degauss the cores, sweep the valves' yield at low currents and fit the "
       "calibration's "
@@ -606,21 +606,20 @@ void add_calibrate_command(CLI::App& app, const GlobalOptions& global, int& exit
       "(or --dry-run), or the stored calibration kept as the better fit; 1 refused or failed (nothing "
       "written)");
   add_device_options(sub, options->uri, options->realtime);
-  sub->add_flag("--dry-run", options->dry_run, "measure and fit, print the calibration, write nothing");
-  sub->add_flag("--zero-only", options->zero_only,
-                "tare the sensors at rest and store only that (no degauss, no sweep, no fixture needed)");
-  sub->add_option("--max-current-a", options->max_current_a,
-                  "highest sweep current, A (default: a fifth of the device's maximum)")
-      ->check(CLI::Range(1e-4, 10.0));
-  sub->add_option("--levels", options->levels,
-                  "sweep currents above 0 A (odd ones fitted, even ones held out)")
-      ->check(CLI::Range(4, 40))
-      ->capture_default_str();
-  sub->add_option("--rest", options->rest_s, "seconds of rest sampled for the zero")
-      ->check(CLI::Range(0.05, 10.0))
-      ->capture_default_str();
+  sub.flag("--dry-run", options->dry_run, "measure and fit, print the calibration, write nothing");
+  sub.flag("--zero-only", options->zero_only,
+           "tare the sensors at rest and store only that (no degauss, no sweep, no fixture needed)");
+  sub.option("--max-current-a", options->max_current_a,
+             "highest sweep current, A (default: a fifth of the device's maximum)")
+      .range(1e-4, 10.0);
+  sub.option("--levels", options->levels, "sweep currents above 0 A (odd ones fitted, even ones held out)")
+      .range(4, 40)
+      .show_default();
+  sub.option("--rest", options->rest_s, "seconds of rest sampled for the zero")
+      .range(0.05, 10.0)
+      .show_default();
   add_lease_option(sub, options->lease);
-  sub->callback([options, &global, &exit_code] {
+  sub.callback([options, &global, &exit_code] {
     if (const std::optional<std::string> socket = options->lease.lease_socket()) {
       options->uri = "bridge:" + *socket;  // what the report names; the Rig leases the socket
     }

@@ -12,7 +12,6 @@
 #include <fmt/format.h>
 #include <unistd.h>
 
-#include <CLI/CLI.hpp>
 #include <algorithm>
 #include <chrono>
 #include <cmath>
@@ -25,6 +24,7 @@
 #include <string_view>
 #include <vector>
 
+#include "cli.hpp"
 #include "exit_codes.hpp"
 #include "mrskin/driver/device.hpp"
 #include "mrskin/driver/errors.hpp"
@@ -36,9 +36,9 @@
 namespace mrskin::ctl {
 
 // The options every command on a free device takes.
-inline void add_device_options(CLI::App* sub, std::string& uri, bool& realtime) {
-  sub->add_option("--device", uri, "device URI")->capture_default_str();
-  sub->add_flag("--realtime", realtime, "run a mock:// unit in real time instead of simulated time");
+inline void add_device_options(CliCommand sub, std::string& uri, bool& realtime) {
+  sub.option("--device", uri, "device URI").show_default();
+  sub.flag("--realtime", realtime, "run a mock:// unit in real time instead of simulated time");
 }
 
 // --bridge [SOCKET] on a command that drives the valves itself (set, selftest, calibrate): lease
@@ -46,23 +46,22 @@ inline void add_device_options(CLI::App* sub, std::string& uri, bool& realtime) 
 // halted after). lease_socket() is the socket to lease, or nullopt without --bridge.
 struct LeaseOption {
   std::string socket;
-  const CLI::Option* option = nullptr;
+  CliOption option;  // --bridge; not given: no lease
   [[nodiscard]] std::optional<std::string> lease_socket() const {
-    if (option == nullptr || option->count() == 0) {
+    if (!option.given()) {
       return std::nullopt;
     }
     return bridge_socket(socket);
   }
 };
-inline void add_lease_option(CLI::App* sub, LeaseOption& lease) {
-  CLI::Option* o =
-      sub->add_option("--bridge", lease.socket,
-                      "run through a running mrskin-bridged on this control socket: it disables the "
-                      "bridge and lends its device until the command ends (the bridge stays halted "
-                      "after: mrskinctl enable); without a value, its default socket")
-          ->expected(0, 1);
-  if (CLI::Option* device = sub->get_option_no_throw("--device"); device != nullptr) {
-    o->excludes(device);
+inline void add_lease_option(CliCommand sub, LeaseOption& lease) {
+  CliOption o = sub.option("--bridge", lease.socket,
+                           "run through a running mrskin-bridged on this control socket: it disables the "
+                           "bridge and lends its device until the command ends (the bridge stays halted "
+                           "after: mrskinctl enable); without a value, its default socket")
+                    .value_optional();
+  if (const CliOption device = sub.find("--device"); device.exists()) {
+    o.excludes(device);
   }
   lease.option = o;
 }

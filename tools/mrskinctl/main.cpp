@@ -264,16 +264,17 @@ int guarded_main(int argc, char** argv) {
       "do not open the units for their firmware and protocol version");
 
   int command_exit = 0;
-  mrskin::ctl::add_monitor_command(app, global, command_exit);
-  mrskin::ctl::add_set_command(app, global, command_exit);
-  mrskin::ctl::add_selftest_command(app, global, command_exit);
-  mrskin::ctl::add_calibrate_command(app, global, command_exit);
-  mrskin::ctl::add_record_commands(app, global, command_exit);
-  mrskin::ctl::add_plot_command(app, global, command_exit);
-  mrskin::ctl::add_budget_command(app, global, command_exit);
-  mrskin::ctl::add_bridge_commands(app, global, command_exit);
+  const mrskin::ctl::CliCommand root(app);
+  mrskin::ctl::add_monitor_command(root, global, command_exit);
+  mrskin::ctl::add_set_command(root, global, command_exit);
+  mrskin::ctl::add_selftest_command(root, global, command_exit);
+  mrskin::ctl::add_calibrate_command(root, global, command_exit);
+  mrskin::ctl::add_record_commands(root, global, command_exit);
+  mrskin::ctl::add_plot_command(root, global, command_exit);
+  mrskin::ctl::add_budget_command(root, global, command_exit);
+  mrskin::ctl::add_bridge_commands(root, global, command_exit);
   int model_exit = 0;
-  CLI::App* model = mrskin::ctl::add_model_command(app, model_exit);
+  const CLI::App& model = mrskin::ctl::add_model_command(root, model_exit).app();
   try {
     app.parse(argc, argv);
   } catch (const CLI::ParseError& e) {
@@ -282,7 +283,7 @@ int guarded_main(int argc, char** argv) {
     return app.exit(e) == 0 ? mrskin::tools::kOk : mrskin::tools::kUsage;
   }
   mrskin::tools::set_log_level(log_level);
-  if (model->parsed()) {
+  if (model.parsed()) {
     return model_exit;
   }
   if (!list->parsed() && !info->parsed()) {

@@ -108,6 +108,17 @@ struct Options {
   std::optional<double> velocity;
 };
 
+// "[row, col]", appended piece by piece: g++ 12 at -O3 warns falsely (-Wrestrict, GCC bug 105329)
+// on "[" + std::to_string(row) + ...
+std::string cell_json(int row, int col) {
+  std::string out = "[";
+  out += std::to_string(row);
+  out += ", ";
+  out += std::to_string(col);
+  out += ']';
+  return out;
+}
+
 DeviceProfile load(const Options& o) {
   return o.profile.empty() ? default_profile() : load_profile(o.profile);
 }
@@ -350,7 +361,7 @@ std::string run_cell(const Options& o) {
   env.add("mode_at_min", to_string(e.at_min.mode)).add("mode_at_max", to_string(e.at_max.mode));
   env.add("current_at_max_a", v >= 0.0 ? p.coil.max_current_A : 0.0);
   Json j;
-  j.add("law", "cell").raw("cell", "[" + std::to_string(row) + ", " + std::to_string(col) + "]");
+  j.add("law", "cell").raw("cell", cell_json(row, col));
   j.add("cell_index", cell.value).add("displacement_m", d).add("velocity_m_s", v).add("current_a", i);
   j.add("tau_y_pa", checked(model.yield_stress_at_current_Pa(i), "yield curve"));
   j.add("force_n", l.force_N).add("pressure_pa", l.pressure_Pa).add("valve_flow_m3_s", l.valve_flow_m3_per_s);
@@ -387,7 +398,7 @@ std::string run_profile(const Options& o) {
   const double d = p.design.indentation_m;
   const CellEnvelope hold = checked(model.envelope(cell.value, d, 0.0), "design envelope");
   Json design;
-  design.raw("cell", "[" + std::to_string(p.design.row) + ", " + std::to_string(p.design.col) + "]");
+  design.raw("cell", cell_json(p.design.row, p.design.col));
   design.add("indentation_m", d).add("velocity_m_s", 0.0).add("force_range_n", p.design.force_range_N);
   design.add("force_min_n", hold.force_min_N).add("force_max_n", hold.force_max_N);
   const Result<double> i_full = model.current_for_force_A(cell.value, d, 0.0, p.design.force_range_N);
@@ -410,15 +421,14 @@ std::string run_profile(const Options& o) {
 
 }  // namespace
 
-CLI::App* add_model_command(CLI::App& app, int& exit_code, std::FILE* out, std::FILE* err) {
+CliCommand add_model_command(CliCommand app, int& exit_code, std::FILE* out, std::FILE* err) {
   auto opts = std::make_shared<Options>();
-  CLI::App* model =
-      app.add_subcommand("model", "evaluate the device model's laws for a profile (JSON, SI units)");
-  model->add_option(
-      "--profile", opts->profile,
-      "device profile: a .toml file, or a name looked up in $MRSKIN_PROFILE_PATH and the shipped "
-      "profiles (default: mr-skin-5x5)");
-  model->require_subcommand(1);
+  CliCommand model =
+      app.subcommand("model", "evaluate the device model's laws for a profile (JSON, SI units)");
+  model.option("--profile", opts->profile,
+               "device profile: a .toml file, or a name looked up in $MRSKIN_PROFILE_PATH and the shipped "
+               "profiles (default: mr-skin-5x5)");
+  model.require_subcommand(1);
 
   auto wrap = [&exit_code, out, err](std::string (*fn)(const Options&), const std::shared_ptr<Options>& o) {
     return [&exit_code, out, err, fn, o] {
@@ -441,51 +451,50 @@ CLI::App* add_model_command(CLI::App& app, int& exit_code, std::FILE* out, std::
     };
   };
 
-  CLI::App* valve =
-      model->add_subcommand("valve", "Bingham valve: --dp gives the flow, --q gives the pressure");
-  valve->add_option("--dp", opts->dp, "pressure drop, Pa");
-  valve->add_option("--q", opts->q, "flow, m^3/s");
-  valve->add_option("--tau-y", opts->tau_y, "yield stress, Pa")->required();
-  valve->add_option("--gap", opts->gap, "gap h, m (default: profile)");
-  valve->add_option("--width", opts->width, "slot width w, m (default: profile)");
-  valve->add_option("--length", opts->length, "length L, m (default: profile)");
-  valve->add_option("--viscosity", opts->viscosity, "viscosity, Pa s (default: profile)");
-  valve->add_option("--density", opts->density, "density, kg/m^3 (default: profile; only for Re)");
+  CliCommand valve = model.subcommand("valve", "Bingham valve: --dp gives the flow, --q gives the pressure");
+  valve.option("--dp", opts->dp, "pressure drop, Pa");
+  valve.option("--q", opts->q, "flow, m^3/s");
+  valve.option("--tau-y", opts->tau_y, "yield stress, Pa").required();
+  valve.option("--gap", opts->gap, "gap h, m (default: profile)");
+  valve.option("--width", opts->width, "slot width w, m (default: profile)");
+  valve.option("--length", opts->length, "length L, m (default: profile)");
+  valve.option("--viscosity", opts->viscosity, "viscosity, Pa s (default: profile)");
+  valve.option("--density", opts->density, "density, kg/m^3 (default: profile; only for Re)");
   valve
-      ->add_option("--method", opts->method,
-                   "exact | wereley-pang | fast (| paper-eq3: the paper's Eq. 3 as "
-                   "printed, with --dp, for comparison)")
-      ->capture_default_str();
-  valve->callback(wrap(run_valve, opts));
+      .option("--method", opts->method,
+              "exact | wereley-pang | fast (| paper-eq3: the paper's Eq. 3 as "
+              "printed, with --dp, for comparison)")
+      .show_default();
+  valve.callback(wrap(run_valve, opts));
 
-  CLI::App* fluid = model->add_subcommand("fluid", "MR fluid: yield stress and B at a field H");
-  fluid->add_option("--h", opts->h, "field, A/m")->required();
-  fluid->callback(wrap(run_fluid, opts));
+  CliCommand fluid = model.subcommand("fluid", "MR fluid: yield stress and B at a field H");
+  fluid.option("--h", opts->h, "field, A/m").required();
+  fluid.callback(wrap(run_fluid, opts));
 
-  CLI::App* coil =
-      model->add_subcommand("coil", "magnetic circuit: H and B in the gap, and the yield stress there");
-  coil->add_option("--current", opts->current, "coil current, A")->required();
-  coil->add_option("--from", opts->from_current,
-                   "also evaluate on the hysteresis branch reached from this current, A "
-                   "(the steel's coercivity_A_per_m)");
-  coil->callback(wrap(run_coil, opts));
+  CliCommand coil =
+      model.subcommand("coil", "magnetic circuit: H and B in the gap, and the yield stress there");
+  coil.option("--current", opts->current, "coil current, A").required();
+  coil.option("--from", opts->from_current,
+              "also evaluate on the hysteresis branch reached from this current, A "
+              "(the steel's coercivity_A_per_m)");
+  coil.callback(wrap(run_coil, opts));
 
-  CLI::App* membrane =
-      model->add_subcommand("membrane", "membrane force at a centre deflection (and Eq. 6 beside it)");
-  membrane->add_option("--deflection", opts->deflection, "centre deflection, m")->required();
-  membrane->callback(wrap(run_membrane, opts));
+  CliCommand membrane =
+      model.subcommand("membrane", "membrane force at a centre deflection (and Eq. 6 beside it)");
+  membrane.option("--deflection", opts->deflection, "centre deflection, m").required();
+  membrane.callback(wrap(run_membrane, opts));
 
-  CLI::App* cell = model->add_subcommand("cell",
-                                         "force on a fluid cell with all its valves at one current, and "
-                                         "its renderable envelope");
-  cell->add_option("--cell", opts->cell, "ROW,COL of a fluid cell")->required();
-  cell->add_option("--displacement", opts->displacement, "indentation, m")->required();
-  cell->add_option("--velocity", opts->velocity, "indentation rate, m/s (< 0: unloading)")->required();
-  cell->add_option("--current", opts->current, "current on every valve, A")->required();
-  cell->callback(wrap(run_cell, opts));
+  CliCommand cell = model.subcommand("cell",
+                                     "force on a fluid cell with all its valves at one current, and "
+                                     "its renderable envelope");
+  cell.option("--cell", opts->cell, "ROW,COL of a fluid cell").required();
+  cell.option("--displacement", opts->displacement, "indentation, m").required();
+  cell.option("--velocity", opts->velocity, "indentation rate, m/s (< 0: unloading)").required();
+  cell.option("--current", opts->current, "current on every valve, A").required();
+  cell.callback(wrap(run_cell, opts));
 
-  CLI::App* profile = model->add_subcommand("profile", "summary of the profile and its design check");
-  profile->callback(wrap(run_profile, opts));
+  CliCommand profile = model.subcommand("profile", "summary of the profile and its design check");
+  profile.callback(wrap(run_profile, opts));
   return model;
 }
 

@@ -2,8 +2,9 @@
 // whose keys carry their SI unit (q_m3_s, dp_pa, tau_y_pa, h_a_m, b_t, force_n...).
 #pragma once
 
-#include <CLI/CLI.hpp>
 #include <cstdio>
+
+#include "cli.hpp"
 
 namespace mrskin::ctl {
 
@@ -11,6 +12,7 @@ namespace mrskin::ctl {
 // The command runs from its CLI11 callback during parsing; `exit_code` receives 0 on success,
 // 2 for a bad or out-of-range argument or profile, 1 when a law reports a failure. JSON goes to
 // `out`, errors (one line, "error: ...") to `err`.
-CLI::App* add_model_command(CLI::App& app, int& exit_code, std::FILE* out = stdout, std::FILE* err = stderr);
+CliCommand add_model_command(CliCommand app, int& exit_code, std::FILE* out = stdout,
+                             std::FILE* err = stderr);
 
 }  // namespace mrskin::ctl

@@ -437,34 +437,31 @@ int monitor_bridge(const MonitorOptions& o, Renderer& out) {
 
 }  // namespace
 
-void add_monitor_command(CLI::App& app, const GlobalOptions& global, int& exit_code) {
+void add_monitor_command(CliCommand app, const GlobalOptions& global, int& exit_code) {
   auto o = std::make_shared<MonitorOptions>();  // shared with the callback, which CLI11 keeps
-  CLI::App* sub = app.add_subcommand(
+  CliCommand sub = app.subcommand(
       "monitor",
       "show the grid live: force and displacement per cell, current and coil temperature per valve, state "
       "and fault cause; from a device (--device) or a running mrskin-bridged (--bridge)");
-  CLI::Option* device =
-      sub->add_option("--device", o->device, "device URI (mock://[PROFILE][?seed=N&faults=...])")
-          ->capture_default_str();
-  CLI::Option* bridge =
-      sub->add_option("--bridge", o->bridge,
-                      "attach to a running mrskin-bridged on this control socket instead of opening a device "
-                      "(the daemon owns the device); without a value, its default socket (" +
-                          bridged::default_socket_path() + " here)")
-          ->expected(0, 1)
-          ->excludes(device);
-  sub->add_option("--duration", o->duration_s, "seconds to run; 0 runs until Ctrl-C")
-      ->check(CLI::Range(0.0, 1e6))
-      ->capture_default_str();
-  sub->add_option("--period-ms", o->period_ms, "refresh period, ms")
-      ->check(CLI::Range(10.0, 60000.0))
-      ->capture_default_str();
-  sub->add_option("--color", o->color,
-                  "colour heatmap: auto (a terminal, TERM not dumb, NO_COLOR unset), "
-                  "always or never")
-      ->check(CLI::IsMember({"auto", "always", "never"}))
-      ->capture_default_str();
-  sub->footer(
+  CliOption device =
+      sub.option("--device", o->device, "device URI (mock://[PROFILE][?seed=N&faults=...])").show_default();
+  CliOption bridge =
+      sub.option("--bridge", o->bridge,
+                 "attach to a running mrskin-bridged on this control socket instead of opening a device "
+                 "(the daemon owns the device); without a value, its default socket (" +
+                     bridged::default_socket_path() + " here)")
+          .value_optional()
+          .excludes(device);
+  sub.option("--duration", o->duration_s, "seconds to run; 0 runs until Ctrl-C")
+      .range(0.0, 1e6)
+      .show_default();
+  sub.option("--period-ms", o->period_ms, "refresh period, ms").range(10.0, 60000.0).show_default();
+  sub.option("--color", o->color,
+             "colour heatmap: auto (a terminal, TERM not dumb, NO_COLOR unset), "
+             "always or never")
+      .one_of({"auto", "always", "never"})
+      .show_default();
+  sub.footer(
       "Output: in a terminal the grid is redrawn in place (cells: force N / displacement mm; valves: current "
       "mA / coil temperature C); piped, one line per refresh with the peaks; with --json one object per "
       "refresh line with every array. Force and displacement are the observer's estimates from the sensors "
@@ -473,8 +470,8 @@ void add_monitor_command(CLI::App& app, const GlobalOptions& global, int& exit_c
       "Exit codes: 0 the duration ended or Ctrl-C; 1 the daemon refused, closed or went silent; 2 bad "
       "arguments or URI; 3 no device, or no mrskin-bridged on the socket; 4 protocol mismatch; 5 device busy "
       "(use --bridge when a daemon owns it).");
-  sub->callback([o, bridge, &global, &exit_code] {
-    o->use_bridge = bridge->count() > 0;
+  sub.callback([o, bridge, &global, &exit_code] {
+    o->use_bridge = bridge.given();
     Renderer out(global, *o);
     const StopSignals signals;
     exit_code = o->use_bridge ? monitor_bridge(*o, out) : monitor_device(*o, out);

@@ -296,22 +296,22 @@ int run_plot(const PlotOptions& o, const GlobalOptions& global) {
 
 }  // namespace
 
-void add_plot_command(CLI::App& app, const GlobalOptions& global, int& exit_code) {
+void add_plot_command(CliCommand app, const GlobalOptions& global, int& exit_code) {
   auto o = std::make_shared<PlotOptions>();
-  auto* plot = app.add_subcommand(
+  CliCommand plot = app.subcommand(
       "plot",
       "draw a bridged recording (mrskinctl record --bridge) as an SVG: per cell the envelope, the target, "
       "the "
       "tissue law and the rendered force over time, clamped stretches marked. Exit 0 written, 2 a malformed "
       "file or one without cells lines, 1 the SVG could not be written");
-  plot->add_option("file", o->file, "recording written by mrskinctl record --bridge (version 2)")->required();
-  plot->add_option("--out", o->out, "SVG file to write")->required();
-  plot->add_option("--cells", o->cells, "fluid cells to draw (comma-separated; default: the loaded ones)")
-      ->delimiter(',');
-  plot->add_option("--max-cells", o->max_cells, "draw at most this many of the loaded cells, the most loaded")
-      ->check(CLI::Range(1, 64))
-      ->capture_default_str();
-  plot->callback([o, &global, &exit_code] { exit_code = run_plot(*o, global); });
+  plot.option("file", o->file, "recording written by mrskinctl record --bridge (version 2)").required();
+  plot.option("--out", o->out, "SVG file to write").required();
+  plot.option("--cells", o->cells, "fluid cells to draw (comma-separated; default: the loaded ones)")
+      .delimiter(',');
+  plot.option("--max-cells", o->max_cells, "draw at most this many of the loaded cells, the most loaded")
+      .range(1, 64)
+      .show_default();
+  plot.callback([o, &global, &exit_code] { exit_code = run_plot(*o, global); });
 }
 
 }  // namespace mrskin::ctl

@@ -458,46 +458,45 @@ int run_replay(const ReplayOptions& o, const GlobalOptions& global) {
 
 }  // namespace
 
-void add_record_commands(CLI::App& app, const GlobalOptions& global, int& exit_code) {
+void add_record_commands(CliCommand app, const GlobalOptions& global, int& exit_code) {
   auto record = std::make_shared<RecordOptions>();
-  auto* rec = app.add_subcommand(
+  CliCommand rec = app.subcommand(
       "record",
       "record telemetry, status changes and the commands sent to an NDJSON file (docs/cli.md); with "
       "--currents, "
       "enable and hold those currents while recording, then release. Exit 0 recorded, 2 bad arguments");
   add_device_options(rec, record->uri, record->realtime);
-  rec->add_option("--out", record->out, "file to write")->required();
-  rec->add_option("--duration", record->duration_s, "seconds to record")->capture_default_str();
-  CLI::Option* currents =
-      rec->add_option("--currents", record->currents, "hold these per-valve currents (A) while recording");
-  CLI::Option* bridge =
-      rec->add_option("--bridge", record->bridge,
-                      "record through a running mrskin-bridged on this control socket (it owns "
-                      "the device): its raw sensors and commanded currents every 10 ms; "
-                      "without a value, its default socket (" +
-                          bridged::default_socket_path() + " here)")
-          ->expected(0, 1)
-          ->excludes(currents);
-  if (CLI::Option* device = rec->get_option_no_throw("--device"); device != nullptr) {
-    bridge->excludes(device);
+  rec.option("--out", record->out, "file to write").required();
+  rec.option("--duration", record->duration_s, "seconds to record").show_default();
+  CliOption currents =
+      rec.option("--currents", record->currents, "hold these per-valve currents (A) while recording");
+  CliOption bridge = rec.option("--bridge", record->bridge,
+                                "record through a running mrskin-bridged on this control socket (it owns "
+                                "the device): its raw sensors and commanded currents every 10 ms; "
+                                "without a value, its default socket (" +
+                                    bridged::default_socket_path() + " here)")
+                         .value_optional()
+                         .excludes(currents);
+  if (const CliOption device = rec.find("--device"); device.exists()) {
+    bridge.excludes(device);
   }
-  rec->callback([record, bridge, &global, &exit_code] {
-    record->use_bridge = bridge->count() > 0;
+  rec.callback([record, bridge, &global, &exit_code] {
+    record->use_bridge = bridge.given();
     exit_code = run_record(*record, global);
   });
 
   auto replay = std::make_shared<ReplayOptions>();
-  auto* rep = app.add_subcommand("replay",
-                                 "print a recording (or --json), or with --to-device re-send its commands "
-                                 "with their timing, the device's "
-                                 "limits checked again first. Exit 0 done, 1 the session refused a command, "
-                                 "2 malformed file (the line is "
-                                 "named) or a command outside the device's limits");
-  rep->add_option("file", replay->file, "recording written by mrskinctl record")->required();
-  rep->add_option("--to-device", replay->to_device, "device URI to re-send the recorded commands to");
-  rep->add_flag("--realtime", replay->realtime, "run a mock:// unit in real time instead of simulated time");
+  CliCommand rep = app.subcommand("replay",
+                                  "print a recording (or --json), or with --to-device re-send its commands "
+                                  "with their timing, the device's "
+                                  "limits checked again first. Exit 0 done, 1 the session refused a command, "
+                                  "2 malformed file (the line is "
+                                  "named) or a command outside the device's limits");
+  rep.option("file", replay->file, "recording written by mrskinctl record").required();
+  rep.option("--to-device", replay->to_device, "device URI to re-send the recorded commands to");
+  rep.flag("--realtime", replay->realtime, "run a mock:// unit in real time instead of simulated time");
   add_lease_option(rep, replay->lease);
-  rep->callback([replay, &global, &exit_code] {
+  rep.callback([replay, &global, &exit_code] {
     if (const std::optional<std::string> socket = replay->lease.lease_socket()) {
       replay->to_device = "bridge:" + *socket;  // re-sent through the daemon's device lease
     }

@@ -417,23 +417,23 @@ int run_selftest(const SelftestOptions& o, const GlobalOptions& global) {
 
 }  // namespace
 
-void add_selftest_command(CLI::App& app, const GlobalOptions& global, int& exit_code) {
+void add_selftest_command(CliCommand app, const GlobalOptions& global, int& exit_code) {
   auto options = std::make_shared<SelftestOptions>();
-  auto* sub = app.add_subcommand(
+  CliCommand sub = app.subcommand(
       "selftest",
       "check link, sensor range, noise and stuck sensors, sweep the valves, look for leaks and measure the "
       "heartbeat round trip; each item PASS/FAIL/SKIP with its value and limit (docs/cli.md). Exit 0 no "
       "FAIL, "
       "1 a check failed");
   add_device_options(sub, options->uri, options->realtime);
-  sub->add_option("--rest", options->rest_s, "seconds of rest sampled for range and noise")
-      ->check(CLI::Range(0.05, 10.0))
-      ->capture_default_str();
-  sub->add_option("--press-depth-m", options->press_depth_m, "fixture press depth, m")
-      ->check(CLI::Range(0.5e-3, 6e-3))
-      ->capture_default_str();
+  sub.option("--rest", options->rest_s, "seconds of rest sampled for range and noise")
+      .range(0.05, 10.0)
+      .show_default();
+  sub.option("--press-depth-m", options->press_depth_m, "fixture press depth, m")
+      .range(0.5e-3, 6e-3)
+      .show_default();
   add_lease_option(sub, options->lease);
-  sub->callback([options, &global, &exit_code] {
+  sub.callback([options, &global, &exit_code] {
     if (const std::optional<std::string> socket = options->lease.lease_socket()) {
       options->uri = "bridge:" + *socket;  // what the report names; the Rig leases the socket
     }

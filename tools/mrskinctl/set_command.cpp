@@ -155,26 +155,25 @@ int run_set(const SetOptions& o, const GlobalOptions& global) {
 
 }  // namespace
 
-void add_set_command(CLI::App& app, const GlobalOptions& global, int& exit_code) {
+void add_set_command(CliCommand app, const GlobalOptions& global, int& exit_code) {
   auto options = std::make_shared<SetOptions>();
-  auto* sub = app.add_subcommand(
+  CliCommand sub = app.subcommand(
       "set",
       "send per-valve currents (A) or one cell's impedance target, limits enforced; enable, hold with the "
       "heartbeat alive, print the telemetry, then release (also on Ctrl-C). Exit 0 held, 1 the device "
       "refused or faulted, 2 a value outside the device's or the protocol's limits");
   add_device_options(sub, options->uri, options->realtime);
-  sub->add_option("--currents", options->currents, "one current per valve, A, comma-separated");
-  sub->add_option("--valve", options->valve, "one valve's index (with --current-a; the others get 0 A)");
-  sub->add_option("--current-a", options->current_a, "that valve's current, A");
-  sub->add_option("--cell", options->cell, "fluid cell index for an impedance target");
-  sub->add_option("--stiffness-n-per-m", options->stiffness_n_per_m, "target stiffness, N/m (0..32766)");
-  sub->add_option("--offset-m", options->offset_m, "target offset, m (0..0.00819)");
-  sub->add_option("--ceiling-n", options->ceiling_n, "force ceiling, N (0..4.095)")->capture_default_str();
-  sub->add_option("--validity-s", options->validity_s, "validity of each resend, s (0..0.63)")
-      ->capture_default_str();
-  sub->add_option("--hold", options->hold_s, "seconds to hold the setting")->capture_default_str();
+  sub.option("--currents", options->currents, "one current per valve, A, comma-separated");
+  sub.option("--valve", options->valve, "one valve's index (with --current-a; the others get 0 A)");
+  sub.option("--current-a", options->current_a, "that valve's current, A");
+  sub.option("--cell", options->cell, "fluid cell index for an impedance target");
+  sub.option("--stiffness-n-per-m", options->stiffness_n_per_m, "target stiffness, N/m (0..32766)");
+  sub.option("--offset-m", options->offset_m, "target offset, m (0..0.00819)");
+  sub.option("--ceiling-n", options->ceiling_n, "force ceiling, N (0..4.095)").show_default();
+  sub.option("--validity-s", options->validity_s, "validity of each resend, s (0..0.63)").show_default();
+  sub.option("--hold", options->hold_s, "seconds to hold the setting").show_default();
   add_lease_option(sub, options->lease);
-  sub->callback([options, &global, &exit_code] {
+  sub.callback([options, &global, &exit_code] {
     if (const std::optional<std::string> socket = options->lease.lease_socket()) {
       options->uri = "bridge:" + *socket;  // what the report names; the Rig leases the socket
     }
