@@ -1,8 +1,9 @@
 #!/usr/bin/env bash
 # Runs every fuzzer for SECONDS (default 60) from a copy of its committed seed corpus (which it
 # replays first; the committed corpora stay small), JOBS at a time (default 2), and prints one
-# line per fuzzer. Exits non-zero on any finding; crash inputs and grown corpora are kept in the
-# work folder. .ci/run runs it for 15 s (docs/reliability.md).
+# line per fuzzer. Exits non-zero on any finding; crash inputs and grown corpora are then kept in
+# the work folder, which is removed after a clean run (MRSKIN_FUZZ_KEEP=1 keeps it). .ci/run runs
+# it for 15 s (docs/reliability.md).
 #   cmake --preset clang && cmake --build build/clang
 #   tests/fuzz/run_fuzzers.sh [SECONDS] [BUILD_DIR] [JOBS]
 set -euo pipefail
@@ -55,5 +56,10 @@ for d in "${fuzzers[@]}"; do
     grep -E 'ERROR|invariant|unexpected|SUMMARY' "$log" | head -n 5 | sed "s/^/  $d: /"
   fi
 done
-echo "logs, grown corpora and any crash inputs: $work"
+if [ "$status" -eq 0 ] && [ "${MRSKIN_FUZZ_KEEP:-0}" != 1 ]; then
+  rm -rf "$work"
+  echo "no finding; work folder removed (MRSKIN_FUZZ_KEEP=1 keeps its logs and grown corpora)"
+else
+  echo "logs, grown corpora and any crash inputs: $work"
+fi
 exit $status
