@@ -364,23 +364,10 @@ RealtimeLoop::Impl::Impl(Clock& clock, TickFunction tick, void* context, LoopOpt
   if (tick_ == nullptr) {
     throw InvalidArgument("real-time loop: no tick function");
   }
-  if (options_.cpu != -1) {
-    cpu_set_t allowed;
-    CPU_ZERO(&allowed);
-    const bool known = sched_getaffinity(0, sizeof(allowed), &allowed) == 0;
-    if (options_.cpu < -1 || options_.cpu >= CPU_SETSIZE ||
-        (known && !CPU_ISSET(static_cast<std::size_t>(options_.cpu), &allowed))) {
-      std::string list;
-      for (int c = 0; known && c < CPU_SETSIZE; ++c) {
-        if (CPU_ISSET(static_cast<std::size_t>(c), &allowed)) {
-          list += list.empty() ? "" : ",";
-          list += std::to_string(c);
-        }
-      }
-      throw InvalidArgument("real-time loop: CPU " + std::to_string(options_.cpu) +
-                            " is not one this process may run on (allowed: " + (known ? list : "unknown") +
-                            "); pick one of them, or -1 for no pinning");
-    }
+  if (!cpu_allowed(options_.cpu)) {
+    throw InvalidArgument("real-time loop: CPU " + std::to_string(options_.cpu) +
+                          " is not one this process may run on (allowed: " + allowed_cpus() +
+                          "); pick one of them, or -1 for no pinning");
   }
   if (waiter_ == nullptr) {
     if (dynamic_cast<MonotonicClock*>(&clock_) != nullptr) {
@@ -393,6 +380,34 @@ RealtimeLoop::Impl::Impl(Clock& clock, TickFunction tick, void* context, LoopOpt
 }
 
 RealtimeLoop::Impl::~Impl() { stop(); }
+
+bool cpu_allowed(int cpu) noexcept {
+  if (cpu == -1) {
+    return true;
+  }
+  if (cpu < 0 || cpu >= CPU_SETSIZE) {
+    return false;
+  }
+  cpu_set_t set;
+  CPU_ZERO(&set);
+  return sched_getaffinity(0, sizeof(set), &set) != 0 || CPU_ISSET(static_cast<std::size_t>(cpu), &set);
+}
+
+std::string allowed_cpus() {
+  cpu_set_t set;
+  CPU_ZERO(&set);
+  if (sched_getaffinity(0, sizeof(set), &set) != 0) {
+    return "unknown";
+  }
+  std::string list;
+  for (int c = 0; c < CPU_SETSIZE; ++c) {
+    if (CPU_ISSET(static_cast<std::size_t>(c), &set)) {
+      list += list.empty() ? "" : ",";
+      list += std::to_string(c);
+    }
+  }
+  return list;
+}
 
 Duration RealtimeLoop::Impl::period() const noexcept { return Duration{std::llround(period_ns_)}; }
 

@@ -1,7 +1,6 @@
 #include "config.hpp"
 
 #include <fmt/format.h>
-#include <sched.h>
 #include <toml++/toml.h>
 #include <unistd.h>
 
@@ -13,37 +12,11 @@
 #include <string_view>
 
 #include "logging.hpp"
+#include "mrskin/bridge/loop.hpp"
 #include "mrskin/bridge/ros2_topics.hpp"
 
 namespace mrskin::bridged {
 namespace {
-
-// Whether the process may run on cpu (its affinity mask; -1: no pinning asked).
-bool cpu_allowed(int cpu) {
-  if (cpu == -1) {
-    return true;
-  }
-  cpu_set_t set;
-  CPU_ZERO(&set);
-  return cpu >= 0 && cpu < CPU_SETSIZE && sched_getaffinity(0, sizeof(set), &set) == 0 &&
-         CPU_ISSET(static_cast<std::size_t>(cpu), &set);
-}
-
-std::string allowed_cpus() {
-  cpu_set_t set;
-  CPU_ZERO(&set);
-  if (sched_getaffinity(0, sizeof(set), &set) != 0) {
-    return "unknown";
-  }
-  std::string list;
-  for (int c = 0; c < CPU_SETSIZE; ++c) {
-    if (CPU_ISSET(static_cast<std::size_t>(c), &set)) {
-      list += list.empty() ? "" : ",";
-      list += std::to_string(c);
-    }
-  }
-  return list;
-}
 
 class Reader {
  public:
@@ -239,8 +212,8 @@ Settings load_settings(const std::string& path) {
     r.get_checked(
         *b, "bridge", "rt_priority", s.rt_priority, [](int v) { return v >= 1 && v <= 99; }, "1 to 99");
     r.get_checked(
-        *b, "bridge", "cpu", s.cpu, [](int v) { return cpu_allowed(v); },
-        "-1 (not pinned) or a CPU this process may run on (" + allowed_cpus() + ")");
+        *b, "bridge", "cpu", s.cpu, [](int v) { return bridge::cpu_allowed(v); },
+        "-1 (not pinned) or a CPU this process may run on (" + bridge::allowed_cpus() + ")");
     r.get_checked(
         *b, "bridge", "stale_hold_s", s.stale_hold_s, [](double v) { return v >= 0.0 && v <= 10.0; },
         "0 to 10 s: the stream watchdog must act");
@@ -279,9 +252,9 @@ void validate(const Settings& s, const std::string& origin) {
   if (!(s.duration_s >= 0.0 && s.duration_s <= kMaxDuration_s)) {
     bad("duration", "must be 0 to 1e8 s (0 runs until a signal)");
   }
-  if (!cpu_allowed(s.cpu)) {
+  if (!bridge::cpu_allowed(s.cpu)) {
     bad("cpu", fmt::format("{} is not a CPU this process may run on (allowed: {}); -1: not pinned", s.cpu,
-                           allowed_cpus()));
+                           bridge::allowed_cpus()));
   }
   if (s.device.empty()) {
     bad("device", "empty device URI");

@@ -117,6 +117,12 @@ class MRSKIN_BRIDGE_API RealtimeOs {
 };
 MRSKIN_BRIDGE_API RealtimeOs& system_realtime_os() noexcept;
 
+// Whether this process may run on `cpu` (its sched_getaffinity mask): -1 (no pinning) always
+// may; when the kernel does not tell, any CPU below CPU_SETSIZE may (the pin itself then fails
+// at start with a warning). allowed_cpus() lists the mask as "0,1,3", or "unknown".
+MRSKIN_BRIDGE_API bool cpu_allowed(int cpu) noexcept;
+MRSKIN_BRIDGE_API std::string allowed_cpus();
+
 struct LoopOptions {
   double rate_hz = 1000.0;  // 1 Hz .. 20 kHz
   bool realtime = true;     // ask for SCHED_FIFO (and mlockall) on the loop thread
