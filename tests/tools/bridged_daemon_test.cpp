@@ -778,6 +778,13 @@ TEST_F(BridgedDaemon, UdpSamplesWakeTheLoopEarly) {
   Daemon d(dir_, "udp", {"--config", cfg.string(), "--device", "mock://?bus=none", "--quiet"});
   LineClient c = connect();
   ASSERT_TRUE(c.connected()) << d.output();
+  // The control socket answers before the loop's first tick; on a loaded sanitizer build the open
+  // can take longer than the 0.7 s of samples below (a CI run ticked once, after all of them).
+  std::string ticking;
+  ASSERT_TRUE(eventually([&] {
+    ticking = status(c);
+    return std::stoull(json_field(ticking, "ticks").value_or("0")) > 0;
+  })) << ticking;
   const int out = ::socket(AF_INET, SOCK_DGRAM, 0);
   sockaddr_in to{};
   to.sin_family = AF_INET;
