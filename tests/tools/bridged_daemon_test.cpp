@@ -577,11 +577,12 @@ TEST_F(BridgedDaemon, AFieldRobotOverOpenIgtlinkIsRenderedWithinTheClosedLoopFig
 #endif
 }
 
-// Exit 1: a device fault nobody asked for (the mock's bus-off at 1 s) latched at exit; the
-// statistics are written all the same.
+// Exit 1: a device fault nobody asked for (the mock's bus-off at 3 s) latched at exit; the
+// statistics are written all the same. At 1 s it landed inside a slow open under TSan on a loaded
+// machine, and the start-up's enable cleared it (the run of 9c0a1b8).
 TEST_F(BridgedDaemon, AFaultLatchedAtExitIsExit1) {
   Daemon d(dir_, "d",
-           {"--config", config("[bridge]\nrealtime = false").string(), "--device", "mock://?faults=busoff:1",
+           {"--config", config("[bridge]\nrealtime = false").string(), "--device", "mock://?faults=busoff:3",
             "--quiet"});
   LineClient c = connect();
   ASSERT_TRUE(c.connected()) << d.output();
