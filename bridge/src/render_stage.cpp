@@ -139,6 +139,30 @@ void RenderStage::render(const Observation& observed, std::span<const model::Cel
     model::CellState& state = out.state[i];
     // A membrane sucked in after a release reads as depth with no force on it: no finger.
     const bool contact = depth_m[i] > options_.contact_threshold_m && force_N[i] > options_.contact_force_N;
+    PassiveTissueUpdate& law = cell.law;
+    if (!contact && law.surface_offset_m() == 0.0 && !(law.tank_J() > 0.0)) {
+      // Untouched, and the law at rest: what the general path below gives, without evaluating
+      // the law (no force at zero depth, no feedback, the same target but for its validity).
+      cell.loading = 0;  // direction_rate() without contact
+      cell.unloading = 0;
+      cell.extreme_m = 0.0;
+      cell.smooth_depth_m = 0.0;
+      state.indentation_m = 0.0;
+      state.rate_m_per_s = 0.0;
+      out.contact[i] = 0;
+      out.tissue_N[i] = 0.0;
+      cell.feedback_N = 0.0;
+      if (cell.rest_valid == 0 || cell.rest_ceiling_N != options_.max_force_N) {
+        cell.rest_target = law.target(0.0, options_.max_force_N, valid_until_s);
+        cell.rest_ceiling_N = options_.max_force_N;
+        cell.rest_valid = 1;
+      }
+      model::CellImpedanceTarget& t = out.target[i];
+      t = cell.rest_target;
+      t.valid_until_s = valid_until_s;
+      continue;
+    }
+    cell.rest_valid = 0;  // the law may change below
     const double rate = direction_rate(cell, contact, depth_m[i], observed.rate_m_per_s[i]);
     state.indentation_m = contact ? depth_m[i] : 0.0;
     state.rate_m_per_s = contact ? rate : 0.0;
@@ -147,7 +171,6 @@ void RenderStage::render(const Observation& observed, std::span<const model::Cel
     const bool loaded = contact && (role == model::CellRole::loading || role == model::CellRole::holding);
     // The cell's law: its mapped tissue (or the current estimate where the instrument never was),
     // scaled by the stale policy, changed passively while the finger is in the cell.
-    PassiveTissueUpdate& law = cell.law;
     if (contact || law.surface_offset_m() > 0.0 || law.tank_J() > 0.0) {
       law.update(cell.mapped != 0 ? cell.mapped_model.scaled(estimate_.scale) : unmapped,
                  state.indentation_m);

@@ -85,7 +85,9 @@ class __attribute__((visibility("hidden"))) SensorFaultMonitor::Impl {
 
   SensorFaultOptions options_;
   std::vector<unsigned char> watched_;  // displacement sensors
-  std::vector<double> sigma_;           // noise and quantisation, in the reading's unit
+  // 1 / (6 sigma^2), sigma the noise and quantisation in the reading's unit: white noise's mean
+  // squared second difference is 6 sigma^2.
+  std::vector<double> inv_six_sigma2_;
   std::vector<double> residual_sigma_;  // the observer's sigma for the residual (its definition)
   std::vector<double> deadband_sigma_;  // the unit's deadband in residual_sigma_ (0: none)
   std::vector<std::size_t> stuck_run_;
@@ -122,7 +124,7 @@ SensorFaultMonitor::Impl::Impl(const model::DeviceProfile& profile, const GridLa
   const std::size_t n = profile.sensors.size();
   const std::size_t cells = layout.fluid_cell_count();
   watched_.assign(n, 0);
-  sigma_.assign(n, 0.0);
+  inv_six_sigma2_.assign(n, 0.0);
   residual_sigma_.assign(n, 0.0);
   deadband_sigma_.assign(n, 0.0);
   stuck_run_.assign(n, npos);
@@ -132,7 +134,8 @@ SensorFaultMonitor::Impl::Impl(const model::DeviceProfile& profile, const GridLa
     const model::SensorSpec& s = profile.sensors[k];
     if (s.quantity == model::SensorQuantity::displacement && s.place != model::PlaceKind::reservoir) {
       watched_[k] = 1;
-      sigma_[k] = std::sqrt(s.noise_std * s.noise_std + s.resolution * s.resolution / 12.0);
+      const double sigma2 = s.noise_std * s.noise_std + s.resolution * s.resolution / 12.0;
+      inv_six_sigma2_[k] = 1.0 / (6.0 * sigma2);
       stuck_run_[k] = stuck_run_for(s.noise_std, s.resolution, options.false_alarm_probability);
       // The observer's residual is in max(noise, resolution / sqrt 12) (CellObserver).
       residual_sigma_[k] = std::max(s.noise_std, s.resolution / std::sqrt(12.0));
@@ -218,6 +221,11 @@ std::size_t SensorFaultMonitor::Impl::update(std::span<const double> readings,
   }
   const double noise_alpha = 1.0 / options_.noise_window_readings;
   const double offset_alpha = 1.0 / options_.offset_window_readings;
+  // Loop constants in locals: the stores into the per-sensor arrays below would otherwise make
+  // the compiler read the options again for every sensor.
+  const double ratio_cap = kOutlierCap * options_.noise_ratio_limit;
+  const double noise_limit = options_.noise_ratio_limit;
+  const double offset_cap = kOutlierCap * options_.offset_limit_sigma;
   std::size_t found = npos;
   SensorFault found_kind = SensorFault::none;
   double found_evidence = 0.0;
@@ -242,16 +250,14 @@ std::size_t SensorFaultMonitor::Impl::update(std::span<const double> readings,
       const double d2 = y - 2.0 * last_[k] + before_last_[k];
       // One jump (a finger's tap, a gap in the readings) must not pass for noise: each reading
       // counts for at most kOutlierCap limits, so it takes several to cross one.
-      const double ratio =
-          std::min(d2 * d2 / (6.0 * sigma_[k] * sigma_[k]), kOutlierCap * options_.noise_ratio_limit);
+      const double ratio = std::min(d2 * d2 * inv_six_sigma2_[k], ratio_cap);
       noise_ratio_[k] += noise_alpha * (ratio - noise_ratio_[k]);
     }
     before_last_[k] = last_[k];
     last_[k] = y;
     seen_[k] = std::min<std::size_t>(seen_[k] + 1, 2);
     if (std::isfinite(r)) {
-      const double cap = kOutlierCap * options_.offset_limit_sigma;
-      mean_residual_[k] += offset_alpha * (std::clamp(r, -cap, cap) - mean_residual_[k]);
+      mean_residual_[k] += offset_alpha * (std::clamp(r, -offset_cap, offset_cap) - mean_residual_[k]);
     }
     if (found != npos) {
       continue;
@@ -260,7 +266,7 @@ std::size_t SensorFaultMonitor::Impl::update(std::span<const double> readings,
       found = k;
       found_kind = SensorFault::stuck;
       found_evidence = y;
-    } else if (noise_ratio_[k] > options_.noise_ratio_limit) {
+    } else if (noise_ratio_[k] > noise_limit) {
       found = k;
       found_kind = SensorFault::noisy;
       found_evidence = noise_ratio_[k];

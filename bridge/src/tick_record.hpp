@@ -66,6 +66,11 @@ struct CellMemory {
   TissueModel mapped_model{};
   unsigned char mapped = 0;
   PassiveTissueUpdate law{};
+  // The law's target at rest (no contact, no passive change), kept while the law stays as it is:
+  // an untouched cell of a large grid then costs a copy a tick, not the law's evaluation.
+  model::CellImpedanceTarget rest_target{};
+  double rest_ceiling_N = 0.0;  // the force ceiling it was made with
+  unsigned char rest_valid = 0;
 };
 
 }  // namespace mrskin::bridge::detail

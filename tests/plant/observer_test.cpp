@@ -303,6 +303,75 @@ TEST_F(NoiseFloor, ABadFloorIsRefused) {
   EXPECT_THROW(CellObserver(model_, bad), mrskin::InvalidArgument);
 }
 
+// Large grids carry the fit's residual from tick to tick (ObserverOptions::residual_refresh_ticks):
+// the same depths and sensor residuals as computing it afresh every tick, through a press, its
+// release, a sensor excluded and put back, and a reset.
+TEST_F(NoiseFloor, TheCarriedResidualMatchesOneComputedEveryTick) {
+  ObserverOptions afresh;
+  afresh.residual_refresh_ticks = 1;
+  ObserverOptions carried;  // the default: afresh every 1024 ticks
+  CellObserver a(model_, afresh);
+  CellObserver b(model_, carried);
+  const mrskin::model::DeviceProfile& p = model_.profile();
+  const std::size_t cells = model_.layout().fluid_cell_count();
+  std::vector<double> depth(cells, 0.0);
+  std::vector<double> readings(p.sensors.size(), 0.0);
+  std::vector<double> current(model_.layout().valve_count(), 0.0);
+  std::mt19937 random(5);
+  double worst_depth_m = 0.0;
+  double worst_residual_sigma = 0.0;
+  std::size_t moved_ticks = 0;
+  for (int tick = 0; tick < 2500; ++tick) {
+    // A press on cells 60 and 61 from tick 200 to 1400 (up to 150 um), noise throughout.
+    const double press_m =
+        tick < 200 || tick > 1400 ? 0.0 : 150e-6 * std::sin(3.14159 * (tick - 200) / 1200.0);
+    depth[60] = press_m;
+    depth[61] = 0.5 * press_m;
+    for (std::size_t k = 0; k < p.sensors.size(); ++k) {
+      const mrskin::model::SensorSpec& s = p.sensors[k];
+      std::normal_distribution<double> noise(0.0, s.noise_std);
+      double mean_m = s.place == mrskin::model::PlaceKind::fluid_cell ? depth[s.index] : 0.0;
+      if (s.place == mrskin::model::PlaceKind::valve) {
+        const std::vector<std::size_t>& joined = model_.layout().cells_of_valve(s.index);
+        for (const std::size_t c : joined) {
+          mean_m += depth[c] / static_cast<double>(joined.size());
+        }
+      }
+      readings[k] = mean_m + noise(random);
+    }
+    if (tick == 700 || tick == 900) {  // a sensor out, then back
+      ASSERT_EQ(a.set_sensor_excluded(5, tick == 700), Status::ok);
+      ASSERT_EQ(b.set_sensor_excluded(5, tick == 700), Status::ok);
+    }
+    if (tick == 2000) {
+      a.reset();
+      b.reset();
+    }
+    ASSERT_EQ(a.update(readings, current, 1e-3), Status::ok);
+    ASSERT_EQ(b.update(readings, current, 1e-3), Status::ok);
+    const std::span<const double> da = a.indentation_m();
+    const std::span<const double> db = b.indentation_m();
+    for (std::size_t c = 0; c < cells; ++c) {
+      worst_depth_m = std::max(worst_depth_m, std::abs(da[c] - db[c]));
+    }
+    moved_ticks += da[60] > 0.0 ? 1 : 0;
+    const std::span<const double> ra = a.sensor_residual_sigma();
+    const std::span<const double> rb = b.sensor_residual_sigma();
+    for (std::size_t k = 0; k < ra.size(); ++k) {
+      worst_residual_sigma = std::max(worst_residual_sigma, std::abs(ra[k] - rb[k]));
+    }
+  }
+  std::printf(
+      "carried against afresh: depths within %.3g m, residuals within %.3g sigma; %zu ticks pressed\n",
+      worst_depth_m, worst_residual_sigma, moved_ticks);
+  EXPECT_GT(moved_ticks, 800U) << "the press must show (or the comparison proves little)";
+  EXPECT_LT(worst_depth_m, 1e-12);  // round-off: a thousandth of a nanometre
+  EXPECT_LT(worst_residual_sigma, 1e-6);
+  ObserverOptions bad;
+  bad.residual_refresh_ticks = 0;
+  EXPECT_THROW(CellObserver(model_, bad), mrskin::InvalidArgument);
+}
+
 // Net outflow per fluid cell from the network model's passages: a press through open valves
 // sends fluid out; the same press (1 mm, below the full-current threshold) held behind valves at
 // full current seals the cell. The local

@@ -109,8 +109,16 @@ Verdict examine(const InverseTopology& topo, CellMemory& memory, TickChanges& ch
     const CellState& s = states[i];
     const CellImpedanceTarget& g = targets[i];
     const CellCache& cc = memory.cache[i];
-    // Inputs bitwise as last time (validated then): only the clock can change the role.
     const bool expired = now_s > g.valid_until_s;
+    // An untouched cell whose law only moved its validity time (a stream sample every tick)
+    // stays untouched: without indentation the clock cannot change its role. Tested first, as most
+    // cells of a large grid are untouched; its cached raw inputs stay as they were (they are only
+    // ever compared).
+    if (cc.valid && cc.role == CellRole::no_contact && !(s.indentation_m > 0.0) &&
+        same_bits(s, cc.raw_state) && same_law(g, cc.target) && finite(g.valid_until_s)) {
+      continue;
+    }
+    // Inputs bitwise as last time (validated then): only the clock can change the role.
     if (cc.valid && same_bits(g, cc.raw_target) && same_bits(s, cc.raw_state) && expired == cc.expired) {
       continue;
     }

@@ -29,11 +29,11 @@ struct __attribute__((visibility("hidden"))) CellObserver::Impl {
     if (!(o.prior_spread_m > 0.0) || !(o.sparsity_scale_m > 0.0) || o.sweeps < 1 ||
         !(o.rate_filter_time_constant_s >= 0.0) || !(o.contact_threshold_m >= 0.0) ||
         !(o.sweep_tolerance_m >= 0.0) || !(o.hold_rate_m_per_s >= 0.0) || !(o.noise_floor_sigma >= 0.0) ||
-        !std::isfinite(o.noise_floor_sigma)) {
+        !std::isfinite(o.noise_floor_sigma) || o.residual_refresh_ticks < 1) {
       throw InvalidArgument(
           "observer options: prior_spread_m and sparsity_scale_m must be > 0, sweeps >= 1, "
           "rate_filter_time_constant_s, contact_threshold_m, sweep_tolerance_m, hold_rate_m_per_s and "
-          "noise_floor_sigma >= 0");
+          "noise_floor_sigma >= 0, residual_refresh_ticks >= 1");
     }
     force_model = o.force_model;
     if (force_model == ObserverForceModel::automatic) {
@@ -160,6 +160,7 @@ struct __attribute__((visibility("hidden"))) CellObserver::Impl {
     }
     network_primed = false;
     misfit_m = 0.0;
+    residual_current = false;
   }
 
   // The steel's play operator (magnetic.hpp) in the current domain. The flux, hence the yield,
@@ -223,6 +224,7 @@ struct __attribute__((visibility("hidden"))) CellObserver::Impl {
   }
 
   void fit(std::span<const double> readings) noexcept;
+  void prepare_residual(std::span<const double> readings, bool sparse, double deadband) noexcept;
   void compute_sensor_residuals(std::span<const double> readings) noexcept;
   bool update_coils(std::span<const double> valve_current_A, double dt_s) noexcept;
   Status network_force(double dt_s, bool yields_changed) noexcept;
@@ -281,12 +283,61 @@ struct __attribute__((visibility("hidden"))) CellObserver::Impl {
   double prior_weight = 0.0;
   double l1_weight = 0.0;
   double misfit_m = 0.0;
+  // The fit's residual carried over from the last tick (large grids; see fit()).
+  bool residual_current = false;
+  std::uint32_t residual_age_ticks = 0;
 };
 
 namespace {
 constexpr std::uint32_t kNoMark = 0;
 constexpr double kSettledFlow_m3_per_s = 1e-13;  // 0.1 nL/s: nothing left to relax
 }  // namespace
+
+// The rows' readings for this fit (which changed: row_changed) and the residual H d - used
+// reading at the prior's depths.
+void CellObserver::Impl::prepare_residual(std::span<const double> readings, bool sparse,
+                                          double deadband) noexcept {
+  // Large grids carry the residual (H d - used reading) over from the last fit, updated by the
+  // prior's moves and the readings that changed, instead of H d again for every row (computed
+  // afresh every ObserverOptions::residual_refresh_ticks, and after a reset or an exclusion).
+  const std::size_t cells = depth_m.size();
+  const bool carry = sparse && residual_current && residual_age_ticks + 1 < options.residual_refresh_ticks;
+  if (carry) {
+    ++residual_age_ticks;
+    for (std::size_t c = 0; c < cells; ++c) {
+      const double moved = depth_m[c] - previous_m[c];  // the prior's step from the last fit
+      if (moved != 0.0) {
+        for (std::size_t e = col_begin[c]; e < col_begin[c + 1]; ++e) {
+          residual[col_entries[e].index] += col_entries[e].weight * moved;
+        }
+      }
+    }
+    for (std::size_t r = 0; r < residual.size(); ++r) {
+      const double y = readings[sensor_of_row[r]] * sensor_scale[r];  // in sigmas
+      const bool changed = std::abs(y - used_reading[r]) > deadband;
+      row_changed[r] = changed ? 1 : 0;
+      if (changed) {
+        residual[r] += used_reading[r] - y;
+        used_reading[r] = y;
+      }
+    }
+  } else {
+    for (std::size_t r = 0; r < residual.size(); ++r) {
+      const double y = readings[sensor_of_row[r]] * sensor_scale[r];  // in sigmas
+      row_changed[r] = !sparse || std::abs(y - used_reading[r]) > deadband ? 1 : 0;
+      if (row_changed[r] != 0) {
+        used_reading[r] = y;
+      }
+      double h_d = 0.0;
+      for (std::size_t e = row_begin[r]; e < row_begin[r + 1]; ++e) {
+        h_d += row_entries[e].weight * depth_m[row_entries[e].index];
+      }
+      residual[r] = h_d - used_reading[r];
+    }
+    residual_current = sparse;
+    residual_age_ticks = 0;
+  }
+}
 
 // Projected coordinate descent on 1/2 |r|^2 + 1/2 w_p |d - d_pred|^2 + w_1 sum d, d >= 0. A
 // cell is revisited only when a sensor it shares changed (a cell whose gradient has not changed
@@ -298,18 +349,7 @@ void CellObserver::Impl::fit(std::span<const double> readings) noexcept {
   // last used counts as unchanged (noise on an untouched region moves nothing).
   const bool sparse = cells > options.network_max_cells;
   const double deadband = sparse ? options.reading_deadband_sigma : 0.0;
-  for (std::size_t r = 0; r < residual.size(); ++r) {
-    const double y = readings[sensor_of_row[r]] * sensor_scale[r];  // in sigmas
-    row_changed[r] = !sparse || std::abs(y - used_reading[r]) > deadband ? 1 : 0;
-    if (row_changed[r] != 0) {
-      used_reading[r] = y;
-    }
-    double h_d = 0.0;
-    for (std::size_t e = row_begin[r]; e < row_begin[r + 1]; ++e) {
-      h_d += row_entries[e].weight * depth_m[row_entries[e].index];
-    }
-    residual[r] = h_d - used_reading[r];
-  }
+  prepare_residual(readings, sparse, deadband);
   const double tolerance = options.sweep_tolerance_m;
   double largest = 0.0;
   auto relax = [&](std::size_t c) {
@@ -392,11 +432,18 @@ void CellObserver::Impl::fit(std::span<const double> readings) noexcept {
 // excluded sensor stays watched (a fault that clears shows).
 void CellObserver::Impl::compute_sensor_residuals(std::span<const double> readings) noexcept {
   for (std::size_t r = 0; r < sensor_of_row.size(); ++r) {
+    const std::size_t k = sensor_of_row[r];
+    const double y = readings[k] * sensor_scale[r];
+    if (row_excluded[r] == 0) {
+      // The fit's residual is H d - (the reading it used), with these weights.
+      sensor_residual[k] = (y - used_reading[r]) - residual[r];
+      continue;
+    }
     double h_d = 0.0;
     for (std::size_t e = row_begin[r]; e < row_begin[r + 1]; ++e) {
       h_d += base_row_entries[e].weight * depth_m[base_row_entries[e].index];
     }
-    sensor_residual[sensor_of_row[r]] = readings[sensor_of_row[r]] * sensor_scale[r] - h_d;
+    sensor_residual[k] = y - h_d;
   }
 }
 
@@ -645,6 +692,7 @@ Status CellObserver::set_sensor_excluded(std::size_t sensor, bool excluded) noex
   }
   // Its residual must not pull on the depths any more: rebuilt by the next fit.
   m.residual[r] = 0.0;
+  m.residual_current = false;
   return Status::ok;
 }
 std::size_t CellObserver::fluid_cell_count() const noexcept { return impl_->depth_m.size(); }

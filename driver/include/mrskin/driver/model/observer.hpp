@@ -31,6 +31,7 @@
 #pragma once
 
 #include <cstddef>
+#include <cstdint>
 #include <memory>
 #include <span>
 
@@ -90,6 +91,12 @@ struct ObserverOptions {
   // tick: idle 4.0M -> 1.8M, a 5 % patch 16.2M -> 3.3M; docs/bridge.md). 0: the sparsity_scale_m
   // weight alone, as on small grids.
   double noise_floor_sigma = 2.0;
+  // Grids above network_max_cells: the fit carries its residual (H d - y) over from one tick to
+  // the next, updated by what moved, and computes it afresh every this many ticks (and after a
+  // reset or a sensor's exclusion) so round-off cannot build up. 1: afresh every tick, as small
+  // grids do (palm-64x64 idle: 1.43M instructions a tick, against 1.32M carried; the two differ
+  // by round-off, docs/bridge.md "Cost per tick").
+  std::uint32_t residual_refresh_ticks = 1024;
   // Local force model: filtered rates within +-this count as holding (the rate's noise is
   // ~0.5 mm/s RMS on the 5 x 5), m/s.
   double hold_rate_m_per_s = 1.5e-3;
