@@ -56,8 +56,8 @@ class __attribute__((visibility("hidden"))) SensorFaultMonitor::Impl {
   void restart_history() noexcept;
   void set_reading_deadband(double reading_deadband) noexcept {
     const double band = std::isfinite(reading_deadband) ? std::max(0.0, reading_deadband) : 0.0;
-    for (std::size_t k = 0; k < deadband_sigma_.size(); ++k) {
-      deadband_sigma_[k] = residual_sigma_[k] > 0.0 ? band / residual_sigma_[k] : 0.0;
+    for (std::size_t k = 0; k < watch_.size(); ++k) {
+      watch_[k].deadband_sigma = residual_sigma_[k] > 0.0 ? band / residual_sigma_[k] : 0.0;
     }
   }
   [[nodiscard]] SensorFault fault(std::size_t sensor) const noexcept {
@@ -68,13 +68,13 @@ class __attribute__((visibility("hidden"))) SensorFaultMonitor::Impl {
   [[nodiscard]] std::size_t unobservable_cell() const noexcept { return unobservable_; }
   [[nodiscard]] std::span<const std::size_t> cells_of_sensor(std::size_t sensor) const noexcept;
   [[nodiscard]] std::size_t stuck_run_readings(std::size_t sensor) const noexcept {
-    return sensor < stuck_run_.size() ? stuck_run_[sensor] : npos;
+    return sensor < watch_.size() ? watch_[sensor].stuck_run : npos;
   }
   [[nodiscard]] double noise_ratio(std::size_t sensor) const noexcept {
-    return sensor < noise_ratio_.size() ? noise_ratio_[sensor] : 0.0;
+    return sensor < watch_.size() ? watch_[sensor].noise_ratio : 0.0;
   }
   [[nodiscard]] double mean_residual_sigma(std::size_t sensor) const noexcept {
-    return sensor < mean_residual_.size() ? mean_residual_[sensor] : 0.0;
+    return sensor < watch_.size() ? watch_[sensor].mean_residual : 0.0;
   }
   [[nodiscard]] double evidence(std::size_t sensor) const noexcept {
     return sensor < evidence_.size() ? evidence_[sensor] : 0.0;
@@ -85,24 +85,35 @@ class __attribute__((visibility("hidden"))) SensorFaultMonitor::Impl {
 
   SensorFaultOptions options_;
   std::vector<unsigned char> watched_;  // displacement sensors
-  // 1 / (6 sigma^2), sigma the noise and quantisation in the reading's unit: white noise's mean
-  // squared second difference is 6 sigma^2.
-  std::vector<double> inv_six_sigma2_;
   std::vector<double> residual_sigma_;  // the observer's sigma for the residual (its definition)
-  std::vector<double> deadband_sigma_;  // the unit's deadband in residual_sigma_ (0: none)
-  std::vector<std::size_t> stuck_run_;
   std::vector<std::size_t> cells_begin_;
   std::vector<std::size_t> cells_;
   std::vector<std::size_t> readers_of_cell_;  // healthy displacement sensors reading each cell
   std::vector<SensorFault> fault_;
   std::vector<double> evidence_;
   // Per sensor: the reading's history and the tests' running figures.
-  std::vector<double> last_;
-  std::vector<double> before_last_;
-  std::vector<std::size_t> seen_;  // readings so far (up to 2: the second difference needs 3)
-  std::vector<std::size_t> run_;
-  std::vector<double> noise_ratio_;
-  std::vector<double> mean_residual_;
+  // Per sensor, what update() reads and writes for every reading, in one place (one stride):
+  // the reading's history, the tests' running figures and their constants.
+  struct Watch {
+    double last = 0.0;
+    double before_last = 0.0;
+    double noise_ratio = 0.0;
+    double mean_residual = 0.0;
+    double inv_six_sigma2 = 0.0;  // 1 / (6 sigma^2): white noise's mean squared 2nd difference
+    double deadband_sigma = 0.0;  // the unit's deadband in residual_sigma_ (0: none)
+    std::size_t run = 0;
+    std::size_t stuck_run = npos;
+    std::size_t seen = 0;  // readings so far (up to 2: the second difference needs 3)
+  };
+  std::vector<Watch> watch_;
+  void restart_watch() noexcept {
+    for (Watch& w : watch_) {
+      w.seen = 0;
+      w.run = 0;
+      w.noise_ratio = 0.0;
+      w.mean_residual = 0.0;
+    }
+  }
   std::size_t faulty_ = 0;
   std::size_t healthy_ = 0;
   std::size_t unobservable_ = npos;
@@ -124,10 +135,8 @@ SensorFaultMonitor::Impl::Impl(const model::DeviceProfile& profile, const GridLa
   const std::size_t n = profile.sensors.size();
   const std::size_t cells = layout.fluid_cell_count();
   watched_.assign(n, 0);
-  inv_six_sigma2_.assign(n, 0.0);
+  watch_.assign(n, Watch{});
   residual_sigma_.assign(n, 0.0);
-  deadband_sigma_.assign(n, 0.0);
-  stuck_run_.assign(n, npos);
   readers_of_cell_.assign(cells, 0);
   cells_begin_.push_back(0);
   for (std::size_t k = 0; k < n; ++k) {
@@ -135,8 +144,8 @@ SensorFaultMonitor::Impl::Impl(const model::DeviceProfile& profile, const GridLa
     if (s.quantity == model::SensorQuantity::displacement && s.place != model::PlaceKind::reservoir) {
       watched_[k] = 1;
       const double sigma2 = s.noise_std * s.noise_std + s.resolution * s.resolution / 12.0;
-      inv_six_sigma2_[k] = 1.0 / (6.0 * sigma2);
-      stuck_run_[k] = stuck_run_for(s.noise_std, s.resolution, options.false_alarm_probability);
+      watch_[k].inv_six_sigma2 = 1.0 / (6.0 * sigma2);
+      watch_[k].stuck_run = stuck_run_for(s.noise_std, s.resolution, options.false_alarm_probability);
       // The observer's residual is in max(noise, resolution / sqrt 12) (CellObserver).
       residual_sigma_[k] = std::max(s.noise_std, s.resolution / std::sqrt(12.0));
       if (s.place == model::PlaceKind::fluid_cell) {
@@ -156,12 +165,6 @@ SensorFaultMonitor::Impl::Impl(const model::DeviceProfile& profile, const GridLa
   set_reading_deadband(reading_deadband);
   fault_.assign(n, SensorFault::none);
   evidence_.assign(n, 0.0);
-  last_.assign(n, 0.0);
-  before_last_.assign(n, 0.0);
-  seen_.assign(n, 0);
-  run_.assign(n, 0);
-  noise_ratio_.assign(n, 0.0);
-  mean_residual_.assign(n, 0.0);
   healthy_ = static_cast<std::size_t>(std::count(watched_.begin(), watched_.end(), 1));
 }
 
@@ -182,21 +185,13 @@ void SensorFaultMonitor::Impl::reset() noexcept {
   }
   std::fill(fault_.begin(), fault_.end(), SensorFault::none);
   std::fill(evidence_.begin(), evidence_.end(), 0.0);
-  std::fill(seen_.begin(), seen_.end(), 0);
-  std::fill(run_.begin(), run_.end(), 0);
-  std::fill(noise_ratio_.begin(), noise_ratio_.end(), 0.0);
-  std::fill(mean_residual_.begin(), mean_residual_.end(), 0.0);
+  restart_watch();
   healthy_ += faulty_;
   faulty_ = 0;
   unobservable_ = npos;
 }
 
-void SensorFaultMonitor::Impl::restart_history() noexcept {
-  std::fill(seen_.begin(), seen_.end(), 0);
-  std::fill(run_.begin(), run_.end(), 0);
-  std::fill(noise_ratio_.begin(), noise_ratio_.end(), 0.0);
-  std::fill(mean_residual_.begin(), mean_residual_.end(), 0.0);
-}
+void SensorFaultMonitor::Impl::restart_history() noexcept { restart_watch(); }
 
 void SensorFaultMonitor::Impl::latch(std::size_t sensor, SensorFault fault, double evidence) noexcept {
   fault_[sensor] = fault;
@@ -211,7 +206,9 @@ void SensorFaultMonitor::Impl::latch(std::size_t sensor, SensorFault fault, doub
     }
   }
   // The fit moves once the sensor is out: the others' residual means start again.
-  std::fill(mean_residual_.begin(), mean_residual_.end(), 0.0);
+  for (Watch& w : watch_) {
+    w.mean_residual = 0.0;
+  }
 }
 
 std::size_t SensorFaultMonitor::Impl::update(std::span<const double> readings,
@@ -240,38 +237,39 @@ std::size_t SensorFaultMonitor::Impl::update(std::span<const double> readings,
       continue;  // the observer refuses the tick; nothing to judge
     }
     const double r = residual_sigma[k];
-    if (seen_[k] == 0 || y != last_[k]) {
-      run_[k] = 1;
-    } else if (deadband_sigma_[k] == 0.0 ||
-               (std::isfinite(r) && std::abs(r) > deadband_sigma_[k] + kDeadbandMarginSigma)) {
-      ++run_[k];  // a repeat the deadband does not explain
-    }             // else: a repeat within the band is no evidence either way; the run holds
-    if (seen_[k] >= 2) {
-      const double d2 = y - 2.0 * last_[k] + before_last_[k];
+    Watch& w = watch_[k];
+    if (w.seen == 0 || y != w.last) {
+      w.run = 1;
+    } else if (w.deadband_sigma == 0.0 ||
+               (std::isfinite(r) && std::abs(r) > w.deadband_sigma + kDeadbandMarginSigma)) {
+      ++w.run;  // a repeat the deadband does not explain
+    }           // else: a repeat within the band is no evidence either way; the run holds
+    if (w.seen >= 2) {
+      const double d2 = y - 2.0 * w.last + w.before_last;
       // One jump (a finger's tap, a gap in the readings) must not pass for noise: each reading
       // counts for at most kOutlierCap limits, so it takes several to cross one.
-      const double ratio = std::min(d2 * d2 * inv_six_sigma2_[k], ratio_cap);
-      noise_ratio_[k] += noise_alpha * (ratio - noise_ratio_[k]);
+      const double ratio = std::min(d2 * d2 * w.inv_six_sigma2, ratio_cap);
+      w.noise_ratio += noise_alpha * (ratio - w.noise_ratio);
     }
-    before_last_[k] = last_[k];
-    last_[k] = y;
-    seen_[k] = std::min<std::size_t>(seen_[k] + 1, 2);
+    w.before_last = w.last;
+    w.last = y;
+    w.seen = std::min<std::size_t>(w.seen + 1, 2);
     if (std::isfinite(r)) {
-      mean_residual_[k] += offset_alpha * (std::clamp(r, -offset_cap, offset_cap) - mean_residual_[k]);
+      w.mean_residual += offset_alpha * (std::clamp(r, -offset_cap, offset_cap) - w.mean_residual);
     }
     if (found != npos) {
       continue;
     }
-    if (stuck_run_[k] != npos && run_[k] >= stuck_run_[k]) {
+    if (w.stuck_run != npos && w.run >= w.stuck_run) {
       found = k;
       found_kind = SensorFault::stuck;
       found_evidence = y;
-    } else if (noise_ratio_[k] > noise_limit) {
+    } else if (w.noise_ratio > noise_limit) {
       found = k;
       found_kind = SensorFault::noisy;
-      found_evidence = noise_ratio_[k];
-    } else if (std::abs(mean_residual_[k]) > std::abs(worst_offset)) {
-      worst_offset = mean_residual_[k];
+      found_evidence = w.noise_ratio;
+    } else if (std::abs(w.mean_residual) > std::abs(worst_offset)) {
+      worst_offset = w.mean_residual;
       worst_offset_sensor = k;
     }
   }
@@ -281,9 +279,9 @@ std::size_t SensorFaultMonitor::Impl::update(std::span<const double> readings,
     // A stuck sensor under a moving finger leaves a residual before its run is long enough; a
     // healthy one with a shifted zero still moves: this many repeats is stuck (p < 1e-3 here).
     constexpr std::size_t kStuckHint = 8;
-    const bool stuck = run_[found] >= std::min(kStuckHint, stuck_run_[found]);
+    const bool stuck = watch_[found].run >= std::min(kStuckHint, watch_[found].stuck_run);
     found_kind = stuck ? SensorFault::stuck : SensorFault::offset;
-    found_evidence = stuck ? last_[found] : worst_offset;
+    found_evidence = stuck ? watch_[found].last : worst_offset;
   }
   if (found != npos) {
     latch(found, found_kind, found_evidence);
