@@ -9,6 +9,13 @@ namespace {
 double unload_filter_alpha(const BridgeOptions& o) noexcept {
   return 1.0 - std::exp(-1.0 / (o.rate_hz * std::max(o.unload_filter_s, 1e-9)));
 }
+// No finger in the cell: the direction latch starts again from nothing.
+void release_direction_latch(CellMemory& cell) noexcept {
+  cell.loading = 0;
+  cell.unloading = 0;
+  cell.extreme_m = 0.0;
+  cell.smooth_depth_m = 0.0;
+}
 }  // namespace
 
 RenderStage::RenderStage(const BridgeOptions& options, const GridLayout& layout, DesignScale scale)
@@ -86,10 +93,7 @@ double RenderStage::direction_rate(CellMemory& cell, bool contact, double depth_
   // trough. Between the two, rates within the deadband count as holding.
   const double retreat_m = options_.unload_retreat_m;
   if (!contact) {
-    cell.loading = 0;
-    cell.unloading = 0;
-    cell.extreme_m = 0.0;
-    cell.smooth_depth_m = 0.0;
+    release_direction_latch(cell);
     return 0.0;
   }
   // On a smoothed depth: the fit's noise (2-3 um RMS, ~20 um peaks) shrinks well below retreat_m.
@@ -143,10 +147,7 @@ void RenderStage::render(const Observation& observed, std::span<const model::Cel
     if (!contact && law.surface_offset_m() == 0.0 && !(law.tank_J() > 0.0)) {
       // Untouched, and the law at rest: what the general path below gives, without evaluating
       // the law (no force at zero depth, no feedback, the same target but for its validity).
-      cell.loading = 0;  // direction_rate() without contact
-      cell.unloading = 0;
-      cell.extreme_m = 0.0;
-      cell.smooth_depth_m = 0.0;
+      release_direction_latch(cell);
       state.indentation_m = 0.0;
       state.rate_m_per_s = 0.0;
       out.contact[i] = 0;

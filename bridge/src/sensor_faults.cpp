@@ -91,7 +91,6 @@ class __attribute__((visibility("hidden"))) SensorFaultMonitor::Impl {
   std::vector<std::size_t> readers_of_cell_;  // healthy displacement sensors reading each cell
   std::vector<SensorFault> fault_;
   std::vector<double> evidence_;
-  // Per sensor: the reading's history and the tests' running figures.
   // Per sensor, what update() reads and writes for every reading, in one place (one stride):
   // the reading's history, the tests' running figures and their constants.
   struct Watch {

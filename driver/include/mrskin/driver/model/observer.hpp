@@ -94,8 +94,8 @@ struct ObserverOptions {
   // Grids above network_max_cells: the fit carries its residual (H d - y) over from one tick to
   // the next, updated by what moved, and computes it afresh every this many ticks (and after a
   // reset or a sensor's exclusion) so round-off cannot build up. 1: afresh every tick, as small
-  // grids do (palm-64x64 idle: 1.43M instructions a tick, against 1.32M carried; the two differ
-  // by round-off, docs/bridge.md "Cost per tick").
+  // grids do (about 0.11M more instructions a tick on the idle palm-64x64; the two differ by
+  // round-off, docs/bridge.md "Cost per tick").
   std::uint32_t residual_refresh_ticks = 1024;
   // Local force model: filtered rates within +-this count as holding (the rate's noise is
   // ~0.5 mm/s RMS on the 5 x 5), m/s.
