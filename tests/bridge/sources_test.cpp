@@ -35,7 +35,15 @@
 
 // libopenigtlink 1.11's NDArrayMessage::Pack() never frees the info igtl_ndarray_alloc_info()
 // gives it (48 + 4 bytes a message); the test sender packs three. Read only under ASan.
+// The sanitizer runtime's hook has a reserved name by design.
+#if defined(__clang__)
+#pragma clang diagnostic push
+#pragma clang diagnostic ignored "-Wreserved-identifier"
+#endif
 extern "C" const char* __lsan_default_suppressions() { return "leak:igtl_ndarray_alloc_info\n"; }
+#if defined(__clang__)
+#pragma clang diagnostic pop
+#endif
 
 namespace mrskin::bridge {
 namespace {

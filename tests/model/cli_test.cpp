@@ -1,7 +1,6 @@
 // `mrskinctl model ...` in process: JSON with unit-suffixed keys, clear errors, exit codes.
 #include <gtest/gtest.h>
 
-#include <CLI/CLI.hpp>
 #include <cstdio>
 #include <cstdlib>
 #include <string>
@@ -31,17 +30,14 @@ CliRun run(std::vector<std::string> args) {
   std::FILE* err = open_memstream(&err_buf, &err_len);
   CliRun r;
   {
-    CLI::App app{"test"};
+    mrskin::tools::CliApp app{"test"};
     int code = 0;
-    mrskin::ctl::add_model_command(mrskin::ctl::CliCommand(app), code, out, err);
+    mrskin::ctl::add_model_command(app.root(), code, out, err);
     args.insert(args.begin(), "model");
-    std::vector<std::string> reversed(args.rbegin(), args.rend());
-    try {
-      app.parse(reversed);
-      r.code = code;
-    } catch (const CLI::ParseError& e) {
-      r.code = e.get_exit_code();
-      std::fputs((std::string(e.what()) + "\n").c_str(), err);
+    const mrskin::tools::CliParse parsed = app.parse_quietly(args);
+    r.code = parsed.run ? code : parsed.exit_code;
+    if (!parsed.run) {
+      std::fputs((parsed.message + "\n").c_str(), err);
     }
   }
   std::fclose(out);

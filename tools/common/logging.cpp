@@ -6,7 +6,6 @@
 #include <sys/stat.h>
 #include <unistd.h>
 
-#include <CLI/CLI.hpp>
 #include <algorithm>
 #include <array>
 #include <cstdlib>
@@ -95,11 +94,11 @@ bool is_log_level(std::string_view name) noexcept {
   return std::ranges::any_of(kLevels, [name](const auto& entry) { return entry.first == name; });
 }
 
-CLI::Option* add_log_level_option(CLI::App& app, std::string& level) {
+CliOption add_log_level_option(CliCommand app, std::string& level) {
   return app
-      .add_option("--log-level", level,
-                  std::string("log messages at this level and above: ") + kLogLevels + " (default info)")
-      ->check([](const std::string& v) {
+      .option("--log-level", level,
+              std::string("log messages at this level and above: ") + kLogLevels + " (default info)")
+      .check([](const std::string& v) {
         return is_log_level(v) ? std::string() : std::string("must be one of ") + kLogLevels;
       });
 }

@@ -7,10 +7,7 @@
 #include <string>
 #include <string_view>
 
-namespace CLI {
-class App;
-class Option;
-}  // namespace CLI
+#include "command_line.hpp"
 
 namespace mrskin::tools {
 
@@ -22,7 +19,7 @@ void init_logging(std::string_view tool);
 // True when stderr is connected to the journal (set by systemd for a service's stderr).
 [[nodiscard]] bool stderr_is_journal() noexcept;
 // Adds --log-level to app (checked against kLogLevels) writing into level.
-CLI::Option* add_log_level_option(CLI::App& app, std::string& level);
+CliOption add_log_level_option(CliCommand app, std::string& level);
 // True if name is one of kLogLevels.
 [[nodiscard]] bool is_log_level(std::string_view name) noexcept;
 // Sets the default logger's level; name must be one of kLogLevels ("" leaves it).

@@ -22,7 +22,6 @@
 // bar is drawn on stderr when it is a terminal. Exit codes: 0, 1 (a suite failed, --check unmet;
 // design: no design meets the constraints, or the written one covers less than its base), 2 (bad
 // argument).
-#include <CLI/CLI.hpp>
 #include <array>
 #include <exception>
 #include <filesystem>
@@ -55,28 +54,25 @@ constexpr std::array<SuiteEntry, 4> kSuites = {{
 }};
 
 int run(int argc, char** argv) {
-  CLI::App app{
+  mrskin::tools::CliApp cli{
       "mrskin-model-bench: run time against error of the device model, and the design study, written as CSV "
       "and SVG"};
-  app.set_version_flag("--version", std::string(mrskin::library_version()));
+  mrskin::tools::CliCommand app = cli.root();
+  app.version_flag("--version", std::string(mrskin::library_version()));
   std::string log_level;
   mrskin::tools::add_log_level_option(app, log_level);
   BenchOptions o;
   o.out = "model-bench-out";
   std::string suite = "all";
-  app.add_option("--suite", suite, "The suite to run")
-      ->check(CLI::IsMember({"valve", "network", "inverse", "design", "all"}))
-      ->capture_default_str();
-  app.add_option("--out", o.out, "Directory for the CSV and SVG files (created when missing)")
-      ->capture_default_str();
-  app.add_option("--reps", o.reps, "Timing repetitions of the valve suite")
-      ->check(CLI::Range(3, 1000000))
-      ->capture_default_str();
-  app.add_option(
-         "--profile", o.profile,
-         "Device profile file for the valve suite, and the design suite's base (default: mr-skin-5x5)")
-      ->check(CLI::ExistingFile);
-  app.add_flag("--quick", o.quick, "design suite: one scene cycle and a coarse search (about 10 s)");
+  app.option("--suite", suite, "The suite to run")
+      .one_of({"valve", "network", "inverse", "design", "all"})
+      .show_default();
+  app.option("--out", o.out, "Directory for the CSV and SVG files (created when missing)").show_default();
+  app.option("--reps", o.reps, "Timing repetitions of the valve suite").range(3, 1000000).show_default();
+  app.option("--profile", o.profile,
+             "Device profile file for the valve suite, and the design suite's base (default: mr-skin-5x5)")
+      .existing_file();
+  app.flag("--quick", o.quick, "design suite: one scene cycle and a coarse search (about 10 s)");
   app.footer(
       "Suites: valve, network and inverse time the model's laws against their error (all runs these "
       "three); design searches the profile's design parameters for the organ scenes' envelope coverage "
@@ -84,13 +80,11 @@ int run(int argc, char** argv) {
       "design_<parameter>.svg each (about 1.5 min; docs/model.md, section 11a).\n"
       "Exit codes: 0 done; 1 a suite failed (--check unmet; design: no candidate meets the constraints, "
       "or the written profile fails one or covers the organs less than its base); 2 bad argument.");
-  app.add_flag("--check", o.check,
-               "Exit 1 unless the fast valve law is within 0.5 % and at least 10x faster than the exact one");
-  try {
-    app.parse(argc, argv);
-  } catch (const CLI::ParseError& e) {
+  app.flag("--check", o.check,
+           "Exit 1 unless the fast valve law is within 0.5 % and at least 10x faster than the exact one");
+  if (const mrskin::tools::CliParse parsed = cli.parse(argc, argv); !parsed.run) {
     // --help and --version exit 0; every bad argument is a usage error (2).
-    return app.exit(e) == 0 ? mrskin::tools::kOk : mrskin::tools::kUsage;
+    return parsed.exit_code == 0 ? mrskin::tools::kOk : mrskin::tools::kUsage;
   }
   mrskin::tools::set_log_level(log_level);
   std::error_code ec;

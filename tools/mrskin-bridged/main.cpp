@@ -8,7 +8,6 @@
 #include <sys/signalfd.h>
 #include <unistd.h>
 
-#include <CLI/CLI.hpp>
 #include <algorithm>
 #include <array>
 #include <cerrno>
@@ -497,8 +496,10 @@ int guarded_main(int argc, char** argv) {
     return kFailure;
   }
 
-  CLI::App app{"mrskin-bridged: renders a slave robot's palpation forces on the MR skin in real time"};
-  app.set_version_flag("--version", std::string(mrskin::library_version()));
+  mrskin::tools::CliApp cli{
+      "mrskin-bridged: renders a slave robot's palpation forces on the MR skin in real time"};
+  mrskin::tools::CliCommand app = cli.root();
+  app.version_flag("--version", std::string(mrskin::library_version()));
   app.footer(kExitCodes);
   std::string config_path;
   mrskin::bridged::Overrides o;
@@ -507,36 +508,34 @@ int guarded_main(int argc, char** argv) {
     scenes += (scenes.empty() ? "" : ", ") + std::string(name);
   }
   bool check = false;
-  app.add_option("--config", config_path, "TOML configuration file; flags override it (docs/daemon.md)")
-      ->check(CLI::ExistingFile);
-  app.add_option("--device", o.device, "device URI (default mock://)");
-  auto* source = app.add_option("--source", o.source, "slave stream URI (default scene://demo)");
-  app.add_option("--scene", o.source, "shorthand for --source scene://NAME: " + scenes)
-      ->excludes(source)
-      ->transform([](const std::string& name) { return "scene://" + name; });
-  app.add_option("--duration", o.duration_s, "seconds to run; 0 runs until SIGINT/SIGTERM");
-  app.add_option(
-      "--rate", o.rate_hz,
-      "loop rate, Hz (1 to 20000; default 1000, or 80 % of the highest rate the unit's bus carries)");
-  app.add_option("--cpu", o.cpu,
-                 "pin the tick thread to this CPU (-1: not pinned, the default; [bridge] cpu; docs/loop.md)");
-  app.add_option("--stats-json", o.stats_json, "write loop statistics as JSON to this file at exit");
-  app.add_option("--record", o.record,
-                 "record the input stream to this file (replay:// format: play it back with "
-                 "--source replay://FILE)");
-  app.add_flag("--quiet", o.quiet, "no live status lines");
+  app.option("--config", config_path, "TOML configuration file; flags override it (docs/daemon.md)")
+      .existing_file();
+  app.option("--device", o.device, "device URI (default mock://)");
+  const mrskin::tools::CliOption source =
+      app.option("--source", o.source, "slave stream URI (default scene://demo)");
+  app.option("--scene", o.source, "shorthand for --source scene://NAME: " + scenes)
+      .excludes(source)
+      .transform([](const std::string& name) { return "scene://" + name; });
+  app.option("--duration", o.duration_s, "seconds to run; 0 runs until SIGINT/SIGTERM");
+  app.option("--rate", o.rate_hz,
+             "loop rate, Hz (1 to 20000; default 1000, or 80 % of the highest rate the unit's bus carries)");
+  app.option("--cpu", o.cpu,
+             "pin the tick thread to this CPU (-1: not pinned, the default; [bridge] cpu; docs/loop.md)");
+  app.option("--stats-json", o.stats_json, "write loop statistics as JSON to this file at exit");
+  app.option("--record", o.record,
+             "record the input stream to this file (replay:// format: play it back with "
+             "--source replay://FILE)");
+  app.flag("--quiet", o.quiet, "no live status lines");
   mrskin::tools::add_log_level_option(app, o.log_level.emplace());
-  app.add_option("--socket", o.socket,
-                 "control socket path (default $RUNTIME_DIRECTORY/bridged.sock, "
-                 "$XDG_RUNTIME_DIR/mrskin/bridged.sock or /tmp/mrskin-UID/bridged.sock)");
-  app.add_option("--topics", o.topics_namespace,
-                 "publish the skin as ROS 2 topics over DDS under this namespace (e.g. /mrskin; "
-                 "[topics] in the config; docs/sources.md)");
-  app.add_flag("--check-config", check, "check the configuration, print the socket path and exit");
-  try {
-    app.parse(argc, argv);
-  } catch (const CLI::ParseError& e) {
-    return app.exit(e) == 0 ? kOk : kUsage;
+  app.option("--socket", o.socket,
+             "control socket path (default $RUNTIME_DIRECTORY/bridged.sock, "
+             "$XDG_RUNTIME_DIR/mrskin/bridged.sock or /tmp/mrskin-UID/bridged.sock)");
+  app.option("--topics", o.topics_namespace,
+             "publish the skin as ROS 2 topics over DDS under this namespace (e.g. /mrskin; "
+             "[topics] in the config; docs/sources.md)");
+  app.flag("--check-config", check, "check the configuration, print the socket path and exit");
+  if (const mrskin::tools::CliParse parsed = cli.parse(argc, argv); !parsed.run) {
+    return parsed.exit_code == 0 ? kOk : kUsage;
   }
   if (o.log_level->empty()) {
     o.log_level.reset();  // not given: the file's, or info

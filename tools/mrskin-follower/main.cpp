@@ -7,7 +7,6 @@
 #include <sys/signalfd.h>
 #include <unistd.h>
 
-#include <CLI/CLI.hpp>
 #include <chrono>
 #include <csignal>
 #include <cstdint>
@@ -110,23 +109,22 @@ int run(const Options& o, int sfd) {
 namespace {
 
 int guarded_main(int argc, char** argv) {
-  CLI::App app{
+  mrskin::tools::CliApp cli{
       "Publishes a built-in scene as a CRTK follower arm over DDS (ROS 2 topics ARM/measured_cf and "
       "ARM/measured_cp), for mrskin-bridged --source dds://ARM. DDS is configured by CYCLONEDDS_URI."};
-  app.set_version_flag("--version", std::string(mrskin::library_version()));
+  mrskin::tools::CliCommand app = cli.root();
+  app.version_flag("--version", std::string(mrskin::library_version()));
   std::string log_level;
   mrskin::tools::add_log_level_option(app, log_level);
   Options o;
-  app.add_option("arm", o.arm, "the arm's ROS 2 namespace, e.g. PSM1")->required();
-  app.add_option("--domain", o.domain, "DDS domain id (0 to 232, default 0)");
-  app.add_option("--scene", o.scene, "built-in scene (default demo)");
-  app.add_option("--rate", o.rate_hz, "samples per second (default 1000)");
-  app.add_option("--duration", o.duration_s, "seconds to publish; 0 (default) until SIGINT/SIGTERM");
-  app.add_option("--wait", o.wait_s, "wait this long for a first subscriber before starting (default 0 s)");
-  try {
-    app.parse(argc, argv);
-  } catch (const CLI::ParseError& e) {
-    return app.exit(e) == 0 ? mrskin::tools::kOk : mrskin::tools::kUsage;
+  app.option("arm", o.arm, "the arm's ROS 2 namespace, e.g. PSM1").required();
+  app.option("--domain", o.domain, "DDS domain id (0 to 232, default 0)");
+  app.option("--scene", o.scene, "built-in scene (default demo)");
+  app.option("--rate", o.rate_hz, "samples per second (default 1000)");
+  app.option("--duration", o.duration_s, "seconds to publish; 0 (default) until SIGINT/SIGTERM");
+  app.option("--wait", o.wait_s, "wait this long for a first subscriber before starting (default 0 s)");
+  if (const mrskin::tools::CliParse parsed = cli.parse(argc, argv); !parsed.run) {
+    return parsed.exit_code == 0 ? mrskin::tools::kOk : mrskin::tools::kUsage;
   }
   mrskin::tools::set_log_level(log_level);
   return run(o, stop_signals());

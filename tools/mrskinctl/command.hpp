@@ -7,9 +7,12 @@
 #include <cstdio>
 #include <string>
 
-#include "cli.hpp"
+#include "command_line.hpp"
 
 namespace mrskin::ctl {
+
+using tools::CliCommand;
+using tools::CliOption;
 
 struct GlobalOptions {
   bool json = false;  // --json, before or after the subcommand

@@ -24,7 +24,7 @@
 #include <string_view>
 #include <vector>
 
-#include "cli.hpp"
+#include "command_line.hpp"
 #include "exit_codes.hpp"
 #include "mrskin/driver/device.hpp"
 #include "mrskin/driver/errors.hpp"
@@ -34,6 +34,9 @@
 #include "tunnel_transport.hpp"
 
 namespace mrskin::ctl {
+
+using tools::CliCommand;
+using tools::CliOption;
 
 // The options every command on a free device takes.
 inline void add_device_options(CliCommand sub, std::string& uri, bool& realtime) {

@@ -1,7 +1,6 @@
 // mrskinctl: diagnostic CLI for the MR skin.
 #include <fmt/format.h>
 
-#include <CLI/CLI.hpp>
 #include <cmath>
 #include <cstdio>
 #include <string>
@@ -226,45 +225,42 @@ namespace {
 int guarded_main(int argc, char** argv) {
   mrskin::tools::init_logging("mrskinctl");
   mrskin::sim::register_mock_scheme();  // mock:// (the simulated unit, mrskin::sim)
-  CLI::App app{"mrskinctl: inspect, test and calibrate MR skin devices"};
-  app.set_version_flag("--version", std::string(mrskin::library_version()) + " (protocol v" +
-                                        std::to_string(mrskin::protocol_version_major()) + "." +
-                                        std::to_string(mrskin::protocol_version_minor()) + ")");
-  app.require_subcommand(1);
-  app.fallthrough();  // global flags such as --json may follow the subcommand
+  mrskin::tools::CliApp cli{"mrskinctl: inspect, test and calibrate MR skin devices"};
+  mrskin::tools::CliCommand root = cli.root();
+  root.version_flag("--version", std::string(mrskin::library_version()) + " (protocol v" +
+                                     std::to_string(mrskin::protocol_version_major()) + "." +
+                                     std::to_string(mrskin::protocol_version_minor()) + ")");
+  root.require_subcommand(1);
+  root.fallthrough();  // global flags such as --json may follow the subcommand
   mrskin::ctl::GlobalOptions global;
-  app.add_flag("--json", global.json, "machine-readable output");
+  root.flag("--json", global.json, "machine-readable output");
   std::string log_level;
-  mrskin::tools::add_log_level_option(app, log_level);
+  mrskin::tools::add_log_level_option(root, log_level);
   std::string device = "mock://";
 
-  auto* info = app.add_subcommand(
+  mrskin::tools::CliCommand info = root.subcommand(
       "info",
       "open a device, run the handshake and print its identity, profile, layout, limits, calibration and "
       "statistics");
-  info->add_option("--device", device, "device URI (mock://[PROFILE][?seed=N&faults=...])")
-      ->capture_default_str();
+  info.option("--device", device, "device URI (mock://[PROFILE][?seed=N&faults=...])").show_default();
   InfoOptions info_options;
-  info->add_option("--sample", info_options.sample_s, "seconds to listen for statistics")
-      ->check(CLI::Range(0.0, 60.0))
-      ->capture_default_str();
-  info->add_flag(
-      "--log", info_options.log,
-      "also print the decoded ring log: the fault report if a fault arrived during the sample, else "
-      "the last packets");
+  info.option("--sample", info_options.sample_s, "seconds to listen for statistics")
+      .range(0.0, 60.0)
+      .show_default();
+  info.flag("--log", info_options.log,
+            "also print the decoded ring log: the fault report if a fault arrived during the sample, else "
+            "the last packets");
 
-  auto* list = app.add_subcommand(
+  mrskin::tools::CliCommand list = root.subcommand(
       "list",
       "list the MR skins reachable over hidraw, USB and the CAN interfaces that exist: URI, path, serial, "
       "firmware and protocol version, and for each unit the OS refuses, the problem and its fix. Exit "
       "status 0 when a unit was found, 3 when none was");
   mrskin::ctl::ListOptions list_options;
-  list->add_flag(
-      "--no-probe", [&list_options](std::int64_t) { list_options.probe = false; },
-      "do not open the units for their firmware and protocol version");
+  bool no_probe = false;
+  list.flag("--no-probe", no_probe, "do not open the units for their firmware and protocol version");
 
   int command_exit = 0;
-  const mrskin::ctl::CliCommand root(app);
   mrskin::ctl::add_monitor_command(root, global, command_exit);
   mrskin::ctl::add_set_command(root, global, command_exit);
   mrskin::ctl::add_selftest_command(root, global, command_exit);
@@ -274,26 +270,25 @@ int guarded_main(int argc, char** argv) {
   mrskin::ctl::add_budget_command(root, global, command_exit);
   mrskin::ctl::add_bridge_commands(root, global, command_exit);
   int model_exit = 0;
-  const CLI::App& model = mrskin::ctl::add_model_command(root, model_exit).app();
-  try {
-    app.parse(argc, argv);
-  } catch (const CLI::ParseError& e) {
+  const mrskin::tools::CliCommand model = mrskin::ctl::add_model_command(root, model_exit);
+  if (const mrskin::tools::CliParse parsed = cli.parse(argc, argv); !parsed.run) {
     // --help and --version exit 0; every bad argument is a usage error (2), whatever CLI11's own
     // code for it.
-    return app.exit(e) == 0 ? mrskin::tools::kOk : mrskin::tools::kUsage;
+    return parsed.exit_code == 0 ? mrskin::tools::kOk : mrskin::tools::kUsage;
   }
   mrskin::tools::set_log_level(log_level);
   if (model.parsed()) {
     return model_exit;
   }
-  if (!list->parsed() && !info->parsed()) {
+  if (!list.parsed() && !info.parsed()) {
     return command_exit;
   }
-  if (list->parsed()) {
+  if (list.parsed()) {
+    list_options.probe = !no_probe;
     list_options.json = global.json;
     return mrskin::ctl::cmd_list(list_options);
   }
-  if (info->parsed()) {
+  if (info.parsed()) {
     info_options.uri = device;
     info_options.json = global.json;
     return cmd_info(info_options);

@@ -4,9 +4,12 @@
 
 #include <cstdio>
 
-#include "cli.hpp"
+#include "command_line.hpp"
 
 namespace mrskin::ctl {
+
+using tools::CliCommand;
+using tools::CliOption;
 
 // Registers "model" and its subcommands (valve, fluid, coil, membrane, cell, profile) on `app`.
 // The command runs from its CLI11 callback during parsing; `exit_code` receives 0 on success,

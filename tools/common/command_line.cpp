@@ -1,14 +1,15 @@
-// The only mrskinctl file besides main.cpp that compiles CLI11 (cli.hpp says why).
-#include "cli.hpp"
+// The only tools' file that compiles CLI11 (command_line.hpp says why).
+#include "command_line.hpp"
 
 #include <CLI/CLI.hpp>
+#include <algorithm>
 #include <cstddef>
 #include <optional>
 #include <string>
 #include <utility>
 #include <vector>
 
-namespace mrskin::ctl {
+namespace mrskin::tools {
 
 template <class T>
 CliOption& CliOption::range(T lo, T hi) {
@@ -21,6 +22,21 @@ template CliOption& CliOption::range<double>(double, double);
 
 CliOption& CliOption::one_of(std::initializer_list<const char*> values) {
   option_->check(CLI::IsMember(std::vector<std::string>(values.begin(), values.end())));
+  return *this;
+}
+
+CliOption& CliOption::existing_file() {
+  option_->check(CLI::ExistingFile);
+  return *this;
+}
+
+CliOption& CliOption::check(std::function<std::string(const std::string&)> validate) {
+  option_->check(std::move(validate));
+  return *this;
+}
+
+CliOption& CliOption::transform(const std::function<std::string(std::string)>& rewrite) {
+  option_->transform(rewrite);
   return *this;
 }
 
@@ -68,10 +84,19 @@ template CliOption CliCommand::option<std::optional<double>>(const std::string&,
 template CliOption CliCommand::option<std::optional<std::size_t>>(const std::string&,
                                                                   std::optional<std::size_t>&,
                                                                   const std::string&);
+template CliOption CliCommand::option<std::optional<int>>(const std::string&, std::optional<int>&,
+                                                          const std::string&);
+template CliOption CliCommand::option<std::optional<std::string>>(const std::string&,
+                                                                  std::optional<std::string>&,
+                                                                  const std::string&);
 template CliOption CliCommand::option<std::vector<std::size_t>>(const std::string&, std::vector<std::size_t>&,
                                                                 const std::string&);
 
 CliOption CliCommand::flag(const std::string& name, bool& into, const std::string& help) {
+  return CliOption(app_->add_flag(name, into, help));
+}
+
+CliOption CliCommand::flag(const std::string& name, std::optional<bool>& into, const std::string& help) {
   return CliOption(app_->add_flag(name, into, help));
 }
 
@@ -99,4 +124,39 @@ CliCommand& CliCommand::allow_extras() {
   return *this;
 }
 
-}  // namespace mrskin::ctl
+CliCommand& CliCommand::fallthrough() {
+  app_->fallthrough();
+  return *this;
+}
+
+bool CliCommand::parsed() const { return app_->parsed(); }
+
+CliCommand& CliCommand::version_flag(const std::string& name, const std::string& text) {
+  app_->set_version_flag(name, text);
+  return *this;
+}
+
+CliApp::CliApp(const std::string& description) : app_(std::make_unique<CLI::App>(description)) {}
+
+CliApp::~CliApp() = default;
+
+CliParse CliApp::parse(int argc, char** argv) {
+  try {
+    app_->parse(argc, argv);
+  } catch (const CLI::ParseError& e) {
+    return CliParse{.run = false, .exit_code = app_->exit(e), .message = {}};
+  }
+  return CliParse{.run = true, .exit_code = 0, .message = {}};
+}
+
+CliParse CliApp::parse_quietly(std::vector<std::string> args) {
+  std::reverse(args.begin(), args.end());  // CLI11 takes a vector in reverse order
+  try {
+    app_->parse(args);
+  } catch (const CLI::ParseError& e) {
+    return CliParse{.run = false, .exit_code = e.get_exit_code(), .message = e.what()};
+  }
+  return CliParse{.run = true, .exit_code = 0, .message = {}};
+}
+
+}  // namespace mrskin::tools
