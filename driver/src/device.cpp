@@ -142,6 +142,19 @@ DeviceOpener registered_opener(std::string_view scheme) {
   return it == registry.openers.end() ? nullptr : it->second;
 }
 
+[[noreturn]] void throw_not_a_device_uri(std::string_view uri) {
+  if (uri.starts_with("mock://")) {
+    throw InvalidArgument("'" + std::string(uri) +
+                          "' needs the simulation library: link mrskin::sim (the simulated unit is not "
+                          "part of mrskin::driver) and call mrskin::sim::register_mock_scheme() once at "
+                          "start-up");
+  }
+  throw InvalidArgument(
+      "'" + std::string(uri) +
+      "' is not a device URI: use mock://[PROFILE][?seed=N], hid://VID:PID[?serial=S], "
+      "usb://VID:PID[?serial=S] or can://IFACE?node=N[&fd=1] (mrskinctl list shows the units found)");
+}
+
 double time_scale_from_environment(double fallback) {
   const char* text = std::getenv("MRSKIN_TIME_SCALE");
   if (text == nullptr || *text == '\0') {
@@ -173,12 +186,6 @@ OpenedDevice open_device(std::string_view uri, Clock& clock, const OpenOptions& 
       return opener(uri, clock, options, session_options);
     }
   }
-  if (uri.starts_with("mock://")) {
-    throw InvalidArgument("'" + std::string(uri) +
-                          "' needs the simulation library: link mrskin::sim (the simulated unit is not "
-                          "part of mrskin::driver) and call mrskin::sim::register_mock_scheme() once at "
-                          "start-up");
-  }
   if (uri.starts_with("hid://")) {
     return open_on_bus<HidTransportOptions>(uri, clock, session_options, &open_hid_transport);
   }
@@ -188,10 +195,24 @@ OpenedDevice open_device(std::string_view uri, Clock& clock, const OpenOptions& 
   if (uri.starts_with("can://")) {
     return open_on_bus<CanTransportOptions>(uri, clock, session_options, &open_can_transport);
   }
-  throw InvalidArgument(
-      "'" + std::string(uri) +
-      "' is not a device URI: use mock://[PROFILE][?seed=N], hid://VID:PID[?serial=S], "
-      "usb://VID:PID[?serial=S] or can://IFACE?node=N[&fd=1] (mrskinctl list shows the units found)");
+  throw_not_a_device_uri(uri);
+}
+
+void check_device_uri(std::string_view uri) {
+  if (const auto colon = uri.find("://"); colon != std::string_view::npos) {
+    if (registered_opener(uri.substr(0, colon)) != nullptr) {
+      return;  // a registered scheme checks its URI when it opens
+    }
+  }
+  if (uri.starts_with("hid://")) {
+    (void)parse_hid_uri(uri);
+  } else if (uri.starts_with("usb://")) {
+    (void)parse_usb_uri(uri);
+  } else if (uri.starts_with("can://")) {
+    (void)parse_can_uri(uri);
+  } else {
+    throw_not_a_device_uri(uri);
+  }
 }
 
 }  // namespace mrskin

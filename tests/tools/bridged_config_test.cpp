@@ -1,7 +1,10 @@
 // mrskin-bridged's configuration: the TOML file, its errors (FILE:LINE and the key), flag
 // overrides, and the control-socket request parser.
+#include <arpa/inet.h>
 #include <gtest/gtest.h>
+#include <netinet/in.h>
 #include <sched.h>
+#include <sys/socket.h>
 #include <unistd.h>
 
 #include <atomic>
@@ -15,6 +18,7 @@
 
 #include "config.hpp"
 #include "control_server.hpp"
+#include "mrskin/driver/errors.hpp"
 #include "session_gate.hpp"
 
 namespace {
@@ -217,6 +221,53 @@ TEST_F(ConfigFile, TheLoopCpuIsOneTheProcessMayRunOn) {
     EXPECT_NE(std::string(err.what()).find("flags: cpu: 100000 is not a CPU"), std::string::npos)
         << err.what();
   }
+}
+
+// --check-config refuses what the run would refuse, as the run would (InvalidArgument: exit 2; an
+// unreadable file: mrskin::Error, exit 1), and opens nothing: the UDP port the source names stays
+// ours while it is checked.
+TEST(CheckConfig, RefusesWhatTheRunWouldAndOpensNothing) {
+  Settings s;
+  EXPECT_NO_THROW(mrskin::bridged::check_uris(s));  // mock://, scene://demo
+  const auto refused = [](Settings bad) -> std::string {
+    try {
+      mrskin::bridged::check_uris(bad);
+    } catch (const mrskin::InvalidArgument& e) {
+      return std::string("usage: ") + e.what();
+    } catch (const mrskin::Error& e) {
+      return std::string("error: ") + e.what();
+    }
+    return "taken";
+  };
+  Settings bad = s;
+  bad.source = "scene://nope";
+  EXPECT_NE(refused(bad).find("usage: unknown scene 'nope'"), std::string::npos) << refused(bad);
+  bad.source = "udp://127.0.0.1:0?queue=abc";
+  EXPECT_NE(refused(bad).find("usage: source 'udp://127.0.0.1:0?queue=abc': bad queue"), std::string::npos)
+      << refused(bad);
+  bad.source = "replay:///nonexistent/take.csv";
+  EXPECT_NE(refused(bad).find("error: replay:///nonexistent/take.csv: cannot read"), std::string::npos)
+      << refused(bad);
+  bad = s;
+  bad.device = "nope://";
+  EXPECT_NE(refused(bad).find("usage: 'nope://' is not a device URI"), std::string::npos) << refused(bad);
+  bad.device = "hid://zz";
+  EXPECT_NE(refused(bad).find("usage: 'hid://zz'"), std::string::npos) << refused(bad);
+  bad.device = "mock://no-such-skin";
+  EXPECT_NE(refused(bad).find("no-such-skin"), std::string::npos) << refused(bad);
+
+  const int fd = ::socket(AF_INET, SOCK_DGRAM, 0);
+  ASSERT_GE(fd, 0);
+  sockaddr_in a{};
+  a.sin_family = AF_INET;
+  a.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
+  ASSERT_EQ(::bind(fd, reinterpret_cast<const sockaddr*>(&a), sizeof(a)), 0);
+  socklen_t len = sizeof(a);
+  ASSERT_EQ(::getsockname(fd, reinterpret_cast<sockaddr*>(&a), &len), 0);
+  Settings udp = s;
+  udp.source = "udp://127.0.0.1:" + std::to_string(ntohs(a.sin_port));
+  EXPECT_EQ(refused(udp), "taken");  // binding it would have failed: the port is ours
+  ::close(fd);
 }
 
 TEST_F(ConfigFile, AMissingFileIsAUsageError) {

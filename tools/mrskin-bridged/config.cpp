@@ -14,6 +14,10 @@
 #include "logging.hpp"
 #include "mrskin/bridge/loop.hpp"
 #include "mrskin/bridge/ros2_topics.hpp"
+#include "mrskin/bridge/sources.hpp"
+#include "mrskin/driver/device.hpp"
+#include "mrskin/driver/model/profile.hpp"
+#include "mrskin/sim/open_mock.hpp"
 
 namespace mrskin::bridged {
 namespace {
@@ -240,6 +244,15 @@ Settings load_settings(const std::string& path) {
         "1 to 86400 s");
   }
   return s;
+}
+
+void check_uris(const Settings& s) {
+  if (s.device.starts_with("mock://")) {
+    (void)model::load_profile_with_text(sim::parse_mock_uri(s.device).profile);
+  } else {
+    check_device_uri(s.device);
+  }
+  bridge::check_source_uri(s.source);
 }
 
 void validate(const Settings& s, const std::string& origin) {

@@ -81,6 +81,10 @@ struct Overrides {
 Settings load_settings(const std::string& path);
 // Checks the ranges of values that may come from flags too; throws ConfigError naming origin.
 void validate(const Settings& s, const std::string& origin);
+// What --check-config adds to validate(): the device and source URIs checked as opening them
+// would (a mock's profile loaded, a scene's name, a replay file readable), with nothing opened.
+// Throws InvalidArgument or mrskin::Error as the run would, before it touches anything.
+void check_uris(const Settings& s);
 void apply(const Overrides& o, Settings& s);
 bridge::BridgeOptions bridge_options(const Settings& s);
 // The part of the settings a running bridge takes without a new one (Bridge::retune).

@@ -543,6 +543,7 @@ int guarded_main(int argc, char** argv) {
   const Settings cfg = load(config_path, o);
   mrskin::tools::set_log_level(cfg.log_level);
   if (check) {
+    mrskin::bridged::check_uris(cfg);
     fmt::print("configuration ok: device {}, source {}, rate {} Hz, socket {}\n", cfg.device, cfg.source,
                cfg.rate_hz, cfg.socket);
     return kOk;

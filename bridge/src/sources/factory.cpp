@@ -1,8 +1,12 @@
 // make_source(): URI -> source.
+#include <unistd.h>
+
 #include <algorithm>
 #include <array>
+#include <cerrno>
 #include <charconv>
 #include <cmath>
+#include <cstring>
 #include <string>
 
 #include "../dds/entities.hpp"
@@ -162,51 +166,89 @@ std::array<double, 9> rotation_from_rpy_deg(double roll_deg, double pitch_deg, d
           cp * cr};
 }
 
-std::unique_ptr<StreamSource> open_stream(std::string_view uri, const SourceOptions& options, Clock* clock) {
+namespace {
+
+// A stream URI taken apart and checked, nothing opened: open_stream opens it, check_source_uri
+// stops here.
+struct StreamUri {
+  std::string_view scheme;
+  std::string_view rest;  // after "://", before '?'
+  SourceOptions options;
+  sources::Endpoint where{};  // udp, igtl, igtl-listen
+  std::string wrench_topic;   // dds
+  std::string pose_topic;     // dds
+};
+
+StreamUri parse_stream_uri(std::string_view uri, const SourceOptions& options) {
   const auto sep = uri.find("://");
   if (sep == std::string_view::npos) {
     bad(uri, "not a URI; sources are " + scheme_list());
   }
-  const std::string_view scheme = uri.substr(0, sep);
-  std::string_view rest = uri.substr(sep + 3);
+  StreamUri u;
+  u.scheme = uri.substr(0, sep);
+  u.rest = uri.substr(sep + 3);
+  u.options = options;
   std::string_view query;
-  if (const auto q = rest.find('?'); q != std::string_view::npos) {
-    query = rest.substr(q + 1);
-    rest = rest.substr(0, q);
+  if (const auto q = u.rest.find('?'); q != std::string_view::npos) {
+    query = u.rest.substr(q + 1);
+    u.rest = u.rest.substr(0, q);
   }
-  SourceOptions o = options;
-  if (scheme == "scene") {
+  if (u.scheme == "scene") {
     bad(uri, "a scene is not a network or replay stream (make_source() takes scene://NAME)");
   }
-  if (scheme == "replay") {
-    if (rest.empty()) {
+  if (u.scheme == "replay") {
+    if (u.rest.empty()) {
       bad(uri, "missing file (replay://FILE)");
     }
-    apply_query(uri, query, Scheme::replay, o);
-    return sources::open_replay(std::string(rest), o);
+    apply_query(uri, query, Scheme::replay, u.options);
+    return u;
   }
-  if (scheme == "udp" || scheme == "igtl" || scheme == "igtl-listen") {
-    apply_query(uri, query, scheme == "udp" ? Scheme::udp : Scheme::igtl, o);
-    const bool client = scheme == "igtl";
-    const sources::Endpoint where = sources::parse_endpoint(rest, uri, client, !client);
-    if (scheme == "udp") {
-      return std::make_unique<sources::UdpSource>(where, o, clock);
-    }
-    return sources::open_igtl(where, !client, o, clock);
+  if (u.scheme == "udp" || u.scheme == "igtl" || u.scheme == "igtl-listen") {
+    apply_query(uri, query, u.scheme == "udp" ? Scheme::udp : Scheme::igtl, u.options);
+    const bool client = u.scheme == "igtl";
+    u.where = sources::parse_endpoint(u.rest, uri, client, !client);
+    return u;
   }
-  if (scheme == "dds") {
-    apply_query(uri, query, Scheme::dds, o);
+  if (u.scheme == "dds") {
+    apply_query(uri, query, Scheme::dds, u.options);
     // dds://ARM: a CRTK arm's namespace (PSM1, or dvrk/PSM1).
-    const std::string arm = rest.empty() ? std::string() : dds::absolute_ros_name(rest, "arm");
-    if (arm.empty() && (o.dds_wrench_topic.empty() || o.dds_pose_topic.empty())) {
+    const std::string arm = u.rest.empty() ? std::string() : dds::absolute_ros_name(u.rest, "arm");
+    if (arm.empty() && (u.options.dds_wrench_topic.empty() || u.options.dds_pose_topic.empty())) {
       bad(uri,
           "missing arm (dds://ARM reads /ARM/measured_cf and /ARM/measured_cp; or give wrench= and pose=)");
     }
-    const std::string wrench = o.dds_wrench_topic.empty() ? arm + "/measured_cf" : o.dds_wrench_topic;
-    const std::string pose = o.dds_pose_topic.empty() ? arm + "/measured_cp" : o.dds_pose_topic;
-    return sources::open_dds(wrench, pose, o, clock);
+    u.wrench_topic = u.options.dds_wrench_topic.empty() ? arm + "/measured_cf" : u.options.dds_wrench_topic;
+    u.pose_topic = u.options.dds_pose_topic.empty() ? arm + "/measured_cp" : u.options.dds_pose_topic;
+    return u;
   }
-  bad(uri, "unknown scheme '" + std::string(scheme) + "://'; sources are " + scheme_list());
+  bad(uri, "unknown scheme '" + std::string(u.scheme) + "://'; sources are " + scheme_list());
+}
+
+}  // namespace
+
+std::unique_ptr<StreamSource> open_stream(std::string_view uri, const SourceOptions& options, Clock* clock) {
+  const StreamUri u = parse_stream_uri(uri, options);
+  if (u.scheme == "replay") {
+    return sources::open_replay(std::string(u.rest), u.options);
+  }
+  if (u.scheme == "udp") {
+    return std::make_unique<sources::UdpSource>(u.where, u.options, clock);
+  }
+  if (u.scheme == "dds") {
+    return sources::open_dds(u.wrench_topic, u.pose_topic, u.options, clock);
+  }
+  return sources::open_igtl(u.where, u.scheme == "igtl-listen", u.options, clock);
+}
+
+void check_source_uri(std::string_view uri, const SourceOptions& options) {
+  if (uri.starts_with("scene://")) {
+    (void)make_scene(uri);  // a scene is data: building it opens nothing
+    return;
+  }
+  const StreamUri u = parse_stream_uri(uri, options);
+  if (u.scheme == "replay" && ::access(std::string(u.rest).c_str(), R_OK) != 0) {
+    throw Error(std::string(uri) + ": cannot read " + std::string(u.rest) + ": " + std::strerror(errno));
+  }
 }
 
 std::unique_ptr<SlaveSource> make_source(std::string_view uri, const SourceOptions& options, Clock* clock) {

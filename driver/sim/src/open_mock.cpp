@@ -115,8 +115,8 @@ MockBusKind parse_bus_kind(std::string_view value) {
     }
   }
   throw InvalidArgument(fmt::format(
-      "mock:// bus '{}' is unknown: use none (the default), hid-fs, hid-hs, can, canfd or profile "
-      "(the bus the profile's [interface] names)",
+      "mock:// bus '{}' is unknown: use none, hid-fs, hid-hs, can, canfd or profile (the default: "
+      "the bus the profile's [interface] names)",
       value));
 }
 

@@ -128,6 +128,10 @@ MRSKIN_BRIDGE_API std::unique_ptr<SlaveSource> make_source(std::string_view uri,
 MRSKIN_BRIDGE_API std::unique_ptr<StreamSource> open_stream(std::string_view uri,
                                                             const SourceOptions& options = {},
                                                             Clock* clock = nullptr);
+// Checks a source URI as make_source would take it, opening nothing (no socket, no DDS
+// participant): a scene's name, a query, an endpoint, a ROS 2 name, and that a replay file is
+// readable. Throws as make_source does (InvalidArgument for the URI, mrskin::Error for the file).
+MRSKIN_BRIDGE_API void check_source_uri(std::string_view uri, const SourceOptions& options = {});
 // The robot's frame from roll, pitch and yaw in degrees (R = Rz(yaw) Ry(pitch) Rx(roll)), for
 // SourceOptions::robot_to_tissue. Throws InvalidArgument for a value that is not finite.
 MRSKIN_BRIDGE_API std::array<double, 9> rotation_from_rpy_deg(double roll_deg, double pitch_deg,

@@ -84,5 +84,9 @@ MRSKIN_DRIVER_API void register_device_scheme(std::string_view scheme, DeviceOpe
 
 MRSKIN_DRIVER_API OpenedDevice open_device(std::string_view uri, Clock& clock,
                                            const OpenOptions& options = {});
+// Checks a device URI as open_device would take it, opening nothing: the scheme, and the syntax
+// of hid://, usb:// and can:// URIs. A scheme registered with register_device_scheme passes (it
+// checks its URI when it opens). Throws InvalidArgument saying what is wrong.
+MRSKIN_DRIVER_API void check_device_uri(std::string_view uri);
 
 }  // namespace mrskin
