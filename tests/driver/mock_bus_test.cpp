@@ -554,9 +554,38 @@ TEST(MockBusDevice, DelayAndLossReachTheHost) {
   EXPECT_LE(s.device_to_host.carried, 60U);  // one report a frame
 }
 
+// A unit whose plant lags real time (stepped 20 ms late, as a 64x64 plant on a loaded machine is)
+// hears what the host queued meanwhile at its own time, outside the bus: on the bus the 20 reports
+// would arrive in one frame and all but 9 be dropped (issue 20). A unit that keeps up is unchanged.
+TEST(MockBusDevice, ALaggingUnitHearsTheHostOutsideTheBus) {
+  for (const bool lagging : {false, true}) {
+    MockOptions options;
+    options.bus.kind = MockBusKind::hid_fs;
+    options.bus.usb_queue_reports = 8;
+    const std::shared_ptr<MockDevice> mock = MockDevice::make(options);
+    const std::unique_ptr<Transport> link = mock->connect(false);
+    TimePoint now{};
+    mock->step(now);  // the bus starts
+    for (int k = 0; k < 20; ++k) {
+      const Datagram d =
+          packet(proto::Heartbeat{static_cast<std::uint16_t>(k)}, static_cast<std::uint8_t>(k));
+      ASSERT_EQ(link->send(std::span<const std::uint8_t>(d.bytes.data(), d.length)), ResultCode::ok);
+      if (!lagging) {
+        now += milliseconds(1);
+        mock->step(now);
+      }
+    }
+    mock->step(now + milliseconds(20));
+    const MockBusStats s = mock->bus_stats();
+    EXPECT_EQ(s.host_to_device.dropped, 0U) << "lagging " << lagging;
+    EXPECT_EQ(s.host_while_lagging, lagging ? 20U : 0U);
+    EXPECT_EQ(s.host_to_device.packets, lagging ? 0U : 20U);
+  }
+}
+
 // bus=profile (the default): the unit is on the bus its profile names ([interface] bus): full-speed USB for
-// the 5x5, high speed for the 16x16 (whose telemetry alone needs six full-speed reports a frame), none for
-// the 64x64 design (ModelProfile.TheInterfaceNamesTheBus; it opens slowly).
+// the 5x5, high speed for the 16x16 (whose telemetry alone needs six full-speed reports a frame) and the
+// 64x64 design (ModelProfile.TheInterfaceNamesTheBus).
 TEST(MockBusDevice, BusProfileIsTheBusTheProfileNames) {
   SimulatedClock clock;
   OpenOptions open;
@@ -572,6 +601,7 @@ TEST(MockBusDevice, BusProfileIsTheBusTheProfileNames) {
   EXPECT_EQ(kind_of("mock://mr-skin-5x5?seed=2&bus=profile"), MockBusKind::hid_fs);
   EXPECT_EQ(kind_of("mock://fingertip-16x16?bus=profile"), MockBusKind::hid_hs);
   EXPECT_EQ(kind_of("mock://fingertip-16x16?bus=canfd"), MockBusKind::canfd);
+  EXPECT_EQ(kind_of("mock://palm-64x64"), MockBusKind::hid_hs);
 }
 
 }  // namespace

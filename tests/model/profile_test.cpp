@@ -141,7 +141,8 @@ TEST(ModelProfile, BadProfilesNameTheFieldAndTheReason) {
 TEST(ModelProfile, TheInterfaceNamesTheBus) {
   EXPECT_EQ(parse_profile(read("mr-skin-5x5"), "5x5").bus, mrskin::protocol::BusKind::hid_full_speed);
   EXPECT_EQ(load_profile("fingertip-16x16").bus, mrskin::protocol::BusKind::hid_high_speed);
-  EXPECT_FALSE(load_profile("palm-64x64").bus.has_value());
+  EXPECT_EQ(load_profile("palm-64x64").bus, mrskin::protocol::BusKind::hid_high_speed);
+  EXPECT_FALSE(parse_profile(read("mr-skin-5x5") + "\n[interface]\nbus = \"none\"\n", "t").bus.has_value());
   EXPECT_EQ(parse_profile(read("mr-skin-5x5") + "\n[interface]\nbus = \"canfd\"\n", "t").bus,
             mrskin::protocol::BusKind::can_fd);
 }

@@ -125,6 +125,10 @@ class Daemon final : public bridge::Tickable, public ControlBackend {
   // mock:// only: simulated time the unit skipped because its plant fell behind real time, s
   // (MockDevice::skipped_time_s); -1 on a real unit.
   [[nodiscard]] double mock_skipped_s() const noexcept { return mock_ ? mock_->skipped_time_s() : -1.0; }
+  // mock:// only: host packets the lagging unit heard outside the bus (MockBusStats); 0 on a real unit.
+  [[nodiscard]] std::uint64_t mock_host_while_lagging() const noexcept {
+    return mock_ ? mock_->bus_stats().host_while_lagging : 0;
+  }
   // The unit's design point against the default unit's (forces and lengths the bridge scales).
   [[nodiscard]] bridge::DesignScale design_scale() const noexcept { return bridge_->scale(); }
   // The statistics' errors are against the device's true force (mock://), not an estimate.

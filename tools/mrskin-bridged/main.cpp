@@ -296,8 +296,12 @@ void print_run_report(const mrskin::bridged::Daemon& daemon, const mrskin::bridg
     fmt::print(
         "mock       the simulated unit's plant fell behind real time and skipped {:.2f} s of its time: the "
         "figures above are of a unit slower than real (its plant step: mock://...?physics_dt=, "
-        "docs/api.md)\n",
-        skipped_s);
+        "docs/api.md){}\n",
+        skipped_s,
+        daemon.mock_host_while_lagging() > 0
+            ? fmt::format("; {} host packets reached it while it lagged, outside the bus's figures",
+                          daemon.mock_host_while_lagging())
+            : std::string());
   }
   if (!stats.threads.empty()) {
     std::string line;

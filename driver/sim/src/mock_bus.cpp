@@ -212,6 +212,20 @@ void MockBus::host_sent(const Datagram& d, TimePoint t, BusSink& sink) noexcept 
   sink.deliver_to_device(d, t);
 }
 
+void MockBus::host_sent_while_lagging(const Datagram& d, TimePoint t, BusSink& sink) noexcept {
+  const bool host_waiting = usb() ? !to_device_waiting_.empty() : (can() && !host_.packets.empty());
+  if (!started_ || host_waiting || !(usb() || can())) {  // an ideal link has nothing to bypass
+    host_sent(d, t, sink);
+    return;
+  }
+  note_handshake(d, CanRole::host);
+  if (usb()) {
+    host_last_ = std::max(t, host_last_);
+  }
+  host_while_lagging_.bump();
+  sink.deliver_to_device(d, t);
+}
+
 bool MockBus::device_slot_free(TimePoint t) const noexcept {
   if (!started_ || !usb()) {
     return true;
@@ -532,6 +546,7 @@ MockBusStats MockBus::stats() const noexcept {
   fill(to_device_, s.host_to_device);
   fill(to_host_, s.device_to_host);
   s.enobufs = enobufs_.value();
+  s.host_while_lagging = host_while_lagging_.value();
   return s;
 }
 

@@ -72,6 +72,10 @@ class __attribute__((visibility("hidden"))) MockBus {
   // advances the bus (a packet that finds the bus free may be delivered at once); advance() does.
   void host_sent(const Datagram& d, TimePoint t, BusSink& sink) noexcept;
   void device_sent(const Datagram& d, TimePoint t, BusSink& sink) noexcept;
+  // A host packet that reached a lagging unit: delivered at t outside the bus and its loads, and
+  // counted (MockBusStats::host_while_lagging), unless host packets still wait on the bus (then
+  // host_sent, so that none overtakes another).
+  void host_sent_while_lagging(const Datagram& d, TimePoint t, BusSink& sink) noexcept;
   // USB: whether a report the unit hands over at t goes out in t's frame (its slot free, none
   // booked ahead of it). True on the other buses and before the unit's first step.
   [[nodiscard]] bool device_slot_free(TimePoint t) const noexcept;
@@ -198,6 +202,7 @@ class __attribute__((visibility("hidden"))) MockBus {
   Counters to_device_;
   Counters to_host_;
   RelaxedCounter enobufs_;
+  RelaxedCounter host_while_lagging_;
   std::atomic<std::int64_t> start_ns_{0};
   std::atomic<std::int64_t> last_ns_{0};
   bool started_ = false;

@@ -27,12 +27,7 @@ namespace proto = mrskin::protocol;
 
 namespace {
 
-constexpr std::uint8_t kFirmwareMajor = 0;
-constexpr std::uint8_t kFirmwareMinor = 2;
-constexpr std::uint8_t kFirmwarePatch = 0;
 constexpr std::size_t kDelayLineCapacity = 4096;
-// A block's values last sent before any was: no 12-bit reading lies within a deadband of it.
-constexpr std::int16_t kNoBlockSent = std::numeric_limits<std::int16_t>::min();
 constexpr std::size_t kAnswerReserve = 64;  // device->host slots telemetry may not take
 constexpr std::size_t kStatusPacketBytes = proto::kPacketHeaderBytes + 5 + proto::kPacketCrcBytes;
 
@@ -51,18 +46,6 @@ double gaussian(std::uint64_t& s) noexcept {
 }
 
 std::vector<std::uint8_t> to_bytes(const std::string& text) { return {text.begin(), text.end()}; }
-
-proto::SensorQuantity wire_quantity(model::SensorQuantity q) noexcept {
-  switch (q) {
-    case model::SensorQuantity::displacement:
-      return proto::SensorQuantity::displacement_m;
-    case model::SensorQuantity::force:
-      return proto::SensorQuantity::force_N;
-    case model::SensorQuantity::pressure:
-      return proto::SensorQuantity::pressure_Pa;
-  }
-  return proto::SensorQuantity::displacement_m;
-}
 
 }  // namespace
 
@@ -597,7 +580,11 @@ void MockDevice::Impl::handle_host_input(TimePoint now) noexcept { handle_host_i
 void MockDevice::Impl::handle_host_input(TimePoint now, TimePoint advance_to) noexcept {
   Datagram d;
   while (to_device_.try_pop(d)) {
-    bus_.host_sent(d, now, sink_);
+    if (lagging_) {
+      bus_.host_sent_while_lagging(d, now, sink_);
+    } else {
+      bus_.host_sent(d, now, sink_);
+    }
   }
   bus_.advance(advance_to, sink_);
 }
@@ -633,64 +620,6 @@ void MockDevice::Impl::handle(const std::uint8_t* bytes, std::size_t length, Tim
   proto::PacketDecoded p;
   while (walker.next(p)) {
     handle_packet(p, now);
-  }
-}
-
-void MockDevice::Impl::answer_identify(const proto::IdentifyRequest& request) noexcept {
-  // The Identity goes first in its report: a host reads it before it knows the unit packs.
-  // Packing follows from this request on, as both sides declared: a 1.2 host reads the UsbSlots
-  // and the status packed behind the Identity. When every slot carries a sample, the Identity's
-  // report takes the next sample's slot (that sample is skipped: emit_telemetry), and what the
-  // previous session left waiting for telemetry (status, echoes) is dropped rather than sent in a
-  // slot of its own (a status follows the Identity).
-  const bool packs = proto::reads_packed_reports(options_.protocol_major, options_.protocol_minor) &&
-                     proto::reads_packed_reports(request.host_major, request.host_minor);
-  const bool tight = slots_taken_by_samples();
-  if (tight) {
-    report_.length = 0;
-    held_status_at_ = kNoHeldStatus;
-  } else {
-    flush_report();
-  }
-  packing_ = packs;
-  pending_read_count_ = 0;  // a new session asks again
-  proto::Identity id;
-  id.fw_major = kFirmwareMajor;
-  id.fw_minor = kFirmwareMinor;
-  id.fw_patch = kFirmwarePatch;
-  id.rows = static_cast<std::uint8_t>(layout_.rows());
-  id.cols = static_cast<std::uint8_t>(layout_.cols());
-  id.fluid_cells = static_cast<std::uint16_t>(layout_.fluid_cell_count());
-  id.valves = static_cast<std::uint16_t>(layout_.valve_count());
-  id.sensors = static_cast<std::uint16_t>(sensor_si_.size());
-  id.serial = options_.serial;
-  id.proto_major = options_.protocol_major;
-  id.proto_minor = options_.protocol_minor;
-  id.current_lsb_nA = static_cast<std::uint32_t>(std::lround(current_lsb_A_ * 1e9));
-  id.current_max_counts = static_cast<std::uint16_t>(
-      std::min<long>(std::lround(max_current_A_ / current_lsb_A_), proto::kCurrentCountMax));
-  id.sensor_quantity = static_cast<std::uint8_t>(wire_quantity(profile_.sensors.front().quantity));
-  id.sensor_lsb_nano = static_cast<std::uint32_t>(std::lround(sensor_lsb_ * 1e9));
-  id.heartbeat_timeout_ms =
-      static_cast<std::uint16_t>(std::lround(options_.heartbeat_timeout_s * options_.time_scale * 1e3));
-  id.telemetry_rate_hz = static_cast<std::uint16_t>(std::lround(1.0 / options_.telemetry_period_s));
-  report_capacity_ = proto::kHidReportBytes;  // the Identity's report: the host assumes full speed
-  send_message(id, /*hold=*/true);
-  packing_ = packs;
-  const std::optional<proto::UsbInterruptSlots> slots = declared_usb_slots(options_.bus);
-  if (packs && slots) {
-    // 1.2 on USB: the unit declares its reports, then uses them (docs/protocol.md, UsbSlots).
-    send_message(proto::usb_slots_message(*slots), /*hold=*/true);
-  }
-  // 1.2: the deadband, declared before it applies; every block goes whole first.
-  std::fill(block_sent_counts_.begin(), block_sent_counts_.end(), kNoBlockSent);
-  if (packs && sensor_deadband_counts_ > 0) {
-    send_message(proto::SensorDeadband{static_cast<std::uint8_t>(sensor_deadband_counts_)}, /*hold=*/true);
-  }
-  send_status();
-  flush_report();  // tight: the next sample finds the slot taken and is skipped (emit_telemetry)
-  if (packs && slots) {
-    report_capacity_ = slots->report_bytes;
   }
 }
 
@@ -935,8 +864,14 @@ void MockDevice::Impl::step(TimePoint now) noexcept {
     last_heartbeat_ = now;
     return;
   }
-  // What the bus delivers later than last_step_ reaches the unit within the substeps below.
-  handle_host_input(now, last_step_);
+  // A unit that lags real time by more than a telemetry period (a big plant on a loaded machine)
+  // hears what the host queued meanwhile at its own time, outside the bus: on the bus it would
+  // wait until the unit had simulated up to the host's clock (palm-64x64 on hid-hs: up to
+  // max_catch_up_s of plant a request, past the session's 0.5 s without progress; issue 20), and a
+  // burst of a period's reports would overflow the bus's queue. What the bus delivers later
+  // reaches the unit within the substeps below.
+  lagging_ = now - last_step_ > from_seconds(options_.telemetry_period_s);
+  handle_host_input(lagging_ ? last_step_ : now, last_step_);
   const auto state = static_cast<proto::DeviceState>(state_.load(std::memory_order_relaxed));
   // The watchdog runs on the unit's own clock (last_step_), the one its packets are stamped with:
   // behind real time, the unit hears the host at its substeps' times, and now - last_heartbeat_
@@ -991,6 +926,7 @@ void MockDevice::Impl::step(TimePoint now) noexcept {
     send_status();
     next_status_ += from_seconds(options_.status_period_s);
   }
+  lagging_ = false;
   bus_.advance(now, sink_);
   flush_delayed(now);
 }

@@ -6,6 +6,7 @@
 #include <atomic>
 #include <cstddef>
 #include <cstdint>
+#include <limits>
 #include <memory>
 #include <string_view>
 #include <thread>
@@ -28,6 +29,9 @@
 #include "mrskin/sim/plant.hpp"
 
 namespace mrskin::sim {
+
+// A sensor block's values last sent before any was: no 12-bit reading lies within a deadband of it.
+inline constexpr std::int16_t kNoBlockSent = std::numeric_limits<std::int16_t>::min();
 
 // Hidden explicitly: a nested class otherwise takes its exported parent's visibility.
 struct __attribute__((visibility("hidden"))) MockDevice::Impl {
@@ -162,6 +166,7 @@ struct __attribute__((visibility("hidden"))) MockDevice::Impl {
   RelaxedCounter reordered_;
   RelaxedCounter congested_;
   std::atomic<std::int64_t> skipped_ns_{0};
+  bool lagging_ = false;  // within step(): the unit lags real time by more than a telemetry period
   std::uint64_t fault_rng_;
   TimePoint start_{};
   TimePoint bus_off_until_{};

@@ -108,7 +108,11 @@ struct MockBusStats {
   MockBusDirection host_to_device;
   MockBusDirection device_to_host;
   std::uint64_t enobufs = 0;  // CAN: host frame writes refused past txqueuelen (then retried)
-  double elapsed_s = 0.0;     // simulated time the loads are over
+  // Host packets the unit heard at its own time, outside the bus and its loads, because its plant
+  // lagged real time by more than a telemetry period (what had queued meanwhile would otherwise
+  // reach the bus at once and be dropped there; MockDevice::skipped_time_s()).
+  std::uint64_t host_while_lagging = 0;
+  double elapsed_s = 0.0;  // simulated time the loads are over
 };
 
 // A classic CAN unit's default sensor deadband, in counts (docs/protocol.md, "Sensor deadband
