@@ -410,7 +410,10 @@ void MockDevice::Impl::deliver_to_host(const Datagram& d, TimePoint at) noexcept
     return;
   }
   Delayed& slot = delay_line_[(delay_head_ + delay_count_) % delay_line_.size()];
-  slot.due = at + from_seconds(options_.faults.delay_s);
+  // A lagging unit heard the host at its own, earlier, time: the injected delay still runs from
+  // the real time it answers, or a round trip would look shorter than the delay.
+  const bool delayed = options_.faults.delay_s > 0.0;
+  slot.due = (lagging_ && delayed ? std::max(at, step_now_) : at) + from_seconds(options_.faults.delay_s);
   slot.datagram = d;
   ++delay_count_;
 }
@@ -871,6 +874,7 @@ void MockDevice::Impl::step(TimePoint now) noexcept {
   // burst of a period's reports would overflow the bus's queue. What the bus delivers later
   // reaches the unit within the substeps below.
   lagging_ = now - last_step_ > from_seconds(options_.telemetry_period_s);
+  step_now_ = now;
   handle_host_input(lagging_ ? last_step_ : now, last_step_);
   const auto state = static_cast<proto::DeviceState>(state_.load(std::memory_order_relaxed));
   // The watchdog runs on the unit's own clock (last_step_), the one its packets are stamped with:
@@ -916,6 +920,8 @@ void MockDevice::Impl::step(TimePoint now) noexcept {
       }
       next_telemetry_ += from_seconds(options_.telemetry_period_s);
       handle_host_input(last_step_);  // a long catch-up still answers within a period
+    } else if (lagging_) {
+      handle_host_input(last_step_);  // and within a substep, when it lags (a slow plant's substeps)
     }
   }
   plant_->contact_forces(std::span<double>(scratch_.data(), truth_N_.size()));

@@ -167,6 +167,7 @@ struct __attribute__((visibility("hidden"))) MockDevice::Impl {
   RelaxedCounter congested_;
   std::atomic<std::int64_t> skipped_ns_{0};
   bool lagging_ = false;  // within step(): the unit lags real time by more than a telemetry period
+  TimePoint step_now_{};  // within step(): the real time it was called at
   std::uint64_t fault_rng_;
   TimePoint start_{};
   TimePoint bus_off_until_{};
