@@ -380,7 +380,7 @@ class __attribute__((visibility("hidden"))) TissueEstimator::Impl {
   // least squares step, then the moments, the best member and the confident law.
   inline bool admit(const TissueSample& sample) noexcept;
   inline void update_member(Member& m, std::size_t j, double alpha, double d2) noexcept;
-  inline void update_fit(double indentation_m) noexcept;
+  inline void update_fit(double indentation_m, double dt) noexcept;
   // Every member's regressors at xs into g1_/g2_: the Hunt-Crossley bank's exponents are evenly
   // spaced, so x^n climbs by one factor x^dn per member (two pow calls, not one each).
   void bank_regressors(double xs) noexcept;
@@ -405,6 +405,10 @@ class __attribute__((visibility("hidden"))) TissueEstimator::Impl {
   double force_f_ = 0.0;
   // Forgotten moments of the filtered force and of the depth (for R^2 and excitation).
   double weight_ = 0.0;
+  double contact_s_ = 0.0;  // in-contact time, forgotten alike
+  // This sample's forgetting factor exp(-dt / memory_s), kept for the interval it was made for.
+  double mu_ = 1.0;
+  double mu_dt_s_ = -1.0;
   double force_sum_ = 0.0;
   double force_sq_sum_ = 0.0;
   double depth_sum_ = 0.0;
@@ -414,8 +418,7 @@ class __attribute__((visibility("hidden"))) TissueEstimator::Impl {
 
 TissueEstimator::Impl::Impl(const TissueEstimatorOptions& options) : options_(options) {
   const TissueEstimatorOptions& o = options_;
-  require(o.forgetting > 0.5 && o.forgetting <= 1.0,
-          "forgetting must be in (0.5, 1]; 0.995 keeps ~200 samples");
+  require(o.memory_s >= 1e-3, "memory_s must be >= 1e-3 s (0.2 s by default; +inf forgets nothing)");
   require(o.reference_depth_m > 0.0 && finite(o.reference_depth_m),
           "reference_depth_m must be > 0 (a typical palpation depth, e.g. 5e-3)");
   require(o.reference_rate_m_per_s > 0.0 && finite(o.reference_rate_m_per_s),
@@ -434,9 +437,9 @@ TissueEstimator::Impl::Impl(const TissueEstimatorOptions& options) : options_(op
           "parameter bounds must be positive (forces at the reference depth and rate, N)");
   require(o.initial_covariance > 0.0 && o.max_covariance_trace >= 2.0 * o.initial_covariance,
           "need initial_covariance > 0 and max_covariance_trace >= 2 x initial_covariance");
-  require(
-      o.min_samples >= 1.0 && o.min_depth_std_m >= 0.0 && o.min_confidence >= 0.0 && o.min_confidence <= 1.0,
-      "need min_samples >= 1, min_depth_std_m >= 0 and min_confidence in [0, 1]");
+  require(o.min_contact_s > 0.0 && finite(o.min_contact_s) && o.min_depth_std_m >= 0.0 &&
+              o.min_confidence >= 0.0 && o.min_confidence <= 1.0,
+          "need min_contact_s > 0, min_depth_std_m >= 0 and min_confidence in [0, 1]");
   require(o.fresh_s >= 0.0 && o.hold_s >= o.fresh_s && o.fade_s > 0.0,
           "stale policy needs 0 <= fresh_s <= hold_s and fade_s > 0");
   require(o.prior.valid(), "the prior tissue model has a negative, non-finite or out-of-range parameter");
@@ -500,7 +503,7 @@ void TissueEstimator::Impl::reset() noexcept {
   last_stamp_s_ = 0.0;
   last_force_N_ = 0.0;
   force_f_ = 0.0;
-  weight_ = force_sum_ = force_sq_sum_ = depth_sum_ = depth_sq_sum_ = 0.0;
+  weight_ = contact_s_ = force_sum_ = force_sq_sum_ = depth_sum_ = depth_sq_sum_ = 0.0;
   last_good_ = o.prior;
 }
 
@@ -604,7 +607,7 @@ inline bool TissueEstimator::Impl::admit(const TissueSample& sample) noexcept {
 // One bank member's recursive least squares step on this sample's filtered regressors.
 inline void TissueEstimator::Impl::update_member(Member& m, std::size_t j, double alpha, double d2) noexcept {
   const TissueEstimatorOptions& o = options_;
-  const double mu = o.forgetting;
+  const double mu = mu_;
   const double g1 = g1_[j];
   const double g2 = g2_[j];
   const double phi1 = 0.5 * (g1 + m.g1_prev);
@@ -660,10 +663,11 @@ inline void TissueEstimator::Impl::update_member(Member& m, std::size_t j, doubl
 
 // The forgotten moments of force and depth, the best member (smallest forgotten prediction error,
 // with 2 % hysteresis against flicker between neighbours), and the law once it is confident.
-inline void TissueEstimator::Impl::update_fit(double indentation_m) noexcept {
+inline void TissueEstimator::Impl::update_fit(double indentation_m, double dt) noexcept {
   const TissueEstimatorOptions& o = options_;
-  const double mu = o.forgetting;
+  const double mu = mu_;
   weight_ = mu * weight_ + 1.0;
+  contact_s_ = mu * contact_s_ + dt;
   force_sum_ = mu * force_sum_ + force_f_;
   force_sq_sum_ = mu * force_sq_sum_ + force_f_ * force_f_;
   depth_sum_ = mu * depth_sum_ + indentation_m;
@@ -717,13 +721,18 @@ bool TissueEstimator::Impl::push(const TissueSample& sample) noexcept {
   const double d2 = o.reference_depth_m / (o.reference_rate_m_per_s * dt);
   const double force_mid = 0.5 * (sample.force_N + f_prev);
   force_f_ = filter_primed_ ? force_f_ + alpha * (force_mid - force_f_) : force_mid;
+  // A stream at a steady rate pays for one exp (its intervals differ in their last bits).
+  if (std::abs(dt - mu_dt_s_) > 1e-9 * dt) {
+    mu_dt_s_ = dt;
+    mu_ = std::exp(-dt / o.memory_s);
+  }
   bank_regressors(xs);
   for (std::size_t j = 0; j < bank_size_; ++j) {
     update_member(bank_[j], j, alpha, d2);
   }
   filter_primed_ = true;
   ++stats_.updates;
-  update_fit(sample.indentation_m);
+  update_fit(sample.indentation_m, dt);
   return true;
 }
 
@@ -737,7 +746,7 @@ double TissueEstimator::Impl::confidence() const noexcept {
   const double depth_std = std::sqrt(std::max(0.0, depth_sq_sum_ / weight_ - mean * mean));
   const double excitation =
       options_.min_depth_std_m > 0.0 ? std::min(1.0, depth_std / options_.min_depth_std_m) : 1.0;
-  const double amount = std::min(1.0, weight_ / options_.min_samples);
+  const double amount = std::min(1.0, contact_s_ / options_.min_contact_s);
   const double c = r2 * excitation * amount;
   return finite(c) ? c : 0.0;
 }

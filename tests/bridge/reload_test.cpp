@@ -240,13 +240,11 @@ TEST_P(Reload, InTheMiddleOfAPressIsBumpless) {
 
 INSTANTIATE_TEST_SUITE_P(
     RateAndGain, Reload,
-    // 200 -> 1000 Hz misses the 0.05 N (0.064 N, 190 ms after): the faster loop
-    // renders the press closer to the tissue law (0.011 N RMS against 0.017 N without
-    // the reload), which the run at 200 Hz it is compared with does not; it never leaves
-    // the band between the 200 Hz and the 1000 Hz runs. A regression bound here;
-    // docs/reliability.md.
+    // Every reload within the 0.05 N. 200 -> 1000 Hz missed it (0.068 N) while the tissue
+    // fit forgot per sample: at 200 Hz its memory was 1 s, so the law lagged the press by 0.3 N
+    // behind the 1 kHz bridge's; its memory is now a time (TissueEstimatorOptions::memory_s).
     ::testing::Values(ReloadCase{"1000_to_200_Hz", at_rate(1000.0), at_rate(200.0), 0.05},
-                      ReloadCase{"200_to_1000_Hz", at_rate(200.0), at_rate(1000.0), 0.075},
+                      ReloadCase{"200_to_1000_Hz", at_rate(200.0), at_rate(1000.0), 0.05},
                       ReloadCase{"gain_30_to_60", with_gain(30.0), with_gain(60.0), 0.05},
                       ReloadCase{"gain_30_to_10", with_gain(30.0), with_gain(10.0), 0.05}),
     [](const ::testing::TestParamInfo<ReloadCase>& p) { return std::string(p.param.name); });

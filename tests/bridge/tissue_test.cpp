@@ -295,6 +295,34 @@ TEST(TissueEstimator, TracksAStepInStiffness) {
   EXPECT_NEAR(est.estimate(s.t_s).model.stiffness_N_per_m, 450.0, 15.0);
 }
 
+// The memory is a time, not a count of samples: a stream at 200 or 100 Hz (a bridge at 200 Hz
+// takes every fifth sample of a 1 kHz stream; OpenIGTLink senders often send at 100 Hz) follows
+// the step as a 1 kHz one does: 401 N/m 0.4 s after it at each rate. With a factor of 0.995 per
+// sample the memory was 1 s at 200 Hz and 2 s at 100 Hz, which read 329 and 319 N/m there.
+TEST(TissueEstimator, TracksAStepInStiffnessAtAnyStreamRate) {
+  TissueEstimatorOptions o;
+  o.kind = TissueKind::kelvin_voigt;
+  for (const double rate_hz : {1000.0, 200.0, 100.0}) {
+    SCOPED_TRACE(rate_hz);
+    TissueEstimator est(o);
+    Stream s;
+    const double dt = 1.0 / rate_hz;
+    const auto samples = [&](double seconds) { return static_cast<int>(std::lround(seconds * rate_hz)); };
+    for (int i = 0; i < samples(2.0); ++i) {
+      est.push(s.next(TissueModel::kelvin_voigt(300.0, 2.0), dt));
+    }
+    const TissueEstimate before = est.estimate(s.t_s);
+    EXPECT_TRUE(before.fitted);
+    EXPECT_NEAR(before.model.stiffness_N_per_m, 300.0, 10.0);
+    for (int i = 0; i < samples(0.4); ++i) {  // two memories (0.2 s) after the step
+      est.push(s.next(TissueModel::kelvin_voigt(450.0, 2.0), dt));
+    }
+    const double k = est.estimate(s.t_s).model.stiffness_N_per_m;
+    std::printf("%5.0f Hz: %.1f N/m 0.4 s after a 300 -> 450 N/m step\n", rate_hz, k);
+    EXPECT_NEAR(k, 401.0, 10.0);
+  }
+}
+
 TEST(TissueEstimator, RejectsBadSamplesAndKeepsItsFit) {
   TissueEstimatorOptions o;
   o.kind = TissueKind::kelvin_voigt;
@@ -463,8 +491,16 @@ TEST(TissueEstimator, SurvivesLossGapsAndLeavingContact) {
 
 TEST(TissueEstimator, RejectsUnusableOptions) {
   TissueEstimatorOptions o;
-  o.forgetting = 1.5;
+  o.memory_s = 0.0;
   EXPECT_THROW(TissueEstimator{o}, mrskin::InvalidArgument);
+  o.memory_s = kNaN;
+  EXPECT_THROW(TissueEstimator{o}, mrskin::InvalidArgument);
+  o = {};
+  o.min_contact_s = 0.0;
+  EXPECT_THROW(TissueEstimator{o}, mrskin::InvalidArgument);
+  o = {};
+  o.memory_s = kInf;  // forgets nothing
+  EXPECT_NO_THROW(TissueEstimator{o});
   o = {};
   o.bank_size = 0;
   EXPECT_THROW(TissueEstimator{o}, mrskin::InvalidArgument);

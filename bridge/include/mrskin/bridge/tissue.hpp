@@ -110,8 +110,10 @@ MRSKIN_BRIDGE_API const char* to_string(TissueFreshness f) noexcept;
 struct TissueEstimatorOptions {
   TissueKind kind = TissueKind::hunt_crossley;  // the law to fit
   TissueModel prior{};                          // rendered until the fit is confident
-  // RLS forgetting per in-contact sample (memory 1 / (1 - forgetting) samples).
-  double forgetting = 0.995;
+  // The fit's memory, s: an in-contact sample's weight decays as exp(-age / memory_s), at any
+  // stream rate (a factor per sample made the memory rate-bound: 0.995 kept 0.2 s at 1 kHz but 1 s
+  // of a press at 200 Hz, where the law lagged a rising press by 0.3 N; docs/tissue.md). +inf: none.
+  double memory_s = 0.2;
   // Regressors are normalised to these, so the fitted numbers are forces (N) of order one.
   double reference_depth_m = 5e-3;
   double reference_rate_m_per_s = 10e-3;
@@ -133,8 +135,9 @@ struct TissueEstimatorOptions {
   double max_damping_force_at_ref_N = 5.0;
   double initial_covariance = 100.0;    // N^2
   double max_covariance_trace = 1.0e4;  // wind-up bound, N^2
-  // Confidence = fit R^2 x min(1, samples / min_samples) x min(1, depth std / min_depth_std_m).
-  double min_samples = 100.0;
+  // Confidence = fit R^2 x min(1, contact time / min_contact_s) x min(1, depth std / min_depth_std_m),
+  // the contact time forgotten as the fit is.
+  double min_contact_s = 0.1;
   double min_depth_std_m = 0.3e-3;
   double min_confidence = 0.6;  // below: the last confident estimate (or the prior) is output
   double fresh_s = 0.02;
