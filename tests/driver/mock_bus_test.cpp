@@ -583,6 +583,38 @@ TEST(MockBusDevice, ALaggingUnitHearsTheHostOutsideTheBus) {
   }
 }
 
+// A synchronous host's packet enters the bus when the host sends it, not at the unit's next step
+// (docs/protocol.md, "When a packet enters the bus"): currents a host's tick sends on classic CAN
+// (a few frames, under 0.5 ms) drive the coils before the unit's next 1 ms step ends. Entering the
+// bus at that step, they reached the coils a whole step later (the test fails so).
+TEST(MockBusDevice, ASynchronousHostsPacketEntersTheBusWhenSent) {
+  SimulatedClock clock;
+  OpenOptions open;
+  open.synchronous_mock = true;
+  const OpenedDevice dev = open_device("mock://?bus=can", clock, open);
+  MockDevice& mock = *mock_of(dev);
+  const auto tick = [&] {  // the rig's order: the unit steps to now, then the host's tick
+    mock.step(clock.now());
+    EXPECT_EQ(dev.session->poll(clock.now()), ResultCode::ok);
+  };
+  tick();
+  ASSERT_EQ(dev.session->request_enable(), ResultCode::ok);
+  for (int k = 0; k < 20 && mock.state() != static_cast<std::uint8_t>(proto::DeviceState::enabled); ++k) {
+    clock.advance(milliseconds(1));
+    tick();
+  }
+  ASSERT_EQ(mock.state(), static_cast<std::uint8_t>(proto::DeviceState::enabled));
+  clock.advance(milliseconds(5));  // the re-seed's zero currents long delivered
+  tick();
+  const std::vector<double> request_A(mock.layout().valve_count(), 0.05);
+  ASSERT_EQ(dev.session->send_valve_currents(request_A), ResultCode::ok);
+  clock.advance(milliseconds(1));
+  mock.step(clock.now());
+  std::vector<double> applied_A(mock.layout().valve_count());
+  mock.applied_currents(applied_A);
+  EXPECT_GT(*std::min_element(applied_A.begin(), applied_A.end()), 0.0);
+}
+
 // bus=profile (the default): the unit is on the bus its profile names ([interface] bus): full-speed USB for
 // the 5x5, high speed for the 16x16 (whose telemetry alone needs six full-speed reports a frame) and the
 // 64x64 design (ModelProfile.TheInterfaceNamesTheBus).

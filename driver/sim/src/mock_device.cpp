@@ -67,9 +67,14 @@ class MockDevice::Impl::HostTransport final : public Transport {
     if (bytes.size() > kMaxDatagramBytes) {
       return ResultCode::invalid_value;
     }
-    Datagram d;
-    std::copy(bytes.begin(), bytes.end(), d.bytes.begin());
-    d.length = static_cast<std::uint16_t>(bytes.size());
+    HostDatagram d;
+    std::copy(bytes.begin(), bytes.end(), d.datagram.bytes.begin());
+    d.datagram.length = static_cast<std::uint16_t>(bytes.size());
+    if (synchronous_) {
+      // On the bus from when the host sent it, not from the unit's next step: a packet that
+      // travels (classic CAN's frames) arrived a whole step late (docs/protocol.md).
+      d.sent = sync_now();
+    }
     return device_.to_device_.try_push(d) ? ResultCode::ok : ResultCode::would_block;
   }
   ResultCode receive(Datagram& out) noexcept override {
@@ -77,9 +82,7 @@ class MockDevice::Impl::HostTransport final : public Transport {
       return ResultCode::disconnected;
     }
     if (synchronous_) {
-      const TimePoint now = device_.sync_clock_ != nullptr
-                                ? std::max(device_.sync_clock_->now(), device_.last_step_)
-                                : device_.last_step_;
+      const TimePoint now = sync_now();
       device_.handle_host_input(now);
       if (device_.options_.bus.kind == MockBusKind::hid_fs ||
           device_.options_.bus.kind == MockBusKind::hid_hs) {
@@ -101,6 +104,11 @@ class MockDevice::Impl::HostTransport final : public Transport {
   }
 
  private:
+  // The host's clock, never behind the unit's.
+  [[nodiscard]] TimePoint sync_now() const noexcept {
+    return device_.sync_clock_ != nullptr ? std::max(device_.sync_clock_->now(), device_.last_step_)
+                                          : device_.last_step_;
+  }
   Impl& device_;
   bool synchronous_;
 };
@@ -581,12 +589,15 @@ void MockDevice::Impl::enter_fault(proto::FaultCode code) noexcept {
 void MockDevice::Impl::handle_host_input(TimePoint now) noexcept { handle_host_input(now, now); }
 
 void MockDevice::Impl::handle_host_input(TimePoint now, TimePoint advance_to) noexcept {
-  Datagram d;
+  HostDatagram d;
   while (to_device_.try_pop(d)) {
+    // A synchronous host's send time: its clock is the unit's, read after the unit's last step
+    // (so never before what the bus has carried), and never after now.
+    const TimePoint at = d.sent.count() != 0 ? std::min(d.sent, now) : now;
     if (lagging_) {
-      bus_.host_sent_while_lagging(d, now, sink_);
+      bus_.host_sent_while_lagging(d.datagram, now, sink_);
     } else {
-      bus_.host_sent(d, now, sink_);
+      bus_.host_sent(d.datagram, at, sink_);
     }
   }
   bus_.advance(advance_to, sink_);
@@ -854,7 +865,7 @@ void MockDevice::Impl::step(TimePoint now) noexcept {
   }
   apply_link_faults(now);
   if (!link_up_.load(std::memory_order_acquire)) {
-    Datagram drain;
+    HostDatagram drain;
     while (to_device_.try_pop(drain)) {
     }
     bus_.reset();

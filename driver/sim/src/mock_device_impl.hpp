@@ -140,7 +140,12 @@ struct __attribute__((visibility("hidden"))) MockDevice::Impl {
   };
   MockBus bus_;
   Sink sink_{*this};
-  SpscQueue<Datagram> to_device_{256};
+  // A host's packet and when a synchronous host sent it (0: take it at the unit's time).
+  struct HostDatagram {
+    Datagram datagram;
+    TimePoint sent{};
+  };
+  SpscQueue<HostDatagram> to_device_{256};
   SpscQueue<Datagram> to_host_{1024};
   std::vector<double> commanded_A_;
   std::vector<double> coil_A_;   // after slew limit and derating
