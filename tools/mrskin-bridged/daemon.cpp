@@ -93,6 +93,7 @@ Daemon::Daemon(Settings settings, MonotonicClock& clock)
   reports_at_start_ = {dev_.session->counters().reports_sent, dev_.session->counters().reports_received};
   if (mock_ != nullptr) {
     bus_at_start_ = mock_->bus_stats();
+    mock_->restart_bus_max_wait();
   }
   last_thermal_ = t0_;
   if (source_.scene != nullptr) {

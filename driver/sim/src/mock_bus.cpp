@@ -506,6 +506,11 @@ void MockBus::advance(TimePoint t, BusSink& sink) noexcept {
   clock_ns_ = std::max(clock_ns_, until);
 }
 
+void MockBus::restart_max_wait() noexcept {
+  to_device_.max_wait_ns.store(0, std::memory_order_relaxed);
+  to_host_.max_wait_ns.store(0, std::memory_order_relaxed);
+}
+
 void MockBus::reset() noexcept {
   to_device_waiting_.clear();
   to_host_waiting_.clear();

@@ -83,8 +83,15 @@ class __attribute__((visibility("hidden"))) MockBus {
   void advance(TimePoint t, BusSink& sink) noexcept;
   // The link went down: whatever was queued is gone.
   void reset() noexcept;
+  // The longest waits count from now on (a daemon's loop, not its open's configuration reads).
+  // Any thread.
+  void restart_max_wait() noexcept;
   [[nodiscard]] MockBusStats stats() const noexcept;
   [[nodiscard]] MockBusKind kind() const noexcept { return options_.kind; }
+  // The latest time the bus has been told of (sent or advanced to): it never runs back.
+  [[nodiscard]] TimePoint latest_time() const noexcept {
+    return TimePoint{std::chrono::nanoseconds(last_ns_.load(std::memory_order_relaxed))};
+  }
 
  private:
   struct Counters {

@@ -70,10 +70,13 @@ class MockDevice::Impl::HostTransport final : public Transport {
     HostDatagram d;
     std::copy(bytes.begin(), bytes.end(), d.datagram.bytes.begin());
     d.datagram.length = static_cast<std::uint16_t>(bytes.size());
+    // On the bus from when the host sent it, not from the unit's next step: there a packet that
+    // travels (classic CAN's frames) arrived a whole step late, and a threaded unit that woke late
+    // took a burst of reports at once (docs/protocol.md, "When a packet enters the bus").
     if (synchronous_) {
-      // On the bus from when the host sent it, not from the unit's next step: a packet that
-      // travels (classic CAN's frames) arrived a whole step late (docs/protocol.md).
       d.sent = sync_now();
+    } else if (device_.sync_clock_ != nullptr) {
+      d.sent = device_.sync_clock_->now();
     }
     return device_.to_device_.try_push(d) ? ResultCode::ok : ResultCode::would_block;
   }
@@ -303,6 +306,7 @@ MockDevice::HeldTarget MockDevice::held_target(std::size_t cell) const noexcept 
 }
 
 MockBusStats MockDevice::bus_stats() const noexcept { return impl_->bus_.stats(); }
+void MockDevice::restart_bus_max_wait() noexcept { impl_->bus_.restart_max_wait(); }
 
 MockDevice::FaultCounters MockDevice::fault_counters() const noexcept {
   const Impl& m = *impl_;
@@ -591,9 +595,10 @@ void MockDevice::Impl::handle_host_input(TimePoint now) noexcept { handle_host_i
 void MockDevice::Impl::handle_host_input(TimePoint now, TimePoint advance_to) noexcept {
   HostDatagram d;
   while (to_device_.try_pop(d)) {
-    // A synchronous host's send time: its clock is the unit's, read after the unit's last step
-    // (so never before what the bus has carried), and never after now.
-    const TimePoint at = d.sent.count() != 0 ? std::min(d.sent, now) : now;
+    // The host's send time, within what the bus has already run through (its clock never runs
+    // back) and now.
+    const TimePoint at =
+        d.sent.count() != 0 ? std::clamp(d.sent, std::min(bus_.latest_time(), now), now) : now;
     if (lagging_) {
       bus_.host_sent_while_lagging(d.datagram, now, sink_);
     } else {
@@ -878,13 +883,15 @@ void MockDevice::Impl::step(TimePoint now) noexcept {
     last_heartbeat_ = now;
     return;
   }
-  // A unit that lags real time by more than a telemetry period (a big plant on a loaded machine)
-  // hears what the host queued meanwhile at its own time, outside the bus: on the bus it would
-  // wait until the unit had simulated up to the host's clock (palm-64x64 on hid-hs: up to
-  // max_catch_up_s of plant a request, past the session's 0.5 s without progress; issue 20), and a
-  // burst of a period's reports would overflow the bus's queue. What the bus delivers later
-  // reaches the unit within the substeps below.
-  lagging_ = now - last_step_ > from_seconds(options_.telemetry_period_s);
+  // A unit that lags real time by more than kLagTelemetryPeriods telemetry periods (a big plant on
+  // a loaded machine) hears what the host queued meanwhile at its own time, outside the bus: on the
+  // bus it would wait until the unit had simulated up to the host's clock (palm-64x64 on hid-hs: up
+  // to max_catch_up_s of plant a request, past the session's 0.5 s without progress; issue 20), and
+  // a burst of a period's reports would overflow the bus's queue. What the bus delivers later
+  // reaches the unit within the substeps below. Not one period: a threaded unit wakes every
+  // period, so its wake-up jitter alone passed that, and the 5x5's currents went outside the bus
+  // (its host-to-device load read 0.2-5 % instead of 27 %).
+  lagging_ = now - last_step_ > kLagTelemetryPeriods * from_seconds(options_.telemetry_period_s);
   step_now_ = now;
   handle_host_input(lagging_ ? last_step_ : now, last_step_);
   const auto state = static_cast<proto::DeviceState>(state_.load(std::memory_order_relaxed));

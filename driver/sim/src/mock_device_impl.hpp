@@ -140,7 +140,7 @@ struct __attribute__((visibility("hidden"))) MockDevice::Impl {
   };
   MockBus bus_;
   Sink sink_{*this};
-  // A host's packet and when a synchronous host sent it (0: take it at the unit's time).
+  // A host's packet and when the host sent it, on the host's clock (0: at the unit's time).
   struct HostDatagram {
     Datagram datagram;
     TimePoint sent{};
@@ -171,7 +171,9 @@ struct __attribute__((visibility("hidden"))) MockDevice::Impl {
   RelaxedCounter reordered_;
   RelaxedCounter congested_;
   std::atomic<std::int64_t> skipped_ns_{0};
-  bool lagging_ = false;  // within step(): the unit lags real time by more than a telemetry period
+  // Within step(): the unit lags real time by more than kLagTelemetryPeriods telemetry periods.
+  static constexpr int kLagTelemetryPeriods = 10;
+  bool lagging_ = false;
   TimePoint step_now_{};  // within step(): the real time it was called at
   std::uint64_t fault_rng_;
   TimePoint start_{};

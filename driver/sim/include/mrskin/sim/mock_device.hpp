@@ -237,6 +237,9 @@ class MRSKIN_SIM_API MockDevice final : public SimulatedUnit {
   [[nodiscard]] FaultCounters fault_counters() const noexcept;
   // The bus model's counts and loads since the unit started (mock://?bus=...).
   [[nodiscard]] MockBusStats bus_stats() const noexcept;
+  // MockBusStats' longest waits count from now on (any thread): mrskin-bridged's loop leaves
+  // out the open's handshake and configuration reads.
+  void restart_bus_max_wait() noexcept;
 
   // --- firmware state, for tests: call from the thread that steps the device ---------------
   // The per-cell impedance target the firmware holds and when its validity started. Once the
