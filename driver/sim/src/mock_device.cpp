@@ -883,15 +883,15 @@ void MockDevice::Impl::step(TimePoint now) noexcept {
     last_heartbeat_ = now;
     return;
   }
-  // A unit that lags real time by more than kLagTelemetryPeriods telemetry periods (a big plant on
-  // a loaded machine) hears what the host queued meanwhile at its own time, outside the bus: on the
-  // bus it would wait until the unit had simulated up to the host's clock (palm-64x64 on hid-hs: up
-  // to max_catch_up_s of plant a request, past the session's 0.5 s without progress; issue 20), and
-  // a burst of a period's reports would overflow the bus's queue. What the bus delivers later
-  // reaches the unit within the substeps below. Not one period: a threaded unit wakes every
-  // period, so its wake-up jitter alone passed that, and the 5x5's currents went outside the bus
-  // (its host-to-device load read 0.2-5 % instead of 27 %).
-  lagging_ = now - last_step_ > kLagTelemetryPeriods * from_seconds(options_.telemetry_period_s);
+  // A unit that lags real time (a big plant on a loaded machine) hears what the host queued
+  // meanwhile at its own time, outside the bus: on the bus it would wait until the unit had
+  // simulated up to the host's clock (palm-64x64 on hid-hs: up to max_catch_up_s of plant a
+  // request, past the session's 0.5 s without progress; issue 20), and a burst of a period's
+  // reports would overflow the bus's queue. What the bus delivers later reaches the unit within the
+  // substeps below. Lagging is more than two telemetry periods behind: a wake a period late, not a
+  // threaded unit's usual 1-1.3 periods after its last substep (at one period the 5x5 daemon's
+  // currents went outside the bus, its host-to-device load 0.2-5 % instead of 27 %).
+  lagging_ = now - last_step_ > 2 * from_seconds(options_.telemetry_period_s);
   step_now_ = now;
   handle_host_input(lagging_ ? last_step_ : now, last_step_);
   const auto state = static_cast<proto::DeviceState>(state_.load(std::memory_order_relaxed));

@@ -171,9 +171,7 @@ struct __attribute__((visibility("hidden"))) MockDevice::Impl {
   RelaxedCounter reordered_;
   RelaxedCounter congested_;
   std::atomic<std::int64_t> skipped_ns_{0};
-  // Within step(): the unit lags real time by more than kLagTelemetryPeriods telemetry periods.
-  static constexpr int kLagTelemetryPeriods = 10;
-  bool lagging_ = false;
+  bool lagging_ = false;  // within step(): the unit lags real time by more than two telemetry periods
   TimePoint step_now_{};  // within step(): the real time it was called at
   std::uint64_t fault_rng_;
   TimePoint start_{};
