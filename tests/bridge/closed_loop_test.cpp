@@ -23,11 +23,20 @@ using LoopRun = test::SceneRun;
 LoopRun simulate(const std::string& scene_name, double seconds, const ImpairmentOptions* network) {
   // MRSKIN_CLOSED_LOOP_SEED picks another perturbed unit (docs/bridge.md: the spread over seeds);
   // the bounds below are for seed 7.
-  // MRSKIN_RATE_FILTER_S sets the observer's rate filter (docs/bridge.md: chosen on the true state).
+  // MRSKIN_RATE_FILTER_S sets the observer's rate filter (docs/bridge.md: chosen on the true state);
+  // MRSKIN_RATE_LINE_S selects the segmented-line rate with that memory, MRSKIN_RATE_CHANGE_SIGMA
+  // its change threshold (docs/bridge.md, "A segmented-line rate").
   const char* seed = std::getenv("MRSKIN_CLOSED_LOOP_SEED");
   BridgeOptions options;
   if (const char* tau = std::getenv("MRSKIN_RATE_FILTER_S"); tau != nullptr) {
     options.observer.rate_filter_time_constant_s = std::strtod(tau, nullptr);
+  }
+  if (const char* memory = std::getenv("MRSKIN_RATE_LINE_S"); memory != nullptr) {
+    options.observer.rate_estimator = model::RateEstimator::segmented_line;
+    options.observer.rate_memory_s = std::strtod(memory, nullptr);
+  }
+  if (const char* h = std::getenv("MRSKIN_RATE_CHANGE_SIGMA"); h != nullptr) {
+    options.observer.rate_change_threshold_sigma = std::strtod(h, nullptr);
   }
   return test::run_scene(scene_name, seconds, std::string("mock://?seed=") + (seed != nullptr ? seed : "7"),
                          network, 0, options);

@@ -9,6 +9,7 @@
 #include "mrskin/driver/errors.hpp"
 #include "mrskin/driver/model/coil.hpp"
 #include "mrskin/driver/model/magnetic.hpp"
+#include "rate_tracker.hpp"
 
 namespace mrskin::model {
 
@@ -19,26 +20,37 @@ struct Entry {
   double weight = 0.0;    // already divided by the sensor's standard deviation
 };
 
+const ObserverOptions& validated(const ObserverOptions& o) {
+  if (!(o.prior_spread_m > 0.0) || !(o.sparsity_scale_m > 0.0) || o.sweeps < 1 ||
+      !(o.rate_filter_time_constant_s >= 0.0) || !(o.contact_threshold_m >= 0.0) ||
+      !(o.sweep_tolerance_m >= 0.0) || !(o.hold_rate_m_per_s >= 0.0) || !(o.noise_floor_sigma >= 0.0) ||
+      !std::isfinite(o.noise_floor_sigma) || o.residual_refresh_ticks < 1 || !(o.rate_memory_s > 0.0) ||
+      !std::isfinite(o.rate_memory_s) || !(o.rate_change_threshold_sigma > 0.0) ||
+      !std::isfinite(o.rate_change_threshold_sigma)) {
+    throw InvalidArgument(
+        "observer options: prior_spread_m and sparsity_scale_m must be > 0, sweeps >= 1, "
+        "rate_filter_time_constant_s, contact_threshold_m, sweep_tolerance_m, hold_rate_m_per_s and "
+        "noise_floor_sigma >= 0, residual_refresh_ticks >= 1, rate_memory_s and "
+        "rate_change_threshold_sigma finite and > 0");
+  }
+  return o;
+}
+
+ObserverForceModel resolved_force_model(const ObserverOptions& o, std::size_t cells) noexcept {
+  if (o.force_model != ObserverForceModel::automatic) {
+    return o.force_model;
+  }
+  return cells <= o.network_max_cells ? ObserverForceModel::network : ObserverForceModel::local;
+}
+
 }  // namespace
 
 struct __attribute__((visibility("hidden"))) CellObserver::Impl {
-  Impl(const DeviceModel& m, const ObserverOptions& o) : model(m), options(o) {
+  Impl(const DeviceModel& m, const ObserverOptions& o)
+      : model(m), options(validated(o)), force_model(resolved_force_model(o, m.layout().fluid_cell_count())) {
     const DeviceProfile& p = m.profile();
     const GridLayout& grid = m.layout();
     const std::size_t cells = grid.fluid_cell_count();
-    if (!(o.prior_spread_m > 0.0) || !(o.sparsity_scale_m > 0.0) || o.sweeps < 1 ||
-        !(o.rate_filter_time_constant_s >= 0.0) || !(o.contact_threshold_m >= 0.0) ||
-        !(o.sweep_tolerance_m >= 0.0) || !(o.hold_rate_m_per_s >= 0.0) || !(o.noise_floor_sigma >= 0.0) ||
-        !std::isfinite(o.noise_floor_sigma) || o.residual_refresh_ticks < 1) {
-      throw InvalidArgument(
-          "observer options: prior_spread_m and sparsity_scale_m must be > 0, sweeps >= 1, "
-          "rate_filter_time_constant_s, contact_threshold_m, sweep_tolerance_m, hold_rate_m_per_s and "
-          "noise_floor_sigma >= 0, residual_refresh_ticks >= 1");
-    }
-    force_model = o.force_model;
-    if (force_model == ObserverForceModel::automatic) {
-      force_model = cells <= o.network_max_cells ? ObserverForceModel::network : ObserverForceModel::local;
-    }
     if (force_model == ObserverForceModel::network) {
       network = std::make_unique<NetworkSimulation>(m, network_options(o));
     }
@@ -112,6 +124,13 @@ struct __attribute__((visibility("hidden"))) CellObserver::Impl {
     previous_m.assign(cells, 0.0);
     predicted_m.assign(cells, 0.0);
     velocity.assign(cells, 0.0);
+    if (o.rate_estimator == RateEstimator::segmented_line) {
+      rate_tracker = std::make_unique<RateTracker>(
+          cells, RateTrackerOptions{.filter_time_constant_s = o.rate_filter_time_constant_s,
+                                    .memory_s = o.rate_memory_s,
+                                    .change_threshold_sigma = o.rate_change_threshold_sigma});
+      set_depth_sigmas();
+    }
     coil.resize(grid.valve_count());
     yield_Pa.assign(grid.valve_count(), 0.0);
     valve_gain.assign(grid.valve_count(), 1.0);
@@ -148,6 +167,9 @@ struct __attribute__((visibility("hidden"))) CellObserver::Impl {
     std::fill(previous_m.begin(), previous_m.end(), 0.0);
     std::fill(used_reading.begin(), used_reading.end(), 0.0);
     std::fill(velocity.begin(), velocity.end(), 0.0);
+    if (rate_tracker) {
+      rate_tracker->reset();
+    }
     std::fill(coil.begin(), coil.end(), CoilState{});
     std::fill(play_index.begin(), play_index.end(), 0.0);
     std::fill(yield_Pa.begin(), yield_Pa.end(), 0.0);
@@ -223,6 +245,12 @@ struct __attribute__((visibility("hidden"))) CellObserver::Impl {
     return at_index(play_yield_Pa, u);
   }
 
+  // Each cell's depth noise as the fit sees it alone (1 / sqrt of its column's weight), m.
+  void set_depth_sigmas() noexcept {
+    for (std::size_t c = 0; c < column_norm2.size(); ++c) {
+      rate_tracker->set_depth_sigma(c, column_norm2[c] > 0.0 ? 1.0 / std::sqrt(column_norm2[c]) : 1.0);
+    }
+  }
   void fit(std::span<const double> readings) noexcept;
   void prepare_residual(std::span<const double> readings, bool sparse, double deadband) noexcept;
   void compute_sensor_residuals(std::span<const double> readings) noexcept;
@@ -256,6 +284,7 @@ struct __attribute__((visibility("hidden"))) CellObserver::Impl {
   std::vector<double> previous_m;
   std::vector<double> predicted_m;
   std::vector<double> velocity;
+  std::unique_ptr<RateTracker> rate_tracker;  // RateEstimator::segmented_line only
   std::vector<CoilState> coil;
   // The steel's hysteresis (a play operator, as in the plant), tabulated by tabulate_play().
   std::vector<double> play_base_A;      // current holding the steel at the k-th play, no hysteresis
@@ -615,15 +644,19 @@ Status CellObserver::update(std::span<const double> sensor_readings, std::span<c
     }
   }
   m.misfit_m = used > 0 ? std::sqrt(misfit2 / static_cast<double>(used)) : 0.0;
-  // Rate: first-order filter on the difference (exact discretisation of the lag).
-  if (dt_s != m.alpha_dt_s) {
-    const double tau = m.options.rate_filter_time_constant_s;
-    m.alpha = tau > 0.0 ? 1.0 - std::exp(-dt_s / tau) : 1.0;
-    m.alpha_dt_s = dt_s;
-  }
-  for (std::size_t c = 0; c < cells; ++c) {
-    const double raw = (m.depth_m[c] - m.previous_m[c]) / dt_s;
-    m.velocity[c] += m.alpha * (raw - m.velocity[c]);
+  if (m.rate_tracker) {
+    m.rate_tracker->update(m.depth_m, m.previous_m, dt_s, m.velocity);
+  } else {
+    // Rate: first-order filter on the difference (exact discretisation of the lag).
+    if (dt_s != m.alpha_dt_s) {
+      const double tau = m.options.rate_filter_time_constant_s;
+      m.alpha = tau > 0.0 ? 1.0 - std::exp(-dt_s / tau) : 1.0;
+      m.alpha_dt_s = dt_s;
+    }
+    for (std::size_t c = 0; c < cells; ++c) {
+      const double raw = (m.depth_m[c] - m.previous_m[c]) / dt_s;
+      m.velocity[c] += m.alpha * (raw - m.velocity[c]);
+    }
   }
   // Force: nominal coil lag and yield curve, then the force model.
   const bool yields_changed = m.update_coils(valve_current_A, dt_s);
@@ -689,6 +722,9 @@ Status CellObserver::set_sensor_excluded(std::size_t sensor, bool excluded) noex
       norm2 += m.col_entries[e].weight * m.col_entries[e].weight;
     }
     m.column_norm2[c] = norm2;
+  }
+  if (m.rate_tracker) {
+    m.set_depth_sigmas();
   }
   // Its residual must not pull on the depths any more: rebuilt by the next fit.
   m.residual[r] = 0.0;

@@ -8,7 +8,8 @@
 //   - depths move continuously (a prior at the previous estimate plus rate * dt).
 // Each tick solves that bounded least-squares problem by projected coordinate descent (warm
 // started, a fixed number of sweeps, no allocation). Sensors at fluid cells enter as rows of
-// their own. The rate is the filtered difference of the estimates. The force comes from the
+// their own. The rate is the filtered difference of the estimates (or, opt-in, a line since the
+// last detected change in rate: RateEstimator::segmented_line). The force comes from the
 // nominal network model (NetworkSimulation with the fast stepper), driven by the estimated
 // depths and the commanded currents through the nominal coil lag and yield curve: the
 // observer never sees the plant's parameters.
@@ -62,6 +63,12 @@ struct ContactThresholds {
   }
 };
 
+// How the observer turns fitted depths into rates.
+enum class RateEstimator : unsigned char {
+  filtered_difference,  // a first-order filter on the depth's difference (rate_filter_time_constant_s)
+  segmented_line,       // a line since the last detected change in rate, blended with that filter
+};
+
 struct ObserverOptions {
   // Expected depth change per tick not explained by the rate (the prior's spread), m.
   double prior_spread_m = 50e-6;
@@ -70,6 +77,11 @@ struct ObserverOptions {
   double sparsity_scale_m = 2e-3;
   int sweeps = 12;
   double rate_filter_time_constant_s = 4e-3;
+  RateEstimator rate_estimator = RateEstimator::filtered_difference;
+  // segmented_line: the line's memory (s) and the CUSUM threshold on its prediction error, in
+  // standard deviations of the cell's fitted depth.
+  double rate_memory_s = 0.02;
+  double rate_change_threshold_sigma = 5.0;
   Stepper force_stepper = Stepper::linearly_implicit_regularised;
   // Depths below this are no contact for the force model: with a precharged reservoir (p0 > 0)
   // the contact force jumps from 0 to p0 A_eff at first touch, so sensor noise on an untouched
