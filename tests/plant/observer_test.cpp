@@ -192,6 +192,38 @@ TEST(ObserverPerturbed, LocalForceModelOnThePerturbedNoisyPlant) {
   }
 }
 
+// The default 5 x 5 on the perturbed noisy plant (seed 3) with its valves at one current, and an
+// observer with the given options: a tick presses the finger, steps the plant and updates.
+struct SeededRig {
+  SeededRig(const ObserverOptions& options, double current_A)
+      : plant(nominal.profile(), seeded()),
+        observer(nominal, options),
+        depth(nominal.layout().fluid_cell_count(), 0.0),
+        current(nominal.layout().valve_count(), current_A),
+        sensors(plant.sensor_count()) {
+    plant.set_valve_currents(current);
+  }
+  static NetworkPlantOptions seeded() {
+    NetworkPlantOptions o;
+    o.seed = 3;
+    return o;
+  }
+  void tick() {
+    plant.set_finger_indentation(depth);
+    for (int s = 0; s < kSubsteps; ++s) {
+      plant.step(kTick_s / kSubsteps);
+    }
+    plant.read_sensors(sensors);
+    EXPECT_EQ(observer.update(sensors, current, kTick_s), Status::ok);
+  }
+  const DeviceModel nominal{mrskin::model::default_profile()};
+  NetworkPlant plant;
+  CellObserver observer;
+  std::vector<double> depth;
+  std::vector<double> current;
+  std::vector<double> sensors;
+};
+
 // A press of the centre cell at a steady 5 mm/s for 0.6 s that stops and holds for 0.4 s, on the
 // perturbed noisy plant (seed 3): the observer's rate error while pressing (from 0.1 s) and
 // holding (from 10 ticks after the stop), RMS and worst.
@@ -203,15 +235,7 @@ struct RateErrors {
 };
 
 RateErrors press_and_stop(const ObserverOptions& options) {
-  const DeviceModel nominal(mrskin::model::default_profile());
-  NetworkPlantOptions o;
-  o.seed = 3;
-  NetworkPlant plant(nominal.profile(), o);
-  CellObserver observer(nominal, options);
-  std::vector<double> depth(nominal.layout().fluid_cell_count(), 0.0);
-  std::vector<double> current(nominal.layout().valve_count(), 0.05);
-  std::vector<double> sensors(plant.sensor_count());
-  plant.set_valve_currents(current);
+  SeededRig rig(options, 0.05);
   constexpr double kRate_m_per_s = 5e-3;
   constexpr int kStopTick = 600;
   RateErrors r;
@@ -221,14 +245,9 @@ RateErrors press_and_stop(const ObserverOptions& options) {
   int holding = 0;
   for (int tick = 0; tick < kStopTick + 400; ++tick) {
     const double t = (tick + 1) * kTick_s;
-    depth[6] = kRate_m_per_s * std::min(t, kStopTick * kTick_s);
-    plant.set_finger_indentation(depth);
-    for (int s = 0; s < kSubsteps; ++s) {
-      plant.step(kTick_s / kSubsteps);
-    }
-    plant.read_sensors(sensors);
-    EXPECT_EQ(observer.update(sensors, current, kTick_s), Status::ok);
-    const double rate = observer.velocity_m_per_s()[6];
+    rig.depth[6] = kRate_m_per_s * std::min(t, kStopTick * kTick_s);
+    rig.tick();
+    const double rate = rig.observer.velocity_m_per_s()[6];
     if (tick >= 100 && tick < kStopTick) {
       const double e = rate - kRate_m_per_s;
       pressing2 += e * e;
@@ -278,6 +297,59 @@ TEST(ObserverRate, BadRateOptionsAreRefused) {
     threshold.rate_change_threshold_sigma = bad;
     EXPECT_THROW(CellObserver(nominal, threshold), mrskin::InvalidArgument);
   }
+}
+
+// The 5 x 5 at rest on the noisy plant (seed 3, nothing touching): with the rest gate the
+// depths are exactly zero on every tick whose readings are all within 3 sigma (the fit is
+// skipped); without it noise spreads micrometres of depth over a few cells. A press is found
+// as before once a reading leaves the gate.
+struct RestCount {
+  int zero_ticks = 0;
+  double largest_idle_depth_m = 0.0;
+  double pressed_depth_m = 0.0;
+};
+
+RestCount rest_then_press(const ObserverOptions& options) {
+  SeededRig rig(options, 0.0);
+  RestCount r;
+  for (int tick = 0; tick < 400; ++tick) {
+    rig.depth[6] = tick < 300 ? 0.0 : 1e-3;  // the centre pressed 1 mm for the last 100 ticks
+    rig.tick();
+    const std::span<const double> d = rig.observer.indentation_m();
+    if (tick < 300) {
+      const double largest = *std::max_element(d.begin(), d.end());
+      r.zero_ticks += largest == 0.0 ? 1 : 0;
+      r.largest_idle_depth_m = std::max(r.largest_idle_depth_m, largest);
+    } else {
+      r.pressed_depth_m = d[6];
+    }
+  }
+  return r;
+}
+
+TEST(ObserverRest, NoiseAloneLeavesTheDepthsAtZeroAndAPressIsFound) {
+  const RestCount gated = rest_then_press(ObserverOptions{});
+  ObserverOptions off;
+  off.rest_gate_sigma = 0.0;
+  const RestCount ungated = rest_then_press(off);
+  std::printf(
+      "rest gate: %d of 300 idle ticks at zero depth (largest %.1f um), pressed %.3f mm; without: %d "
+      "(largest %.1f um), pressed %.3f mm\n",
+      gated.zero_ticks, gated.largest_idle_depth_m * 1e6, gated.pressed_depth_m * 1e3, ungated.zero_ticks,
+      ungated.largest_idle_depth_m * 1e6, ungated.pressed_depth_m * 1e3);
+  EXPECT_GE(gated.zero_ticks, 270);
+  EXPECT_LT(ungated.zero_ticks, gated.zero_ticks);
+  EXPECT_NEAR(gated.pressed_depth_m, ungated.pressed_depth_m, 1e-9);
+  EXPECT_NEAR(gated.pressed_depth_m, 1e-3, 50e-6);
+}
+
+TEST(ObserverRest, ANegativeGateIsRefused) {
+  const DeviceModel nominal(mrskin::model::default_profile());
+  ObserverOptions bad;
+  bad.rest_gate_sigma = -1.0;
+  EXPECT_THROW(CellObserver(nominal, bad), mrskin::InvalidArgument);
+  bad.rest_gate_sigma = std::numeric_limits<double>::quiet_NaN();
+  EXPECT_THROW(CellObserver(nominal, bad), mrskin::InvalidArgument);
 }
 
 TEST(ObserverInputs, BadInputsAreRefusedAndStateKept) {

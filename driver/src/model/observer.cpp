@@ -26,12 +26,12 @@ const ObserverOptions& validated(const ObserverOptions& o) {
       !(o.sweep_tolerance_m >= 0.0) || !(o.hold_rate_m_per_s >= 0.0) || !(o.noise_floor_sigma >= 0.0) ||
       !std::isfinite(o.noise_floor_sigma) || o.residual_refresh_ticks < 1 || !(o.rate_memory_s > 0.0) ||
       !std::isfinite(o.rate_memory_s) || !(o.rate_change_threshold_sigma > 0.0) ||
-      !std::isfinite(o.rate_change_threshold_sigma)) {
+      !std::isfinite(o.rate_change_threshold_sigma) || !(o.rest_gate_sigma >= 0.0)) {
     throw InvalidArgument(
         "observer options: prior_spread_m and sparsity_scale_m must be > 0, sweeps >= 1, "
         "rate_filter_time_constant_s, contact_threshold_m, sweep_tolerance_m, hold_rate_m_per_s and "
         "noise_floor_sigma >= 0, residual_refresh_ticks >= 1, rate_memory_s and "
-        "rate_change_threshold_sigma finite and > 0");
+        "rate_change_threshold_sigma finite and > 0, rest_gate_sigma >= 0");
   }
   return o;
 }
@@ -252,6 +252,7 @@ struct __attribute__((visibility("hidden"))) CellObserver::Impl {
     }
   }
   void fit(std::span<const double> readings) noexcept;
+  bool rest_without_fit(std::span<const double> readings) noexcept;
   void prepare_residual(std::span<const double> readings, bool sparse, double deadband) noexcept;
   void compute_sensor_residuals(std::span<const double> readings) noexcept;
   bool update_coils(std::span<const double> valve_current_A, double dt_s) noexcept;
@@ -371,12 +372,44 @@ void CellObserver::Impl::prepare_residual(std::span<const double> readings, bool
 // Projected coordinate descent on 1/2 |r|^2 + 1/2 w_p |d - d_pred|^2 + w_1 sum d, d >= 0. A
 // cell is revisited only when a sensor it shares changed (a cell whose gradient has not changed
 // would not move).
+// Small grids: no depth was above the contact threshold last tick and no reading is further
+// from zero than rest_gate_sigma standard deviations. The depths are zero and the fit is
+// skipped: noise alone would spread micrometres of depth over a few cells and relax them for up
+// to `sweeps` sweeps a tick. The residual is then the readings' (H 0 - y).
+bool CellObserver::Impl::rest_without_fit(std::span<const double> readings) noexcept {
+  const double gate = options.rest_gate_sigma;
+  if (!(gate > 0.0)) {
+    return false;
+  }
+  for (const double d : previous_m) {
+    if (d > options.contact_threshold_m) {
+      return false;
+    }
+  }
+  for (std::size_t r = 0; r < residual.size(); ++r) {
+    if (row_excluded[r] == 0 && std::abs(readings[sensor_of_row[r]] * sensor_scale[r]) > gate) {
+      return false;
+    }
+  }
+  for (std::size_t r = 0; r < residual.size(); ++r) {
+    used_reading[r] = readings[sensor_of_row[r]] * sensor_scale[r];
+    row_changed[r] = 1;
+    residual[r] = -used_reading[r];
+  }
+  // The prior may have moved a depth by a decaying rate: at rest it is zero.
+  std::fill(depth_m.begin(), depth_m.end(), 0.0);
+  return true;
+}
+
 void CellObserver::Impl::fit(std::span<const double> readings) noexcept {
   const std::size_t cells = depth_m.size();
   // Small grids sweep every cell (cheaper than tracking which to visit); large grids revisit
   // only the neighbours of what moved, and a reading within reading_deadband_sigma of the one
   // last used counts as unchanged (noise on an untouched region moves nothing).
   const bool sparse = cells > options.network_max_cells;
+  if (!sparse && rest_without_fit(readings)) {
+    return;
+  }
   const double deadband = sparse ? options.reading_deadband_sigma : 0.0;
   prepare_residual(readings, sparse, deadband);
   const double tolerance = options.sweep_tolerance_m;
