@@ -386,15 +386,14 @@ bool CellObserver::Impl::rest_without_fit(std::span<const double> readings) noex
       return false;
     }
   }
+  // used_reading is written as it is tested: a small grid's prepare_residual writes it again.
   for (std::size_t r = 0; r < residual.size(); ++r) {
-    if (row_excluded[r] == 0 && std::abs(readings[sensor_of_row[r]] * sensor_scale[r]) > gate) {
+    const double y = readings[sensor_of_row[r]] * sensor_scale[r];  // in sigmas
+    if (row_excluded[r] == 0 && std::abs(y) > gate) {
       return false;
     }
-  }
-  for (std::size_t r = 0; r < residual.size(); ++r) {
-    used_reading[r] = readings[sensor_of_row[r]] * sensor_scale[r];
-    row_changed[r] = 1;
-    residual[r] = -used_reading[r];
+    used_reading[r] = y;
+    residual[r] = -y;
   }
   // The prior may have moved a depth by a decaying rate: at rest it is zero.
   std::fill(depth_m.begin(), depth_m.end(), 0.0);

@@ -97,7 +97,7 @@ struct ObserverOptions {
   // Grids of at most network_max_cells: while no depth was above contact_threshold_m last tick
   // and no reading is more than this many standard deviations from zero, the fit is skipped and
   // the depths are zero. Noise alone spread micrometres of depth over a few cells and relaxed
-  // them for up to `sweeps` sweeps a tick: the 5 x 5's idle tick fell from 17.5k to 12.8k
+  // them for up to `sweeps` sweeps a tick: the 5 x 5's idle tick fell from 17.5k to 12.7k
   // instructions, every scene's figures unchanged over seeds 1-8 (docs/bridge.md, "Cost per
   // tick"). 0: off.
   double rest_gate_sigma = 3.0;
