@@ -136,6 +136,14 @@ void AllocateStage::drain_then_seal(const Rendering& rendered, std::span<const d
     fall_N_[i] += fall_smoothing_ * ((last_force_N_[i] - force_N[i]) - fall_N_[i]);
     last_force_N_[i] = force_N[i];
     if (role == model::CellRole::loading) {
+      // Pushing well above its law while loading (the finger slowed or stopped before the rate
+      // estimate saw it, or the feed-forward overshot): open valves shed force fastest.
+      if (force_N[i] > (1.0 + options_.loading_open_fraction) * rendered.tissue_N[i] &&
+          rendered.tissue_N[i] > 0.0) {
+        hold_valves(i, 0.0, out.current_A);
+        out.drain_held[i] = 1;
+        continue;
+      }
       if (drain_phase_[i] != DrainPhase::none && ++loading_ticks_[i] < seal_release_ticks_) {
         hold_valves(i, drain_phase_[i] == DrainPhase::draining ? 0.0 : max_current_A_, out.current_A);
         out.drain_held[i] = 1;

@@ -200,6 +200,10 @@ Bridge::Impl::Impl(DeviceSession& session, SlaveSource& source, BridgeOptions op
   if (!options_.mapping.valid()) {
     throw InvalidArgument("the workspace mapping needs finite numbers and cells_per_m > 0");
   }
+  if (!(options_.loading_open_fraction >= 0.0)) {
+    throw InvalidArgument("loading_open_fraction must be >= 0 (infinity: off), got " +
+                          std::to_string(options_.loading_open_fraction));
+  }
   if (options_.check_bus_budget) {
     bus_budget_ = check_bus_budget(session.info(), session.transport(), options_.rate_hz);
   }

@@ -7,6 +7,7 @@
 
 #include <cstdio>
 #include <cstdlib>
+#include <limits>
 #include <string>
 #include <vector>
 
@@ -70,13 +71,16 @@ struct Bound {
 // + ~20 %. Against the law at the finger's true state every other scene is within 0.001 N and 0.2
 // points of the above; step reads 0.050 N / 10.1 %: a third of its 0.077 N is the target
 // chattering with the observer's rate noise (heavy damping), which the plant does not follow and
-// the finger does not feel.
+// the finger does not feel. Since loading cells above their law open their valves
+// (BridgeOptions::loading_open_fraction): step 0.064 N / 20.8 %, true state 0.046 N / 17.4 %
+// (over seeds 1-8 its true-state RMS fell 0.050 -> 0.044 N and its p95 rose 14.5 -> 15.6 %,
+// while every organ scene got better: docs/bridge.md), so its true-state p95 bound is 19 %.
 constexpr Bound kBounds[] = {
     {"demo", 10.0, 0.040, 0.07, 0.040, 0.07},       {"hand", 8.6, 0.040, 0.07, 0.040, 0.07},
     {"neck", 8.6, 0.040, 0.07, 0.040, 0.07},        {"abdomen", 8.6, 0.040, 0.07, 0.040, 0.07},
     {"thigh", 8.6, 0.040, 0.07, 0.040, 0.07},       {"back", 8.6, 0.040, 0.07, 0.040, 0.07},
     {"stomach", 8.6, 0.040, 0.07, 0.040, 0.07},     {"sweep", 7.5, 0.040, 0.07, 0.040, 0.07},
-    {"tumour", 7.5, 0.040, 0.07, 0.040, 0.07},      {"step", 7.0, 0.095, 0.31, 0.065, 0.17},
+    {"tumour", 7.5, 0.040, 0.07, 0.040, 0.07},      {"step", 7.0, 0.095, 0.31, 0.065, 0.19},
     {"force_step", 10.9, 0.065, 0.18, 0.065, 0.18},
 };
 
@@ -147,8 +151,43 @@ TEST(ClosedLoopTenKilohertz, RendersTheDemoWithinTheFigures) {
   EXPECT_EQ(r.faults, 0U);
 }
 
+// A loading cell pushing well above its law opens its valves (BridgeOptions::
+// loading_open_fraction): on `hand` at seed 7 the true-state error falls from 0.0180 to
+// 0.0140 N RMS and 3.6 to 3.1 % p95 (measured). Off, the inverse's feed-forward and the slow
+// feedback shed the surplus only as the rate estimate catches up.
+TEST(ClosedLoopLoadingOpen, OpeningALoadingCellAboveItsLawRendersHandCloser) {
+  BridgeOptions off;
+  off.loading_open_fraction = std::numeric_limits<double>::infinity();
+  const double seconds = kScored ? 8.6 : 2.0;
+  const LoopRun with = test::run_scene("hand", seconds, "mock://?seed=7");
+  const LoopRun without = test::run_scene("hand", seconds, "mock://?seed=7", nullptr, 0, off);
+  print("hand/open", with);
+  print("hand/no-open", without);
+  if (kScored) {
+    EXPECT_LT(with.stats.true_state_rms_error_N(), without.stats.true_state_rms_error_N() - 0.002);
+    EXPECT_LE(with.stats.true_state_relative_error.percentile(0.95),
+              without.stats.true_state_relative_error.percentile(0.95));
+  }
+  EXPECT_EQ(with.stats.active_ticks, 0U) << "the rendering gave energy";
+}
+
+TEST(ClosedLoopLoadingOpen, ANegativeFractionIsRefused) {
+  SimulatedClock clock;
+  OpenOptions open;
+  open.synchronous_mock = true;
+  OpenedDevice dev = open_device("mock://?seed=7", clock, open);
+  auto scene = make_scene("hand");
+  for (const double bad : {-0.1, std::numeric_limits<double>::quiet_NaN()}) {
+    BridgeOptions options;
+    options.loading_open_fraction = bad;
+    EXPECT_THROW(Bridge(*dev.session, *scene, options), InvalidArgument);
+  }
+}
+
 // A coarser plant substep (mock://?physics_dt=, issue 21: what lets a large grid's plant keep
-// real time) costs the 5x5 little: within 0.002 N RMS and 0.5 points p95 of the default 0.1 ms.
+// real time) costs the 5x5 little: within 0.002 N RMS and 1 point p95 of the default 0.1 ms
+// (0.5 points until loading cells above their law opened their valves: +0.0019 N, +0.6 points
+// since, docs/bridge.md "Every grid in real time").
 TEST(ClosedLoopCoarsePlant, AMillisecondSubstepRendersTheDemoAsTheDefaultDoes) {
   const double seconds = kScored ? 8.0 : 2.0;
   const LoopRun fine = test::run_scene("demo", seconds, "mock://?seed=7");
@@ -157,7 +196,7 @@ TEST(ClosedLoopCoarsePlant, AMillisecondSubstepRendersTheDemoAsTheDefaultDoes) {
   if (kScored) {
     EXPECT_LE(coarse.stats.force_rms_error_N(), fine.stats.force_rms_error_N() + 0.002);
     EXPECT_LE(coarse.stats.relative_error.percentile(0.95),
-              fine.stats.relative_error.percentile(0.95) + 0.005);
+              fine.stats.relative_error.percentile(0.95) + 0.01);
   }
   EXPECT_EQ(coarse.stats.active_ticks, 0U) << "the rendering gave energy";
   EXPECT_EQ(coarse.stats.observer_errors, 0U);
