@@ -369,9 +369,6 @@ void CellObserver::Impl::prepare_residual(std::span<const double> readings, bool
   }
 }
 
-// Projected coordinate descent on 1/2 |r|^2 + 1/2 w_p |d - d_pred|^2 + w_1 sum d, d >= 0. A
-// cell is revisited only when a sensor it shares changed (a cell whose gradient has not changed
-// would not move).
 // Small grids: no depth was above the contact threshold last tick and no reading is further
 // from zero than rest_gate_sigma standard deviations. The depths are zero and the fit is
 // skipped: noise alone would spread micrometres of depth over a few cells and relax them for up
@@ -400,6 +397,9 @@ bool CellObserver::Impl::rest_without_fit(std::span<const double> readings) noex
   return true;
 }
 
+// Projected coordinate descent on 1/2 |r|^2 + 1/2 w_p |d - d_pred|^2 + w_1 sum d, d >= 0. A
+// cell is revisited only when a sensor it shares changed (a cell whose gradient has not changed
+// would not move).
 void CellObserver::Impl::fit(std::span<const double> readings) noexcept {
   const std::size_t cells = depth_m.size();
   // Small grids sweep every cell (cheaper than tracking which to visit); large grids revisit
