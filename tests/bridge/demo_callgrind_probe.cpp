@@ -4,8 +4,18 @@
 //   valgrind --tool=callgrind --instr-atstart=no --collect-atstart=no --dump-instr=no
 // (demo_callgrind_max.sh): collection is on around Bridge::step only and the counts are dumped
 // after every tick, one file per tick, so the script can take the maximum and percentiles.
-//   demo_callgrind_probe [TICKS [URI]]   (default 3000: idle, the first press, its hold and
-//                                         release; URI default mock://?seed=7)
+//   demo_callgrind_probe [TICKS [URI [FINGER]]]   (default 3000: idle, the first press, its hold
+//                                         and release; URI default mock://?seed=7; FINGER
+//                                         "scene", the demo's finger, or "all": every fluid
+//                                         cell pressed to 2 mm after 1 s untouched, held,
+//                                         then released)
+// With MRSKIN_PROBE_PHASES=FILE it writes each tick's phase, from the finger's true depths,
+// one line a tick in order (issue 21's gates are a maximum per phase): idle (no cell touched
+// for 1 s or since the start), refill (none touched now, one within 1 s), load1 / hold1 /
+// release1 (one cell deeper than 50 um, its finger deeper, still or shallower than the last
+// tick by more than 0.1 um), load_all / hold_all / release_all (every fluid cell deeper than
+// 50 um), other. MRSKIN_PROBE_INVERSE=1 prints the inverse's report every 25 ticks (loaded
+// cells, components, Gauss-Newton steps, converged, residuals in N).
 // It also prints the observer's rate error (its velocity less the finger's, RMS, mm/s) on the
 // cells the finger is off (idle: the rate noise a settled test sees) and on those it presses
 // deeper than 0.1 mm; run without valgrind for those alone.
@@ -33,6 +43,19 @@ int main(int argc, char** argv) {
     return 2;
   }
   const std::string uri = argc > 2 ? argv[2] : "mock://?seed=7";
+  const std::string finger_mode = argc > 3 ? argv[3] : "scene";
+  if (finger_mode != "scene" && finger_mode != "all") {
+    std::fputs("FINGER must be scene or all\n", stderr);
+    return 2;
+  }
+  std::FILE* phases = nullptr;
+  if (const char* path = std::getenv("MRSKIN_PROBE_PHASES")) {
+    phases = std::fopen(path, "w");
+    if (phases == nullptr) {
+      std::perror(path);
+      return 2;
+    }
+  }
   SimulatedClock clock;
   OpenOptions open;
   open.synchronous_mock = true;
@@ -54,16 +77,54 @@ int main(int argc, char** argv) {
   double contact_sq = 0.0;
   long idle_n = 0;
   long contact_n = 0;
+  int ticks_untouched = 0;
+  const bool print_inverse = std::getenv("MRSKIN_PROBE_INVERSE") != nullptr;
   CALLGRIND_START_INSTRUMENTATION;
   for (int k = 0; k < ticks; ++k) {
-    mrskin::eval::press_scene_finger(*scene, to_seconds(clock.now() - scene->start()), mock->layout(),
-                                     finger);
+    const double t_s = to_seconds(clock.now() - scene->start());
+    if (finger_mode == "all") {
+      // 1 s untouched, 0.6 s down to 2 mm, 0.6 s held, 0.6 s up, then untouched.
+      const double depth_m = 2e-3 * std::clamp(std::min((t_s - 1.0) / 0.6, (2.8 - t_s) / 0.6), 0.0, 1.0);
+      std::fill(finger.begin(), finger.end(), depth_m);
+    } else {
+      mrskin::eval::press_scene_finger(*scene, t_s, mock->layout(), finger);
+    }
     mock->set_finger_indentation(finger);
+    if (phases != nullptr) {
+      std::size_t pressed = 0;
+      std::size_t touched = 0;
+      double motion_m = 0.0;
+      for (std::size_t i = 0; i < finger.size(); ++i) {
+        touched += finger[i] > 0.0 ? 1U : 0U;
+        if (finger[i] > 50e-6) {
+          ++pressed;
+          motion_m = finger[i] - last_finger[i];
+        }
+      }
+      ticks_untouched = touched == 0 ? ticks_untouched + 1 : 0;
+      const bool loading = motion_m > 1e-7;
+      const bool releasing = motion_m < -1e-7;
+      const char* phase = "other";
+      if (touched == 0) {
+        phase = ticks_untouched > k || ticks_untouched > 1000 ? "idle" : "refill";
+      } else if (pressed == finger.size()) {
+        phase = loading ? "load_all" : (releasing ? "release_all" : "hold_all");
+      } else if (pressed == 1 && touched == 1) {
+        phase = loading ? "load1" : (releasing ? "release1" : "hold1");
+      }
+      std::fprintf(phases, "%s\n", phase);
+    }
     mock->step(clock.now());
     CALLGRIND_TOGGLE_COLLECT;
     (void)loop.step(clock.now());
     CALLGRIND_TOGGLE_COLLECT;
     CALLGRIND_DUMP_STATS;
+    if (print_inverse && k % 25 == 0) {
+      const model::InverseReport& r = loop.inverse().report();
+      std::printf("tick %d loaded %zu comps %zu it %d conv %d cache %d dirty %zu resid %.4f max %.4f\n", k,
+                  r.loaded_cells, r.components_solved, r.iterations, r.converged ? 1 : 0,
+                  r.from_cache ? 1 : 0, r.dirty_cells, r.residual_norm_N, r.max_residual_N);
+    }
     const std::span<const double> velocity = loop.observer().velocity_m_per_s();
     for (std::size_t i = 0; i < finger.size() && i < velocity.size(); ++i) {
       const double e = velocity[i] - (finger[i] - last_finger[i]) / 1e-3;
@@ -79,6 +140,9 @@ int main(int argc, char** argv) {
     clock.advance(std::chrono::milliseconds(1));
   }
   CALLGRIND_STOP_INSTRUMENTATION;
+  if (phases != nullptr) {
+    std::fclose(phases);
+  }
   const bridge::BridgeStats& s = loop.stats();
   std::printf("ticks %d observer_errors %llu sensor_faults %llu halts %llu\n", ticks,
               static_cast<unsigned long long>(s.observer_errors),

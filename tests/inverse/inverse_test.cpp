@@ -209,6 +209,45 @@ TEST_F(InverseSolve, ConflictingTargetsMatchTheSlowExactSolve) {
   }
 }
 
+// Every cell of the 5 x 5 pressed, each with its own target: 13 rows on 12 valves, so no levels
+// meet every aim and Gauss-Newton never converges. Each tick used to search again (a cold
+// restart and up to 8 escapes, 30-100 steps, up to 6.4M instructions a tick on the demo's mock).
+// A warm solve now stops at the compromise and searches again only after kSearchWaitTicks when
+// a search found nothing better: a few steps a tick, the residual as a fresh solve's.
+TEST_F(InverseSolve, AnInfeasibleFullPressTracksItsCompromiseWithoutSearchingEveryTick) {
+  CaseGenerator g(n, 11);
+  InverseCase c = blank();
+  std::vector<double> share(n);
+  std::vector<double> depth(n);
+  for (std::size_t cell = 0; cell < n; ++cell) {
+    depth[cell] = g.u(2.5e-3, 3.5e-3);
+    share[cell] = g.u(0.1, 0.9);
+    within_envelope(c, cell, depth[cell], 0.0, share[cell]);
+  }
+  ASSERT_EQ(inv.solve(c.targets, c.states, c.now_s), Status::ok);
+  ASSERT_FALSE(inv.report().converged) << "the case must be infeasible to test what it says";
+  long steps = 0;
+  int max_steps = 0;
+  constexpr int kTicks = 200;
+  for (int tick = 1; tick <= kTicks; ++tick) {
+    for (std::size_t cell = 0; cell < n; ++cell) {
+      c.states[cell].indentation_m = depth[cell] + g.u(-2e-6, 2e-6);  // the observer's noise
+    }
+    ASSERT_EQ(inv.solve(c.targets, c.states, c.now_s), Status::ok);
+    steps += inv.report().iterations;
+    max_steps = std::max(max_steps, inv.report().iterations);
+  }
+  const double tracked_N = inv.report().residual_norm_N;
+  inv.invalidate();
+  ASSERT_EQ(inv.solve(c.targets, c.states, c.now_s), Status::ok);
+  const double fresh_N = inv.report().residual_norm_N;
+  const double mean_steps = static_cast<double>(steps) / kTicks;
+  std::printf("full press: %.1f steps a tick (max %d); residual tracked %.4f N, fresh %.4f N\n", mean_steps,
+              max_steps, tracked_N, fresh_N);
+  EXPECT_LE(mean_steps, 6.0);
+  EXPECT_LE(tracked_N, 1.05 * fresh_N + 2e-3);
+}
+
 // ---- envelope, semi-activity, staleness ------------------------------------------------------
 
 TEST_F(InverseSolve, TargetsOutsideTheEnvelopeAreClampedAndFlagged) {

@@ -36,6 +36,21 @@ inline constexpr int kFallbackSweeps = 60;
 inline constexpr int kMaxActiveSetPasses = 24;
 inline constexpr int kMaxBacktracks = 4;
 inline constexpr std::size_t kMaxEscapes = 8;  // trials: a shared valve opened or shut
+// Escape trials in one solve: each is a Gauss-Newton of its own, so a component with many stalled
+// valves tries them a few at a time, over its searches, from where the last one stopped.
+inline constexpr std::size_t kEscapesPerSolve = 2;
+// Gauss-Newton stops at a stationary point: a step that lowers the merit by less than this
+// fraction. Where no levels meet every aim (more loaded cells than valves can satisfy, e.g. the
+// 5x5's 13 cells pressed at once) it stops at the least-squares compromise instead of running to
+// max_iterations.
+inline constexpr double kStationaryDecrease = 1e-3;
+// A warm solve that does not converge searches again (a cold restart, then the stall escapes).
+// When that search lowers the merit by less than kSearchGain, the warm solution is the
+// compromise: the component tracks it for kSearchWaitTicks ticks before searching again. Without
+// the wait, an infeasible component searched every tick: up to 6.4M instructions a tick with
+// the 5x5's 13 cells pressed (docs/model.md, "Cost").
+inline constexpr double kSearchGain = 0.01;
+inline constexpr int kSearchWaitTicks = 64;
 // Levenberg-Marquardt damping, relative to a cell's unit sensitivity to its valves.
 inline constexpr double kStartDamping = 1e-3;
 inline constexpr double kMinDamping = 1e-7;
@@ -630,13 +645,17 @@ struct ChordFactors {
       : offset(g.cells + 1, 0),
         pool(kDenseRows * g.cells, 0.0),
         age(g.cells, -1),
+        search_wait(g.cells, 0),
+        escape_next(g.cells, 0),
         inc_jac(g.valve_cells.size(), 0.0),
         bound(g.valves, 0),
         included(g.cells, 0) {}
 
   std::vector<std::uint32_t> offset;  // per component, into pool
   std::vector<double> pool;
-  std::vector<int> age;  // chord steps since it was made; -1: none valid
+  std::vector<int> age;                    // chord steps since it was made; -1: none valid
+  std::vector<int> search_wait;            // ticks before a non-converging warm solve searches again
+  std::vector<std::uint32_t> escape_next;  // the escape trial its next search starts with
   std::vector<double> inc_jac;
   std::vector<unsigned char> bound;
   std::vector<unsigned char> included;
@@ -646,6 +665,8 @@ struct ChordFactors {
       const std::uint32_t rows = part.cell_begin[c + 1] - part.cell_begin[c];
       offset[c + 1] = offset[c] + (rows <= kDenseRows ? rows * rows : 0);
       age[c] = -1;
+      search_wait[c] = 0;
+      escape_next[c] = 0;
     }
   }
 };
@@ -735,8 +756,8 @@ class InverseSolver {
              ChordFactors& factors, ValveLevels& levels, bool& converged) noexcept;
   double restart_cold(const InverseTopology& topo, const Component& comp, CellMemory& memory,
                       ChordFactors& factors, ValveLevels& levels, double merit, bool& converged) noexcept;
-  void escape_stall(const InverseTopology& topo, const Component& comp, const CellMemory& memory,
-                    ChordFactors& factors, ValveLevels& levels, double merit, bool& converged) noexcept;
+  double escape_stall(const InverseTopology& topo, const Component& comp, const CellMemory& memory,
+                      ChordFactors& factors, ValveLevels& levels, double merit, bool& converged) noexcept;
   // From the current levels, with the rows already evaluated there (merit: their merit).
   double gauss_newton(const InverseTopology& topo, const Component& comp, const CellMemory& memory,
                       ChordFactors& factors, ValveLevels& levels, double start_damping, bool& converged,

@@ -430,6 +430,8 @@ void InverseSolver::solve_conflict(const InverseTopology& topo, const Component&
   if (warm && comp.cells.size() <= kDenseRows) {
     tracked = track(topo, comp, memory, factors, levels, converged);
   }
+  bool searched = false;
+  double warm_merit = 0.0;
   if (!tracked) {
     if (warm) {
       merit = evaluate_rows(topo, comp, memory, levels);  // far from the aim: relinearise where needed
@@ -437,12 +439,23 @@ void InverseSolver::solve_conflict(const InverseTopology& topo, const Component&
     merit = gauss_newton(topo, comp, memory, factors, levels, warm ? kMinDamping : kStartDamping, converged,
                          merit);
     if (!converged && warm) {
-      merit = restart_cold(topo, comp, memory, factors, levels, merit, converged);
-      warm = false;  // and the escapes below if still short
+      int& wait = factors.search_wait[comp.id];
+      if (wait > 0) {
+        --wait;  // the last search found nothing better than tracking: no levels meet every aim
+      } else {
+        searched = true;
+        warm_merit = merit;
+        merit = restart_cold(topo, comp, memory, factors, levels, merit, converged);
+        warm = false;  // and the escapes below if still short
+      }
     }
   }
   if (!converged && !warm) {
-    escape_stall(topo, comp, memory, factors, levels, merit, converged);
+    merit = escape_stall(topo, comp, memory, factors, levels, merit, converged);
+  }
+  if (searched) {
+    factors.search_wait[comp.id] =
+        !converged && merit > (1.0 - kSearchGain) * warm_merit ? kSearchWaitTicks : 0;
   }
   double worst = 0.0;
   for (std::size_t r = 0; r < comp.cells.size(); ++r) {
@@ -527,9 +540,9 @@ double InverseSolver::restart_cold(const InverseTopology& topo, const Component&
 // A cold start can stall where two cells pull a shared valve both ways and symmetry keeps the
 // valves together (e.g. a corner cell that must flow through one of its two valves while its
 // neighbour needs both high). Tries opening or shutting each such valve.
-void InverseSolver::escape_stall(const InverseTopology& topo, const Component& comp, const CellMemory& memory,
-                                 ChordFactors& factors, ValveLevels& levels, double merit,
-                                 bool& converged) noexcept {
+double InverseSolver::escape_stall(const InverseTopology& topo, const Component& comp,
+                                   const CellMemory& memory, ChordFactors& factors, ValveLevels& levels,
+                                   double merit, bool& converged) noexcept {
   double* const t = levels.t.data();
   const std::span<const std::uint32_t> valves = comp.valves;
   std::size_t candidates = 0;
@@ -547,7 +560,10 @@ void InverseSolver::escape_stall(const InverseTopology& topo, const Component& c
     best[k] = t[valves[k]];
   }
   double best_merit = merit;
-  for (std::size_t i = 0; i < 2 * candidates && i < kMaxEscapes && !converged; ++i) {
+  const std::size_t trials = std::min(2 * candidates, kMaxEscapes);
+  std::uint32_t& next = factors.escape_next[comp.id];
+  for (std::size_t n = 0; n < trials && n < kEscapesPerSolve && !converged; ++n) {
+    const std::size_t i = (next + n) % trials;
     for (std::size_t k = 0; k < valves.size(); ++k) {
       t[valves[k]] = best[k];
     }
@@ -564,11 +580,13 @@ void InverseSolver::escape_stall(const InverseTopology& topo, const Component& c
     }
   }
   if (candidates > 0) {
+    next = static_cast<std::uint32_t>((next + std::min(trials, kEscapesPerSolve)) % trials);
     for (std::size_t k = 0; k < valves.size(); ++k) {
       t[valves[k]] = best[k];
     }
-    evaluate_rows(topo, comp, memory, levels);
+    return evaluate_rows(topo, comp, memory, levels);
   }
+  return merit;
 }
 
 // Damped Gauss-Newton (Levenberg-Marquardt with backtracking) from the current levels of the
@@ -622,7 +640,7 @@ double InverseSolver::gauss_newton(const InverseTopology& topo, const Component&
       merit = evaluate_rows(topo, comp, memory, levels);
       break;  // no descent left at this linearisation: stop here
     }
-    const bool stalled = merit - merit_new <= 1e-15 * merit;
+    const bool stalled = merit - merit_new <= kStationaryDecrease * merit;
     merit = merit_new;
     if (stalled) {
       break;
