@@ -44,11 +44,11 @@ inline constexpr std::size_t kEscapesPerSolve = 2;
 // 5x5's 13 cells pressed at once) it stops at the least-squares compromise instead of running to
 // max_iterations.
 inline constexpr double kStationaryDecrease = 1e-3;
-// A warm solve that does not converge searches again (a cold restart, then the stall escapes).
-// When that search lowers the merit by less than kSearchGain, the warm solution is the
-// compromise: the component tracks it for kSearchWaitTicks ticks before searching again. Without
-// the wait, an infeasible component searched every tick: up to 6.4M instructions a tick with
-// the 5x5's 13 cells pressed (docs/model.md, "Cost").
+// A warm solve that does not converge searches again, a stage a tick (a cold restart, then the
+// stall escapes). When a search lowers the merit by less than kSearchGain, the warm solution is
+// the compromise: the component tracks it for kSearchWaitTicks ticks before searching again.
+// Without the wait, an infeasible component searched every tick: up to 6.4M instructions a tick
+// with the 5x5's 13 cells pressed (docs/bridge.md, "Cost per tick").
 inline constexpr double kSearchGain = 0.01;
 inline constexpr int kSearchWaitTicks = 64;
 // Levenberg-Marquardt damping, relative to a cell's unit sensitivity to its valves.
@@ -647,15 +647,19 @@ struct ChordFactors {
         age(g.cells, -1),
         search_wait(g.cells, 0),
         escape_next(g.cells, 0),
+        search_stage(g.cells, 0),
+        search_gained(g.cells, 0),
         inc_jac(g.valve_cells.size(), 0.0),
         bound(g.valves, 0),
         included(g.cells, 0) {}
 
   std::vector<std::uint32_t> offset;  // per component, into pool
   std::vector<double> pool;
-  std::vector<int> age;                    // chord steps since it was made; -1: none valid
-  std::vector<int> search_wait;            // ticks before a non-converging warm solve searches again
-  std::vector<std::uint32_t> escape_next;  // the escape trial its next search starts with
+  std::vector<int> age;                      // chord steps since it was made; -1: none valid
+  std::vector<int> search_wait;              // ticks before a non-converging warm solve searches again
+  std::vector<std::uint32_t> escape_next;    // the escape trial its next search starts with
+  std::vector<unsigned char> search_stage;   // 0: a cold restart next, 1: the escapes
+  std::vector<unsigned char> search_gained;  // this search's stages found better levels
   std::vector<double> inc_jac;
   std::vector<unsigned char> bound;
   std::vector<unsigned char> included;
@@ -667,6 +671,8 @@ struct ChordFactors {
       age[c] = -1;
       search_wait[c] = 0;
       escape_next[c] = 0;
+      search_stage[c] = 0;
+      search_gained[c] = 0;
     }
   }
 };
@@ -756,6 +762,8 @@ class InverseSolver {
              ChordFactors& factors, ValveLevels& levels, bool& converged) noexcept;
   double restart_cold(const InverseTopology& topo, const Component& comp, CellMemory& memory,
                       ChordFactors& factors, ValveLevels& levels, double merit, bool& converged) noexcept;
+  void search(const InverseTopology& topo, const Component& comp, CellMemory& memory, ChordFactors& factors,
+              ValveLevels& levels, double& merit, bool& converged) noexcept;
   double escape_stall(const InverseTopology& topo, const Component& comp, const CellMemory& memory,
                       ChordFactors& factors, ValveLevels& levels, double merit, bool& converged) noexcept;
   // From the current levels, with the rows already evaluated there (merit: their merit).

@@ -430,8 +430,6 @@ void InverseSolver::solve_conflict(const InverseTopology& topo, const Component&
   if (warm && comp.cells.size() <= kDenseRows) {
     tracked = track(topo, comp, memory, factors, levels, converged);
   }
-  bool searched = false;
-  double warm_merit = 0.0;
   if (!tracked) {
     if (warm) {
       merit = evaluate_rows(topo, comp, memory, levels);  // far from the aim: relinearise where needed
@@ -439,23 +437,12 @@ void InverseSolver::solve_conflict(const InverseTopology& topo, const Component&
     merit = gauss_newton(topo, comp, memory, factors, levels, warm ? kMinDamping : kStartDamping, converged,
                          merit);
     if (!converged && warm) {
-      int& wait = factors.search_wait[comp.id];
-      if (wait > 0) {
-        --wait;  // the last search found nothing better than tracking: no levels meet every aim
-      } else {
-        searched = true;
-        warm_merit = merit;
-        merit = restart_cold(topo, comp, memory, factors, levels, merit, converged);
-        warm = false;  // and the escapes below if still short
-      }
+      search(topo, comp, memory, factors, levels, merit, converged);
+    } else if (!converged) {
+      // A cold solve that stalled: its escapes are the next tick's search.
+      factors.search_stage[comp.id] = 1;
+      factors.search_wait[comp.id] = 0;
     }
-  }
-  if (!converged && !warm) {
-    merit = escape_stall(topo, comp, memory, factors, levels, merit, converged);
-  }
-  if (searched) {
-    factors.search_wait[comp.id] =
-        !converged && merit > (1.0 - kSearchGain) * warm_merit ? kSearchWaitTicks : 0;
   }
   double worst = 0.0;
   for (std::size_t r = 0; r < comp.cells.size(); ++r) {
@@ -464,6 +451,34 @@ void InverseSolver::solve_conflict(const InverseTopology& topo, const Component&
     worst = std::max(worst, std::fabs(er));
   }
   work.converged = converged || worst <= topo.tol_Pa;
+}
+
+// A warm solve that did not converge: the search for better levels, one stage a tick so that no
+// tick pays for all of it. Stage 0 restarts from the demands (a press turned into a hold, where
+// the weakest valve rules); stage 1 tries the stall escapes from the levels tracked. A search
+// whose two stages lowered the merit by less than kSearchGain found the compromise of aims no
+// levels meet: the component tracks it for kSearchWaitTicks ticks before searching again.
+void InverseSolver::search(const InverseTopology& topo, const Component& comp, CellMemory& memory,
+                           ChordFactors& factors, ValveLevels& levels, double& merit,
+                           bool& converged) noexcept {
+  int& wait = factors.search_wait[comp.id];
+  if (wait > 0) {
+    --wait;
+    return;
+  }
+  unsigned char& stage = factors.search_stage[comp.id];
+  unsigned char& gained = factors.search_gained[comp.id];
+  const double tracked = merit;
+  merit = stage == 0 ? restart_cold(topo, comp, memory, factors, levels, merit, converged)
+                     : escape_stall(topo, comp, memory, factors, levels, merit, converged);
+  gained = gained != 0 || converged || merit < (1.0 - kSearchGain) * tracked ? 1 : 0;
+  if (stage == 0) {
+    stage = 1;
+    return;
+  }
+  stage = 0;
+  wait = gained != 0 ? 0 : kSearchWaitTicks;
+  gained = 0;
 }
 
 // Tracking: the last solve's levels with this tick's targets. A small error takes one damped
