@@ -217,8 +217,9 @@ struct SoakOutcome {
   std::uint64_t ticks_run = 0;
   std::uint64_t failed_steps = 0;
   std::uint64_t nonfinite_ticks = 0;
-  std::uint64_t not_enabled_ticks = 0;
-  std::uint64_t first_bad_tick = 0;  // first tick with any of the three above (0: none)
+  std::uint64_t not_enabled_ticks = 0;  // after the device's first ENABLED tick
+  std::uint64_t ticks_to_enable = 0;    // enable() is a request: the ticks before its answer
+  std::uint64_t first_bad_tick = 0;     // first tick with any of the three above (0: none)
   double wall_s = 0.0;
 };
 
@@ -253,7 +254,11 @@ SoakOutcome soak(const char* label, sim::MockDevice& mock, DeviceSession& sessio
     mock.true_contact_forces(truth_N);
     const bool ok_step = rc == ResultCode::ok;
     const bool ok_values = finite(loop.currents_A()) && finite(loop.targets_N()) && finite(truth_N);
-    const bool ok_state = session.state() == DeviceState::enabled && !loop.halted();
+    const bool enabled = session.state() == DeviceState::enabled;
+    if (!enabled && out.ticks_to_enable == k - 1) {
+      ++out.ticks_to_enable;  // still waiting for the unit to answer the enable request
+    }
+    const bool ok_state = (enabled || out.ticks_to_enable == k) && !loop.halted();
     out.failed_steps += ok_step ? 0 : 1;
     out.nonfinite_ticks += ok_values ? 0 : 1;
     out.not_enabled_ticks += ok_state ? 0 : 1;
@@ -347,6 +352,7 @@ void expect_steady(const char* label, const SoakOutcome& r, std::uint64_t ticks)
   EXPECT_EQ(r.failed_steps, 0U);
   EXPECT_EQ(r.nonfinite_ticks, 0U);
   EXPECT_EQ(r.not_enabled_ticks, 0U);
+  EXPECT_LE(r.ticks_to_enable, 10U) << "the unit answers the enable request within a few ticks";
   EXPECT_EQ(r.first_bad_tick, 0U);
   std::vector<const Window*> whole;
   for (const Window& w : r.windows) {
