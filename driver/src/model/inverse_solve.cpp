@@ -554,7 +554,8 @@ double InverseSolver::restart_cold(const InverseTopology& topo, const Component&
 
 // A cold start can stall where two cells pull a shared valve both ways and symmetry keeps the
 // valves together (e.g. a corner cell that must flow through one of its two valves while its
-// neighbour needs both high). Tries opening or shutting each such valve.
+// neighbour needs both high). Tries opening or shutting such valves, kEscapesPerSolve trials a
+// call, the next call going on from where this one stopped (escape_next); keeps the best levels.
 double InverseSolver::escape_stall(const InverseTopology& topo, const Component& comp,
                                    const CellMemory& memory, ChordFactors& factors, ValveLevels& levels,
                                    double merit, bool& converged) noexcept {
