@@ -862,7 +862,10 @@ TEST(CanTransport, ForeignAndMalformedFramesAreCountedAndNeverDelivered) {
   std::size_t random_frames = 0;
   for (int i = 0; i < 3000; ++i) {
     proto::CanFrame f;
-    f.id = static_cast<std::uint32_t>((byte(rng) & 0x7) << 8 | (byte(rng) & 0xF) << 4 | 5);
+    // One draw a statement, in the order g++ took them: the order of `|`'s operands is unspecified.
+    const int mid = byte(rng);
+    const int high = byte(rng);
+    f.id = static_cast<std::uint32_t>((high & 0x7) << 8 | (mid & 0xF) << 4 | 5);
     f.length = static_cast<std::uint8_t>(byte(rng) % 9);
     for (auto& b : f.data) {
       b = static_cast<std::uint8_t>(byte(rng));

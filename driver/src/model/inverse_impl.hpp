@@ -36,21 +36,28 @@ inline constexpr int kFallbackSweeps = 60;
 inline constexpr int kMaxActiveSetPasses = 24;
 inline constexpr int kMaxBacktracks = 4;
 inline constexpr std::size_t kMaxEscapes = 8;  // trials: a shared valve opened or shut
-// Escape trials in one solve: each is a Gauss-Newton of its own, so a component with many stalled
-// valves tries them a few at a time, over its searches, from where the last one stopped.
-inline constexpr std::size_t kEscapesPerSolve = 2;
+// Escape trials a tick: each is a Gauss-Newton of its own (up to about 12 steps), so a search
+// tries them one a tick, in place of that tick's warm solve, until each was tried.
+inline constexpr std::size_t kEscapesPerSolve = 1;
 // Gauss-Newton stops at a stationary point: a step that lowers the merit by less than this
 // fraction. Where no levels meet every aim (more loaded cells than valves can satisfy, e.g. the
 // 5x5's 13 cells pressed at once) it stops at the least-squares compromise instead of running to
 // max_iterations.
 inline constexpr double kStationaryDecrease = 1e-3;
-// A warm solve that does not converge searches again, a stage a tick (a cold restart, then the
-// stall escapes). When a search lowers the merit by less than kSearchGain, the warm solution is
-// the compromise: the component tracks it for kSearchWaitTicks ticks before searching again.
+// A solve that does not converge searches again, a stage a tick in place of the warm solve (a
+// cold restart, then the stall escapes). When a search lowers the merit by less than kSearchGain,
+// the warm solution is the compromise: the component tracks it for kSearchWaitTicks ticks before
+// searching again.
 // Without the wait, an infeasible component searched every tick: up to 6.4M instructions a tick
 // with the 5x5's 13 cells pressed (docs/bridge.md, "Cost per tick").
 inline constexpr double kSearchGain = 0.01;
 inline constexpr int kSearchWaitTicks = 64;
+// A component's search, one stage a tick (ChordFactors::search_stage).
+inline constexpr unsigned char kSearchIdle = 0;
+inline constexpr unsigned char kSearchRestart = 1;  // a cold restart next tick
+inline constexpr unsigned char kSearchEscapes = 2;  // escape trials next tick, from escape_next
+// Warm Gauss-Newton steps a search tick takes before its stage, to follow the tick's targets.
+inline constexpr int kSearchTrackSteps = 1;
 // Levenberg-Marquardt damping, relative to a cell's unit sensitivity to its valves.
 inline constexpr double kStartDamping = 1e-3;
 inline constexpr double kMinDamping = 1e-7;
@@ -657,21 +664,23 @@ struct ChordFactors {
   std::vector<double> pool;
   std::vector<int> age;                      // chord steps since it was made; -1: none valid
   std::vector<int> search_wait;              // ticks before a non-converging warm solve searches again
-  std::vector<std::uint32_t> escape_next;    // the escape trial its next search starts with
-  std::vector<unsigned char> search_stage;   // 0: a cold restart next, 1: the escapes
+  std::vector<std::uint32_t> escape_next;    // the escape trial the search's next tick starts with
+  std::vector<unsigned char> search_stage;   // kSearchIdle, kSearchRestart or kSearchEscapes
   std::vector<unsigned char> search_gained;  // this search's stages found better levels
+  bool searching = false;                    // some component may have a search under way
   std::vector<double> inc_jac;
   std::vector<unsigned char> bound;
   std::vector<unsigned char> included;
 
   void reset(const ComponentPartition& part) noexcept {
+    searching = false;
     for (std::size_t c = 0; c < part.count; ++c) {
       const std::uint32_t rows = part.cell_begin[c + 1] - part.cell_begin[c];
       offset[c + 1] = offset[c] + (rows <= kDenseRows ? rows * rows : 0);
       age[c] = -1;
       search_wait[c] = 0;
       escape_next[c] = 0;
-      search_stage[c] = 0;
+      search_stage[c] = kSearchIdle;
       search_gained[c] = 0;
     }
   }
@@ -713,6 +722,10 @@ struct InverseOutput {
     rep.iterations = 0;
     return s;
   }
+  // A tick with no cell changed that still solves a component (a search spread over ticks): the
+  // report's counters, reset by the commit, count that work; converged keeps the last solve's
+  // verdict for the components not solved again.
+  void reopen() noexcept { rep.from_cache = false; }
 };
 
 // The work of one component's solve, folded into the report at its end.
@@ -762,14 +775,15 @@ class InverseSolver {
              ChordFactors& factors, ValveLevels& levels, bool& converged) noexcept;
   double restart_cold(const InverseTopology& topo, const Component& comp, CellMemory& memory,
                       ChordFactors& factors, ValveLevels& levels, double merit, bool& converged) noexcept;
-  void search(const InverseTopology& topo, const Component& comp, CellMemory& memory, ChordFactors& factors,
-              ValveLevels& levels, double& merit, bool& converged) noexcept;
+  static void plan_search(const Component& comp, ChordFactors& factors, bool warm) noexcept;
+  double search(const InverseTopology& topo, const Component& comp, CellMemory& memory, ChordFactors& factors,
+                ValveLevels& levels, double merit, bool& converged) noexcept;
   double escape_stall(const InverseTopology& topo, const Component& comp, const CellMemory& memory,
                       ChordFactors& factors, ValveLevels& levels, double merit, bool& converged) noexcept;
   // From the current levels, with the rows already evaluated there (merit: their merit).
   double gauss_newton(const InverseTopology& topo, const Component& comp, const CellMemory& memory,
                       ChordFactors& factors, ValveLevels& levels, double start_damping, bool& converged,
-                      double merit) noexcept;
+                      double merit, int max_steps = -1) noexcept;
   // What evaluate_rows fills: the residuals alone; also the Jacobian, linearised at the aim; or
   // also relinearised, where a flowing row far from its aim is linearised at its true pressure (a
   // forward solve) instead.
@@ -826,7 +840,9 @@ struct __attribute__((visibility("hidden"))) CellInverse::Impl {
 
   Status solve(std::span<const CellImpedanceTarget> targets, std::span<const CellState> states,
                double now_s) noexcept;
-  void resolve_dirty() noexcept;
+  void resolve_dirty(std::uint64_t pass) noexcept;
+  bool continue_searches(std::uint64_t pass) noexcept;
+  void solve_component(std::size_t c, std::uint64_t pass) noexcept;
 };
 
 }  // namespace mrskin::model

@@ -243,33 +243,59 @@ Status CellInverse::Impl::solve(std::span<const CellImpedanceTarget> targets,
     return output.fail(v.status, v.cell);
   }
   const Committed committed = commit(changes, memory, output, targets, states, now_s);
-  if (committed == Committed::nothing) {
-    return Status::ok;
-  }
   if (committed == Committed::roles) {
     partition.rebuild(topo.graph, memory.loaded);
     factors.reset(partition);
     memory.roles_rebuilt();
   }
-  resolve_dirty();
+  const std::uint64_t pass = ++changes.resolves;
+  if (committed != Committed::nothing) {
+    resolve_dirty(pass);
+  }
+  // (The flag is tested here: most ticks have no search under way and pay no call.)
+  const bool searched = factors.searching && continue_searches(pass);
+  if (!searched && committed == Committed::nothing) {
+    return Status::ok;  // the cached currents stand
+  }
   summarise(memory.loaded_list, output);
   return Status::ok;
 }
 
+void CellInverse::Impl::solve_component(std::size_t c, std::uint64_t pass) noexcept {
+  changes.solved[c] = pass;
+  const Component& comp = partition.components[c];
+  ++output.rep.components_solved;
+  solver.solve(topo, comp, memory, factors, levels, output);
+  levels.write(topo, comp.valves);
+  output.rep.valve_updates += comp.valves.size();
+}
+
+// A search spread over ticks (InverseSolver::search) goes on whether or not its inputs changed:
+// held still, a compromise would otherwise keep the levels of a stalled start. True when it
+// solved some component.
+bool CellInverse::Impl::continue_searches(std::uint64_t pass) noexcept {
+  bool any = false;
+  bool left = false;
+  for (std::size_t c = 0; c < partition.count; ++c) {
+    if (factors.search_stage[c] != kSearchIdle && changes.solved[c] != pass) {
+      if (!any && output.rep.from_cache) {
+        output.reopen();
+      }
+      any = true;
+      solve_component(c, pass);
+    }
+    left = left || factors.search_stage[c] != kSearchIdle;
+  }
+  factors.searching = left;
+  return any;
+}
+
 // Re-solves every component that holds a dirty cell or one of its valves; releases the valves of
 // dirty cells that no loaded cell needs.
-void CellInverse::Impl::resolve_dirty() noexcept {
+void CellInverse::Impl::resolve_dirty(std::uint64_t pass) noexcept {
   InverseReport& rep = output.rep;
-  const std::uint64_t pass = ++changes.resolves;
   // The pass check stays out of the call: most dirty cells share a component already solved.
-  const auto solve = [&](std::size_t c) {
-    changes.solved[c] = pass;
-    const Component& comp = partition.components[c];
-    ++rep.components_solved;
-    solver.solve(topo, comp, memory, factors, levels, output);
-    levels.write(topo, comp.valves);
-    rep.valve_updates += comp.valves.size();
-  };
+  const auto solve = [&](std::size_t c) { solve_component(c, pass); };
   for (const std::uint32_t i : changes.dirty) {
     if (memory.loaded[i] != 0) {
       if (const std::uint32_t c = partition.comp_of_cell[i]; changes.solved[c] != pass) {
@@ -427,22 +453,42 @@ void InverseSolver::solve_conflict(const InverseTopology& topo, const Component&
   bool tracked = false;
   // Warm: residuals only first (a chord step reuses the saved Jacobian).
   double merit = evaluate_rows(topo, comp, memory, levels, warm ? Rows::residuals : Rows::relinearised);
-  if (warm && comp.cells.size() <= kDenseRows) {
+  // A search under way goes on before any tracking: tracking near a compromise would stop it.
+  const bool searching = warm && factors.search_stage[comp.id] != kSearchIdle;
+  if (warm && !searching && comp.cells.size() <= kDenseRows) {
     tracked = track(topo, comp, memory, factors, levels, converged);
   }
   if (!tracked) {
     if (warm) {
       merit = evaluate_rows(topo, comp, memory, levels);  // far from the aim: relinearise where needed
     }
-    merit = gauss_newton(topo, comp, memory, factors, levels, warm ? kMinDamping : kStartDamping, converged,
-                         merit);
-    if (!converged && warm) {
-      search(topo, comp, memory, factors, levels, merit, converged);
-    } else if (!converged) {
-      // A cold solve that stalled: its escapes are the next tick's search.
-      factors.search_stage[comp.id] = 1;
-      factors.search_wait[comp.id] = 0;
+    if (searching) {
+      // The search's next stage stands in for this tick's warm solve (each of its trials is a
+      // solve of its own) after kSearchTrackSteps steps that follow this tick's targets: the
+      // stage keeps those levels when none of its trials does better.
+      merit =
+          gauss_newton(topo, comp, memory, factors, levels, kMinDamping, converged, merit, kSearchTrackSteps);
+      if (!converged) {
+        merit = search(topo, comp, memory, factors, levels, merit, converged);
+      }
+    } else {
+      const int steps_before = work.iterations;
+      merit = gauss_newton(topo, comp, memory, factors, levels, warm ? kMinDamping : kStartDamping, converged,
+                           merit);
+      if (!converged) {
+        plan_search(comp, factors, warm);
+        // A warm solve that gave up within half its steps (a press turned into a hold stops
+        // after about 5) leaves this tick room for the cold restart: the hold is met on the tick
+        // it begins. A longer one leaves the restart to the next tick.
+        if (factors.search_stage[comp.id] == kSearchRestart &&
+            2 * (work.iterations - steps_before) <= topo.opt.max_iterations) {
+          merit = search(topo, comp, memory, factors, levels, merit, converged);
+        }
+      }
     }
+  }
+  if (converged) {
+    factors.search_stage[comp.id] = kSearchIdle;  // nothing left to search for
   }
   double worst = 0.0;
   for (std::size_t r = 0; r < comp.cells.size(); ++r) {
@@ -453,32 +499,50 @@ void InverseSolver::solve_conflict(const InverseTopology& topo, const Component&
   work.converged = converged || worst <= topo.tol_Pa;
 }
 
-// A warm solve that did not converge: the search for better levels, one stage a tick so that no
-// tick pays for all of it. Stage 0 restarts from the demands (a press turned into a hold, where
-// the weakest valve rules); stage 1 tries the stall escapes from the levels tracked. A search
-// whose two stages lowered the merit by less than kSearchGain found the compromise of aims no
-// levels meet: the component tracks it for kSearchWaitTicks ticks before searching again.
-void InverseSolver::search(const InverseTopology& topo, const Component& comp, CellMemory& memory,
-                           ChordFactors& factors, ValveLevels& levels, double& merit,
-                           bool& converged) noexcept {
+// A solve that did not converge plans a search for better levels, spread over the next ticks so
+// that no tick pays for more than one Gauss-Newton (about 12 steps): a cold restart from the
+// demands first (a press turned into a hold, where the weakest valve rules), then the stall
+// escapes from the best levels so far, kEscapesPerSolve a tick until each was tried. A cold solve
+// that stalled goes straight to the escapes. Its inputs held or not, the search goes on
+// (CellInverse::Impl::continue_searches). A search whose stages lowered the merit by less than
+// kSearchGain found the compromise of aims no levels meet: the component tracks it for
+// kSearchWaitTicks ticks before searching again.
+void InverseSolver::plan_search(const Component& comp, ChordFactors& factors, bool warm) noexcept {
   int& wait = factors.search_wait[comp.id];
-  if (wait > 0) {
+  if (warm && wait > 0) {
     --wait;
     return;
   }
+  wait = 0;
+  factors.searching = true;
+  factors.search_stage[comp.id] = warm ? kSearchRestart : kSearchEscapes;
+  factors.search_gained[comp.id] = 0;
+  factors.escape_next[comp.id] = 0;
+}
+
+// One stage of the search planned; returns the merit of the levels it leaves.
+double InverseSolver::search(const InverseTopology& topo, const Component& comp, CellMemory& memory,
+                             ChordFactors& factors, ValveLevels& levels, double merit,
+                             bool& converged) noexcept {
   unsigned char& stage = factors.search_stage[comp.id];
   unsigned char& gained = factors.search_gained[comp.id];
   const double tracked = merit;
-  merit = stage == 0 ? restart_cold(topo, comp, memory, factors, levels, merit, converged)
-                     : escape_stall(topo, comp, memory, factors, levels, merit, converged);
+  const bool restart = stage == kSearchRestart;
+  merit = restart ? restart_cold(topo, comp, memory, factors, levels, merit, converged)
+                  : escape_stall(topo, comp, memory, factors, levels, merit, converged);
   gained = gained != 0 || converged || merit < (1.0 - kSearchGain) * tracked ? 1 : 0;
-  if (stage == 0) {
-    stage = 1;
-    return;
+  if (restart) {
+    stage = kSearchEscapes;
+    factors.escape_next[comp.id] = 0;
+    return merit;
   }
-  stage = 0;
-  wait = gained != 0 ? 0 : kSearchWaitTicks;
+  if (factors.escape_next[comp.id] != 0 && !converged) {
+    return merit;  // escapes left for the next tick
+  }
+  stage = kSearchIdle;
+  factors.search_wait[comp.id] = gained != 0 ? 0 : kSearchWaitTicks;
   gained = 0;
+  return merit;
 }
 
 // Tracking: the last solve's levels with this tick's targets. A small error takes one damped
@@ -555,7 +619,8 @@ double InverseSolver::restart_cold(const InverseTopology& topo, const Component&
 // A cold start can stall where two cells pull a shared valve both ways and symmetry keeps the
 // valves together (e.g. a corner cell that must flow through one of its two valves while its
 // neighbour needs both high). Tries opening or shutting such valves, kEscapesPerSolve trials a
-// call, the next call going on from where this one stopped (escape_next); keeps the best levels.
+// call, the next call going on from where this one stopped (escape_next, 0 once each was tried);
+// keeps the best levels.
 double InverseSolver::escape_stall(const InverseTopology& topo, const Component& comp,
                                    const CellMemory& memory, ChordFactors& factors, ValveLevels& levels,
                                    double merit, bool& converged) noexcept {
@@ -578,8 +643,8 @@ double InverseSolver::escape_stall(const InverseTopology& topo, const Component&
   double best_merit = merit;
   const std::size_t trials = std::min(2 * candidates, kMaxEscapes);
   std::uint32_t& next = factors.escape_next[comp.id];
-  for (std::size_t n = 0; n < trials && n < kEscapesPerSolve && !converged; ++n) {
-    const std::size_t i = (next + n) % trials;
+  const std::size_t first = next;
+  for (std::size_t i = first; i < trials && i < first + kEscapesPerSolve && !converged; ++i) {
     for (std::size_t k = 0; k < valves.size(); ++k) {
       t[valves[k]] = best[k];
     }
@@ -595,8 +660,10 @@ double InverseSolver::escape_stall(const InverseTopology& topo, const Component&
       }
     }
   }
+  next = first + kEscapesPerSolve < trials && !converged
+             ? static_cast<std::uint32_t>(first + kEscapesPerSolve)
+             : 0;
   if (candidates > 0) {
-    next = static_cast<std::uint32_t>((next + std::min(trials, kEscapesPerSolve)) % trials);
     for (std::size_t k = 0; k < valves.size(); ++k) {
       t[valves[k]] = best[k];
     }
@@ -609,9 +676,11 @@ double InverseSolver::escape_stall(const InverseTopology& topo, const Component&
 // component; leaves the rows evaluated at the final levels. Returns the merit.
 double InverseSolver::gauss_newton(const InverseTopology& topo, const Component& comp,
                                    const CellMemory& memory, ChordFactors& factors, ValveLevels& levels,
-                                   double start_damping, bool& converged, double merit) noexcept {
+                                   double start_damping, bool& converged, double merit,
+                                   int max_steps) noexcept {
   double* const t = levels.t.data();
   const std::span<const std::uint32_t> valves = comp.valves;
+  const int steps = max_steps >= 0 ? max_steps : topo.opt.max_iterations;
   double damping = start_damping;
   converged = false;
   for (int it = 0;; ++it) {
@@ -623,7 +692,7 @@ double InverseSolver::gauss_newton(const InverseTopology& topo, const Component&
       converged = true;
       break;
     }
-    if (it >= topo.opt.max_iterations) {
+    if (it >= steps) {
       break;
     }
     ++work.iterations;
