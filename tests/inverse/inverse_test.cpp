@@ -225,7 +225,7 @@ TEST_F(InverseSolve, ConflictingTargetsMatchTheSlowExactSolve) {
 // Every cell of the 5 x 5 pressed, each with its own target: 13 rows on 12 valves, so no levels
 // meet every aim and Gauss-Newton never converges. Each tick used to search again (a cold
 // restart and up to 8 escapes, 30-100 steps, up to 6.4M instructions a tick on the demo's mock).
-// A warm solve now stops at the compromise and searches again only after kSearchWaitTicks when
+// A warm solve now stops at the compromise and searches again only after kSearchWait_s when
 // a search found nothing better: a few steps a tick, the residual as a fresh solve's. No tick
 // runs more than a Gauss-Newton and a half (max_iterations 12): a search stage stands in for
 // the warm solve, except a restart after a warm solve that gave up within 6 steps.
@@ -262,6 +262,39 @@ TEST_F(InverseSolve, AnInfeasibleFullPressTracksItsCompromiseWithoutSearchingEve
   EXPECT_LE(mean_steps, 6.0);
   EXPECT_LE(max_steps, 18);
   EXPECT_LE(tracked_N, 1.05 * fresh_N + 2e-3);
+}
+
+// The wait after a search that found nothing is on the tick's clock, not a count of ticks: the
+// same full press searches about as often in a second at 10 kHz as at 1 kHz (with a wait of 64
+// ticks it searched ten times as often at 10 kHz). A tick that searches runs more than one step.
+TEST_F(InverseSolve, AnInfeasibleFullPressSearchesAsOftenAtAnyTickRate) {
+  const auto search_ticks = [&](double rate_Hz) {
+    CellInverse fresh(m);
+    CaseGenerator g(n, 11);
+    InverseCase c = blank();
+    std::vector<double> depth(n);
+    for (std::size_t cell = 0; cell < n; ++cell) {
+      depth[cell] = g.u(2.5e-3, 3.5e-3);
+      const double share = g.u(0.1, 0.9);
+      within_envelope(c, cell, depth[cell], 0.0, share);
+    }
+    int searching = 0;
+    const int ticks = static_cast<int>(0.5 * rate_Hz);  // half a second
+    for (int tick = 0; tick < ticks; ++tick) {
+      c.now_s = tick / rate_Hz;
+      for (std::size_t cell = 0; cell < n; ++cell) {
+        c.states[cell].indentation_m = depth[cell] + g.u(-2e-6, 2e-6);  // the observer's noise
+      }
+      EXPECT_EQ(fresh.solve(c.targets, c.states, c.now_s), Status::ok);
+      searching += fresh.report().iterations > 1 ? 1 : 0;
+    }
+    return searching;
+  };
+  const int at_1kHz = search_ticks(1e3);
+  const int at_10kHz = search_ticks(1e4);
+  std::printf("full press, half a second: %d ticks searching at 1 kHz, %d at 10 kHz\n", at_1kHz, at_10kHz);
+  EXPECT_GT(at_1kHz, 0);
+  EXPECT_LE(at_10kHz, 2 * at_1kHz + 10);
 }
 
 // ---- envelope, semi-activity, staleness ------------------------------------------------------

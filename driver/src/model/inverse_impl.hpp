@@ -46,12 +46,12 @@ inline constexpr std::size_t kEscapesPerSolve = 1;
 inline constexpr double kStationaryDecrease = 1e-3;
 // A solve that does not converge searches again, a stage a tick in place of the warm solve (a
 // cold restart, then the stall escapes). When a search lowers the merit by less than kSearchGain,
-// the warm solution is the compromise: the component tracks it for kSearchWaitTicks ticks before
-// searching again.
+// the warm solution is the compromise: the component tracks it for kSearchWait_s (on the tick's
+// clock: 64 ticks at 1 kHz, 640 at 10 kHz) before searching again.
 // Without the wait, an infeasible component searched every tick: up to 6.4M instructions a tick
 // with the 5x5's 13 cells pressed (docs/bridge.md, "Cost per tick").
 inline constexpr double kSearchGain = 0.01;
-inline constexpr int kSearchWaitTicks = 64;
+inline constexpr double kSearchWait_s = 0.064;
 // A component's search, one stage a tick (ChordFactors::search_stage).
 inline constexpr unsigned char kSearchIdle = 0;
 inline constexpr unsigned char kSearchRestart = 1;  // a cold restart next tick
@@ -652,7 +652,7 @@ struct ChordFactors {
       : offset(g.cells + 1, 0),
         pool(kDenseRows * g.cells, 0.0),
         age(g.cells, -1),
-        search_wait(g.cells, 0),
+        search_after_s(g.cells, -std::numeric_limits<double>::infinity()),
         escape_next(g.cells, 0),
         search_stage(g.cells, 0),
         search_gained(g.cells, 0),
@@ -663,7 +663,7 @@ struct ChordFactors {
   std::vector<std::uint32_t> offset;  // per component, into pool
   std::vector<double> pool;
   std::vector<int> age;                      // chord steps since it was made; -1: none valid
-  std::vector<int> search_wait;              // ticks before a non-converging warm solve searches again
+  std::vector<double> search_after_s;        // a non-converging warm solve searches again from then
   std::vector<std::uint32_t> escape_next;    // the escape trial the search's next tick starts with
   std::vector<unsigned char> search_stage;   // kSearchIdle, kSearchRestart or kSearchEscapes
   std::vector<unsigned char> search_gained;  // this search's stages found better levels
@@ -678,7 +678,7 @@ struct ChordFactors {
       const std::uint32_t rows = part.cell_begin[c + 1] - part.cell_begin[c];
       offset[c + 1] = offset[c] + (rows <= kDenseRows ? rows * rows : 0);
       age[c] = -1;
-      search_wait[c] = 0;
+      search_after_s[c] = -std::numeric_limits<double>::infinity();
       escape_next[c] = 0;
       search_stage[c] = kSearchIdle;
       search_gained[c] = 0;
@@ -744,6 +744,8 @@ class InverseSolver {
  public:
   explicit InverseSolver(const ValveGraph& g);
 
+  double now_s = 0.0;  // the tick's clock (CellInverse::solve's now_s): when a search may begin
+
   void solve(const InverseTopology& topo, const Component& comp, CellMemory& memory, ChordFactors& factors,
              ValveLevels& levels, InverseOutput& output) noexcept;
 
@@ -775,7 +777,7 @@ class InverseSolver {
              ChordFactors& factors, ValveLevels& levels, bool& converged) noexcept;
   double restart_cold(const InverseTopology& topo, const Component& comp, CellMemory& memory,
                       ChordFactors& factors, ValveLevels& levels, double merit, bool& converged) noexcept;
-  static void plan_search(const Component& comp, ChordFactors& factors, bool warm) noexcept;
+  void plan_search(const Component& comp, ChordFactors& factors, bool warm) const noexcept;
   double search(const InverseTopology& topo, const Component& comp, CellMemory& memory, ChordFactors& factors,
                 ValveLevels& levels, double merit, bool& converged) noexcept;
   double escape_stall(const InverseTopology& topo, const Component& comp, const CellMemory& memory,

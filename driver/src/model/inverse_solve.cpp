@@ -249,6 +249,7 @@ Status CellInverse::Impl::solve(std::span<const CellImpedanceTarget> targets,
     memory.roles_rebuilt();
   }
   const std::uint64_t pass = ++changes.resolves;
+  solver.now_s = now_s;
   if (committed != Committed::nothing) {
     resolve_dirty(pass);
   }
@@ -506,14 +507,13 @@ void InverseSolver::solve_conflict(const InverseTopology& topo, const Component&
 // that stalled goes straight to the escapes. Its inputs held or not, the search goes on
 // (CellInverse::Impl::continue_searches). A search whose stages lowered the merit by less than
 // kSearchGain found the compromise of aims no levels meet: the component tracks it for
-// kSearchWaitTicks ticks before searching again.
-void InverseSolver::plan_search(const Component& comp, ChordFactors& factors, bool warm) noexcept {
-  int& wait = factors.search_wait[comp.id];
-  if (warm && wait > 0) {
-    --wait;
+// kSearchWait_s (on the tick's clock, whatever the rate) before searching again.
+void InverseSolver::plan_search(const Component& comp, ChordFactors& factors, bool warm) const noexcept {
+  // (A clock that went back more than the wait, a restarted session's, ends the wait.)
+  const double after_s = factors.search_after_s[comp.id];
+  if (warm && now_s < after_s && after_s - now_s <= kSearchWait_s) {
     return;
   }
-  wait = 0;
   factors.searching = true;
   factors.search_stage[comp.id] = warm ? kSearchRestart : kSearchEscapes;
   factors.search_gained[comp.id] = 0;
@@ -540,7 +540,8 @@ double InverseSolver::search(const InverseTopology& topo, const Component& comp,
     return merit;  // escapes left for the next tick
   }
   stage = kSearchIdle;
-  factors.search_wait[comp.id] = gained != 0 ? 0 : kSearchWaitTicks;
+  factors.search_after_s[comp.id] =
+      gained != 0 ? -std::numeric_limits<double>::infinity() : now_s + kSearchWait_s;
   gained = 0;
   return merit;
 }
