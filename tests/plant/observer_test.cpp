@@ -567,6 +567,66 @@ TEST(ObserverFlows, OpenValvesFlowAndFullCurrentSeals) {
   EXPECT_TRUE(CellObserver(nominal, local).outflow_m3_per_s().empty());
 }
 
+// After a release the network relaxes through valves at their yield (the observer's steel keeps a
+// remanent yield at 0 A): its flow decays about as 1/t^2 and never counts as settled in seconds. Untouched,
+// the observer then steps it several ticks at once while the largest link moves at most 1 nL in the ticks a
+// step runs ahead. The next press must see the same forces as an observer that steps every tick.
+TEST(ObserverFlows, AReleasedSkinsSlowTailIsSteppedSeveralTicksAtOnce) {
+  const DeviceModel nominal(mrskin::model::default_profile());
+  const std::size_t centre = 6;  // the default 5 x 5's centre fluid cell
+  NetworkPlant plant(nominal.profile(), ideal());
+  ObserverOptions every_tick_options;
+  every_tick_options.skip_settled_network = false;
+  CellObserver lazy(nominal, ObserverOptions{});
+  CellObserver every_tick(nominal, every_tick_options);
+  std::vector<double> depth(nominal.layout().fluid_cell_count(), 0.0);
+  std::vector<double> sensors(plant.sensor_count());
+  std::vector<double> current(nominal.layout().valve_count(), 0.05);  // released at 0 A
+  std::vector<double> last_outflow(depth.size(), 0.0);
+  int tail_ticks = 0;
+  int tail_steps = 0;
+  double worst_force_N = 0.0;
+  double peak_force_N = 0.0;
+  constexpr int kRelease = 800;     // pressed 0 -> 3 mm over 0.5 s, held to 0.8 s, released
+  constexpr int kNextPress = 6800;  // 6 s untouched, then pressed again for 0.3 s
+  for (int tick = 1; tick <= kNextPress + 300; ++tick) {
+    double d = 0.0;
+    if (tick < kRelease) {
+      d = 3e-3 * std::min(1.0, tick / 500.0);
+    } else if (tick >= kNextPress) {
+      d = 3e-3 * std::min(1.0, (tick - kNextPress) / 300.0);
+    }
+    depth[centre] = d;
+    std::fill(current.begin(), current.end(), tick < kRelease ? 0.05 : 0.0);
+    plant.set_valve_currents(current);
+    plant.set_finger_indentation(depth);
+    for (int s = 0; s < kSubsteps; ++s) {
+      plant.step(kTick_s / kSubsteps);
+    }
+    plant.read_sensors(sensors);
+    ASSERT_EQ(lazy.update(sensors, current, kTick_s), Status::ok);
+    ASSERT_EQ(every_tick.update(sensors, current, kTick_s), Status::ok);
+    const std::span<const double> q = lazy.outflow_m3_per_s();
+    if (tick > kNextPress - 2000 && tick < kNextPress) {  // the last 2 s untouched
+      ++tail_ticks;
+      tail_steps += std::equal(q.begin(), q.end(), last_outflow.begin()) ? 0 : 1;
+    }
+    std::copy(q.begin(), q.end(), last_outflow.begin());
+    if (tick >= kNextPress) {
+      worst_force_N =
+          std::max(worst_force_N, std::abs(lazy.force_N()[centre] - every_tick.force_N()[centre]));
+      peak_force_N = std::max(peak_force_N, every_tick.force_N()[centre]);
+    }
+  }
+  std::printf(
+      "released skin's tail: %d network steps in the last %d untouched ticks; next press %.3f N, "
+      "forces apart by %.2e N at most\n",
+      tail_steps, tail_ticks, peak_force_N, worst_force_N);
+  EXPECT_GT(peak_force_N, 0.1);  // the press is a press
+  EXPECT_LT(tail_steps, tail_ticks / 4);
+  EXPECT_LT(worst_force_N, 1e-3);
+}
+
 // The compensated current lands the plant's hysteretic valve (magnetic.hpp's play operator, run
 // exactly) on the yield the anhysteretic curve gives at the requested current, coming down from
 // a high current and going up from a low one.

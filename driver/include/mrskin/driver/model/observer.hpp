@@ -125,6 +125,9 @@ struct ObserverOptions {
   // Network model: skip the step while its inputs are unchanged, its forces moved less than 1 uN
   // in the last one and no link flows more than 0.1 nL/s. The flow test matters: on forces alone
   // a released skin that still refills looks settled (docs/bridge.md, "What the tuning measured").
+  // Untouched on unchanged inputs, it also steps several ticks at once (at most 64) while its
+  // largest link moves at most 1 nL in the ticks the step runs ahead: a released skin's slow
+  // tail (docs/bridge.md, "Cost per tick"). Off: the network steps every tick.
   bool skip_settled_network = true;
   // The steel's hysteresis (the profile's coercivity, the plant's play operator, tabulated):
   // after any current a valve keeps a remanent yield at 0 A. Off: the anhysteretic yield curve.
