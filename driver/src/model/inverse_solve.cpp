@@ -262,7 +262,7 @@ Status CellInverse::Impl::solve(std::span<const CellImpedanceTarget> targets,
   return Status::ok;
 }
 
-void CellInverse::Impl::solve_component(std::size_t c, std::uint64_t pass) noexcept {
+inline void CellInverse::Impl::solve_component(std::size_t c, std::uint64_t pass) noexcept {
   changes.solved[c] = pass;
   const Component& comp = partition.components[c];
   ++output.rep.components_solved;
