@@ -248,6 +248,7 @@ TEST_F(InverseSolve, AnInfeasibleFullPressTracksItsCompromiseWithoutSearchingEve
     for (std::size_t cell = 0; cell < n; ++cell) {
       c.states[cell].indentation_m = depth[cell] + g.u(-2e-6, 2e-6);  // the observer's noise
     }
+    c.now_s = 1e-3 * tick;  // 1 kHz: the wait after a fruitless search ends
     ASSERT_EQ(inv.solve(c.targets, c.states, c.now_s), Status::ok);
     steps += inv.report().iterations;
     max_steps = std::max(max_steps, inv.report().iterations);
@@ -516,6 +517,35 @@ TEST(InverseConstruction, RejectsBadOptionsAndUnsupportedGraphs) {
 }
 
 // ---- incremental work ---------------------------------------------------------------------------
+
+// A search spread over ticks ends with its conflict: after invalidate() and targets whose demands
+// no longer conflict, held inputs cost nothing again (a search left under way re-solved its
+// component every tick). The pair conflict is ConflictingTargetsMatchTheSlowExactSolve's last.
+TEST_F(InverseIncremental, ASearchEndsWithItsConflict) {
+  CaseGenerator g(n, 5);
+  const std::size_t pair[2] = {m.fluid_cell_index(1, 1).value, m.fluid_cell_index(2, 2).value};
+  InverseCase c = blank();
+  for (int k = 0; k < 6; ++k) {
+    c = blank();
+    for (const std::size_t cell : pair) {
+      const double depth_m = g.u(1.5e-3, 5e-3);
+      const double rate_m_s = k % 2 == 0 ? 0.0 : g.u(1e-3, 0.01);
+      const double share = g.u(0.0, 1.0);
+      within_envelope(c, cell, depth_m, rate_m_s, share);
+    }
+  }
+  ASSERT_EQ(inv.solve(c.targets, c.states, c.now_s), Status::ok);
+  ASSERT_FALSE(inv.report().converged) << "the case must stall to test what it says";
+  inv.invalidate();
+  for (const std::size_t cell : pair) {
+    within_envelope(c, cell, 3e-3, 0.0, 0.5);  // the same demand: no valve above its cell's
+  }
+  ASSERT_EQ(inv.solve(c.targets, c.states, c.now_s), Status::ok);
+  ASSERT_EQ(inv.report().iterations, 0) << "the new demands must not conflict";
+  ASSERT_EQ(inv.solve(c.targets, c.states, c.now_s), Status::ok);
+  EXPECT_TRUE(inv.report().from_cache);
+  EXPECT_EQ(inv.report().components_solved, 0u);
+}
 
 TEST_F(InverseIncremental, UnchangedCellsCostNothing) {
   const std::size_t a = m.fluid_cell_index(1, 1).value;

@@ -77,6 +77,7 @@ void CellInverse::invalidate() noexcept {
     c.valid = false;
     c.gn_last = false;
   }
+  impl_->factors.reset(impl_->partition);  // no search or wait outlives the cells it was for
 }
 
 Result<double> CellInverse::valve_pressure_Pa(std::size_t cell, double flow_m3_per_s,

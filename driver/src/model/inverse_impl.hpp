@@ -723,9 +723,13 @@ struct InverseOutput {
     return s;
   }
   // A tick with no cell changed that still solves a component (a search spread over ticks): the
-  // report's counters, reset by the commit, count that work; converged keeps the last solve's
-  // verdict for the components not solved again.
-  void reopen() noexcept { rep.from_cache = false; }
+  // report's counters, reset by the commit, count that work, and its verdicts are over the
+  // components solved this tick, as on any tick.
+  void reopen() noexcept {
+    rep.from_cache = false;
+    rep.converged = true;
+    rep.residual_predicted = false;
+  }
 };
 
 // The work of one component's solve, folded into the report at its end.

@@ -410,6 +410,8 @@ void InverseSolver::solve(const InverseTopology& topo, const Component& comp, Ce
   }
   if (conflict) {
     solve_conflict(topo, comp, memory, factors, levels, output, warm);
+  } else {
+    factors.search_stage[comp.id] = kSearchIdle;  // the demands are exact: nothing to search for
   }
   for (const std::uint32_t cell : comp.cells) {
     memory.cache[cell].gn_last = conflict;

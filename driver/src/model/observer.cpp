@@ -580,8 +580,7 @@ Status CellObserver::Impl::network_force(double dt_s, bool yields_changed) noexc
     const double ahead_s = kAheadVolume_m3 / std::max(network_flow_m3_per_s, 1e-300);
     ticks = static_cast<int>(std::clamp(std::floor(ahead_s / dt_s) + 1.0, 1.0, double{kMaxAheadTicks}));
   }
-  network_ahead_s = (ticks - 1) * dt_s;
-  dt_s *= ticks;
+  network_ahead_s = 0.0;
   Status s = network->set_valve_yield_stress_Pa(yield_Pa);
   if (s == Status::ok) {
     s = network->set_cell_indentation_m(contact_depth_m);
@@ -591,10 +590,15 @@ Status CellObserver::Impl::network_force(double dt_s, bool yields_changed) noexc
   }
   const std::span<const double> f = network->cell_force_N();
   std::copy(f.begin(), f.end(), last_force.begin());
-  const Result<StepReport> stepped = network->step(dt_s);
+  Result<StepReport> stepped = network->step(dt_s * ticks);
+  if (stepped.status != Status::ok && ticks > 1) {
+    ticks = 1;  // a step too long for the stepper's linearisation: the tick's own instead
+    stepped = network->step(dt_s);
+  }
   if (stepped.status != Status::ok) {
     return stepped.status;
   }
+  network_ahead_s = (ticks - 1) * dt_s;
   // Settled: no force moved more than a micronewton in the step. (The network double-buffers
   // its state: read the forces again after the step.)
   const std::span<const double> after = network->cell_force_N();

@@ -90,8 +90,8 @@ struct CellSolution {
 struct InverseReport {
   Status status = Status::ok;
   std::size_t error_cell = 0;       // the first offending cell when status != ok
-  bool from_cache = false;          // nothing was dirty: currents unchanged, no work done
-  bool converged = true;            // every re-solved component met force_tolerance_N
+  bool from_cache = false;          // nothing dirty and no search under way: currents unchanged
+  bool converged = true;            // every component solved this call met force_tolerance_N
   bool residual_predicted = false;  // some residuals are a tracking step's linear prediction
   std::size_t loaded_cells = 0;
   std::size_t clamped_cells = 0;  // loaded cells whose target was clamped into the envelope
