@@ -296,11 +296,10 @@ bool CellInverse::Impl::continue_searches(std::uint64_t pass) noexcept {
 void CellInverse::Impl::resolve_dirty(std::uint64_t pass) noexcept {
   InverseReport& rep = output.rep;
   // The pass check stays out of the call: most dirty cells share a component already solved.
-  const auto solve = [&](std::size_t c) { solve_component(c, pass); };
   for (const std::uint32_t i : changes.dirty) {
     if (memory.loaded[i] != 0) {
       if (const std::uint32_t c = partition.comp_of_cell[i]; changes.solved[c] != pass) {
-        solve(c);
+        solve_component(c, pass);
       }
       continue;
     }
@@ -311,7 +310,7 @@ void CellInverse::Impl::resolve_dirty(std::uint64_t pass) noexcept {
       if (c < 0) {
         rep.valve_updates += levels.release(topo, v) ? 1 : 0;
       } else if (changes.solved[static_cast<std::size_t>(c)] != pass) {
-        solve(static_cast<std::size_t>(c));
+        solve_component(static_cast<std::size_t>(c), pass);
       }
     }
   }
@@ -534,8 +533,7 @@ double InverseSolver::search(const InverseTopology& topo, const Component& comp,
                   : escape_stall(topo, comp, memory, factors, levels, merit, converged);
   gained = gained != 0 || converged || merit < (1.0 - kSearchGain) * tracked ? 1 : 0;
   if (restart) {
-    stage = kSearchEscapes;
-    factors.escape_next[comp.id] = 0;
+    stage = kSearchEscapes;  // from the first escape (plan_search set escape_next)
     return merit;
   }
   if (factors.escape_next[comp.id] != 0 && !converged) {
