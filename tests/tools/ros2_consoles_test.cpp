@@ -16,6 +16,7 @@
 #include <fstream>
 #include <memory>
 #include <string>
+#include <thread>
 #include <vector>
 
 #include "child_process.hpp"
@@ -88,6 +89,9 @@ TEST_F(Ros2Consoles, TwoConsolesRenderOneFollowerPublishedByAFastDdsPeer) {
                       "--min", "200"}),
       peer("skin_b", {"subscribe", "--ns", names[1], "--domain", std::to_string(kDomain), "--duration", "30",
                       "--min", "200"})};
+  // The follower starts a second after the consoles, as a robot that comes up late would: each
+  // console's finger must wait for its first sample (before 2026-11-29 it did not, 0.14 N).
+  std::this_thread::sleep_for(1s);
   std::unique_ptr<ChildProcess> follower =
       peer("follower", {"publish", "--arm", kArm, "--domain", std::to_string(kDomain), "--rate", "1000",
                         "--duration", "11", "--wait-match", "20", "--subscribers", "2"});
@@ -135,27 +139,15 @@ TEST_F(Ros2Consoles, TwoConsolesRenderOneFollowerPublishedByAFastDdsPeer) {
     EXPECT_GE(number("samples_accepted"), 5000.0) << stats;  // of 11,000: best effort on loopback
     EXPECT_GT(number("force_samples"), 0.0) << stats;
 #if defined(NDEBUG) && !defined(MRSKIN_SANITIZED)
-    // Each console's finger plays the demo from the console's start; the follower's forces start
-    // when discovery has matched both: 0.07 s on most runs here, 1.05 s on some (6 of 16 on
-    // 2026-11-29). A second late, the stream is out of step with the finger: five runs gave
-    // 0.011-0.014 N while streamed after 0.065-0.081 s, 0.135-0.157 N after 1.045-1.069 s. The
-    // figures are judged when the two are in step, and when the loop kept its periods (below).
-    const double match_s = [&] {
-      const std::string f = out("follower");
-      const std::size_t at = f.find(" after ");
-      return at == std::string::npos ? 1e9 : std::strtod(f.c_str() + at + 7, nullptr);
-    }();
-    constexpr double kMaxMatch_s = 0.5;
+    // Each console's finger plays the demo from the follower's first sample on (docs/daemon.md):
+    // discovery matches the follower after 0.07 s on most runs here and after about 1.05 s on some,
+    // and with the finger started at the console's start a second late was 0.135-0.157 N while
+    // streamed against 0.011-0.014 N in step (2026-11-29).
     // The closed-loop figures (docs/bridge.md), as for the OpenIGTLink field robot, when the loop
     // kept its periods: on a machine that starves it (a CI run of 3,734 skipped periods in 8,505
     // ticks scored p95 0.14) the skipped time, not the bridge, decides them. The simulated-clock
     // tests hold the figures deterministically (bridge_closed_loop_test).
-    if (match_s > kMaxMatch_s) {
-      std::printf(
-          "%s: the follower matched after %.3f s, out of step with the finger: the real-time figures "
-          "are not judged\n",
-          names.at(i).c_str(), match_s);
-    } else if (number("skipped_periods") <= kMaxSkippedFraction * number("ticks")) {
+    if (number("skipped_periods") <= kMaxSkippedFraction * number("ticks")) {
       EXPECT_GE(number("force_samples"), 5000.0) << stats;
       EXPECT_LE(streamed_rms_N.at(i), 0.04) << stats;
       EXPECT_LE(number("relative_error_p95"), 0.07) << stats;

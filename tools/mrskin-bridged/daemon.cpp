@@ -102,6 +102,8 @@ Daemon::Daemon(Settings settings, MonotonicClock& clock)
   if (finger_scene_) {
     finger_scene_->set_start(t0_);
   }
+  finger_t0_ = t0_;
+  finger_waits_ = finger_scene_ != nullptr && source_.stream != nullptr;
   if (!settings_.topics_namespace.empty()) {
     bridge::SkinTopicsOptions to;
     to.ns = settings_.topics_namespace;
@@ -607,7 +609,10 @@ std::unique_ptr<bridge::Scene> open_finger_scene(const Settings& s) {
 void Daemon::drive_finger() {
   bridge::Scene* script = finger_scene_ ? finger_scene_.get() : source_.scene;
   if (mock_ && script != nullptr) {
-    mrskin::eval::press_scene_finger(*script, to_seconds(clock_.now() - t0_), mock_->layout(), finger_,
+    // At the script's start until the stream's first sample (finger_waits_): see finger_t0_.
+    finger_waits_ = finger_waits_ && source_.stream != nullptr && source_.stream->stats().accepted == 0;
+    finger_t0_ = finger_waits_ ? clock_.now() : finger_t0_;
+    mrskin::eval::press_scene_finger(*script, to_seconds(clock_.now() - finger_t0_), mock_->layout(), finger_,
                                      bridge_->scale().length);
     mock_->set_finger_indentation(finger_);
   }
