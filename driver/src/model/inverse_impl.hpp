@@ -654,6 +654,8 @@ struct ChordFactors {
         age(g.cells, -1),
         search_after_s(g.cells, -std::numeric_limits<double>::infinity()),
         escape_next(g.cells, 0),
+        escape_valves(g.cells * (kMaxEscapes / 2), 0),
+        escape_count(g.cells, 0),
         search_stage(g.cells, 0),
         search_gained(g.cells, 0),
         inc_jac(g.valve_cells.size(), 0.0),
@@ -662,9 +664,13 @@ struct ChordFactors {
 
   std::vector<std::uint32_t> offset;  // per component, into pool
   std::vector<double> pool;
-  std::vector<int> age;                      // chord steps since it was made; -1: none valid
-  std::vector<double> search_after_s;        // a non-converging warm solve searches again from then
-  std::vector<std::uint32_t> escape_next;    // the escape trial the search's next tick starts with
+  std::vector<int> age;                    // chord steps since it was made; -1: none valid
+  std::vector<double> search_after_s;      // a non-converging warm solve searches again from then
+  std::vector<std::uint32_t> escape_next;  // the escape trial the search's next tick starts with
+  // Per component, the valves (indices into its valves) its escapes try, listed when the first
+  // trial runs: later trials go down the same list, although the errors that chose it move.
+  std::vector<std::uint32_t> escape_valves;  // kMaxEscapes / 2 a component
+  std::vector<unsigned char> escape_count;
   std::vector<unsigned char> search_stage;   // kSearchIdle, kSearchRestart or kSearchEscapes
   std::vector<unsigned char> search_gained;  // this search's stages found better levels
   bool searching = false;                    // some component may have a search under way
@@ -680,6 +686,7 @@ struct ChordFactors {
       age[c] = -1;
       search_after_s[c] = -std::numeric_limits<double>::infinity();
       escape_next[c] = 0;
+      escape_count[c] = 0;
       search_stage[c] = kSearchIdle;
       search_gained[c] = 0;
     }

@@ -627,8 +627,14 @@ double InverseSolver::escape_stall(const InverseTopology& topo, const Component&
                                    double merit, bool& converged) noexcept {
   double* const t = levels.t.data();
   const std::span<const std::uint32_t> valves = comp.valves;
-  std::size_t candidates = 0;
+  std::uint32_t& next = factors.escape_next[comp.id];
+  std::uint32_t* const listed = factors.escape_valves.data() + comp.id * (kMaxEscapes / 2);
+  std::size_t candidates = next == 0 ? 0 : factors.escape_count[comp.id];
   for (std::size_t k = 0; k < valves.size(); ++k) {
+    best[k] = t[valves[k]];
+    if (next != 0) {
+      continue;  // a search under way goes down the list its first trial made
+    }
     bool high = false;
     bool low = false;
     for (std::uint32_t j = comp.inc_begin[k]; j < comp.inc_begin[k + 1]; ++j) {
@@ -636,20 +642,19 @@ double InverseSolver::escape_stall(const InverseTopology& topo, const Component&
       high = high || (e[r] > topo.tol_Pa && one_sided[r] == 0);
       low = low || e[r] < -topo.tol_Pa;
     }
-    if (high && low) {
-      escape[candidates++] = static_cast<std::uint32_t>(k);
+    if (high && low && candidates < kMaxEscapes / 2) {
+      listed[candidates++] = static_cast<std::uint32_t>(k);
     }
-    best[k] = t[valves[k]];
   }
+  factors.escape_count[comp.id] = static_cast<unsigned char>(candidates);
   double best_merit = merit;
-  const std::size_t trials = std::min(2 * candidates, kMaxEscapes);
-  std::uint32_t& next = factors.escape_next[comp.id];
+  const std::size_t trials = 2 * candidates;
   const std::size_t first = next;
   for (std::size_t i = first; i < trials && i < first + kEscapesPerSolve && !converged; ++i) {
     for (std::size_t k = 0; k < valves.size(); ++k) {
       t[valves[k]] = best[k];
     }
-    t[valves[escape[i / 2]]] = i % 2 == 0 ? topo.t_min : topo.t_max;
+    t[valves[listed[i / 2]]] = i % 2 == 0 ? topo.t_min : topo.t_max;
     bool conv_i = false;
     const double merit_i = gauss_newton(topo, comp, memory, factors, levels, kStartDamping, conv_i,
                                         evaluate_rows(topo, comp, memory, levels));
