@@ -567,6 +567,31 @@ TEST(ObserverFlows, OpenValvesFlowAndFullCurrentSeals) {
   EXPECT_TRUE(CellObserver(nominal, local).outflow_m3_per_s().empty());
 }
 
+// The coil pass is skipped while the currents are bit for bit those on which no coil moved the tick
+// before (ObserverCoils: 2,048 valves on the palm). A current that changes after the coils settled
+// must still reach the yields: two rigs held on the same currents until every coil settled read
+// the same force, and after one valve changed in one of them, different forces.
+TEST(ObserverCoils, ACurrentChangedAfterTheCoilsSettledReachesTheForces) {
+  SeededRig held(ObserverOptions{}, 0.03);
+  SeededRig changed(ObserverOptions{}, 0.03);
+  constexpr std::size_t kCell = 6;            // the centre
+  for (int tick = 1; tick <= 1500; ++tick) {  // a 2 mm press, held: the coils settle (tau ~5 ms)
+    const double depth_m = 2e-3 * std::min(1.0, tick / 500.0);
+    held.depth[kCell] = depth_m;
+    changed.depth[kCell] = depth_m;
+    held.tick();
+    changed.tick();
+  }
+  ASSERT_EQ(held.observer.force_N()[kCell], changed.observer.force_N()[kCell]);
+  const std::size_t valve = changed.nominal.layout().valves_of_cell(kCell).front();
+  changed.current[valve] = 0.06;
+  for (int tick = 0; tick < 50; ++tick) {
+    held.tick();
+    changed.tick();
+  }
+  EXPECT_NE(held.observer.force_N()[kCell], changed.observer.force_N()[kCell]);
+}
+
 // After a release the network relaxes through valves at their yield (the observer's steel keeps a
 // remanent yield at 0 A): its flow decays about as 1/t^2 and never counts as settled in seconds. Untouched,
 // the observer then steps it several ticks at once while the largest link moves at most 1 nL in the ticks a

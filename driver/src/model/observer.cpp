@@ -3,6 +3,7 @@
 #include <algorithm>
 #include <cmath>
 #include <cstdint>
+#include <cstring>
 #include <string>
 #include <vector>
 
@@ -135,6 +136,7 @@ struct __attribute__((visibility("hidden"))) CellObserver::Impl {
     yield_Pa.assign(grid.valve_count(), 0.0);
     valve_gain.assign(grid.valve_count(), 1.0);
     command_A.assign(grid.valve_count(), 0.0);
+    input_A.assign(grid.valve_count(), 0.0);
     play_index.assign(grid.valve_count(), 0.0);
     if (o.steel_hysteresis && p.magnetic.steel.coercivity_A_per_m > 0.0) {
       tabulate_play();
@@ -174,6 +176,7 @@ struct __attribute__((visibility("hidden"))) CellObserver::Impl {
     std::fill(play_index.begin(), play_index.end(), 0.0);
     std::fill(yield_Pa.begin(), yield_Pa.end(), 0.0);
     std::fill(command_A.begin(), command_A.end(), 0.0);
+    coils_settled = false;
     std::fill(force.begin(), force.end(), 0.0);
     std::fill(last_force.begin(), last_force.end(), 0.0);
     std::fill(outflow.begin(), outflow.end(), 0.0);
@@ -297,8 +300,12 @@ struct __attribute__((visibility("hidden"))) CellObserver::Impl {
   std::vector<double> anhysteretic_Pa;  // nominal yield without hysteresis, every anhysteretic_step_A
   double anhysteretic_step_A = 0.0;
   std::vector<double> yield_Pa;
-  std::vector<double> valve_gain;       // calibrated true / nominal yield stress per valve
-  std::vector<double> command_A;        // last command per valve (a settled coil is not stepped)
+  std::vector<double> valve_gain;  // calibrated true / nominal yield stress per valve
+  std::vector<double> command_A;   // last command per valve (a settled coil is not stepped)
+  // The currents passed last tick, bit for bit, when no coil moved on them: the same currents
+  // again move none, and skip the per-valve pass (2,048 valves on the palm).
+  std::vector<double> input_A;
+  bool coils_settled = false;
   std::vector<double> force;            // local force model's output, N
   std::vector<double> last_force;       // network model: forces before the last step
   std::vector<double> outflow;          // network model: each fluid cell's net outflow, m^3/s
@@ -524,12 +531,18 @@ void CellObserver::Impl::compute_sensor_residuals(std::span<const double> readin
 bool CellObserver::Impl::update_coils(std::span<const double> valve_current_A, double dt_s) noexcept {
   const CoilParams& coil_params = model.profile().coil;
   const double settled_A = 1e-12 * coil_params.max_current_A;
+  const std::size_t bytes = coil.size() * sizeof(double);
+  if (coils_settled && std::memcmp(valve_current_A.data(), input_A.data(), bytes) == 0) {
+    return false;  // what the pass below does then: every valve settled on its command
+  }
   bool changed = false;
+  std::size_t unmoved = 0;
   for (std::size_t v = 0; v < coil.size(); ++v) {
     const double command = std::clamp(valve_current_A[v], 0.0, coil_params.max_current_A);
     CoilState& state = coil[v];
     if (command == command_A[v] && std::abs(state.current_A - command) <= settled_A &&
         std::abs(state.field_current_A - command) <= settled_A) {
+      ++unmoved;
       continue;
     }
     command_A[v] = command;
@@ -549,6 +562,11 @@ bool CellObserver::Impl::update_coils(std::span<const double> valve_current_A, d
     }
     changed = changed || y != yield_Pa[v];
     yield_Pa[v] = y;
+  }
+  // Every coil settled on these currents: the same currents next tick would move none either.
+  coils_settled = unmoved == coil.size();
+  if (coils_settled) {
+    std::memcpy(input_A.data(), valve_current_A.data(), bytes);
   }
   return changed;
 }
