@@ -937,6 +937,8 @@ bool Daemon::apply_reload(const Settings& next, const ReloadPlan& plan, std::vec
       source_ = std::move(fresh);
     }
     events_seen_ = 0;
+    finger_t0_ = t0_;  // in step with the new source: a scene's carries on, a stream's first sample
+    finger_waits_ = source_.stream != nullptr && source_.stream->stats().accepted == 0;
   } else {
     try {
       bridge_->retune(bridge_tuning(next));

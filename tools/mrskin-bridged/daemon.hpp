@@ -205,9 +205,10 @@ class Daemon final : public bridge::Tickable, public ControlBackend {
   std::unique_ptr<bridge::Bridge> bridge_;
   std::unique_ptr<bridge::RealtimeLoop> loop_;
   std::vector<double> finger_;
-  // Where the finger's script starts: t0_, or for a finger= scene beside a network or file stream
-  // the stream's first accepted sample (finger_waits_ until then, at the script's start), so the
-  // simulated surgeon presses in step with a robot that plays the same script.
+  // Where the finger's script starts: t0_, or for a finger= scene beside a stream the stream's
+  // first accepted sample (finger_waits_ until then, at the script's start), so the simulated
+  // surgeon presses in step with a robot that plays the same script. A reload that changes the
+  // source sets both again. (replay:// counts its samples as it loads: no wait.)
   TimePoint finger_t0_{};
   bool finger_waits_ = false;
   std::pair<std::uint64_t, std::uint64_t> reports_at_start_{};  // sent, received

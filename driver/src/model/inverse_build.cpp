@@ -101,8 +101,7 @@ InverseSolver::InverseSolver(const ValveGraph& g)
       rhs(kDenseRows, 0.0),
       dual(kDenseRows, 0.0),
       res(g.cells, 0.0),
-      best(g.valves, 0.0),
-      escape(g.valves, 0) {}
+      best(g.valves, 0.0) {}
 
 void InverseTopology::build_graph(const DeviceModel& model) {
   const std::size_t cells = graph.cells;

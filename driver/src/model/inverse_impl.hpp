@@ -775,11 +775,10 @@ class InverseSolver {
   std::vector<double> predicted;             // per row: the linear model's residual after a step
   std::vector<double> mat;                   // kDenseRows^2
   std::vector<double> rhs;
-  std::vector<double> dual;           // row-space solution
-  std::vector<double> res;            // fallback residuals
-  std::vector<double> best;           // per component valve: best levels found
-  std::vector<std::uint32_t> escape;  // valves to try shutting after a stall
-  ComponentWork work;                 // of the component being solved
+  std::vector<double> dual;  // row-space solution
+  std::vector<double> res;   // fallback residuals
+  std::vector<double> best;  // per component valve: best levels found
+  ComponentWork work;        // of the component being solved
 
   bool demands_conflict(const InverseTopology& topo, const Component& comp, CellMemory& memory) noexcept;
   void solve_conflict(const InverseTopology& topo, const Component& comp, CellMemory& memory,
