@@ -8,7 +8,8 @@
 //                                         and release; URI default mock://?seed=7; FINGER
 //                                         "scene", the demo's finger, or "all": every fluid
 //                                         cell pressed to 2 mm after 1 s untouched, held,
-//                                         then released)
+//                                         then released, or "rest": no finger on the skin and
+//                                         the slave out of contact, streaming at every tick)
 // With MRSKIN_PROBE_PHASES=FILE it writes each tick's phase, from the finger's true depths,
 // one line a tick in order (issue 21's gates are a maximum per phase): idle (no cell touched
 // for 1 s or since the start), refill (none touched now, one within 1 s), load1 / hold1 /
@@ -35,6 +36,22 @@
 #include "mrskin/eval/truth_scorer.hpp"
 #include "mrskin/sim/open_mock.hpp"
 
+namespace {
+
+// The slave hovering out of contact: a sample at every tick with no force and no depth (what a
+// robot streams between palpations), so nothing on either side is touched.
+class HoveringSlave final : public mrskin::bridge::SlaveSource {
+ public:
+  bool latest(mrskin::TimePoint now, mrskin::bridge::SlaveSample& out) noexcept override {
+    out = mrskin::bridge::SlaveSample{};
+    out.stamp = now;
+    out.valid = true;
+    return true;
+  }
+};
+
+}  // namespace
+
 int main(int argc, char** argv) {
   using namespace mrskin;
   const int ticks = argc > 1 ? std::atoi(argv[1]) : 3000;
@@ -44,8 +61,8 @@ int main(int argc, char** argv) {
   }
   const std::string uri = argc > 2 ? argv[2] : "mock://?seed=7";
   const std::string finger_mode = argc > 3 ? argv[3] : "scene";
-  if (finger_mode != "scene" && finger_mode != "all") {
-    std::fputs("FINGER must be scene or all\n", stderr);
+  if (finger_mode != "scene" && finger_mode != "all" && finger_mode != "rest") {
+    std::fputs("FINGER must be scene, all or rest\n", stderr);
     return 2;
   }
   std::FILE* phases = nullptr;
@@ -63,7 +80,9 @@ int main(int argc, char** argv) {
   auto scene = bridge::make_scene("demo");
   bridge::BridgeOptions options;
   options.sensor_faults.enabled = std::getenv("MRSKIN_PROBE_NO_SENSOR_FAULTS") == nullptr;
-  bridge::Bridge loop(*dev.session, *scene, options);
+  HoveringSlave hovering;
+  bridge::SlaveSource& source = finger_mode == "rest" ? static_cast<bridge::SlaveSource&>(hovering) : *scene;
+  bridge::Bridge loop(*dev.session, source, options);
   loop.set_perf_clock(&clock);
   scene->set_start(clock.now());
   if (loop.enable() != ResultCode::ok) {
@@ -82,7 +101,9 @@ int main(int argc, char** argv) {
   CALLGRIND_START_INSTRUMENTATION;
   for (int k = 0; k < ticks; ++k) {
     const double t_s = to_seconds(clock.now() - scene->start());
-    if (finger_mode == "all") {
+    if (finger_mode == "rest") {
+      std::fill(finger.begin(), finger.end(), 0.0);
+    } else if (finger_mode == "all") {
       // 1 s untouched, 0.6 s down to 2 mm, 0.6 s held, 0.6 s up, then untouched.
       const double depth_m = 2e-3 * std::clamp(std::min((t_s - 1.0) / 0.6, (2.8 - t_s) / 0.6), 0.0, 1.0);
       std::fill(finger.begin(), finger.end(), depth_m);

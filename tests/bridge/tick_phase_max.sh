@@ -4,12 +4,12 @@
 # synthetic plant. demo_callgrind_probe dumps each tick's count and writes each tick's phase
 # (from the finger's true depths); this pairs them and prints, per phase, the ticks, the maximum,
 # p50 and p99 (the first tick, which sends the first frames, left out).
-#   tick_phase_max.sh PROBE OUT_DIR TICKS URI FINGER [PHASE:LIMIT ...]   (FINGER: scene or all)
+#   tick_phase_max.sh PROBE OUT_DIR TICKS URI FINGER [PHASE:LIMIT ...]   (FINGER: scene, all or rest)
 # With PHASE:LIMIT arguments (a ratchet), fails when a phase's maximum is above its limit or the
 # phase has no tick. Exits 77 (ctest: skipped) when valgrind is missing.
 probe=$1 out=$2 ticks=$3 uri=$4 finger=$5
 if [ -z "$finger" ]; then
-  echo "usage: tick_phase_max.sh PROBE OUT_DIR TICKS URI scene|all [PHASE:LIMIT ...]" >&2
+  echo "usage: tick_phase_max.sh PROBE OUT_DIR TICKS URI scene|all|rest [PHASE:LIMIT ...]" >&2
   exit 2
 fi
 shift 5

@@ -343,6 +343,24 @@ TEST(ObserverRest, NoiseAloneLeavesTheDepthsAtZeroAndAPressIsFound) {
   EXPECT_NEAR(gated.pressed_depth_m, 1e-3, 50e-6);
 }
 
+// From rest a reading past the gate gets rest_sweeps sweeps, not `sweeps`: the press is found
+// as with twelve, and noise leaves no depth near the contact threshold either way.
+TEST(ObserverRest, AFewSweepsFromRestFindThePressAsTwelveDo) {
+  ObserverOptions twelve;
+  twelve.rest_sweeps = twelve.sweeps;
+  const RestCount full = rest_then_press(twelve);
+  const RestCount capped = rest_then_press(ObserverOptions{});
+  std::printf("from rest, %d sweeps: pressed %.4f mm, largest idle %.2f um; %d: %.4f mm, %.2f um\n",
+              ObserverOptions{}.rest_sweeps, capped.pressed_depth_m * 1e3, capped.largest_idle_depth_m * 1e6,
+              twelve.sweeps, full.pressed_depth_m * 1e3, full.largest_idle_depth_m * 1e6);
+  EXPECT_NEAR(capped.pressed_depth_m, full.pressed_depth_m, 1e-6);
+  EXPECT_LT(capped.largest_idle_depth_m, ObserverOptions{}.contact_threshold_m);
+  EXPECT_EQ(capped.zero_ticks, full.zero_ticks);  // the gate's ticks are the same ones
+  ObserverOptions bad;
+  bad.rest_sweeps = 0;
+  EXPECT_THROW(CellObserver(DeviceModel(mrskin::model::default_profile()), bad), mrskin::InvalidArgument);
+}
+
 TEST(ObserverRest, ANegativeGateIsRefused) {
   const DeviceModel nominal(mrskin::model::default_profile());
   ObserverOptions bad;

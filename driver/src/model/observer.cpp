@@ -27,12 +27,12 @@ const ObserverOptions& validated(const ObserverOptions& o) {
       !(o.sweep_tolerance_m >= 0.0) || !(o.hold_rate_m_per_s >= 0.0) || !(o.noise_floor_sigma >= 0.0) ||
       !std::isfinite(o.noise_floor_sigma) || o.residual_refresh_ticks < 1 || !(o.rate_memory_s > 0.0) ||
       !std::isfinite(o.rate_memory_s) || !(o.rate_change_threshold_sigma > 0.0) ||
-      !std::isfinite(o.rate_change_threshold_sigma) || !(o.rest_gate_sigma >= 0.0)) {
+      !std::isfinite(o.rate_change_threshold_sigma) || !(o.rest_gate_sigma >= 0.0) || o.rest_sweeps < 1) {
     throw InvalidArgument(
         "observer options: prior_spread_m and sparsity_scale_m must be > 0, sweeps >= 1, "
         "rate_filter_time_constant_s, contact_threshold_m, sweep_tolerance_m, hold_rate_m_per_s and "
         "noise_floor_sigma >= 0, residual_refresh_ticks >= 1, rate_memory_s and "
-        "rate_change_threshold_sigma finite and > 0, rest_gate_sigma >= 0");
+        "rate_change_threshold_sigma finite and > 0, rest_gate_sigma >= 0, rest_sweeps >= 1");
   }
   return o;
 }
@@ -257,7 +257,11 @@ struct __attribute__((visibility("hidden"))) CellObserver::Impl {
     }
   }
   void fit(std::span<const double> readings) noexcept;
-  bool rest_without_fit(std::span<const double> readings) noexcept;
+  // Small grids, no depth past the contact threshold last tick: every reading within the rest
+  // gate (none: the depths are zero, no fit), the largest within twice it (noise: rest_sweeps
+  // sweeps), or not at rest (full: the fit).
+  enum class RestFit : unsigned char { none, noise, full };
+  RestFit rest_fit(std::span<const double> readings) noexcept;
   void prepare_residual(std::span<const double> readings, bool sparse, double deadband) noexcept;
   void compute_sensor_residuals(std::span<const double> readings) noexcept;
   bool update_coils(std::span<const double> valve_current_A, double dt_s) noexcept;
@@ -390,29 +394,33 @@ void CellObserver::Impl::prepare_residual(std::span<const double> readings, bool
 // Small grids: no depth was above the contact threshold last tick and no reading is further
 // from zero than rest_gate_sigma standard deviations. The depths are zero and the fit is
 // skipped: noise alone would spread micrometres of depth over a few cells and relax them for up
-// to `sweeps` sweeps a tick. The residual is then the readings' (H 0 - y).
-bool CellObserver::Impl::rest_without_fit(std::span<const double> readings) noexcept {
+// to `sweeps` sweeps a tick. The residual is then the readings' (H 0 - y). Past the gate but
+// within twice it (noise, about 8 % of the 5x5's idle ticks; a touch reads far above), the fit
+// sweeps rest_sweeps times: the twelve went on the null space's slow convergence.
+CellObserver::Impl::RestFit CellObserver::Impl::rest_fit(std::span<const double> readings) noexcept {
   const double gate = options.rest_gate_sigma;
   if (!(gate > 0.0)) {
-    return false;
+    return RestFit::full;
   }
   for (const double d : previous_m) {
     if (d > options.contact_threshold_m) {
-      return false;
+      return RestFit::full;
     }
   }
   // used_reading is written as it is tested: a small grid's prepare_residual writes it again.
+  double largest = 0.0;
   for (std::size_t r = 0; r < residual.size(); ++r) {
     const double y = readings[sensor_of_row[r]] * sensor_scale[r];  // in sigmas
-    if (row_excluded[r] == 0 && std::abs(y) > gate) {
-      return false;
-    }
+    largest = row_excluded[r] == 0 ? std::max(largest, std::abs(y)) : largest;
     used_reading[r] = y;
     residual[r] = -y;
   }
+  if (largest > gate) {
+    return largest <= 2.0 * gate ? RestFit::noise : RestFit::full;
+  }
   // The prior may have moved a depth by a decaying rate: at rest it is zero.
   std::fill(depth_m.begin(), depth_m.end(), 0.0);
-  return true;
+  return RestFit::none;
 }
 
 // Projected coordinate descent on 1/2 |r|^2 + 1/2 w_p |d - d_pred|^2 + w_1 sum d, d >= 0. A
@@ -424,9 +432,12 @@ void CellObserver::Impl::fit(std::span<const double> readings) noexcept {
   // only the neighbours of what moved, and a reading within reading_deadband_sigma of the one
   // last used counts as unchanged (noise on an untouched region moves nothing).
   const bool sparse = cells > options.network_max_cells;
-  if (!sparse && rest_without_fit(readings)) {
+  const RestFit rest = sparse ? RestFit::full : rest_fit(readings);
+  if (rest == RestFit::none) {
     return;
   }
+  const int max_sweeps =
+      rest == RestFit::noise ? std::min(options.sweeps, options.rest_sweeps) : options.sweeps;
   const double deadband = sparse ? options.reading_deadband_sigma : 0.0;
   prepare_residual(readings, sparse, deadband);
   const double tolerance = options.sweep_tolerance_m;
@@ -470,7 +481,7 @@ void CellObserver::Impl::fit(std::span<const double> readings) noexcept {
   next_generation();
   next_visit.clear();
   if (!sparse) {
-    for (int sweep = 0; sweep < options.sweeps && (sweep == 0 || largest > tolerance); ++sweep) {
+    for (int sweep = 0; sweep < max_sweeps && (sweep == 0 || largest > tolerance); ++sweep) {
       largest = 0.0;
       for (std::size_t c = 0; c < cells; ++c) {
         relax(c);

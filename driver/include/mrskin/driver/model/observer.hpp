@@ -101,6 +101,12 @@ struct ObserverOptions {
   // instructions, every scene's figures unchanged over seeds 1-8 (docs/bridge.md, "Cost per
   // tick"). 0: off.
   double rest_gate_sigma = 3.0;
+  // Grids of at most network_max_cells: when no depth was above contact_threshold_m last tick and
+  // the largest reading is past the rest gate but within twice it (noise, on about 8 % of the
+  // 5 x 5's idle ticks; a touch reads far above), the fit sweeps at most this many times instead
+  // of `sweeps`: the twelve went on the null space's slow convergence, micrometres below the
+  // contact threshold (docs/bridge.md, "Cost per tick"). At least 1.
+  int rest_sweeps = 2;
   // Grids above network_max_cells: a sensor whose reading (in its standard deviations) is within
   // this of the reading last used counts as unchanged.
   double reading_deadband_sigma = 2.0;
