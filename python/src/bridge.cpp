@@ -70,6 +70,7 @@ class Rig {
       source_ = std::move(scene);
     } else {
       source_ = bridge::make_source(o.source, {}, &clock);
+      stream_ = dynamic_cast<const bridge::StreamSource*>(source_.get());
     }
     OpenOptions open;
     open.synchronous_mock = synchronous;
@@ -102,6 +103,10 @@ class Rig {
     if (finger_scene_) {
       finger_scene_->set_start(t0_);
     }
+    finger_t0_ = t0_;
+    // Beside a stream the mock's finger waits at its scene's start for the stream's first sample,
+    // as mrskin-bridged's does (docs/daemon.md): a robot that plays the same scene starts late.
+    finger_waits_ = finger_scene_ != nullptr && stream_ != nullptr;
   }
   Rig(const Rig&) = delete;
   Rig& operator=(const Rig&) = delete;
@@ -121,11 +126,15 @@ class Rig {
     }
   }
 
-  // The simulated finger follows the script (the scene, or the mock's finger= scene).
+  // The simulated finger follows the script (the scene, or the mock's finger= scene). One thread
+  // at a time calls it: the run's, or the finger thread of a real-time run.
   void press_finger() noexcept {
     if (mock_ && finger_ != nullptr) {
-      eval::press_scene_finger(*finger_, to_seconds(clock_.now() - t0_), mock_->layout(), finger_depth_m_,
-                               bridge_->scale().length);
+      // A replay:// file counts its samples as it loads them, so it never waits.
+      finger_waits_ = finger_waits_ && stream_->stats().accepted == 0;
+      finger_t0_ = finger_waits_ ? clock_.now() : finger_t0_;
+      eval::press_scene_finger(*finger_, to_seconds(clock_.now() - finger_t0_), mock_->layout(),
+                               finger_depth_m_, bridge_->scale().length);
       mock_->set_finger_indentation(finger_depth_m_);
     }
   }
@@ -186,6 +195,7 @@ class Rig {
  private:
   Clock& clock_;
   std::unique_ptr<bridge::SlaveSource> source_;
+  const bridge::StreamSource* stream_ = nullptr;  // source_ when it is a stream
   std::unique_ptr<bridge::Scene> finger_scene_;
   const bridge::Scene* finger_ = nullptr;
   OpenedDevice dev_;
@@ -197,6 +207,8 @@ class Rig {
   std::size_t cells_ = 0;
   std::vector<double> finger_depth_m_;
   TimePoint t0_{};
+  TimePoint finger_t0_{};      // the finger's scene time 0: t0_, or the stream's first sample
+  bool finger_waits_ = false;  // beside a stream, until its first accepted sample
   std::atomic<bool> stop_finger_{false};
   std::thread finger_thread_;
 };

@@ -2,6 +2,8 @@
 import json
 import os
 import signal
+import socket
+import struct
 import subprocess
 import threading
 
@@ -62,6 +64,66 @@ def test_realtime_run_with_a_callback():
     assert stats["ticks"] > 0 and stats["callback_samples"] > 0
     assert len(samples) == stats["callback_samples"]
     assert samples[0].true_force_N is not None
+
+
+def crc32c(data):
+    """CRC-32C written from docs/sources.md, not from the library's code."""
+    crc = 0xFFFFFFFF
+    for byte in data:
+        crc ^= byte
+        for _ in range(8):
+            crc = (crc >> 1) ^ (0x82F63B78 if crc & 1 else 0)
+    return crc ^ 0xFFFFFFFF
+
+
+def udp_sample(seq, stamp_ns):
+    """A lifted sample (no force, no depth) as docs/sources.md's version-1 datagram."""
+    body = struct.pack("<4sHHIIqddddd", b"MRSS", 1, 0, seq, 0, stamp_ns, 0.0, 0.0, 0.0, 0.0, 0.003)
+    return body + struct.pack("<I", crc32c(body))
+
+
+def test_the_mock_finger_waits_for_a_streams_first_sample():
+    assert crc32c(b"123456789") == 0xE3069283
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as probe:
+        probe.bind(("127.0.0.1", 0))
+        port = probe.getsockname()[1]
+    running = threading.Event()  # the first tick reached the callback
+    sending = threading.Event()
+    samples = []
+    stream_t_s = []  # the tick time at which the callback first saw the robot sending
+
+    def on_tick(tick):
+        samples.append(tick)
+        running.set()
+        if sending.is_set() and not stream_t_s:
+            stream_t_s.append(tick.t_s)
+
+    def robot():  # starts late, as a DDS follower does after discovery; bounded, loopback only
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as out:
+            running.wait(5.0)
+            threading.Event().wait(0.4)
+            sending.set()
+            for k in range(1200):
+                out.sendto(udp_sample(k, k * 1000000), ("127.0.0.1", port))
+                threading.Event().wait(0.001)
+
+    sender = threading.Thread(target=robot)
+    sender.start()
+    try:
+        stats = bridge.run_realtime(f"udp://127.0.0.1:{port}", "mock://?seed=5&finger=demo", duration_s=1.6,
+                                    callback=on_tick, decimation=5)
+    finally:
+        sender.join()
+    assert stats["samples_accepted"] > 0 and stream_t_s
+    start = stream_t_s[0]
+    before = [float(np.max(s.true_force_N)) for s in samples if 0.05 < s.t_s < start - 0.05]
+    after = [float(np.max(s.true_force_N)) for s in samples if s.t_s > start + 0.5]
+    assert len(before) > 20 and after
+    # Until the stream the finger rests at the demo's start (on the skin at depth 0, where the
+    # reservoir's precharge alone pushes it); from the stream's first sample it presses 0 -> 4 mm
+    # in 1 s. A finger that did not wait pressed from the run's start (0.19 -> 0.34 N by 0.4 s).
+    assert max(before) - min(before) < 0.01 and max(before) < 0.25, (min(before), max(before))
+    assert max(after) > 0.45, max(after)
 
 
 def test_ctrl_c_stops_a_realtime_run_cleanly():
