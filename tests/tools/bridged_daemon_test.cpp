@@ -670,6 +670,108 @@ TEST_F(BridgedDaemon, SighupWithANewSourceBuildsANewBridgeAndKeepsTheEstop) {
   EXPECT_EQ(d.wait(30s), mrskin::tools::kOk) << d.output();
 }
 
+// The largest true contact force (the mock's, N) in a telemetry line with the grid; -1 without.
+double max_true_force_N(const std::string& line) {
+  const std::size_t at = line.find(R"("true_force_n":[)");
+  if (at == std::string::npos) {
+    return -1.0;
+  }
+  const std::size_t from = at + 16;
+  const std::vector<double> f = numbers(line.substr(from, line.find(']', from) - from));
+  return f.empty() ? -1.0 : *std::max_element(f.begin(), f.end());
+}
+
+// Every grid line's largest true force over `span` (telemetry every 20 ms; bounded).
+std::vector<double> true_forces_N(LineClient& t, std::chrono::milliseconds span) {
+  std::vector<double> out;
+  for (const auto end = std::chrono::steady_clock::now() + span; std::chrono::steady_clock::now() < end;) {
+    const double f = max_true_force_N(t.read_line(1s).value_or(""));
+    if (f >= 0.0) {
+      out.push_back(f);
+    }
+  }
+  return out;
+}
+
+// A robot on 127.0.0.1:port streaming lifted samples at about 1 kHz for `count` samples.
+std::thread udp_robot(std::uint16_t port, std::uint32_t count) {
+  return std::thread([port, count] {
+    const int out = ::socket(AF_INET, SOCK_DGRAM, 0);
+    sockaddr_in to{};
+    to.sin_family = AF_INET;
+    to.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
+    to.sin_port = htons(port);
+    for (std::uint32_t k = 0; k < count; ++k) {
+      mrskin::bridge::UdpSample s;
+      s.sequence = k;
+      s.stamp_ns = static_cast<std::int64_t>(k) * 1'000'000;
+      s.tip_radius_m = 3e-3;
+      const auto bytes = mrskin::bridge::encode_udp_sample(s);
+      // NOLINTNEXTLINE(cppcoreguidelines-pro-type-reinterpret-cast): the socket API's own cast
+      (void)::sendto(out, bytes.data(), bytes.size(), 0, reinterpret_cast<const sockaddr*>(&to), sizeof(to));
+      std::this_thread::sleep_for(1ms);
+    }
+    ::close(out);
+  });
+}
+
+// Beside a stream the mock's finger waits at the scene's start (depth 0: on the skin, which the
+// reservoir's precharge alone pushes at about 0.19 N once the cell has filled) until the stream's
+// first sample, and a reload onto a new stream puts it back there to wait for that stream's first
+// sample (docs/daemon.md). Without the reset the finger would carry on its old press.
+TEST_F(BridgedDaemon, TheMockFingerWaitsForEachNewStreamsFirstSample) {
+  const std::uint16_t first = free_port(SOCK_DGRAM);
+  const std::uint16_t second = free_port(SOCK_DGRAM);
+  ASSERT_TRUE(first != 0 && second != 0 && first != second);
+  auto text = [&](std::uint16_t port) {
+    std::string t = config_text("[bridge]\nrealtime = false");
+    t.replace(t.find("mock://"), std::string("mock://").size(), "mock://?finger=demo");
+    t.replace(t.find("scene://demo"), std::string("scene://demo").size(),
+              "udp://127.0.0.1:" + std::to_string(port));
+    return t;
+  };
+  const fs::path cfg = dir_ / "bridged.toml";
+  std::ofstream(cfg) << text(first);
+  Daemon d(dir_, "d", {"--config", cfg.string()});
+  LineClient c = connect();
+  ASSERT_TRUE(c.connected()) << d.output();
+  LineClient t = connect();
+  ASSERT_TRUE(t.send_line(R"({"cmd":"telemetry","period_ms":20,"grid":true})"));
+  auto resting = [](const std::vector<double>& f) {
+    return f.size() >= 5 && *std::max_element(f.begin(), f.end()) < 0.25 &&
+           *std::max_element(f.begin(), f.end()) - *std::min_element(f.begin(), f.end()) < 0.02;
+  };
+  auto pressed = [](const std::vector<double>& f) {
+    return !f.empty() &&
+           *std::max_element(f.begin(), f.end()) > 0.45;  // 0 -> 4 mm in the demo's first second
+  };
+  (void)true_forces_N(t, 200ms);  // the skin settles on the resting finger
+  std::vector<double> f = true_forces_N(t, 400ms);
+  EXPECT_TRUE(resting(f)) << ::testing::PrintToString(f);
+
+  std::thread robot = udp_robot(first, 1300);
+  f = true_forces_N(t, 1200ms);
+  robot.join();
+  EXPECT_TRUE(pressed(f)) << ::testing::PrintToString(f);
+
+  std::ofstream(cfg) << text(second);
+  const std::string s = reload(d, c);
+  ASSERT_EQ(json_field(s, "reloads"), "1") << s << d.output();
+  // Back at depth 0 the cell refills slowly (0 -> 0.08 N over 0.8 s here); a finger that carried
+  // on would still hold the demo's 4 mm (above 0.45 N). First the lines queued during the reload.
+  (void)true_forces_N(t, 300ms);
+  f = true_forces_N(t, 800ms);
+  EXPECT_TRUE(f.size() >= 10 && *std::max_element(f.begin(), f.end()) < 0.25)
+      << "the finger did not wait for the new stream: " << ::testing::PrintToString(f);
+
+  robot = udp_robot(second, 1300);
+  f = true_forces_N(t, 1200ms);
+  robot.join();
+  EXPECT_TRUE(pressed(f)) << ::testing::PrintToString(f);
+  d.signal(SIGTERM);
+  EXPECT_EQ(d.wait(30s), mrskin::tools::kOk) << d.output();
+}
+
 // A stuck sensor: logged as it is found (naming the sensor, its cells and what the bridge does),
 // listed in the status, counted in the statistics; rendering goes on (docs/reliability.md).
 TEST_F(BridgedDaemon, ASensorFaultIsLoggedShownAndCounted) {
