@@ -348,6 +348,7 @@ TEST(ObserverRest, NoiseAloneLeavesTheDepthsAtZeroAndAPressIsFound) {
 TEST(ObserverRest, AFewSweepsFromRestFindThePressAsTwelveDo) {
   ObserverOptions twelve;
   twelve.rest_sweeps = twelve.sweeps;
+  twelve.small_grid_sweeps = twelve.sweeps;
   const RestCount full = rest_then_press(twelve);
   const RestCount capped = rest_then_press(ObserverOptions{});
   std::printf("from rest, %d sweeps: pressed %.4f mm, largest idle %.2f um; %d: %.4f mm, %.2f um\n",
@@ -358,6 +359,55 @@ TEST(ObserverRest, AFewSweepsFromRestFindThePressAsTwelveDo) {
   EXPECT_EQ(capped.zero_ticks, full.zero_ticks);  // the gate's ticks are the same ones
   ObserverOptions bad;
   bad.rest_sweeps = 0;
+  EXPECT_THROW(CellObserver(DeviceModel(mrskin::model::default_profile()), bad), mrskin::InvalidArgument);
+}
+
+// A small grid's fit sweeps at most small_grid_sweeps times a tick and takes up what a capped
+// tick left on the next (it starts from the last depths): a press, a hold and a release on the
+// noisy plant (seed 3) read as with twelve sweeps, within a fraction of the sensors' noise.
+TEST(ObserverSweeps, ASmallGridsCappedFitFollowsAPressAsTwelveSweepsDo) {
+  ObserverOptions twelve;
+  twelve.small_grid_sweeps = twelve.sweeps;
+  SeededRig capped_rig(ObserverOptions{}, 0.0);
+  SeededRig full_rig(twelve, 0.0);
+  double worst_m = 0.0;
+  double held_capped_m = 0.0;
+  double held_full_m = 0.0;
+  double capped_sq = 0.0;
+  double full_sq = 0.0;
+  int samples = 0;
+  for (int tick = 0; tick < 900; ++tick) {
+    // The centre and the cell at the right edge: 0 -> 2 and 1 mm in 300 ms, held, released.
+    const double ramp = tick < 300 ? tick / 300.0 : (tick < 600 ? 1.0 : (900 - tick) / 300.0);
+    capped_rig.depth[6] = full_rig.depth[6] = 2e-3 * ramp;
+    capped_rig.depth[7] = full_rig.depth[7] = 1e-3 * ramp;
+    capped_rig.tick();
+    full_rig.tick();
+    const std::span<const double> a = capped_rig.observer.indentation_m();
+    const std::span<const double> b = full_rig.observer.indentation_m();
+    for (std::size_t c = 0; c < a.size(); ++c) {
+      worst_m = std::max(worst_m, std::abs(a[c] - b[c]));
+      capped_sq += (a[c] - capped_rig.depth[c]) * (a[c] - capped_rig.depth[c]);
+      full_sq += (b[c] - full_rig.depth[c]) * (b[c] - full_rig.depth[c]);
+      ++samples;
+    }
+    if (tick == 599) {
+      held_capped_m = a[6];
+      held_full_m = b[6];
+    }
+  }
+  const double capped_rms_m = std::sqrt(capped_sq / samples);
+  const double full_rms_m = std::sqrt(full_sq / samples);
+  std::printf(
+      "fit at %d sweeps against %d: depth error %.3f against %.3f um RMS, largest difference %.2f um, "
+      "held %.4f against %.4f mm\n",
+      ObserverOptions{}.small_grid_sweeps, twelve.sweeps, capped_rms_m * 1e6, full_rms_m * 1e6, worst_m * 1e6,
+      held_capped_m * 1e3, held_full_m * 1e3);
+  EXPECT_LT(capped_rms_m, 1.05 * full_rms_m);
+  EXPECT_LT(worst_m, 5 * 2e-6);  // the 5 x 5's sensors: 2 um of noise
+  EXPECT_NEAR(held_capped_m, held_full_m, 1e-6);
+  ObserverOptions bad;
+  bad.small_grid_sweeps = 0;
   EXPECT_THROW(CellObserver(DeviceModel(mrskin::model::default_profile()), bad), mrskin::InvalidArgument);
 }
 

@@ -27,12 +27,14 @@ const ObserverOptions& validated(const ObserverOptions& o) {
       !(o.sweep_tolerance_m >= 0.0) || !(o.hold_rate_m_per_s >= 0.0) || !(o.noise_floor_sigma >= 0.0) ||
       !std::isfinite(o.noise_floor_sigma) || o.residual_refresh_ticks < 1 || !(o.rate_memory_s > 0.0) ||
       !std::isfinite(o.rate_memory_s) || !(o.rate_change_threshold_sigma > 0.0) ||
-      !std::isfinite(o.rate_change_threshold_sigma) || !(o.rest_gate_sigma >= 0.0) || o.rest_sweeps < 1) {
+      !std::isfinite(o.rate_change_threshold_sigma) || !(o.rest_gate_sigma >= 0.0) || o.rest_sweeps < 1 ||
+      o.small_grid_sweeps < 1) {
     throw InvalidArgument(
         "observer options: prior_spread_m and sparsity_scale_m must be > 0, sweeps >= 1, "
         "rate_filter_time_constant_s, contact_threshold_m, sweep_tolerance_m, hold_rate_m_per_s and "
         "noise_floor_sigma >= 0, residual_refresh_ticks >= 1, rate_memory_s and "
-        "rate_change_threshold_sigma finite and > 0, rest_gate_sigma >= 0, rest_sweeps >= 1");
+        "rate_change_threshold_sigma finite and > 0, rest_gate_sigma >= 0, rest_sweeps and small_grid_sweeps "
+        ">= 1");
   }
   return o;
 }
@@ -436,8 +438,8 @@ void CellObserver::Impl::fit(std::span<const double> readings) noexcept {
   if (rest == RestFit::none) {
     return;
   }
-  const int max_sweeps =
-      rest == RestFit::noise ? std::min(options.sweeps, options.rest_sweeps) : options.sweeps;
+  const int small_grid = std::min(options.sweeps, options.small_grid_sweeps);
+  const int max_sweeps = rest == RestFit::noise ? std::min(small_grid, options.rest_sweeps) : small_grid;
   const double deadband = sparse ? options.reading_deadband_sigma : 0.0;
   prepare_residual(readings, sparse, deadband);
   const double tolerance = options.sweep_tolerance_m;
