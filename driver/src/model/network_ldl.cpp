@@ -136,33 +136,38 @@ void SparseLdl::plan_numeric(std::vector<std::uint32_t>& flag) {
       const std::uint32_t i = pattern[top];
       const std::uint32_t written = lp_[i] + filled[i]++;
       li_[written] = static_cast<std::uint32_t>(k);
-      visit_column_.push_back(i);
-      visit_slot_.push_back(written);
+      visits_.push_back({i, lp_[i], written});
     }
-    row_begin_[k + 1] = static_cast<std::uint32_t>(visit_column_.size());
+    row_begin_[k + 1] = static_cast<std::uint32_t>(visits_.size());
   }
 }
 
 bool SparseLdl::factorize() noexcept {
   // ldl_numeric, row k of L by a sparse triangular solve, along the precomputed row patterns.
   const std::size_t n = n_;
+  double* const y = y_.data();
+  double* const lx = lx_.data();
+  const std::uint32_t* const li = li_.data();
+  const double* const ax = ax_.data();
+  const std::uint32_t* const ai = ai_.data();
+  const Visit* const visits = visits_.data();
   for (std::size_t k = 0; k < n; ++k) {
     for (std::uint32_t p = ap_[k]; p < ap_[k + 1]; ++p) {
-      y_[ai_[p]] += ax_[p];
+      y[ai[p]] += ax[p];
     }
-    double dk = y_[k];
-    y_[k] = 0.0;
-    for (std::uint32_t v = row_begin_[k]; v < row_begin_[k + 1]; ++v) {
-      const std::uint32_t i = visit_column_[v];
-      const std::uint32_t slot = visit_slot_[v];
-      const double yi = y_[i];
-      y_[i] = 0.0;
-      for (std::uint32_t p = lp_[i]; p < slot; ++p) {
-        y_[li_[p]] -= lx_[p] * yi;
+    double dk = y[k];
+    y[k] = 0.0;
+    for (const Visit* v = visits + row_begin_[k]; v != visits + row_begin_[k + 1]; ++v) {
+      const double yi = y[v->column];
+      y[v->column] = 0.0;
+      const std::uint32_t* r = li + v->first;
+      const double* l = lx + v->first;
+      for (const double* end = lx + v->slot; l != end; ++l, ++r) {
+        y[*r] -= *l * yi;
       }
-      const double l_ki = yi / d_[i];
+      const double l_ki = yi / d_[v->column];
       dk -= l_ki * yi;
-      lx_[slot] = l_ki;
+      lx[v->slot] = l_ki;
     }
     if (!(dk > 0.0) || !std::isfinite(dk)) {
       return false;
@@ -174,27 +179,31 @@ bool SparseLdl::factorize() noexcept {
 
 void SparseLdl::solve(std::span<double> x) noexcept {
   const std::size_t n = n_;
+  double* const w = w_.data();
+  const double* const lx = lx_.data();
+  const std::uint32_t* const li = li_.data();
+  const std::uint32_t* const lp = lp_.data();
   for (std::size_t i = 0; i < n; ++i) {
-    w_[new_of_old_[i]] = x[i];
+    w[new_of_old_[i]] = x[i];
   }
   for (std::size_t j = 0; j < n; ++j) {
-    const double yj = w_[j];
-    for (std::uint32_t p = lp_[j]; p < lp_[j + 1]; ++p) {
-      w_[li_[p]] -= lx_[p] * yj;
+    const double yj = w[j];
+    for (std::uint32_t p = lp[j]; p < lp[j + 1]; ++p) {
+      w[li[p]] -= lx[p] * yj;
     }
   }
   for (std::size_t j = 0; j < n; ++j) {
-    w_[j] /= d_[j];
+    w[j] /= d_[j];
   }
   for (std::size_t j = n; j-- > 0;) {
-    double yj = w_[j];
-    for (std::uint32_t p = lp_[j]; p < lp_[j + 1]; ++p) {
-      yj -= lx_[p] * w_[li_[p]];
+    double yj = w[j];
+    for (std::uint32_t p = lp[j]; p < lp[j + 1]; ++p) {
+      yj -= lx[p] * w[li[p]];
     }
-    w_[j] = yj;
+    w[j] = yj;
   }
   for (std::size_t i = 0; i < n; ++i) {
-    x[i] = w_[new_of_old_[i]];
+    x[i] = w[new_of_old_[i]];
   }
 }
 

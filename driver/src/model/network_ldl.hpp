@@ -56,9 +56,13 @@ class SparseLdl {
   std::vector<double> d_;
   std::vector<std::int64_t> parent_;
   // The numeric pass's visits, row by row: column i of L and the slot row k writes in it.
+  struct Visit {
+    std::uint32_t column;  // i
+    std::uint32_t first;   // lp_[i]: the entries of column i above row k's run from here
+    std::uint32_t slot;    // ... to here, where L(k, i) goes
+  };
   std::vector<std::uint32_t> row_begin_;
-  std::vector<std::uint32_t> visit_column_;
-  std::vector<std::uint32_t> visit_slot_;
+  std::vector<Visit> visits_;
   std::vector<double> y_;
   std::vector<double> w_;  // solve()'s permuted right-hand side
 };
