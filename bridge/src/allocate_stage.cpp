@@ -36,7 +36,9 @@ AllocateStage::AllocateStage(const BridgeOptions& options, const GridLayout& lay
       drain_phase_(layout.fluid_cell_count(), DrainPhase::none),
       last_force_N_(layout.fluid_cell_count(), 0.0),
       fall_N_(layout.fluid_cell_count(), 0.0),
-      loading_ticks_(layout.fluid_cell_count(), 0) {
+      loading_ticks_(layout.fluid_cell_count(), 0),
+      loaded_flag_(layout.fluid_cell_count(), 0) {
+  was_loaded_.reserve(layout.fluid_cell_count());
   retune_rate();
 }
 
@@ -54,6 +56,7 @@ void AllocateStage::run(const Rendering& rendered, std::span<const double> force
   }
   const std::span<const double> currents = inverse_.currents_A();
   std::copy(currents.begin(), currents.end(), out.current_A.begin());
+  unload_released_cells(out);
   lock_short_cells(rendered, force_N, out.current_A);
   if (options_.drain_then_seal) {
     drain_then_seal(rendered, force_N, out);
@@ -68,6 +71,32 @@ void AllocateStage::run(const Rendering& rendered, std::span<const double> force
   }
 }
 
+void AllocateStage::unload_released_cells(Allocation& out) noexcept {
+  // Every stage below walks only the loaded cells. A cell not loaded has no drain memory, a zero
+  // target and no envelope, so only the cells that left the loaded set this tick are written.
+  const std::span<const std::uint32_t> loaded = inverse_.loaded_cells();
+  for (const std::uint32_t i : was_loaded_) {
+    loaded_flag_[i] = 0;
+  }
+  for (const std::uint32_t i : loaded) {
+    loaded_flag_[i] = 1;
+  }
+  for (const std::uint32_t i : was_loaded_) {
+    if (loaded_flag_[i] != 0) {
+      continue;
+    }
+    drain_phase_[i] = DrainPhase::none;
+    loading_ticks_[i] = 0;
+    fall_N_[i] = 0.0;
+    out.drain_held[i] = 0;
+    out.below_floor[i] = 0;
+    out.target_N[i] = 0.0;
+    out.floor_N[i] = kNotLoaded;
+    out.ceiling_N[i] = kNotLoaded;
+  }
+  was_loaded_.assign(loaded.begin(), loaded.end());  // within its reserve: no allocation
+}
+
 void AllocateStage::lock_short_cells(const Rendering& rendered, std::span<const double> force_N,
                                      std::span<double> current_A) const noexcept {
   // Semi-active: a loaded cell that wants more than the quasi-static envelope allows (or more
@@ -76,10 +105,9 @@ void AllocateStage::lock_short_cells(const Rendering& rendered, std::span<const 
   // across the two passages of a chamber), so no volume leaves before the finger has pushed the
   // pressure there.
   const std::span<const model::CellSolution> cells = inverse_.cells();
-  for (std::size_t i = 0; i < cells.size(); ++i) {
+  for (const std::uint32_t i : inverse_.loaded_cells()) {
     const model::CellSolution& c = cells[i];
     const bool holding = c.role == model::CellRole::holding;
-    const bool loaded = holding || c.role == model::CellRole::loading;
     const double margin = holding ? options_.hold_margin : 0.0;
     // A loading cell whose observed force is still below its request: the inverse's feed-forward
     // expects the viscous force of a steady flow through open valves, but the network's
@@ -87,7 +115,7 @@ void AllocateStage::lock_short_cells(const Rendering& rendered, std::span<const 
     // builds the pressure. Held at the request's threshold until the force gets there.
     const bool short_of_request =
         options_.lock_while_short && c.role == model::CellRole::loading && force_N[i] < c.requested_force_N;
-    if (!loaded || !(c.clamped_high || margin > 0.0 || short_of_request)) {
+    if (!(c.clamped_high || margin > 0.0 || short_of_request)) {
       continue;
     }
     for (const std::size_t v : layout_.valves_of_cell(i)) {
@@ -121,20 +149,13 @@ void AllocateStage::drain_then_seal(const Rendering& rendered, std::span<const d
   // the request down meanwhile, so the cell ended below its target (docs/bridge.md, Settling).
   // Drain and seal last until the finger leaves or presses on (loading for seal_release_ticks_:
   // the role flickers to loading on single ticks of rate noise while the finger holds).
+  // (A cell no finger holds has nothing to drain or seal: unload_released_cells reset it.)
   const std::span<const model::CellSolution> cells = inverse_.cells();
-  for (std::size_t i = 0; i < cells.size(); ++i) {
+  for (const std::uint32_t i : inverse_.loaded_cells()) {
     const model::CellRole role = cells[i].role;
     out.drain_held[i] = 0;
-    if (role != model::CellRole::holding && role != model::CellRole::loading) {
-      drain_phase_[i] = DrainPhase::none;  // no finger holds it: nothing to drain or seal
-      loading_ticks_[i] = 0;
-      fall_N_[i] = 0.0;
-      last_force_N_[i] = force_N[i];
-      continue;
-    }
     // The fall per tick, smoothed over a few ticks: the observer's force noise would seal early.
     fall_N_[i] += fall_smoothing_ * ((last_force_N_[i] - force_N[i]) - fall_N_[i]);
-    last_force_N_[i] = force_N[i];
     if (role == model::CellRole::loading) {
       // Pushing well above its law while loading (the finger slowed or stopped before the rate
       // estimate saw it, or the feed-forward overshot): open valves shed force fastest.
@@ -173,6 +194,7 @@ void AllocateStage::drain_then_seal(const Rendering& rendered, std::span<const d
       out.drain_held[i] = 1;
     }
   }
+  std::copy(force_N.begin(), force_N.end(), last_force_N_.begin());  // every cell: a press's first fall
 }
 
 double AllocateStage::seal_delay_s(std::size_t cell, double target_N,
@@ -214,11 +236,10 @@ void AllocateStage::clamp_targets_into_envelope(const Rendering& rendered, std::
   // Against the role and envelope of this tick's solve: a cell that just turned to holding is
   // scored on its hold target, never on last tick's release.
   const std::span<const model::CellSolution> cells = inverse_.cells();
-  for (std::size_t i = 0; i < out.target_N.size(); ++i) {
+  for (const std::uint32_t i : inverse_.loaded_cells()) {  // the others: unload_released_cells
     const model::CellSolution& c = cells[i];
-    const bool loaded = c.role == model::CellRole::loading || c.role == model::CellRole::holding;
     double floor_N = c.force_min_N;
-    if (loaded && valves_open(layout_, out.current_A, i, max_current_A_)) {
+    if (valves_open(layout_, out.current_A, i, max_current_A_)) {
       // With every valve of the cell open the device cannot render less than what the fluid
       // already pushes: the observer's network force, which knows the fluid's history (pressure
       // left by earlier flow, compliance still filling). The quasi-static floor does not: as a
@@ -229,9 +250,9 @@ void AllocateStage::clamp_targets_into_envelope(const Rendering& rendered, std::
       out.below_floor[i] = 0;
     }
     const double ceiling_N = std::max(floor_N, c.force_max_N);
-    out.target_N[i] = loaded ? std::clamp(rendered.tissue_N[i], floor_N, ceiling_N) : 0.0;
-    out.floor_N[i] = loaded ? floor_N : kNotLoaded;
-    out.ceiling_N[i] = loaded ? ceiling_N : kNotLoaded;
+    out.target_N[i] = std::clamp(rendered.tissue_N[i], floor_N, ceiling_N);
+    out.floor_N[i] = floor_N;
+    out.ceiling_N[i] = ceiling_N;
   }
 }
 

@@ -6,6 +6,7 @@
 // Private to the bridge library (bridge.cpp runs it).
 #pragma once
 
+#include <cstdint>
 #include <span>
 #include <vector>
 
@@ -36,6 +37,7 @@ class AllocateStage {
   void retune_rate() noexcept;  // options' rate changed: the drain's per-tick constants follow it
 
  private:
+  void unload_released_cells(Allocation& out) noexcept;
   void lock_short_cells(const Rendering& rendered, std::span<const double> force_N,
                         std::span<double> current_A) const noexcept;
   void drain_then_seal(const Rendering& rendered, std::span<const double> force_N, Allocation& out) noexcept;
@@ -57,11 +59,13 @@ class AllocateStage {
   double coil_tau_s_;            // the profile's coil time constant
   double fall_smoothing_ = 1.0;  // per tick (retune_rate)
   enum class DrainPhase : unsigned char { none, draining, sealed };
-  std::vector<DrainPhase> drain_phase_;  // per fluid cell (drain_then_seal)...
-  int seal_release_ticks_ = 1;           // loading this many ticks ends a seal (retune_rate)
-  std::vector<double> last_force_N_;     // ...its observed force last tick...
-  std::vector<double> fall_N_;           // ...how fast it falls (N per tick, smoothed)...
-  std::vector<int> loading_ticks_;       // ...and how long a sealed cell has been loading
+  std::vector<DrainPhase> drain_phase_;     // per fluid cell (drain_then_seal)...
+  int seal_release_ticks_ = 1;              // loading this many ticks ends a seal (retune_rate)
+  std::vector<double> last_force_N_;        // ...its observed force last tick...
+  std::vector<double> fall_N_;              // ...how fast it falls (N per tick, smoothed)...
+  std::vector<int> loading_ticks_;          // ...and how long a sealed cell has been loading
+  std::vector<std::uint32_t> was_loaded_;   // the inverse's loaded cells last tick
+  std::vector<unsigned char> loaded_flag_;  // per cell: in this tick's loaded set (scratch)
 };
 
 }  // namespace mrskin::bridge::detail

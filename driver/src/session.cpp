@@ -4,6 +4,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <cstring>
 #include <string>
 
 #include "mrskin/driver/layout.hpp"
@@ -236,6 +237,7 @@ DeviceSession::Impl::Impl(std::unique_ptr<Transport> transport, Clock& clock, Se
   current_counts_.assign(info_.valves, 0);
   pending_counts_.assign(info_.valves, 0);
   commanded_A_.assign(info_.valves, 0.0);
+  quantised_A_.assign(info_.valves, 0.0);
   targets_.assign(info_.fluid_cells, proto::CellTarget{});
   targeted_.assign(info_.fluid_cells, 0);
   next_heartbeat_ = clock_.now();
@@ -275,6 +277,7 @@ void DeviceSession::Impl::apply_identity(const proto::Identity& id) {
   info_.telemetry_rate_hz = id.telemetry_rate_hz;
   current_lsb_nA_ = id.current_lsb_nA;
   current_max_counts_ = id.current_max_counts;
+  quantised_valid_ = false;  // a new scale: the last command's counts are not these currents' counts
   sensor_lsb_ = info_.sensor_lsb;
 }
 
@@ -713,21 +716,28 @@ ResultCode DeviceSession::Impl::send_valve_currents(std::span<const double> curr
   if (!connected_) {
     return ResultCode::disconnected;
   }
-  proto::Identity scale;
-  scale.current_lsb_nA = current_lsb_nA_;
-  scale.current_max_counts = current_max_counts_;
-  // Quantised once, kept only if every value is valid (a refused command changes nothing).
-  for (std::size_t v = 0; v < current_A.size(); ++v) {
-    const proto::Quantized<std::uint16_t> q = proto::quantize_current(current_A[v], scale);
-    if (q.error != proto::Error::ok) {
-      ++counters_.invalid_commands;
-      return ResultCode::invalid_value;
+  // The same currents as the last command, bit for bit (a hold's periodic resend): the same
+  // counts, already checked. Otherwise quantised once, kept only if every value is valid (a
+  // refused command changes nothing).
+  const std::size_t bytes = current_A.size() * sizeof(double);
+  if (!quantised_valid_ || std::memcmp(current_A.data(), quantised_A_.data(), bytes) != 0) {
+    proto::Identity scale;
+    scale.current_lsb_nA = current_lsb_nA_;
+    scale.current_max_counts = current_max_counts_;
+    for (std::size_t v = 0; v < current_A.size(); ++v) {
+      const proto::Quantized<std::uint16_t> q = proto::quantize_current(current_A[v], scale);
+      if (q.error != proto::Error::ok) {
+        ++counters_.invalid_commands;
+        return ResultCode::invalid_value;
+      }
+      pending_counts_[v] = q.counts;
     }
-    pending_counts_[v] = q.counts;
-  }
-  for (std::size_t v = 0; v < current_A.size(); ++v) {
-    current_counts_[v] = pending_counts_[v];
-    commanded_A_[v] = static_cast<double>(current_counts_[v]) * info_.current_lsb_A;
+    for (std::size_t v = 0; v < current_A.size(); ++v) {
+      current_counts_[v] = pending_counts_[v];
+      commanded_A_[v] = static_cast<double>(current_counts_[v]) * info_.current_lsb_A;
+    }
+    std::memcpy(quantised_A_.data(), current_A.data(), bytes);
+    quantised_valid_ = true;
   }
   currents_commanded_ = true;
   for (std::size_t first = 0; first < current_counts_.size(); first += proto::kMaxValveCurrents) {
@@ -770,6 +780,7 @@ ResultCode DeviceSession::Impl::send_cell_targets(std::uint16_t first_cell,
 
 void DeviceSession::Impl::reseed_and_send() noexcept {
   ++counters_.reseeds;
+  quantised_valid_ = false;
   std::fill(current_counts_.begin(), current_counts_.end(), std::uint16_t{0});
   std::fill(commanded_A_.begin(), commanded_A_.end(), 0.0);
   if (currents_commanded_) {

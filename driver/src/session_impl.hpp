@@ -109,6 +109,8 @@ class __attribute__((visibility("hidden"))) DeviceSession::Impl {
   std::vector<std::uint16_t> current_counts_;
   std::vector<std::uint16_t> pending_counts_;  // send_valve_currents: all quantised before any is kept
   std::vector<double> commanded_A_;
+  std::vector<double> quantised_A_;  // the currents current_counts_ were quantised from, bitwise...
+  bool quantised_valid_ = false;     // ...while they still are (a reseed or a new scale: no)
   bool currents_commanded_ = false;  // the host has sent currents since the handshake
   std::vector<protocol::CellTarget> targets_;
   std::vector<std::uint8_t> targeted_;  // per cell: the host has targeted it

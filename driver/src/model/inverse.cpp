@@ -63,6 +63,9 @@ Status CellInverse::solve(std::span<const CellImpedanceTarget> targets, std::spa
 std::span<const double> CellInverse::currents_A() const noexcept { return impl_->levels.current; }
 std::span<const double> CellInverse::valve_yield_stress_Pa() const noexcept { return impl_->levels.tau; }
 std::span<const CellSolution> CellInverse::cells() const noexcept { return impl_->output.cells; }
+std::span<const std::uint32_t> CellInverse::loaded_cells() const noexcept {
+  return impl_->memory.loaded_list;
+}
 const InverseReport& CellInverse::report() const noexcept { return impl_->output.rep; }
 
 CellInverse::FloorParts CellInverse::floor_parts(double indentation_m) const noexcept {

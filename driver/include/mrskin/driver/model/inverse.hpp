@@ -37,6 +37,7 @@
 #pragma once
 
 #include <cstddef>
+#include <cstdint>
 #include <memory>
 #include <span>
 #include <vector>
@@ -146,6 +147,9 @@ class MRSKIN_DRIVER_API CellInverse {
   [[nodiscard]] std::span<const double> currents_A() const noexcept;
   [[nodiscard]] std::span<const double> valve_yield_stress_Pa() const noexcept;
   [[nodiscard]] std::span<const CellSolution> cells() const noexcept;
+  // The cells holding or loading after the last successful solve, ascending: a caller walks
+  // these instead of every cell's role, so the untouched cells of a large grid cost nothing.
+  [[nodiscard]] std::span<const std::uint32_t> loaded_cells() const noexcept;
   [[nodiscard]] const InverseReport& report() const noexcept;  // of the last call, ok or not
 
   // Forget every cache: the next solve recomputes every cell.
