@@ -441,7 +441,9 @@ void CellObserver::Impl::fit(std::span<const double> readings) noexcept {
   const int small_grid = std::min(options.sweeps, options.small_grid_sweeps);
   const int max_sweeps = rest == RestFit::noise ? std::min(small_grid, options.rest_sweeps) : small_grid;
   const double deadband = sparse ? options.reading_deadband_sigma : 0.0;
-  prepare_residual(readings, sparse, deadband);
+  if (rest != RestFit::noise) {
+    prepare_residual(readings, sparse, deadband);  // (noise: rest_fit left the residual at d = 0)
+  }
   const double tolerance = options.sweep_tolerance_m;
   double largest = 0.0;
   auto relax = [&](std::size_t c) {
@@ -482,6 +484,41 @@ void CellObserver::Impl::fit(std::span<const double> readings) noexcept {
   };
   next_generation();
   next_visit.clear();
+  if (rest == RestFit::noise) {
+    // Only the cells under a reading past the gate, and those the prior gives depth, are
+    // relaxed: the others stay at zero, as the gate leaves them, since all their sensors read
+    // within it. rest_fit left the residual at zero depth: the prior's depths are added to it.
+    // In the full sweep's order.
+    for (std::size_t c = 0; c < cells; ++c) {
+      if (depth_m[c] > 0.0) {
+        for (std::size_t e = col_begin[c]; e < col_begin[c + 1]; ++e) {
+          residual[col_entries[e].index] += col_entries[e].weight * depth_m[c];
+        }
+        mark[c] = generation;
+        next_visit.push_back(c);
+      }
+    }
+    for (std::size_t r = 0; r < residual.size(); ++r) {
+      if (row_excluded[r] != 0 || !(std::abs(used_reading[r]) > options.rest_gate_sigma)) {
+        continue;
+      }
+      for (std::size_t k = row_begin[r]; k < row_begin[r + 1]; ++k) {
+        const std::size_t n = row_entries[k].index;
+        if (mark[n] != generation) {
+          mark[n] = generation;
+          next_visit.push_back(n);
+        }
+      }
+    }
+    std::sort(next_visit.begin(), next_visit.end());
+    for (int sweep = 0; sweep < max_sweeps && (sweep == 0 || largest > tolerance); ++sweep) {
+      largest = 0.0;
+      for (const std::size_t c : next_visit) {
+        relax(c);
+      }
+    }
+    return;
+  }
   if (!sparse) {
     for (int sweep = 0; sweep < max_sweeps && (sweep == 0 || largest > tolerance); ++sweep) {
       largest = 0.0;

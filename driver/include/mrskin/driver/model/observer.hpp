@@ -105,7 +105,8 @@ struct ObserverOptions {
   // the largest reading is past the rest gate but within twice it (noise, on about 8 % of the
   // 5 x 5's idle ticks; a touch reads far above), the fit sweeps at most this many times instead
   // of `sweeps`: the twelve went on the null space's slow convergence, micrometres below the
-  // contact threshold (docs/bridge.md, "Cost per tick"). At least 1.
+  // contact threshold. Only the cells under a reading past the gate, and those the prior gives
+  // depth, are relaxed; the others stay at zero (docs/bridge.md, "Cost per tick"). At least 1.
   int rest_sweeps = 2;
   // Grids of at most network_max_cells: at most this many sweeps a tick (and `sweeps`, the lesser).
   // The fit starts from the last tick's depths, so what a capped tick leaves is taken up the next;
