@@ -147,6 +147,11 @@ void RenderStage::render(const Observation& observed, std::span<const model::Cel
     if (!contact && law.surface_offset_m() == 0.0 && !(law.tank_J() > 0.0)) {
       // Untouched, and the law at rest: what the general path below gives, without evaluating
       // the law (no force at zero depth, no feedback, the same target but for its validity).
+      if (cell.rest_valid != 0 && cell.rest_ceiling_N == options_.max_force_N) {
+        // At rest last tick too (any other path clears rest_valid): its outputs stand.
+        out.target[i].valid_until_s = valid_until_s;
+        continue;
+      }
       release_direction_latch(cell);
       state.indentation_m = 0.0;
       state.rate_m_per_s = 0.0;

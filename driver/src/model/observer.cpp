@@ -264,7 +264,7 @@ struct __attribute__((visibility("hidden"))) CellObserver::Impl {
   // sweeps), or not at rest (full: the fit).
   enum class RestFit : unsigned char { none, noise, full };
   RestFit rest_fit(std::span<const double> readings) noexcept;
-  void visit_noise_cells() noexcept;
+  void mark_noise_cells() noexcept;
   void prepare_residual(std::span<const double> readings, bool sparse, double deadband) noexcept;
   void compute_sensor_residuals(std::span<const double> readings) noexcept;
   bool update_coils(std::span<const double> valve_current_A, double dt_s) noexcept;
@@ -429,8 +429,8 @@ CellObserver::Impl::RestFit CellObserver::Impl::rest_fit(std::span<const double>
 // Noise past the rest gate: only the cells under a reading past the gate, and those the prior
 // gives depth, are relaxed; the others stay at zero, as the gate leaves them, since all their
 // sensors read within it. rest_fit left the residual at zero depth: the prior's depths are added
-// to it. The cells go into next_visit in the full sweep's order.
-void CellObserver::Impl::visit_noise_cells() noexcept {
+// to it. The cells to relax are marked with this generation.
+void CellObserver::Impl::mark_noise_cells() noexcept {
   const std::size_t cells = depth_m.size();
   for (std::size_t c = 0; c < cells; ++c) {
     if (depth_m[c] > 0.0) {
@@ -438,7 +438,6 @@ void CellObserver::Impl::visit_noise_cells() noexcept {
         residual[col_entries[e].index] += col_entries[e].weight * depth_m[c];
       }
       mark[c] = generation;
-      next_visit.push_back(c);
     }
   }
   for (std::size_t r = 0; r < residual.size(); ++r) {
@@ -446,14 +445,9 @@ void CellObserver::Impl::visit_noise_cells() noexcept {
       continue;
     }
     for (std::size_t k = row_begin[r]; k < row_begin[r + 1]; ++k) {
-      const std::size_t n = row_entries[k].index;
-      if (mark[n] != generation) {
-        mark[n] = generation;
-        next_visit.push_back(n);
-      }
+      mark[row_entries[k].index] = generation;
     }
   }
-  std::sort(next_visit.begin(), next_visit.end());
 }
 
 // Projected coordinate descent on 1/2 |r|^2 + 1/2 w_p |d - d_pred|^2 + w_1 sum d, d >= 0. A
@@ -516,11 +510,13 @@ void CellObserver::Impl::fit(std::span<const double> readings) noexcept {
   next_generation();
   next_visit.clear();
   if (rest == RestFit::noise) {
-    visit_noise_cells();
+    mark_noise_cells();
     for (int sweep = 0; sweep < max_sweeps && (sweep == 0 || largest > tolerance); ++sweep) {
       largest = 0.0;
-      for (const std::size_t c : next_visit) {
-        relax(c);
+      for (std::size_t c = 0; c < cells; ++c) {
+        if (mark[c] == generation) {
+          relax(c);
+        }
       }
     }
     return;
