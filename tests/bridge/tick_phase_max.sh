@@ -7,6 +7,9 @@
 #   tick_phase_max.sh PROBE OUT_DIR TICKS URI FINGER [PHASE:LIMIT ...]   (FINGER: scene, all or rest)
 # With PHASE:LIMIT arguments (a ratchet), fails when a phase's maximum is above its limit or the
 # phase has no tick. Exits 77 (ctest: skipped) when valgrind is missing.
+# With MRSKIN_PHASE_WITHOUT_MOCK=1 the simulated unit's own work inside the tick is left out
+# (MockDevice's transport: the synchronous mock parses the host's frames and runs its bus model
+# inside the session's send and poll), so the counts are the driver's and the bridge's alone.
 probe=$1 out=$2 ticks=$3 uri=$4 finger=$5
 if [ -z "$finger" ]; then
   echo "usage: tick_phase_max.sh PROBE OUT_DIR TICKS URI scene|all|rest [PHASE:LIMIT ...]" >&2
@@ -18,9 +21,14 @@ if ! command -v valgrind >/dev/null 2>&1; then
   exit 77
 fi
 rm -rf "$out" && mkdir -p "$out" || exit 1
+transport=mrskin::sim::MockDevice::Impl::HostTransport
+toggle_receive=--toggle-collect=none toggle_send=--toggle-collect=none
+if [ "${MRSKIN_PHASE_WITHOUT_MOCK:-0}" = 1 ]; then
+  toggle_receive="--toggle-collect=$transport::receive*" toggle_send="--toggle-collect=$transport::send*"
+fi
 if ! MRSKIN_PROBE_PHASES="$out/phases.txt" valgrind --tool=callgrind --instr-atstart=no \
     --collect-atstart=no --dump-instr=no --callgrind-out-file="$out/tick.%p" \
-    "$probe" "$ticks" "$uri" "$finger" >"$out/probe.log" 2>&1; then
+    "$toggle_receive" "$toggle_send" "$probe" "$ticks" "$uri" "$finger" >"$out/probe.log" 2>&1; then
   echo "probe failed:"; tail -20 "$out/probe.log"
   exit 1
 fi

@@ -7,6 +7,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <cstdint>
 #include <cstring>
 #include <fstream>
 #include <limits>
@@ -545,6 +546,49 @@ TEST_F(InverseIncremental, ASearchEndsWithItsConflict) {
   ASSERT_EQ(inv.solve(c.targets, c.states, c.now_s), Status::ok);
   EXPECT_TRUE(inv.report().from_cache);
   EXPECT_EQ(inv.report().components_solved, 0u);
+}
+
+// loaded_cells() is what a caller walks instead of every cell's role: it must be exactly the
+// cells holding or loading after each solve, ascending, and keep its last list on a refused call.
+TEST_F(InverseIncremental, LoadedCellsAreTheHoldingAndLoadingCellsInOrder) {
+  const auto loaded_by_role = [&] {
+    std::vector<std::uint32_t> out;
+    for (std::size_t i = 0; i < n; ++i) {
+      const CellRole r = inv.cells()[i].role;
+      if (r == CellRole::holding || r == CellRole::loading) {
+        out.push_back(static_cast<std::uint32_t>(i));
+      }
+    }
+    return out;
+  };
+  const auto listed = [&] {
+    return std::vector<std::uint32_t>(inv.loaded_cells().begin(), inv.loaded_cells().end());
+  };
+  EXPECT_TRUE(inv.loaded_cells().empty());
+  const std::size_t a = m.fluid_cell_index(1, 1).value;
+  const std::size_t b = m.fluid_cell_index(3, 3).value;
+  InverseCase c = blank();
+  within_envelope(c, b, 3e-3, 2e-3, 0.5);  // loading
+  within_envelope(c, a, 3e-3, 0.0, 0.5);   // holding
+  ASSERT_EQ(inv.solve(c.targets, c.states, c.now_s), Status::ok);
+  EXPECT_EQ(listed(), (std::vector<std::uint32_t>{static_cast<std::uint32_t>(std::min(a, b)),
+                                                  static_cast<std::uint32_t>(std::max(a, b))}));
+  EXPECT_EQ(listed(), loaded_by_role());
+  // A refused call (a NaN depth) changes nothing.
+  InverseCase bad = c;
+  bad.states[a].indentation_m = std::numeric_limits<double>::quiet_NaN();
+  ASSERT_NE(inv.solve(bad.targets, bad.states, bad.now_s), Status::ok);
+  EXPECT_EQ(listed(), loaded_by_role());
+  EXPECT_EQ(listed().size(), 2U);
+  // The finger leaves a: only b stays loaded; then nothing is.
+  c.states[a] = CellState{};
+  c.targets[a] = CellImpedanceTarget{};
+  ASSERT_EQ(inv.solve(c.targets, c.states, c.now_s + 1e-3), Status::ok);
+  EXPECT_EQ(listed(), std::vector<std::uint32_t>{static_cast<std::uint32_t>(b)});
+  EXPECT_EQ(listed(), loaded_by_role());
+  ASSERT_EQ(inv.solve(blank(2e-3).targets, blank(2e-3).states, 2e-3), Status::ok);
+  EXPECT_TRUE(inv.loaded_cells().empty());
+  EXPECT_EQ(listed(), loaded_by_role());
 }
 
 TEST_F(InverseIncremental, UnchangedCellsCostNothing) {
