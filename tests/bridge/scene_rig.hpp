@@ -6,6 +6,7 @@
 
 #include <chrono>
 #include <cmath>
+#include <functional>
 #include <memory>
 #include <string>
 #include <vector>
@@ -31,9 +32,11 @@ struct SceneRun {
 // stall_every > 0: the finger's script is not advanced on every stall_every-th tick, as when a
 // daemon's thread moves it on its own ~1.1 ms period. finger_every > 1: it is advanced only every
 // finger_every-th tick (that ~1.1 ms period at a loop rate above 1 kHz: 11 ticks at 10 kHz).
+// after_tick: called after every tick with the bridge and the tick's index.
 inline SceneRun run_scene(const std::string& scene_name, double seconds, const std::string& device_uri,
                           const ImpairmentOptions* network = nullptr, int stall_every = 0,
-                          const BridgeOptions& options = {}, int finger_every = 1) {
+                          const BridgeOptions& options = {}, int finger_every = 1,
+                          const std::function<void(const Bridge&, int)>& after_tick = {}) {
   SimulatedClock clock;
   OpenOptions open;
   open.synchronous_mock = true;
@@ -65,6 +68,9 @@ inline SceneRun run_scene(const std::string& scene_name, double seconds, const s
     }
     sim::mock_of(dev)->step(clock.now());
     (void)loop.step(clock.now());
+    if (after_tick) {
+      after_tick(loop, k);
+    }
     clock.advance(period);
   }
   SceneRun r;
