@@ -3,6 +3,7 @@
 
 #include <cmath>
 #include <limits>
+#include <random>
 
 #include "mrskin/driver/model/coil.hpp"
 #include "mrskin/driver/model/fluid.hpp"
@@ -208,6 +209,42 @@ TEST(ModelCoil, EddyCurrentsLagTheField) {
     s = coil_step(c, s, 0.2, 1e-3).value;
   }
   EXPECT_NEAR(s.field_current_A, 0.2, 1e-5);
+}
+
+// The observer steps every moving coil by one tick with the decays computed once: the result must
+// be coil_step's to the bit, on the linear loop, on the supply's rail and with no eddy lag.
+TEST(ModelCoil, PrecomputedDecaysStepBitForBitAsCoilStep) {
+  CoilParams slow_supply = coil();
+  slow_supply.supply_voltage_V = 1.0;  // large steps ride the rail first
+  CoilParams no_eddy = coil();
+  no_eddy.eddy_time_constant_s = 0.0;
+  std::mt19937_64 rng(11);
+  std::uniform_real_distribution<double> command(-0.5, 0.5);
+  int rail_steps = 0;
+  for (const CoilParams& c : {coil(), slow_supply, no_eddy}) {
+    for (const double dt : {1e-4, 1e-3, 2.5e-3}) {
+      const CoilDecay decay = coil_decay(c, dt);
+      CoilState a{};
+      CoilState b{};
+      for (int k = 0; k < 400; ++k) {
+        const double cmd = k % 7 == 0 ? 0.0 : command(rng);
+        const Result<CoilState> by_dt = coil_step(c, a, cmd, dt);
+        const Result<CoilState> by_decay = coil_step(c, b, cmd, decay);
+        ASSERT_EQ(by_dt.status, by_decay.status);
+        ASSERT_EQ(by_dt.value.current_A, by_decay.value.current_A) << "step " << k;
+        ASSERT_EQ(by_dt.value.field_current_A, by_decay.value.field_current_A) << "step " << k;
+        const double linear_A = cmd + (a.current_A - cmd) * decay.loop;
+        rail_steps += by_dt.value.current_A != linear_A ? 1 : 0;
+        a = by_dt.value;
+        b = by_decay.value;
+      }
+    }
+  }
+  EXPECT_GT(rail_steps, 50) << "the slow supply's rail must be exercised";
+  // Errors as coil_step's.
+  EXPECT_EQ(coil_step(coil(), CoilState{}, 0.6, coil_decay(coil(), 1e-3)).status, Status::out_of_range);
+  EXPECT_EQ(coil_step(coil(), CoilState{}, std::nan(""), coil_decay(coil(), 1e-3)).status,
+            Status::not_finite);
 }
 
 TEST(ModelCoil, BadCommandsAreExplicitErrors) {

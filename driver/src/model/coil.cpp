@@ -1,6 +1,7 @@
 #include "mrskin/driver/model/coil.hpp"
 
 #include <cmath>
+#include <limits>
 
 namespace mrskin::model {
 
@@ -14,8 +15,9 @@ double open_loop_time_constant_s(const CoilParams& c) noexcept { return c.induct
 
 namespace {
 
-// Current after `dt` under the driver, exact for a constant command.
-double advance_current(const CoilParams& c, double i0, double cmd, double dt) noexcept {
+// Current after `dt` under the driver, exact for a constant command. loop_decay: e^{-w dt} if the
+// caller has it (used when no slew-limited segment shortens the linear one), else NaN.
+double advance_current(const CoilParams& c, double i0, double cmd, double dt, double loop_decay) noexcept {
   const double w = 2.0 * kPi * c.driver_bandwidth_Hz;
   const double a = c.resistance_ohm / c.inductance_H;  // 1/s
   double i = i0;
@@ -44,14 +46,13 @@ double advance_current(const CoilParams& c, double i0, double cmd, double dt) no
     t -= t_rail;
   }
   if (t > 0.0) {
-    i = cmd + (i - cmd) * std::exp(-w * t);
+    i = cmd + (i - cmd) * (t == dt && !std::isnan(loop_decay) ? loop_decay : std::exp(-w * t));
   }
   return i;
 }
 
-}  // namespace
-
-Result<CoilState> coil_step(const CoilParams& c, const CoilState& s, double command_A, double dt_s) noexcept {
+Result<CoilState> step_coil(const CoilParams& c, const CoilState& s, double command_A, double dt_s,
+                            double loop_decay, double eddy_decay) noexcept {
   if (!std::isfinite(command_A) || !std::isfinite(dt_s) || !std::isfinite(s.current_A) ||
       !std::isfinite(s.field_current_A)) {
     return failure<CoilState>(Status::not_finite);
@@ -63,7 +64,7 @@ Result<CoilState> coil_step(const CoilParams& c, const CoilState& s, double comm
     return failure<CoilState>(Status::out_of_range);
   }
   CoilState out;
-  out.current_A = advance_current(c, s.current_A, command_A, dt_s);
+  out.current_A = advance_current(c, s.current_A, command_A, dt_s, loop_decay);
   if (c.eddy_time_constant_s <= 0.0) {
     out.field_current_A = out.current_A;
     return {out};
@@ -71,9 +72,30 @@ Result<CoilState> coil_step(const CoilParams& c, const CoilState& s, double comm
   // First-order lag with a linear input between the two currents (exact for that input).
   const double h = dt_s / c.eddy_time_constant_s;
   const double slope_tau = h > 0.0 ? (out.current_A - s.current_A) / h : 0.0;
-  out.field_current_A =
-      out.current_A - slope_tau + (s.field_current_A - s.current_A + slope_tau) * std::exp(-h);
+  const double decay = std::isnan(eddy_decay) ? std::exp(-h) : eddy_decay;
+  out.field_current_A = out.current_A - slope_tau + (s.field_current_A - s.current_A + slope_tau) * decay;
   return {out};
+}
+
+}  // namespace
+
+Result<CoilState> coil_step(const CoilParams& c, const CoilState& s, double command_A, double dt_s) noexcept {
+  constexpr double kNone = std::numeric_limits<double>::quiet_NaN();
+  return step_coil(c, s, command_A, dt_s, kNone, kNone);
+}
+
+CoilDecay coil_decay(const CoilParams& c, double dt_s) noexcept {
+  // The same expressions as coil_step's, so the decays are the same bits.
+  CoilDecay d;
+  d.dt_s = dt_s;
+  d.loop = std::exp(-(2.0 * kPi * c.driver_bandwidth_Hz) * dt_s);
+  d.eddy = c.eddy_time_constant_s > 0.0 ? std::exp(-(dt_s / c.eddy_time_constant_s)) : 1.0;
+  return d;
+}
+
+Result<CoilState> coil_step(const CoilParams& c, const CoilState& s, double command_A,
+                            const CoilDecay& decay) noexcept {
+  return step_coil(c, s, command_A, decay.dt_s, decay.loop, decay.eddy);
 }
 
 const char* check_coil(const CoilParams& c) noexcept {

@@ -299,6 +299,7 @@ struct __attribute__((visibility("hidden"))) CellObserver::Impl {
   std::vector<double> velocity;
   std::unique_ptr<RateTracker> rate_tracker;  // RateEstimator::segmented_line only
   std::vector<CoilState> coil;
+  CoilDecay coil_decay_step;  // the decays of the last tick length (coil_decay)
   // The steel's hysteresis (a play operator, as in the plant), tabulated by tabulate_play().
   std::vector<double> play_base_A;      // current holding the steel at the k-th play, no hysteresis
   std::vector<double> play_yield_Pa;    // nominal yield stress at the k-th play
@@ -598,7 +599,10 @@ bool CellObserver::Impl::update_coils(std::span<const double> valve_current_A, d
       continue;
     }
     command_A[v] = command;
-    const Result<CoilState> next = coil_step(coil_params, state, command, dt_s);
+    if (coil_decay_step.dt_s != dt_s) {
+      coil_decay_step = coil_decay(coil_params, dt_s);  // two exponentials per tick length, not per coil
+    }
+    const Result<CoilState> next = coil_step(coil_params, state, command, coil_decay_step);
     if (next.ok()) {
       state = next.value;
     }
