@@ -5,8 +5,10 @@
 
 #include <array>
 #include <cstdint>
+#include <random>
 #include <span>
 #include <string_view>
+#include <vector>
 
 namespace {
 
@@ -30,6 +32,33 @@ TEST(ProtocolCrc, Crc16KnownVectors) {
   const std::array<std::uint8_t, 1> zero{0x00};
   EXPECT_EQ(crc16_ccitt(zero), 0xE1F0);
   EXPECT_EQ(crc16_ccitt(bytes("A")), 0xB915);
+}
+
+// The table walk (four bytes at a time, then one) against the bitwise definition, on every
+// length up to 70 (each remainder of four), from random starting registers.
+TEST(ProtocolCrc, Crc16MatchesTheBitwiseDefinitionAtEveryLength) {
+  const auto bitwise = [](std::span<const std::uint8_t> data, std::uint16_t crc) {
+    for (const std::uint8_t byte : data) {
+      crc = static_cast<std::uint16_t>(crc ^ (byte << 8U));
+      for (int bit = 0; bit < 8; ++bit) {
+        crc = (crc & 0x8000U) != 0 ? static_cast<std::uint16_t>((crc << 1U) ^ 0x1021U)
+                                   : static_cast<std::uint16_t>(crc << 1U);
+      }
+    }
+    return crc;
+  };
+  std::mt19937 rng(16);
+  std::vector<std::uint8_t> data(70);
+  for (int round = 0; round < 20; ++round) {
+    for (std::uint8_t& b : data) {
+      b = static_cast<std::uint8_t>(rng());
+    }
+    const auto init = static_cast<std::uint16_t>(rng());
+    for (std::size_t n = 0; n <= data.size(); ++n) {
+      const std::span<const std::uint8_t> d(data.data(), n);
+      ASSERT_EQ(crc16_ccitt(d, init), bitwise(d, init)) << n << " bytes, init " << init;
+    }
+  }
 }
 
 TEST(ProtocolCrc, Crc8SaeJ1850CheckValue) { EXPECT_EQ(crc8_j1850(bytes("123456789")), 0x4B); }
