@@ -1,6 +1,7 @@
 // Bounds-checked little-endian cursor over a span. Internal to the codec.
 #pragma once
 
+#include <algorithm>
 #include <cstddef>
 #include <cstdint>
 #include <span>
@@ -21,6 +22,21 @@ class Writer {
   void u16(std::uint16_t v) noexcept {
     u8(static_cast<std::uint8_t>(v & 0xFFU));
     u8(static_cast<std::uint8_t>(v >> 8U));
+  }
+  // Values little-endian, one bounds check for all (a valve command's counts, every tick).
+  void u16s(std::span<const std::uint16_t> values) noexcept {
+    if (values.size() * 2 > out_.size() - std::min(pos_, out_.size())) {
+      for (const std::uint16_t v : values) {
+        u16(v);  // past the end: counted and flagged byte by byte, as ever
+      }
+      return;
+    }
+    std::uint8_t* p = out_.data() + pos_;
+    for (const std::uint16_t v : values) {
+      *p++ = static_cast<std::uint8_t>(v & 0xFFU);
+      *p++ = static_cast<std::uint8_t>(v >> 8U);
+    }
+    pos_ += values.size() * 2;
   }
   void i16(std::int16_t v) noexcept { u16(static_cast<std::uint16_t>(v)); }
   void u32(std::uint32_t v) noexcept {

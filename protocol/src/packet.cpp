@@ -42,9 +42,7 @@ void put(Writer& w, const Identity& m) noexcept {
 void put(Writer& w, const ValveCurrents& m) noexcept {
   w.u16(m.first);
   w.u8(m.count);
-  for (std::size_t i = 0; i < m.count; ++i) {
-    w.u16(m.counts[i]);
-  }
+  w.u16s(std::span<const std::uint16_t>(m.counts.data(), std::min<std::size_t>(m.count, m.counts.size())));
 }
 void put(Writer& w, const CellTargets& m) noexcept {
   w.u16(m.first);
@@ -250,8 +248,12 @@ EncodeResult encode_packet(const Message& message, std::uint8_t sequence,
   if (const Error e = detail::validate(message); e != Error::ok) {
     return {e, 0};
   }
-  std::array<std::uint8_t, kPacketMaxBytes> buffer{};
-  Writer w(std::span<std::uint8_t>(buffer).subspan(kPacketHeaderBytes, kPacketMaxPayload));
+  // Straight into `out` when any packet fits there (a packed report's packet buffer), else into
+  // a buffer of the largest packet's size first (a short `out` learns its length below).
+  std::array<std::uint8_t, kPacketMaxBytes> local{};
+  const std::span<std::uint8_t> buffer =
+      out.size() >= kPacketMaxBytes ? out.first(kPacketMaxBytes) : std::span<std::uint8_t>(local);
+  Writer w(buffer.subspan(kPacketHeaderBytes, kPacketMaxPayload));
   detail::visit_nothrow<int>(
       [&w](const auto& m) noexcept {
         put(w, m);
@@ -274,7 +276,9 @@ EncodeResult encode_packet(const Message& message, std::uint8_t sequence,
   if (out.size() < total) {
     return {Error::short_buffer, 0};
   }
-  std::copy_n(buffer.begin(), total, out.begin());
+  if (buffer.data() != out.data()) {
+    std::copy_n(buffer.begin(), total, out.begin());
+  }
   return {Error::ok, total};
 }
 

@@ -82,6 +82,31 @@ TEST_P(ProtocolGolden, HidReportIsPacketPaddedTo64) {
   EXPECT_EQ(d.message, nm.message);
 }
 
+// encode_packet writes straight into an `out` that holds the largest packet, and through a
+// buffer of its own into a shorter one: the golden bytes either way, nothing past them written,
+// and an `out` one byte short refused untouched.
+TEST_P(ProtocolGolden, PacketEncodesTheSameIntoAnyBufferThatHoldsIt) {
+  const NamedMessage& nm = GetParam();
+  const GoldenLine* g = find_line(nm.name, "packet");
+  ASSERT_NE(g, nullptr);
+  const std::vector<std::uint8_t> golden = unhex(g->tokens[0]);
+  for (const std::size_t size : {kPacketMaxBytes + 3, kPacketMaxBytes, golden.size(), golden.size() - 1}) {
+    std::vector<std::uint8_t> out(size, 0xCC);
+    const EncodeResult r = encode_packet(nm.message, kGoldenSequence, out);
+    if (size < golden.size()) {
+      EXPECT_EQ(r.error, Error::short_buffer);
+      EXPECT_EQ(out, std::vector<std::uint8_t>(size, 0xCC)) << "a refused encode writes nothing";
+      continue;
+    }
+    ASSERT_EQ(r.error, Error::ok) << size;
+    ASSERT_EQ(r.bytes, golden.size());
+    EXPECT_EQ(hex(out.data(), golden.size()), hex(golden)) << size;
+    for (std::size_t i = golden.size(); i < size; ++i) {
+      ASSERT_EQ(out[i], 0xCC) << "byte " << i << " of " << size;
+    }
+  }
+}
+
 TEST_P(ProtocolGolden, ClassicCanEncode) {
   const NamedMessage& nm = GetParam();
   const GoldenLine* g = find_line(nm.name, "can");
