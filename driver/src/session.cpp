@@ -671,7 +671,7 @@ ResultCode DeviceSession::Impl::poll(TimePoint now) noexcept {
       backoff_ = std::min(backoff_ * 2, options_.reconnect_backoff_max);
     }
   }
-  Datagram d;
+  Datagram& d = rx_datagram_;  // a member: a datagram on the stack was zeroed every poll
   for (;;) {
     const ResultCode rc = transport_->receive(d);
     if (rc != ResultCode::ok) {

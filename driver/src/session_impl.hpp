@@ -106,6 +106,7 @@ class __attribute__((visibility("hidden"))) DeviceSession::Impl {
   std::unique_ptr<model::DeviceProfile> profile_;
   TargetSeeder seeder_;
   std::vector<double> sensors_;
+  Datagram rx_datagram_;  // poll's receive buffer
   std::vector<std::uint16_t> current_counts_;
   std::vector<std::uint16_t> pending_counts_;  // send_valve_currents: all quantised before any is kept
   std::vector<double> commanded_A_;
