@@ -644,6 +644,11 @@ void DeviceSession::Impl::handle_packet(const proto::PacketDecoded& p, TimePoint
 }
 
 ResultCode DeviceSession::Impl::poll(TimePoint now) noexcept {
+  if (polling_) {
+    return ResultCode::would_block;  // from the telemetry callback: rx_datagram_ is being read
+  }
+  polling_ = true;
+  const ClearOnExit clear(polling_);
   if (transport_->state() != TransportState::open) {
     if (connected_) {
       connected_ = false;

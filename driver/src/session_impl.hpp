@@ -106,7 +106,19 @@ class __attribute__((visibility("hidden"))) DeviceSession::Impl {
   std::unique_ptr<model::DeviceProfile> profile_;
   TargetSeeder seeder_;
   std::vector<double> sensors_;
-  Datagram rx_datagram_;  // poll's receive buffer
+  Datagram rx_datagram_;  // poll's receive buffer...
+  bool polling_ = false;  // ...in use: poll() is running (its telemetry callback may not re-enter)
+  struct ClearOnExit {    // poll's: polling_ false again on every return
+    explicit ClearOnExit(bool& flag) noexcept : flag_(flag) {}
+    ~ClearOnExit() { flag_ = false; }
+    ClearOnExit(const ClearOnExit&) = delete;
+    ClearOnExit& operator=(const ClearOnExit&) = delete;
+    ClearOnExit(ClearOnExit&&) = delete;
+    ClearOnExit& operator=(ClearOnExit&&) = delete;
+
+   private:
+    bool& flag_;
+  };
   std::vector<std::uint16_t> current_counts_;
   std::vector<std::uint16_t> pending_counts_;  // send_valve_currents: all quantised before any is kept
   std::vector<double> commanded_A_;

@@ -455,6 +455,31 @@ TEST(Session, TelemetryCallbackSeesEveryPacket) {
   EXPECT_GE(calls, 95);
 }
 
+// The callback runs inside poll() on the packet poll() is reading: a poll() from it must not
+// read into that buffer. It reads nothing and says would_block; the outer poll goes on.
+TEST(Session, PollFromTheTelemetryCallbackReadsNothing) {
+  Rig rig("mock://?seed=18");
+  struct Seen {
+    DeviceSession* session = nullptr;
+    TimePoint now{};
+    int calls = 0;
+    int refused = 0;
+  } seen{rig.dev.session.get(), {}, 0, 0};
+  rig.dev.session->set_telemetry_callback(
+      [](void* ctx, const TelemetryView& view) noexcept {
+        auto& s = *static_cast<Seen*>(ctx);
+        ++s.calls;
+        s.refused += s.session->poll(s.now) == ResultCode::would_block ? 1 : 0;
+        (void)view;
+      },
+      &seen);
+  rig.run(100);
+  EXPECT_GE(seen.calls, 95);
+  EXPECT_EQ(seen.refused, seen.calls);
+  rig.dev.session->set_telemetry_callback(nullptr, nullptr);
+  EXPECT_NE(rig.dev.session->poll(rig.clock.now()), ResultCode::would_block);  // outside: as ever
+}
+
 TEST(MockProfiles, GridCurrentRangeAndSensorsComeFromTheProfile) {
   struct Case {
     const char* uri;

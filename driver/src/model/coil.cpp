@@ -89,7 +89,8 @@ CoilDecay coil_decay(const CoilParams& c, double dt_s) noexcept {
   CoilDecay d;
   d.dt_s = dt_s;
   d.loop = std::exp(-(2.0 * kPi * c.driver_bandwidth_Hz) * dt_s);
-  d.eddy = c.eddy_time_constant_s > 0.0 ? std::exp(-(dt_s / c.eddy_time_constant_s)) : 1.0;
+  // (Not used where the eddy lag is off; NaN parameters stay NaN, as in coil_step.)
+  d.eddy = c.eddy_time_constant_s <= 0.0 ? 1.0 : std::exp(-(dt_s / c.eddy_time_constant_s));
   return d;
 }
 

@@ -188,7 +188,8 @@ class MRSKIN_DRIVER_API TargetSeeder {
   std::vector<Term> force_;
 };
 
-// Called on the tick thread for every telemetry packet, inside poll(); must not block.
+// Called on the tick thread for every telemetry packet, inside poll(); must not block. A poll()
+// from inside it reads nothing and returns would_block (the packet it is handed is still in use).
 struct TelemetryView {
   std::uint32_t device_time_us = 0;
   std::size_t first = 0;
@@ -215,7 +216,8 @@ class MRSKIN_DRIVER_API DeviceSession {
 
   // --- real-time path: no allocation, no exceptions, no blocking -----------------------
   // Drains received packets, sends the heartbeat when due, reconnects after an unplug.
-  // Returns disconnected while the link is down, device_fault while the device is in FAULT.
+  // Returns disconnected while the link is down, device_fault while the device is in FAULT,
+  // would_block when called from inside the telemetry callback (nothing is read).
   ResultCode poll(TimePoint now) noexcept;
   // Per-valve coil currents, A. Refuses NaN/Inf/out-of-range with invalid_value and sends
   // nothing in that case.
