@@ -49,7 +49,11 @@ void AllocateStage::retune_rate() noexcept {
 
 void AllocateStage::run(const Rendering& rendered, std::span<const double> force_N, double since_start_s,
                         BridgeStats& stats, Allocation& out) noexcept {
-  out.solved = inverse_.solve(rendered.target, rendered.state, since_start_s) == model::Status::ok;
+  // Every cell at rest as last tick (render's word; allocate always follows render): the inverse
+  // need not check each cell's inputs again.
+  const bool renewed = rendered.unchanged_at_rest && !rendered.target.empty() &&
+                       inverse_.renew_at_rest(rendered.target.front().valid_until_s, since_start_s);
+  out.solved = renewed || inverse_.solve(rendered.target, rendered.state, since_start_s) == model::Status::ok;
   if (!out.solved) {
     ++stats.inverse_errors;  // the last good currents stand
     return;

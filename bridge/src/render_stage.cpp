@@ -138,18 +138,27 @@ void RenderStage::render(const Observation& observed, std::span<const model::Cel
   const std::span<const double> outflow = observed.outflow_m3_per_s;
   const TissueModel& unmapped = law();  // the cells the instrument never mapped
   const double valid_until_s = estimate_.valid_until_s;
+  std::size_t standing = 0;  // cells whose outputs stand from the last tick
+  std::size_t contacts = 0;
+  // In locals: the stores into the outputs below would otherwise reload them on every cell.
+  const double contact_threshold_m = options_.contact_threshold_m;
+  const double contact_force_N = options_.contact_force_N;
+  const double max_force_N = options_.max_force_N;
+  model::CellImpedanceTarget* const targets = out.target.data();
   for (std::size_t i = 0; i < cell_.size(); ++i) {
     CellMemory& cell = cell_[i];
     model::CellState& state = out.state[i];
     // A membrane sucked in after a release reads as depth with no force on it: no finger.
-    const bool contact = depth_m[i] > options_.contact_threshold_m && force_N[i] > options_.contact_force_N;
+    const bool contact = depth_m[i] > contact_threshold_m && force_N[i] > contact_force_N;
+    contacts += contact ? 1 : 0;
     PassiveTissueUpdate& law = cell.law;
     if (!contact && law.surface_offset_m() == 0.0 && !(law.tank_J() > 0.0)) {
       // Untouched, and the law at rest: what the general path below gives, without evaluating
       // the law (no force at zero depth, no feedback, the same target but for its validity).
-      if (cell.rest_valid != 0 && cell.rest_ceiling_N == options_.max_force_N) {
+      if (cell.rest_valid != 0 && cell.rest_ceiling_N == max_force_N) {
         // At rest last tick too (any other path clears rest_valid): its outputs stand.
-        out.target[i].valid_until_s = valid_until_s;
+        targets[i].valid_until_s = valid_until_s;
+        ++standing;
         continue;
       }
       release_direction_latch(cell);
@@ -215,6 +224,8 @@ void RenderStage::render(const Observation& observed, std::span<const model::Cel
       }
     }
   }
+  out.unchanged_at_rest = standing == cell_.size();
+  out.contact_cells = contacts;
 }
 
 }  // namespace mrskin::bridge::detail

@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <cstdint>
 #include <memory>
 #include <vector>
 
@@ -82,9 +83,11 @@ class __attribute__((visibility("hidden"))) SensorFaultMonitor::Impl {
 
  private:
   void latch(std::size_t sensor, SensorFault fault, double evidence) noexcept;
+  void judge_every_watched_sensor() noexcept;
 
   SensorFaultOptions options_;
   std::vector<unsigned char> watched_;  // displacement sensors
+  std::vector<std::uint32_t> judged_;   // the watched sensors not latched, ascending: update's walk
   std::vector<double> residual_sigma_;  // the observer's sigma for the residual (its definition)
   std::vector<std::size_t> cells_begin_;
   std::vector<std::size_t> cells_;
@@ -165,6 +168,17 @@ SensorFaultMonitor::Impl::Impl(const model::DeviceProfile& profile, const GridLa
   fault_.assign(n, SensorFault::none);
   evidence_.assign(n, 0.0);
   healthy_ = static_cast<std::size_t>(std::count(watched_.begin(), watched_.end(), 1));
+  judged_.reserve(healthy_);
+  judge_every_watched_sensor();
+}
+
+void SensorFaultMonitor::Impl::judge_every_watched_sensor() noexcept {
+  judged_.clear();  // within its reserve: no allocation
+  for (std::size_t k = 0; k < watched_.size(); ++k) {
+    if (watched_[k] != 0) {
+      judged_.push_back(static_cast<std::uint32_t>(k));
+    }
+  }
 }
 
 std::span<const std::size_t> SensorFaultMonitor::Impl::cells_of_sensor(std::size_t sensor) const noexcept {
@@ -184,6 +198,7 @@ void SensorFaultMonitor::Impl::reset() noexcept {
   }
   std::fill(fault_.begin(), fault_.end(), SensorFault::none);
   std::fill(evidence_.begin(), evidence_.end(), 0.0);
+  judge_every_watched_sensor();
   restart_watch();
   healthy_ += faulty_;
   faulty_ = 0;
@@ -195,6 +210,7 @@ void SensorFaultMonitor::Impl::restart_history() noexcept { restart_watch(); }
 void SensorFaultMonitor::Impl::latch(std::size_t sensor, SensorFault fault, double evidence) noexcept {
   fault_[sensor] = fault;
   evidence_[sensor] = evidence;
+  std::erase(judged_, static_cast<std::uint32_t>(sensor));
   ++faulty_;
   --healthy_;
   for (std::size_t e = cells_begin_[sensor]; e < cells_begin_[sensor + 1]; ++e) {
@@ -227,10 +243,8 @@ std::size_t SensorFaultMonitor::Impl::update(std::span<const double> readings,
   double found_evidence = 0.0;
   double worst_offset = 0.0;
   std::size_t worst_offset_sensor = npos;
-  for (std::size_t k = 0; k < fault_.size(); ++k) {
-    if (watched_[k] == 0 || fault_[k] != SensorFault::none) {
-      continue;
-    }
+  for (const std::uint32_t sensor : judged_) {
+    const std::size_t k = sensor;
     const double y = readings[k];
     if (!std::isfinite(y)) {
       continue;  // the observer refuses the tick; nothing to judge

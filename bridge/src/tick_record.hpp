@@ -27,6 +27,9 @@ struct Rendering {
   std::vector<model::CellImpedanceTarget> target;  // the cell's law with the feedback's shift
   std::vector<double> tissue_N;                    // the law at the state, capped at the range
   std::vector<unsigned char> contact;              // the finger is on the cell
+  std::size_t contact_cells = 0;                   // how many contact[] are set
+  // Every cell was at rest this tick and the last: only the targets' validity moved.
+  bool unchanged_at_rest = false;
   // This tick consumed a new slave sample (its arrival, for the latency figures).
   bool fresh_sample = false;
   TimePoint fresh_arrival{};

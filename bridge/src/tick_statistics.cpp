@@ -14,16 +14,19 @@ TickStatistics::TickStatistics(const BridgeOptions& options, const model::CellIn
 void TickStatistics::count(const TickRecord& record, std::span<const model::CellSolution> solve,
                            BridgeStats& stats) noexcept {
   const Rendering& rendered = record.rendered;
-  for (std::size_t i = 0; i < solve.size(); ++i) {
-    const bool loaded =
-        solve[i].role == model::CellRole::loading || solve[i].role == model::CellRole::holding;
-    if (loaded) {
-      ++stats.target_cell_ticks;
-      if (solve[i].clamped_low || solve[i].clamped_high || record.allocated.below_floor[i] != 0) {
-        ++stats.clamped_cell_ticks;
-        count_clamp(record, i, solve[i], stats);
-      }
+  // The loaded cells are the inverse's list (ascending, as the walk over every cell was).
+  for (const std::uint32_t i : inverse_.loaded_cells()) {
+    ++stats.target_cell_ticks;
+    if (solve[i].clamped_low || solve[i].clamped_high || record.allocated.below_floor[i] != 0) {
+      ++stats.clamped_cell_ticks;
+      count_clamp(record, i, solve[i], stats);
     }
+  }
+  // No port open and no finger on any cell: no port to observe (an untouched skin's tick).
+  if (open_ports_ == 0 && rendered.contact_cells == 0) {
+    return count_active(stats);
+  }
+  for (std::size_t i = 0; i < solve.size(); ++i) {
     // The rendered port opens and closes at zero force and depth, so the energy of the first and
     // last contact threshold's worth of travel is counted both ways.
     const bool contact = rendered.contact[i] != 0;
@@ -34,11 +37,16 @@ void TickStatistics::count(const TickRecord& record, std::span<const model::Cell
         port.observe(0.0, 0.0);
       }
       port.observe(contact ? rendered.tissue_N[i] : 0.0, contact ? rendered.state[i].indentation_m : 0.0);
+      open_ports_ = open_ports_ - port_open_[i] + (contact ? 1 : 0);
       port_open_[i] = contact ? 1 : 0;
       stats.passivity_energy_J += port.stats().energy_J - before_J;
       stats.passivity_min_energy_J = std::min(stats.passivity_min_energy_J, port.stats().min_energy_J);
     }
   }
+  count_active(stats);
+}
+
+void TickStatistics::count_active(BridgeStats& stats) const noexcept {
   // The ports' total: below zero the rendering gave energy.
   if (stats.passivity_energy_J < -options_.passivity_tolerance_J) {
     ++stats.active_ticks;

@@ -21,6 +21,7 @@ class TickStatistics {
              BridgeStats& stats) noexcept;
 
  private:
+  void count_active(BridgeStats& stats) const noexcept;
   void count_clamp(const TickRecord& record, std::size_t cell, const model::CellSolution& solve,
                    BridgeStats& stats) const noexcept;
 
@@ -28,6 +29,7 @@ class TickStatistics {
   const model::CellInverse& inverse_;
   std::vector<PassivityObserver> port_;   // per cell: energy at the rendered port...
   std::vector<unsigned char> port_open_;  // ...while the finger is in the cell
+  std::size_t open_ports_ = 0;            // how many port_open_ are set
 };
 
 }  // namespace mrskin::bridge::detail

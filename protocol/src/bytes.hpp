@@ -5,6 +5,7 @@
 #include <cstddef>
 #include <cstdint>
 #include <span>
+#include <type_traits>
 
 namespace mrskin::protocol::detail {
 
@@ -68,6 +69,23 @@ class Reader {
     return static_cast<std::uint16_t>(lo | (hi << 8U));
   }
   std::int16_t i16() noexcept { return static_cast<std::int16_t>(u16()); }
+  // n little-endian 16-bit values into out[0, n): the same as n calls of u16() (or i16()), with
+  // one bounds check when they are all there.
+  template <typename T>
+  void u16s(T* out, std::size_t n) noexcept {
+    static_assert(std::is_same_v<T, std::uint16_t> || std::is_same_v<T, std::int16_t>);
+    if (n > remaining() / 2) {
+      for (std::size_t i = 0; i < n; ++i) {
+        out[i] = static_cast<T>(u16());  // past the end: flagged byte by byte, as ever
+      }
+      return;
+    }
+    const std::uint8_t* p = in_.data() + pos_;
+    for (std::size_t i = 0; i < n; ++i, p += 2) {
+      out[i] = static_cast<T>(static_cast<std::uint16_t>(p[0] | (p[1] << 8U)));
+    }
+    pos_ += 2 * n;
+  }
   std::uint32_t u32() noexcept {
     const std::uint32_t lo = u16();
     const std::uint32_t hi = u16();

@@ -127,9 +127,7 @@ std::size_t get(Reader& r, ValveCurrents& m) noexcept {
   m.first = r.u16();
   m.count = r.u8();
   const std::size_t n = std::min<std::size_t>(m.count, kMaxValveCurrents);
-  for (std::size_t i = 0; i < n; ++i) {
-    m.counts[i] = r.u16();
-  }
+  r.u16s(m.counts.data(), n);
   return 3 + 2 * static_cast<std::size_t>(m.count);
 }
 std::size_t get(Reader& r, CellTargets& m) noexcept {
@@ -149,9 +147,7 @@ std::size_t get(Reader& r, Telemetry& m) noexcept {
   m.first = r.u16();
   m.count = r.u8();
   const std::size_t n = std::min<std::size_t>(m.count, kMaxTelemetryValues);
-  for (std::size_t i = 0; i < n; ++i) {
-    m.counts[i] = r.i16();
-  }
+  r.u16s(m.counts.data(), n);
   return 7 + 2 * static_cast<std::size_t>(m.count);
 }
 std::size_t get(Reader& r, TimeSync& m) noexcept {

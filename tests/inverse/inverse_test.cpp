@@ -591,6 +591,62 @@ TEST_F(InverseIncremental, LoadedCellsAreTheHoldingAndLoadingCellsInOrder) {
   EXPECT_EQ(listed(), loaded_by_role());
 }
 
+// renew_at_rest() is solve() without the per-cell check, for a caller that vouches only the
+// validity moved: it may stand only on a successful last solve that left every cell untouched,
+// and then gives what solve() gives on the same inputs.
+TEST_F(InverseIncremental, RenewAtRestStandsOnlyOnASolveThatLeftEveryCellUntouched) {
+  EXPECT_FALSE(inv.renew_at_rest(1.0, 0.0));  // nothing solved yet
+  InverseCase rest = blank();
+  for (CellImpedanceTarget& t : rest.targets) {
+    t = law_for_force(1.0, 4e-3);
+    t.valid_until_s = 0.5;
+  }
+  ASSERT_EQ(inv.solve(rest.targets, rest.states, rest.now_s), Status::ok);
+  EXPECT_FALSE(inv.renew_at_rest(0.6, 0.0));  // that solve computed every cell: none untouched
+  ASSERT_EQ(inv.solve(rest.targets, rest.states, rest.now_s), Status::ok);
+  const std::vector<double> at_rest_A(inv.currents_A().begin(), inv.currents_A().end());
+  ASSERT_TRUE(inv.renew_at_rest(0.6, 1e-3));
+  EXPECT_TRUE(inv.report().from_cache);
+  EXPECT_EQ(inv.report().status, Status::ok);
+  EXPECT_EQ(inv.report().dirty_cells, 0U);
+  EXPECT_EQ(std::vector<double>(inv.currents_A().begin(), inv.currents_A().end()), at_rest_A);
+  EXPECT_FALSE(inv.renew_at_rest(std::numeric_limits<double>::infinity(), 2e-3));
+  EXPECT_FALSE(inv.renew_at_rest(0.7, std::numeric_limits<double>::quiet_NaN()));
+  // solve() on the same inputs past their validity agrees: an untouched cell's role has no clock.
+  ASSERT_EQ(inv.solve(rest.targets, rest.states, 2.0), Status::ok);
+  EXPECT_TRUE(inv.report().from_cache);
+  EXPECT_EQ(std::vector<double>(inv.currents_A().begin(), inv.currents_A().end()), at_rest_A);
+  ASSERT_TRUE(inv.renew_at_rest(0.7, 2e-3));
+
+  // One cell pressed: the last solve did not leave every cell untouched.
+  const std::size_t a = m.fluid_cell_index(2, 2).value;
+  InverseCase pressed = rest;
+  within_envelope(pressed, a, 3e-3, 0.0, 0.5);
+  pressed.targets[a].valid_until_s = 0.5;
+  ASSERT_EQ(inv.solve(pressed.targets, pressed.states, 3e-3), Status::ok);
+  ASSERT_FALSE(inv.loaded_cells().empty());
+  EXPECT_FALSE(inv.renew_at_rest(0.7, 4e-3));
+  // Released: the solve that releases the cell touches it; the next one finds every cell at rest.
+  ASSERT_EQ(inv.solve(rest.targets, rest.states, 5e-3), Status::ok);
+  EXPECT_FALSE(inv.renew_at_rest(0.7, 5e-3));
+  ASSERT_EQ(inv.solve(rest.targets, rest.states, 5e-3), Status::ok);
+  EXPECT_TRUE(inv.renew_at_rest(0.7, 6e-3));
+  EXPECT_EQ(std::vector<double>(inv.currents_A().begin(), inv.currents_A().end()), at_rest_A);
+  // A refused solve, or a forgotten cache, leaves nothing to stand on.
+  InverseCase bad = rest;
+  bad.states[a].indentation_m = std::numeric_limits<double>::quiet_NaN();
+  ASSERT_NE(inv.solve(bad.targets, bad.states, 7e-3), Status::ok);
+  EXPECT_FALSE(inv.renew_at_rest(0.7, 8e-3));
+  ASSERT_EQ(inv.solve(rest.targets, rest.states, 9e-3), Status::ok);
+  inv.invalidate();
+  EXPECT_FALSE(inv.renew_at_rest(0.7, 1e-2));
+  ASSERT_EQ(inv.solve(rest.targets, rest.states, 1.1e-2), Status::ok);
+  EXPECT_FALSE(inv.report().from_cache);  // every cell recomputed after invalidate()
+  EXPECT_FALSE(inv.renew_at_rest(0.7, 1.1e-2));
+  ASSERT_EQ(inv.solve(rest.targets, rest.states, 1.1e-2), Status::ok);
+  EXPECT_TRUE(inv.renew_at_rest(0.7, 1.2e-2));
+}
+
 TEST_F(InverseIncremental, UnchangedCellsCostNothing) {
   const std::size_t a = m.fluid_cell_index(1, 1).value;
   const std::size_t b = m.fluid_cell_index(2, 2).value;

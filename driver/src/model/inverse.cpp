@@ -63,6 +63,9 @@ Status CellInverse::solve(std::span<const CellImpedanceTarget> targets, std::spa
 std::span<const double> CellInverse::currents_A() const noexcept { return impl_->levels.current; }
 std::span<const double> CellInverse::valve_yield_stress_Pa() const noexcept { return impl_->levels.tau; }
 std::span<const CellSolution> CellInverse::cells() const noexcept { return impl_->output.cells; }
+bool CellInverse::renew_at_rest(double valid_until_s, double now_s) noexcept {
+  return impl_->renew_at_rest(valid_until_s, now_s);
+}
 std::span<const std::uint32_t> CellInverse::loaded_cells() const noexcept {
   return impl_->memory.loaded_list;
 }
@@ -81,6 +84,7 @@ void CellInverse::invalidate() noexcept {
     c.gn_last = false;
   }
   impl_->factors.reset(impl_->partition);  // no search or wait outlives the cells it was for
+  impl_->changes.all_untouched = false;
 }
 
 Result<double> CellInverse::valve_pressure_Pa(std::size_t cell, double flow_m3_per_s,

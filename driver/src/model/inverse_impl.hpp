@@ -709,6 +709,9 @@ struct TickChanges {
   std::vector<std::uint32_t> dirty;
   std::vector<std::uint64_t> solved;  // per component: the re-solve that last solved it
   std::uint64_t resolves = 0;
+  // The last call was a successful solve that found every cell untouched and at rest (no
+  // contact, no indentation, its law as cached): what renew_at_rest() may stand on.
+  bool all_untouched = false;
 };
 
 // The per-cell solutions and the report of the last call.
@@ -718,6 +721,16 @@ struct InverseOutput {
   std::vector<CellSolution> cells;
   InverseReport rep;
 
+  // A successful call's counters, before any work is counted (dirty: the cells it found dirty).
+  void restart(std::size_t dirty) noexcept {
+    rep.status = Status::ok;
+    rep.error_cell = 0;
+    rep.dirty_cells = dirty;
+    rep.cell_updates = 0;
+    rep.valve_updates = 0;
+    rep.components_solved = 0;
+    rep.iterations = 0;
+  }
   Status fail(Status s, std::size_t cell) noexcept {
     rep.status = s;
     rep.error_cell = cell;
@@ -852,6 +865,7 @@ struct __attribute__((visibility("hidden"))) CellInverse::Impl {
 
   Status solve(std::span<const CellImpedanceTarget> targets, std::span<const CellState> states,
                double now_s) noexcept;
+  bool renew_at_rest(double valid_until_s, double now_s) noexcept;
   void resolve_dirty(std::uint64_t pass) noexcept;
   bool continue_searches(std::uint64_t pass) noexcept;
   void solve_component(std::size_t c, std::uint64_t pass) noexcept;

@@ -105,6 +105,7 @@ Verdict examine(const InverseTopology& topo, CellMemory& memory, TickChanges& ch
   changes.dirty.clear();
   changes.changed_laws.clear();
   changes.seen.clear();
+  bool all_untouched = true;
   for (std::size_t i = 0; i < topo.graph.cells; ++i) {
     const CellState& s = states[i];
     const CellImpedanceTarget& g = targets[i];
@@ -118,6 +119,7 @@ Verdict examine(const InverseTopology& topo, CellMemory& memory, TickChanges& ch
         same_bits(s, cc.raw_state) && same_law(g, cc.target) && finite(g.valid_until_s)) {
       continue;
     }
+    all_untouched = false;
     // Inputs bitwise as last time (validated then): only the clock can change the role.
     if (cc.valid && same_bits(g, cc.raw_target) && same_bits(s, cc.raw_state) && expired == cc.expired) {
       continue;
@@ -152,6 +154,7 @@ Verdict examine(const InverseTopology& topo, CellMemory& memory, TickChanges& ch
       changes.dirty.push_back(static_cast<std::uint32_t>(i));
     }
   }
+  changes.all_untouched = all_untouched;
   return {};
 }
 
@@ -163,13 +166,7 @@ Committed commit(const TickChanges& changes, CellMemory& memory, InverseOutput& 
                  std::span<const CellImpedanceTarget> targets, std::span<const CellState> states,
                  double now_s) noexcept {
   InverseReport& rep = output.rep;
-  rep.status = Status::ok;
-  rep.error_cell = 0;
-  rep.dirty_cells = changes.dirty.size();
-  rep.cell_updates = 0;
-  rep.valve_updates = 0;
-  rep.components_solved = 0;
-  rep.iterations = 0;
+  output.restart(changes.dirty.size());
   for (const std::uint32_t i : changes.changed_laws) {
     memory.cache[i].target = targets[i];
   }
@@ -233,6 +230,7 @@ double max_demand(const InverseTopology& topo, const Component& comp, CellMemory
 
 Status CellInverse::Impl::solve(std::span<const CellImpedanceTarget> targets,
                                 std::span<const CellState> states, double now_s) noexcept {
+  changes.all_untouched = false;  // until examine finds it so
   if (targets.size() != topo.graph.cells || states.size() != topo.graph.cells) {
     return output.fail(Status::out_of_range, 0);
   }
@@ -260,6 +258,20 @@ Status CellInverse::Impl::solve(std::span<const CellImpedanceTarget> targets,
   }
   summarise(memory.loaded_list, output);
   return Status::ok;
+}
+
+// What solve() does when examine finds every cell untouched, without examining them: the caller
+// vouches that only the validity moved, and an untouched cell's role does not depend on it. No
+// cell is loaded, so no search is under way; the flag is tested all the same.
+bool CellInverse::Impl::renew_at_rest(double valid_until_s, double now_s) noexcept {
+  if (!changes.all_untouched || factors.searching || !finite(valid_until_s) || !finite(now_s)) {
+    return false;
+  }
+  ++changes.resolves;
+  solver.now_s = now_s;
+  output.restart(0);
+  output.rep.from_cache = true;
+  return true;
 }
 
 inline void CellInverse::Impl::solve_component(std::size_t c, std::uint64_t pass) noexcept {
