@@ -25,34 +25,63 @@ EncodeResult append_packet(const Message& message, std::uint8_t sequence, std::s
   return r;
 }
 
-bool PacketWalker::next(PacketDecoded& out) noexcept {
+PacketWalker::Start PacketWalker::start(std::span<const std::uint8_t>& rest) noexcept {
   if (ended_) {
-    return false;
+    return Start::ended;
   }
   if (report_.size() > kUsbSlotsMaxReportBytes) {
-    out = PacketDecoded{};
-    out.error = Error::too_long;
     broken_ = ended_ = true;
-    return true;
+    return Start::oversized;
   }
   if (offset_ >= report_.size() || report_[offset_] == 0x00) {
     ended_ = true;
-    return false;
+    return Start::ended;
   }
   // A packet is at most kPacketMaxBytes, whatever the report's size (UsbSlots: up to 1024).
-  const std::span<const std::uint8_t> rest =
-      report_.subspan(offset_, std::min(kPacketMaxBytes, report_.size() - offset_));
+  rest = report_.subspan(offset_, std::min(kPacketMaxBytes, report_.size() - offset_));
+  return Start::packet;
+}
+
+void PacketWalker::finish(std::span<const std::uint8_t> rest, bool framing_holds) noexcept {
+  if (!framing_holds) {
+    broken_ = ended_ = true;
+    return;
+  }
+  offset_ += kPacketHeaderBytes + rest[3] + kPacketCrcBytes;
+}
+
+bool PacketWalker::next(PacketDecoded& out) noexcept {
+  std::span<const std::uint8_t> rest;
+  switch (start(rest)) {
+    case Start::ended:
+      return false;
+    case Start::oversized:
+      out = PacketDecoded{};
+      out.error = Error::too_long;
+      return true;
+    case Start::packet:
+      break;
+  }
   out = decode_packet(rest);
   // decode_packet checks the framing (length, version, CRC) before the content: these errors
   // come after the CRC matched, so the packet's length is the one its sender wrote.
-  const bool framing_holds = out.error == Error::ok || out.error == Error::unknown_type ||
-                             out.error == Error::out_of_range ||
-                             (out.error == Error::bad_length && rest[3] <= kPacketMaxPayload);
-  if (!framing_holds) {
-    broken_ = ended_ = true;
-    return true;
+  finish(rest, out.error == Error::ok || out.error == Error::unknown_type ||
+                   out.error == Error::out_of_range ||
+                   (out.error == Error::bad_length && rest[3] <= kPacketMaxPayload));
+  return true;
+}
+
+bool PacketWalker::skip() noexcept {
+  std::span<const std::uint8_t> rest;
+  switch (start(rest)) {
+    case Start::ended:
+      return false;
+    case Start::oversized:
+      return true;
+    case Start::packet:
+      break;
   }
-  offset_ += kPacketHeaderBytes + rest[3] + kPacketCrcBytes;
+  finish(rest, check_packet_framing(rest) == Error::ok);
   return true;
 }
 

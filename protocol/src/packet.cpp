@@ -284,38 +284,40 @@ EncodeResult encode_hid_report(const Message& message, std::uint8_t sequence,
   return encode_packet(message, sequence, report);
 }
 
-PacketDecoded decode_packet(std::span<const std::uint8_t> in) noexcept {
-  PacketDecoded result;
+Error check_packet_framing(std::span<const std::uint8_t> in) noexcept {
   if (in.size() > kPacketMaxBytes) {
-    result.error = Error::too_long;
-    return result;
+    return Error::too_long;
   }
   if (in.size() < kPacketHeaderBytes + kPacketCrcBytes) {
-    result.error = Error::short_buffer;
-    return result;
+    return Error::short_buffer;
   }
   // Byte 0 is the major version in every protocol version, so it is checked first.
-  result.peer_version = in[0];
   if (in[0] != kVersionMajor) {
-    result.error = Error::wrong_version;
-    return result;
+    return Error::wrong_version;
   }
   const std::size_t payload = in[3];
   if (payload > kPacketMaxPayload) {
-    result.error = Error::bad_length;
-    return result;
+    return Error::bad_length;
   }
   const std::size_t body = kPacketHeaderBytes + payload;
   if (in.size() < body + kPacketCrcBytes) {
-    result.error = Error::short_buffer;
-    return result;
+    return Error::short_buffer;
   }
   const std::uint16_t expected = crc16_ccitt(in.first(body));
   const auto received = static_cast<std::uint16_t>(in[body] | (in[body + 1] << 8U));
-  if (expected != received) {
-    result.error = Error::bad_crc;
+  return expected == received ? Error::ok : Error::bad_crc;
+}
+
+PacketDecoded decode_packet(std::span<const std::uint8_t> in) noexcept {
+  PacketDecoded result;
+  result.error = check_packet_framing(in);
+  if (in.size() >= kPacketHeaderBytes + kPacketCrcBytes && in.size() <= kPacketMaxBytes) {
+    result.peer_version = in[0];  // whenever the size lets the version be read, as it is checked
+  }
+  if (result.error != Error::ok) {
     return result;
   }
+  const std::size_t payload = in[3];
   result.sequence = in[2];
   if (!message_for_type(in[1], result.message)) {
     result.error = Error::unknown_type;

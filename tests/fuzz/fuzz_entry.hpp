@@ -52,6 +52,14 @@ inline const char* check_packet(std::span<const std::uint8_t> in) noexcept {
   if (d.error == p::Error::wrong_version && d.peer_version == p::kVersionMajor) {
     return "wrong_version reported for our own version";
   }
+  // The framing alone: decode_packet's verdict wherever the framing fails, else ok.
+  const p::Error framing = p::check_packet_framing(in);
+  const bool content_error = d.error == p::Error::unknown_type || d.error == p::Error::out_of_range ||
+                             (d.error == p::Error::bad_length && in.size() >= p::kPacketHeaderBytes &&
+                              in[3] <= p::kPacketMaxPayload);
+  if (framing != (d.error == p::Error::ok || content_error ? p::Error::ok : d.error)) {
+    return "check_packet_framing disagrees with decode_packet";
+  }
   if (d.error != p::Error::ok) return nullptr;
   std::array<std::uint8_t, p::kPacketMaxBytes> out{};
   const p::EncodeResult e = p::encode_packet(d.message, d.sequence, out);
@@ -68,10 +76,19 @@ inline const char* check_packet(std::span<const std::uint8_t> in) noexcept {
 // after at most one packet with broken framing, and the first packet is decode_packet's.
 inline const char* check_packed_report(std::span<const std::uint8_t> in) noexcept {
   p::PacketWalker walker(in);
+  p::PacketWalker skipper(in);  // skip() must step exactly as next() does
   p::PacketDecoded d;
   std::size_t packets = 0;
   std::size_t offset = 0;
   while (walker.next(d)) {
+    if (!skipper.skip() || skipper.offset() != walker.offset() || skipper.broken() != walker.broken()) {
+      return "PacketWalker::skip() stepped otherwise than next()";
+    }
+    if (p::check_packet_framing(in.subspan(offset, std::min(p::kPacketMaxBytes, in.size() - offset))) !=
+            p::Error::ok &&
+        !walker.broken() && in.size() <= p::kUsbSlotsMaxReportBytes) {
+      return "PacketWalker went past a packet whose framing check_packet_framing refuses";
+    }
     if (!known_error(d.error)) return "PacketWalker returned an undefined error code";
     if (packets == 0 && in.size() <= p::kPacketMaxBytes && d.error != p::decode_packet(in).error) {
       return "PacketWalker's first packet disagrees with decode_packet";
@@ -96,6 +113,7 @@ inline const char* check_packed_report(std::span<const std::uint8_t> in) noexcep
     }
     offset = walker.offset();
   }
+  if (skipper.skip()) return "PacketWalker::skip() went on after next() ended";
   return nullptr;
 }
 

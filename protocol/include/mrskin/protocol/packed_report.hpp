@@ -53,12 +53,22 @@ class MRSKIN_PROTOCOL_API PacketWalker {
   explicit PacketWalker(std::span<const std::uint8_t> report) noexcept : report_(report) {}
   // The next packet (out.error says whether it decoded), or false when the walk has ended.
   bool next(PacketDecoded& out) noexcept;
+  // Steps over the next packet exactly as next() would (offset(), broken() and the end the
+  // same), checking only its framing (check_packet_framing): a count of a report's packets
+  // without decoding their content. False when the walk has ended.
+  bool skip() noexcept;
   // Bytes of the report the walk has consumed: the packets with intact framing so far.
   [[nodiscard]] std::size_t offset() const noexcept { return offset_; }
   // The walk ended on a packet with broken framing (or a report over kUsbSlotsMaxReportBytes).
   [[nodiscard]] bool broken() const noexcept { return broken_; }
 
  private:
+  enum class Start : unsigned char { packet, ended, oversized };
+  // Where the walk stands before a packet: its bytes in rest, the end, or a report too long.
+  Start start(std::span<const std::uint8_t>& rest) noexcept;
+  // Past the packet when its framing held; else the walk ends on it, broken.
+  void finish(std::span<const std::uint8_t> rest, bool framing_holds) noexcept;
+
   std::span<const std::uint8_t> report_;
   std::size_t offset_ = 0;
   bool broken_ = false;

@@ -49,6 +49,11 @@ MRSKIN_PROTOCOL_API EncodeResult encode_hid_report(const Message& message, std::
 // Decodes a packet at the start of in; in may carry trailing padding up to 64 bytes.
 MRSKIN_PROTOCOL_API PacketDecoded decode_packet(std::span<const std::uint8_t> in) noexcept;
 
+// decode_packet's framing checks alone, in its order (too_long, short_buffer, wrong_version,
+// bad_length over kPacketMaxPayload, short_buffer, bad_crc): ok when the packet's length and
+// CRC can be trusted, whatever its content. No payload is decoded.
+MRSKIN_PROTOCOL_API Error check_packet_framing(std::span<const std::uint8_t> in) noexcept;
+
 // Smallest CAN FD data length (0-8, 12, 16, 20, 24, 32, 48, 64) holding n bytes.
 MRSKIN_PROTOCOL_API std::size_t canfd_padded_length(std::size_t n) noexcept;
 
