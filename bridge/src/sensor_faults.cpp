@@ -55,6 +55,11 @@ class __attribute__((visibility("hidden"))) SensorFaultMonitor::Impl {
   std::size_t update(std::span<const double> readings, std::span<const double> residual_sigma) noexcept;
   void reset() noexcept;
   void restart_history() noexcept;
+  // Room for every watched sensor in judged_, so reset() never allocates (a copy's vector has
+  // only its size reserved). Setup only: may throw std::bad_alloc.
+  void reserve_judged() {
+    judged_.reserve(static_cast<std::size_t>(std::count(watched_.begin(), watched_.end(), 1)));
+  }
   void set_reading_deadband(double reading_deadband) noexcept {
     const double band = std::isfinite(reading_deadband) ? std::max(0.0, reading_deadband) : 0.0;
     for (std::size_t k = 0; k < watch_.size(); ++k) {
@@ -168,7 +173,7 @@ SensorFaultMonitor::Impl::Impl(const model::DeviceProfile& profile, const GridLa
   fault_.assign(n, SensorFault::none);
   evidence_.assign(n, 0.0);
   healthy_ = static_cast<std::size_t>(std::count(watched_.begin(), watched_.end(), 1));
-  judged_.reserve(healthy_);
+  reserve_judged();
   judge_every_watched_sensor();
 }
 
@@ -308,7 +313,9 @@ SensorFaultMonitor::SensorFaultMonitor(const model::DeviceProfile& profile, cons
                                        const SensorFaultOptions& options, double reading_deadband)
     : impl_(std::make_unique<Impl>(profile, layout, options, reading_deadband)) {}
 SensorFaultMonitor::SensorFaultMonitor(const SensorFaultMonitor& other)
-    : impl_(std::make_unique<Impl>(*other.impl_)) {}
+    : impl_(std::make_unique<Impl>(*other.impl_)) {
+  impl_->reserve_judged();
+}
 SensorFaultMonitor& SensorFaultMonitor::operator=(const SensorFaultMonitor& other) {
   return *this = SensorFaultMonitor(other);
 }

@@ -3,6 +3,7 @@
 // Private to the bridge library. Everything here is sized at setup; the tick only writes into it.
 #pragma once
 
+#include <cstddef>
 #include <span>
 #include <vector>
 

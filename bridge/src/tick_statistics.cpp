@@ -1,6 +1,7 @@
 #include "tick_statistics.hpp"
 
 #include <algorithm>
+#include <cstdint>
 
 namespace mrskin::bridge::detail {
 
@@ -24,7 +25,8 @@ void TickStatistics::count(const TickRecord& record, std::span<const model::Cell
   }
   // No port open and no finger on any cell: no port to observe (an untouched skin's tick).
   if (open_ports_ == 0 && rendered.contact_cells == 0) {
-    return count_active(stats);
+    count_active_tick(stats);
+    return;
   }
   for (std::size_t i = 0; i < solve.size(); ++i) {
     // The rendered port opens and closes at zero force and depth, so the energy of the first and
@@ -43,10 +45,10 @@ void TickStatistics::count(const TickRecord& record, std::span<const model::Cell
       stats.passivity_min_energy_J = std::min(stats.passivity_min_energy_J, port.stats().min_energy_J);
     }
   }
-  count_active(stats);
+  count_active_tick(stats);
 }
 
-void TickStatistics::count_active(BridgeStats& stats) const noexcept {
+void TickStatistics::count_active_tick(BridgeStats& stats) const noexcept {
   // The ports' total: below zero the rendering gave energy.
   if (stats.passivity_energy_J < -options_.passivity_tolerance_J) {
     ++stats.active_ticks;

@@ -3,6 +3,7 @@
 // against a truth is a TickWatcher's (mrskin::eval::TruthScorer). Private to the bridge library.
 #pragma once
 
+#include <cstddef>
 #include <span>
 #include <vector>
 
@@ -21,7 +22,7 @@ class TickStatistics {
              BridgeStats& stats) noexcept;
 
  private:
-  void count_active(BridgeStats& stats) const noexcept;
+  void count_active_tick(BridgeStats& stats) const noexcept;
   void count_clamp(const TickRecord& record, std::size_t cell, const model::CellSolution& solve,
                    BridgeStats& stats) const noexcept;
 

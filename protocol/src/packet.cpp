@@ -284,7 +284,11 @@ EncodeResult encode_hid_report(const Message& message, std::uint8_t sequence,
   return encode_packet(message, sequence, report);
 }
 
-Error check_packet_framing(std::span<const std::uint8_t> in) noexcept {
+namespace {
+
+// The framing's checks, inlined into decode_packet (check_packet_framing, exported, is a call
+// through the PLT from inside the library).
+inline Error framing_error(std::span<const std::uint8_t> in) noexcept {
   if (in.size() > kPacketMaxBytes) {
     return Error::too_long;
   }
@@ -308,9 +312,13 @@ Error check_packet_framing(std::span<const std::uint8_t> in) noexcept {
   return expected == received ? Error::ok : Error::bad_crc;
 }
 
+}  // namespace
+
+Error check_packet_framing(std::span<const std::uint8_t> in) noexcept { return framing_error(in); }
+
 PacketDecoded decode_packet(std::span<const std::uint8_t> in) noexcept {
   PacketDecoded result;
-  result.error = check_packet_framing(in);
+  result.error = framing_error(in);
   if (in.size() >= kPacketHeaderBytes + kPacketCrcBytes && in.size() <= kPacketMaxBytes) {
     result.peer_version = in[0];  // whenever the size lets the version be read, as it is checked
   }

@@ -647,6 +647,61 @@ TEST_F(InverseIncremental, RenewAtRestStandsOnlyOnASolveThatLeftEveryCellUntouch
   EXPECT_TRUE(inv.renew_at_rest(0.7, 1.2e-2));
 }
 
+// The equivalence itself: two inverses fed the same ticks, one always solving and one renewing
+// wherever it may, leave the same report, currents and cells on every tick (a press and a
+// release between stretches at rest, the validity moving every tick).
+TEST_F(InverseIncremental, RenewAtRestLeavesWhatSolveLeaves) {
+  CellInverse renewing{m};
+  const std::size_t a = m.fluid_cell_index(1, 2).value;
+  InverseCase rest = blank();
+  for (CellImpedanceTarget& t : rest.targets) {
+    t = law_for_force(0.8, 3e-3);
+  }
+  InverseCase pressed = rest;
+  within_envelope(pressed, a, 3e-3, 1e-3, 0.5);
+  std::size_t renewed = 0;
+  for (int tick = 0; tick < 60; ++tick) {
+    const double now_s = 1e-3 * tick;
+    InverseCase c = (tick >= 20 && tick < 30) ? pressed : rest;
+    for (CellImpedanceTarget& t : c.targets) {
+      t.valid_until_s = now_s + 0.05;
+    }
+    ASSERT_EQ(inv.solve(c.targets, c.states, now_s), Status::ok) << tick;
+    // The caller's promise: every cell at rest on this tick and the last.
+    const bool at_rest_twice = tick > 0 && !(tick >= 20 && tick <= 30);
+    if (at_rest_twice && renewing.renew_at_rest(now_s + 0.05, now_s)) {
+      ++renewed;
+    } else {
+      ASSERT_EQ(renewing.solve(c.targets, c.states, now_s), Status::ok) << tick;
+    }
+    const InverseReport& x = inv.report();
+    const InverseReport& y = renewing.report();
+    EXPECT_EQ(x.status, y.status) << tick;
+    EXPECT_EQ(x.error_cell, y.error_cell) << tick;
+    EXPECT_EQ(x.from_cache, y.from_cache) << tick;
+    EXPECT_EQ(x.converged, y.converged) << tick;
+    EXPECT_EQ(x.residual_predicted, y.residual_predicted) << tick;
+    EXPECT_EQ(x.loaded_cells, y.loaded_cells) << tick;
+    EXPECT_EQ(x.clamped_cells, y.clamped_cells) << tick;
+    EXPECT_EQ(x.dirty_cells, y.dirty_cells) << tick;
+    EXPECT_EQ(x.cell_updates, y.cell_updates) << tick;
+    EXPECT_EQ(x.valve_updates, y.valve_updates) << tick;
+    EXPECT_EQ(x.components_solved, y.components_solved) << tick;
+    EXPECT_EQ(x.iterations, y.iterations) << tick;
+    EXPECT_EQ(x.residual_norm_N, y.residual_norm_N) << tick;
+    EXPECT_EQ(x.max_residual_N, y.max_residual_N) << tick;
+    EXPECT_TRUE(std::ranges::equal(inv.currents_A(), renewing.currents_A())) << tick;
+    EXPECT_TRUE(std::ranges::equal(inv.loaded_cells(), renewing.loaded_cells())) << tick;
+    for (std::size_t i = 0; i < n; ++i) {
+      EXPECT_EQ(inv.cells()[i].role, renewing.cells()[i].role) << tick << " cell " << i;
+      EXPECT_EQ(inv.cells()[i].target_force_N, renewing.cells()[i].target_force_N) << tick << " cell " << i;
+    }
+  }
+  // Renewed on every stretch at rest but its first two ticks (the first solve computes every
+  // cell; the release's solve touches the released one): ticks 2-19 and 32-59.
+  EXPECT_EQ(renewed, 46U);
+}
+
 TEST_F(InverseIncremental, UnchangedCellsCostNothing) {
   const std::size_t a = m.fluid_cell_index(1, 1).value;
   const std::size_t b = m.fluid_cell_index(2, 2).value;

@@ -56,8 +56,9 @@ std::int32_t telemetry_block_of(const Datagram& d) noexcept {
   return t == nullptr ? -1 : t->first;
 }
 
-// Packets a report carries: one in protocol 1.1, one or more in a packed report (1.2). A
-// report that does not decode counts as one, as v1 counted it.
+// Packets a report carries: one in protocol 1.1, one or more in a packed report (1.2). Each
+// packet the walk steps over counts, whether or not its content decodes; a report with none
+// (empty, or 0x00 first) counts as one, as v1 counted it.
 std::uint64_t packets_in(const Datagram& d) noexcept {
   proto::PacketWalker walker(std::span<const std::uint8_t>(d.bytes.data(), d.length));
   std::uint64_t n = 0;

@@ -709,8 +709,9 @@ struct TickChanges {
   std::vector<std::uint32_t> dirty;
   std::vector<std::uint64_t> solved;  // per component: the re-solve that last solved it
   std::uint64_t resolves = 0;
-  // The last call was a successful solve that found every cell untouched and at rest (no
-  // contact, no indentation, its law as cached): what renew_at_rest() may stand on.
+  // The last solve (renew_at_rest() calls since keep it) succeeded and found every cell
+  // untouched and at rest (no contact, no indentation, its law as cached): what
+  // renew_at_rest() may stand on.
   bool all_untouched = false;
 };
 
@@ -722,7 +723,7 @@ struct InverseOutput {
   InverseReport rep;
 
   // A successful call's counters, before any work is counted (dirty: the cells it found dirty).
-  void restart(std::size_t dirty) noexcept {
+  void begin_report(std::size_t dirty) noexcept {
     rep.status = Status::ok;
     rep.error_cell = 0;
     rep.dirty_cells = dirty;

@@ -166,7 +166,7 @@ Committed commit(const TickChanges& changes, CellMemory& memory, InverseOutput& 
                  std::span<const CellImpedanceTarget> targets, std::span<const CellState> states,
                  double now_s) noexcept {
   InverseReport& rep = output.rep;
-  output.restart(changes.dirty.size());
+  output.begin_report(changes.dirty.size());
   for (const std::uint32_t i : changes.changed_laws) {
     memory.cache[i].target = targets[i];
   }
@@ -269,7 +269,7 @@ bool CellInverse::Impl::renew_at_rest(double valid_until_s, double now_s) noexce
   }
   ++changes.resolves;
   solver.now_s = now_s;
-  output.restart(0);
+  output.begin_report(0);
   output.rep.from_cache = true;
   return true;
 }

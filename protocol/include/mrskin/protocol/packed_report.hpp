@@ -64,10 +64,12 @@ class MRSKIN_PROTOCOL_API PacketWalker {
 
  private:
   enum class Start : unsigned char { packet, ended, oversized };
+  // Not part of the ABI (hidden: the library inlines them into next() and skip()).
   // Where the walk stands before a packet: its bytes in rest, the end, or a report too long.
-  Start start(std::span<const std::uint8_t>& rest) noexcept;
+  __attribute__((visibility("hidden"))) Start start(std::span<const std::uint8_t>& rest) noexcept;
   // Past the packet when its framing held; else the walk ends on it, broken.
-  void finish(std::span<const std::uint8_t> rest, bool framing_holds) noexcept;
+  __attribute__((visibility("hidden"))) void finish(std::span<const std::uint8_t> rest,
+                                                    bool framing_holds) noexcept;
 
   std::span<const std::uint8_t> report_;
   std::size_t offset_ = 0;

@@ -144,9 +144,9 @@ class MRSKIN_DRIVER_API CellInverse {
                double now_s) noexcept;
   // solve() for a caller that knows its inputs are bitwise those of the last call but for the
   // targets' validity (now valid_until_s, finite, on every cell) and the clock: when the last
-  // call was a successful solve that left every cell untouched (no contact, at rest), nothing is
-  // examined, the cached currents stand (report().from_cache) and it returns true. Otherwise it
-  // changes nothing and returns false: call solve(). The per-cell check it skips is most of an
+  // solve() succeeded and left every cell untouched (no contact, at rest; renewals since keep
+  // that), nothing is examined, the cached currents stand (report().from_cache) and it returns true.
+  // Otherwise it changes nothing and returns false: call solve(). The per-cell check it skips is most of an
   // idle tick's inverse on a large grid.
   [[nodiscard]] bool renew_at_rest(double valid_until_s, double now_s) noexcept;
 
