@@ -26,7 +26,8 @@ LoopRun simulate(const std::string& scene_name, double seconds, const Impairment
   // the bounds below are for seed 7.
   // MRSKIN_RATE_FILTER_S sets the observer's rate filter (docs/bridge.md: chosen on the true state);
   // MRSKIN_RATE_LINE_S selects the segmented-line rate with that memory, MRSKIN_RATE_CHANGE_SIGMA
-  // its change threshold (docs/bridge.md, "A segmented-line rate").
+  // its change threshold (docs/bridge.md, "A segmented-line rate"); MRSKIN_NETWORK_STEP_S the
+  // observer's network_step_s (docs/bridge.md, "The network in phases").
   const char* seed = std::getenv("MRSKIN_CLOSED_LOOP_SEED");
   BridgeOptions options;
   if (const char* tau = std::getenv("MRSKIN_RATE_FILTER_S"); tau != nullptr) {
@@ -38,6 +39,9 @@ LoopRun simulate(const std::string& scene_name, double seconds, const Impairment
   }
   if (const char* h = std::getenv("MRSKIN_RATE_CHANGE_SIGMA"); h != nullptr) {
     options.observer.rate_change_threshold_sigma = std::strtod(h, nullptr);
+  }
+  if (const char* n = std::getenv("MRSKIN_NETWORK_STEP_S"); n != nullptr) {
+    options.observer.network_step_s = std::strtod(n, nullptr);
   }
   return test::run_scene(scene_name, seconds, std::string("mock://?seed=") + (seed != nullptr ? seed : "7"),
                          network, 0, options);

@@ -721,4 +721,78 @@ TEST(ModelNetwork, ResetAndMoveKeepItUsable) {
   EXPECT_EQ(moved.cell_force_N()[design_cell(m)], 0.0);  // reset also lifted the finger
 }
 
+// One step of the fast stepper in phases (the observer spreads it over ticks) is step(), to the
+// bit, at every phase count; nothing of it shows until its last phase, and any input set in the
+// middle abandons it with the state as it was.
+TEST(ModelNetwork, AStepInPhasesIsTheWholeStepToTheBit) {
+  const DeviceModel& m = skin();
+  NetworkOptions lin;
+  lin.stepper = Stepper::linearly_implicit_regularised;
+  NetworkSimulation whole(m, lin);
+  NetworkSimulation phased(m, lin);
+  std::vector<double> yield(whole.valve_count(), 0.0);
+  std::vector<double> depth(whole.fluid_cell_count(), 0.0);
+  std::vector<double> at_depth(whole.fluid_cell_count(), -1.0);
+  std::uint64_t allocations = 0;
+  for (int k = 0; k < 400; ++k) {
+    // Press, hold with the valves stepping, release: every kind of step the observer takes.
+    yield[static_cast<std::size_t>(k) % yield.size()] = (k % 3) * 0.3 * max_yield_Pa(m);
+    depth[design_cell(m)] = k < 150 ? 2e-5 * k : (k < 300 ? 3e-3 : 0.0);
+    for (NetworkSimulation* s : {&whole, &phased}) {
+      ASSERT_EQ(s->set_valve_yield_stress_Pa(yield), Status::ok);
+      ASSERT_EQ(s->set_cell_indentation_m(depth), Status::ok);
+    }
+    const double dt = 1e-3 * (1 + k % 4);
+    ASSERT_TRUE(whole.step(dt).ok()) << k;
+    const Snapshot kept(phased);
+    auto counted = mrskin::test::allocation_count();
+    Result<bool> r = phased.begin_step(dt);
+    allocations += mrskin::test::allocation_count() - counted;
+    int phases = 1;
+    while (r.ok() && !r.value) {
+      EXPECT_TRUE(phased.step_in_progress());
+      EXPECT_TRUE(Snapshot(phased) == kept) << "a phase showed part of the step, " << k;
+      counted = mrskin::test::allocation_count();
+      r = phased.advance_step();
+      allocations += mrskin::test::allocation_count() - counted;
+      ++phases;
+    }
+    ASSERT_TRUE(r.ok()) << k << ": " << to_string(r.status);
+    EXPECT_EQ(phases, NetworkSimulation::kStepPhases);
+    EXPECT_FALSE(phased.step_in_progress());
+    EXPECT_TRUE(Snapshot(phased) == Snapshot(whole)) << k;
+    for (std::size_t i = 0; i < whole.link_count(); ++i) {
+      EXPECT_EQ(phased.link_flow_m3_per_s()[i], whole.link_flow_m3_per_s()[i]) << k;
+    }
+    // Between steps the undrained law at the step's own depths is the step's force.
+    phased.cell_force_at_depth_N(depth, {}, at_depth);
+    EXPECT_EQ(at_depth[design_cell(m)], whole.cell_force_N()[design_cell(m)]) << k;
+  }
+  EXPECT_EQ(allocations, 0U);
+  EXPECT_GT(whole.energy().work_J, 0.0);
+
+  // Abandoned: an input set between phases, reset, or a whole step.
+  const Snapshot kept(phased);
+  ASSERT_FALSE(phased.begin_step(1e-3).value);
+  ASSERT_TRUE(phased.advance_step().ok());
+  ASSERT_EQ(phased.set_valve_yield_stress_Pa(yield), Status::ok);
+  EXPECT_FALSE(phased.step_in_progress());
+  EXPECT_TRUE(Snapshot(phased) == kept);
+  EXPECT_EQ(phased.advance_step().status, Status::out_of_range);
+  ASSERT_FALSE(phased.begin_step(1e-3).value);
+  ASSERT_TRUE(phased.step(1e-3).ok());
+  EXPECT_FALSE(phased.step_in_progress());
+  EXPECT_EQ(phased.begin_step(-1.0).status, Status::out_of_range);
+  EXPECT_EQ(phased.begin_step(std::nan("")).status, Status::not_finite);
+  EXPECT_FALSE(phased.step_in_progress());
+
+  // Steppers and contacts that are not split take the whole step in begin_step.
+  NetworkSimulation exact(m, NetworkOptions{});
+  press_cell(exact, design_cell(m), 1e-3);
+  const Result<bool> once = exact.begin_step(1e-3);
+  EXPECT_TRUE(once.ok() && once.value);
+  EXPECT_GT(exact.cell_force_N()[design_cell(m)], 0.0);
+  static_assert(noexcept(std::declval<NetworkSimulation&>().advance_step()));
+}
+
 }  // namespace

@@ -411,6 +411,33 @@ TEST(ObserverSweeps, ASmallGridsCappedFitFollowsAPressAsTwelveSweepsDo) {
   EXPECT_THROW(CellObserver(DeviceModel(mrskin::model::default_profile()), bad), mrskin::InvalidArgument);
 }
 
+// The network's step spread over the ticks of 4 ms (the default) against a whole step every tick,
+// on the perturbed noisy plant at fixed currents: the same force error within a tenth (it
+// tracks a finger that moves between its steps by the touched cells' undrained law). A bad step
+// length is refused.
+TEST(ObserverNetworkPhases, AStepSpreadOverTicksFollowsAPressAsWholeStepsDo) {
+  ObserverOptions whole;
+  whole.network_step_s = 0.0;
+  for (const double current_A : {0.0, 0.05}) {
+    for (const Press* press : {&kCentre, &kTwoCells}) {
+      NetworkPlantOptions o;
+      o.seed = 3;
+      const Errors spread = run(*press, o, current_A);
+      const Errors every_tick = run(*press, o, current_A, whole);
+      print("network in phases", spread);
+      print("network every tick", every_tick);
+      EXPECT_LT(spread.force_rms_N, 1.1 * every_tick.force_rms_N + 1e-3) << current_A;
+      EXPECT_LT(spread.force_max_N, 1.5 * every_tick.force_max_N + 5e-3) << current_A;
+    }
+  }
+  const DeviceModel nominal(mrskin::model::default_profile());
+  for (const double bad_s : {-1e-3, 2.0, std::numeric_limits<double>::quiet_NaN()}) {
+    ObserverOptions bad;
+    bad.network_step_s = bad_s;
+    EXPECT_THROW(CellObserver(nominal, bad), mrskin::InvalidArgument) << bad_s;
+  }
+}
+
 TEST(ObserverRest, ANegativeGateIsRefused) {
   const DeviceModel nominal(mrskin::model::default_profile());
   ObserverOptions bad;

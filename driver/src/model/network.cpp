@@ -262,14 +262,24 @@ Status NetworkSimulation::Impl::newton(double dt, bool regularised) noexcept {
 }
 
 // Rosenbrock-Euler: one Newton step of implicit Euler from e0, point pressures, regularised law.
+// Its parts are the phases of begin_step/advance_step too: evaluate, factorise, finish.
 Status NetworkSimulation::Impl::one_solve(double dt) noexcept {
-  std::copy(e.begin(), e.end(), cur.e.begin());
-  if (const Status s = evaluate(cur, dt, false, true); s != Status::ok) {
+  if (const Status s = one_solve_evaluate(dt); s != Status::ok) {
     return s;
   }
   if (!assemble_and_factorize(cur, dt)) {
     return Status::no_convergence;
   }
+  one_solve_finish(dt);
+  return Status::ok;
+}
+
+Status NetworkSimulation::Impl::one_solve_evaluate(double dt) noexcept {
+  std::copy(e.begin(), e.end(), cur.e.begin());
+  return evaluate(cur, dt, false, true);
+}
+
+void NetworkSimulation::Impl::one_solve_finish(double dt) noexcept {
   for (std::size_t n = 0; n < nodes; ++n) {
     y[n] = -cur.r[n];
   }
@@ -283,7 +293,6 @@ Status NetworkSimulation::Impl::one_solve(double dt) noexcept {
   report.iterations = 1;
   report.volume_residual_m3 = 0.0;
   finish_volumes(cur, dt);
-  return Status::ok;
 }
 
 // The one solve predicted the new pressures as p0 + y; the laws at the new volumes give new_p.
@@ -368,24 +377,34 @@ Status NetworkSimulation::Impl::run_trial(double dt) noexcept {
     case Stepper::linearly_implicit_regularised:
     case Stepper::explicit_euler:
       s = opt.stepper == Stepper::explicit_euler ? forward_euler(dt) : one_solve(dt);
-      if (s != Status::ok) {
-        break;
-      }
-      // Their pad depths were those of the start volumes: settle them at the new ones.
-      for (std::size_t i = 0; i < cells && s == Status::ok; ++i) {
-        s = resolve_cell(i, new_e[i], false, trial);
-      }
       if (s == Status::ok) {
-        finish_state(trial);
-      }
-      if (s == Status::ok && opt.stepper == Stepper::linearly_implicit_regularised) {
-        s = check_linearisation();
+        s = settle_one_step_cells();
       }
       break;
   }
   if (s != Status::ok) {
     return s;
   }
+  return check_new_state();
+}
+
+// The one-solve steppers' pad depths were those of the start volumes: settle them at the new
+// ones, and check the linearisation.
+Status NetworkSimulation::Impl::settle_one_step_cells() noexcept {
+  Status s = Status::ok;
+  for (std::size_t i = 0; i < cells && s == Status::ok; ++i) {
+    s = resolve_cell(i, new_e[i], false, trial);
+  }
+  if (s == Status::ok) {
+    finish_state(trial);
+  }
+  if (s == Status::ok && opt.stepper == Stepper::linearly_implicit_regularised) {
+    s = check_linearisation();
+  }
+  return s;
+}
+
+Status NetworkSimulation::Impl::check_new_state() const noexcept {
   double check = new_dissipated;
   for (std::size_t n = 0; n < nodes; ++n) {
     check += new_e[n] + new_p[n];
@@ -593,6 +612,7 @@ void NetworkSimulation::Impl::commit(double dt) noexcept {
 }
 
 void NetworkSimulation::Impl::reset() noexcept {
+  phase = 0;
   std::fill(e.begin(), e.end(), 0.0);
   std::fill(prev_e.begin(), prev_e.end(), 0.0);
   prev_dt = 0.0;
@@ -641,6 +661,7 @@ Status NetworkSimulation::set_valve_yield_stress_Pa(std::span<const double> yiel
     return s;
   }
   std::copy(yield_Pa.begin(), yield_Pa.end(), m.valve_tau.begin());
+  m.phase = 0;
   return Status::ok;
 }
 
@@ -676,6 +697,7 @@ Status NetworkSimulation::set_contacts(std::span<const Contact> contacts) noexce
   }
   m.contact_count = contacts.size();
   m.direct_depths = false;
+  m.phase = 0;
   return Status::ok;
 }
 
@@ -689,6 +711,7 @@ Status NetworkSimulation::set_cell_indentation_m(std::span<const double> depth_m
   m.contact_count = 0;
   m.contact_ind.fill(0.0);
   m.contact_force.fill(0.0);
+  m.phase = 0;
   return Status::ok;
 }
 
@@ -696,6 +719,7 @@ void NetworkSimulation::reset() noexcept { impl_->reset(); }
 
 Result<StepReport> NetworkSimulation::step(double dt_s) noexcept {
   Impl& m = *impl_;
+  m.phase = 0;
   if (!finite(dt_s)) {
     return failure<StepReport>(Status::not_finite);
   }
@@ -722,12 +746,103 @@ Result<StepReport> NetworkSimulation::step(double dt_s) noexcept {
   return {m.report};
 }
 
+Result<bool> NetworkSimulation::begin_step(double dt_s) noexcept {
+  Impl& m = *impl_;
+  m.phase = 0;
+  if (m.opt.stepper != Stepper::linearly_implicit_regularised || !m.direct_depths || !finite(dt_s) ||
+      !(dt_s > 0.0)) {
+    const Result<StepReport> r = step(dt_s);
+    return {true, r.status};
+  }
+  m.compute_depths();
+  m.report = StepReport{};
+  m.phase_dt = dt_s;
+  if (const Status s = m.one_solve_evaluate(dt_s); s != Status::ok) {
+    return failure<bool>(s);
+  }
+  m.phase = 1;
+  return {false};
+}
+
+Result<bool> NetworkSimulation::advance_step() noexcept {
+  Impl& m = *impl_;
+  const double dt = m.phase_dt;
+  Status s = Status::ok;
+  switch (m.phase) {
+    case 1:
+      s = m.assemble_and_factorize(m.cur, dt) ? Status::ok : Status::no_convergence;
+      break;
+    case 2:
+      m.one_solve_finish(dt);
+      s = m.settle_one_step_cells();
+      if (s == Status::ok) {
+        s = m.check_new_state();
+      }
+      break;
+    case 3:
+      m.commit(dt);
+      m.phase = 0;
+      return {true};
+    default:
+      return failure<bool>(Status::out_of_range);
+  }
+  if (s != Status::ok) {
+    m.phase = 0;  // nothing committed: the state stays as before begin_step
+    return failure<bool>(s);
+  }
+  ++m.phase;
+  return {false};
+}
+
+bool NetworkSimulation::step_in_progress() const noexcept { return impl_->phase != 0; }
+
 std::span<const double> NetworkSimulation::cell_indentation_m() const noexcept { return impl_->d; }
 std::span<const double> NetworkSimulation::cell_velocity_m_per_s() const noexcept { return impl_->velocity; }
 std::span<const double> NetworkSimulation::cell_pressure_Pa() const noexcept {
   return std::span<const double>(impl_->node_p).first(impl_->cells);
 }
 std::span<const double> NetworkSimulation::cell_force_N() const noexcept { return impl_->force; }
+void NetworkSimulation::cell_force_at_depth_N(std::span<const double> depth_m,
+                                              std::span<const double> gain_m3,
+                                              std::span<double> force_N) const noexcept {
+  const Impl& m = *impl_;
+  const std::size_t n = std::min({depth_m.size(), force_N.size(), m.cells});
+  const bool gained = gain_m3.size() >= n;
+  for (std::size_t i = 0; i < n; ++i) {
+    const double d = depth_m[i];
+    const double e = gained ? m.e[i] + gain_m3[i] : m.e[i];
+    // As finish_state: the pressure at the new volume, then the pad's push with it.
+    force_N[i] = d > 0.0 ? std::max(0.0, m.pad.grad(d) + m.area * m.bulge.grad(m.s_of(d, e))) : 0.0;
+  }
+}
+void NetworkSimulation::advance_cell_gain(std::span<const double> depth_m, std::span<const double> yield_Pa,
+                                          double dt_s, std::span<double> gain_m3) const noexcept {
+  const Impl& m = *impl_;
+  if (depth_m.size() != m.cells || gain_m3.size() != m.cells || yield_Pa.size() != m.valves) {
+    return;
+  }
+  auto pressure = [&](std::uint32_t n) {
+    return n < m.cells ? m.bulge.grad(m.s_of(depth_m[n], m.e[n] + gain_m3[n])) : m.node_p[n];
+  };
+  for (const Link& k : m.links) {
+    const bool a_touched = k.a < m.cells && depth_m[k.a] > 0.0;
+    const bool b_touched = k.b < m.cells && depth_m[k.b] > 0.0;
+    if (!a_touched && !b_touched) {
+      continue;
+    }
+    const double x = pressure(k.a) - pressure(k.b);
+    const double tau = k.valve < 0 ? 0.0 : yield_Pa[static_cast<std::size_t>(k.valve)];
+    const Result<FlowPoint> f = m.model.valve_law().flow_point(x, tau);
+    const double q = (f.ok() ? f.value.flow_m3_per_s : 0.0) + m.floor_conductance * x;
+    if (a_touched) {
+      gain_m3[k.a] -= dt_s * q;
+    }
+    if (b_touched) {
+      gain_m3[k.b] += dt_s * q;
+    }
+  }
+}
+
 std::span<const double> NetworkSimulation::chamber_pressure_Pa() const noexcept { return impl_->chamber_p; }
 double NetworkSimulation::reservoir_pressure_Pa() const noexcept {
   const Impl& m = *impl_;

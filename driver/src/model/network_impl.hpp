@@ -208,6 +208,9 @@ struct __attribute__((visibility("hidden"))) NetworkSimulation::Impl {
   std::array<double, kMaxContacts> new_contact_force{};
   double new_dissipated = 0.0;
   StepReport report;
+  // A step in phases (begin_step): the next phase to run (0: none in progress) and its dt, s.
+  int phase = 0;
+  double phase_dt = 0.0;
 
   // ---- laws ----
   [[nodiscard]] double s_of(double depth, double gain) const noexcept { return s_rest + area * depth + gain; }
@@ -217,6 +220,10 @@ struct __attribute__((visibility("hidden"))) NetworkSimulation::Impl {
   bool assemble_and_factorize(const Eval& ev, double dt) noexcept;
   Status newton(double dt, bool regularised) noexcept;
   Status one_solve(double dt) noexcept;
+  Status one_solve_evaluate(double dt) noexcept;
+  void one_solve_finish(double dt) noexcept;
+  Status settle_one_step_cells() noexcept;
+  Status check_new_state() const noexcept;
   Status forward_euler(double dt) noexcept;
   Status run_trial(double dt) noexcept;
   Status check_linearisation() noexcept;

@@ -145,12 +145,40 @@ class MRSKIN_DRIVER_API NetworkSimulation {
   // out_of_regime (linearly_implicit_regularised: dt too long for its linearisation).
   Result<StepReport> step(double dt_s) noexcept;
 
+  // step(dt_s) spread over several calls, for a caller with a budget per call (the observer's
+  // tick): begin_step takes the inputs as they are and does the first of kStepPhases phases,
+  // each advance_step the next; the value is true once the step is committed, its state then
+  // what step(dt_s) leaves, to the bit. Only the linearly_implicit_regularised stepper on
+  // set_cell_indentation_m depths is split (evaluate the laws; factorise; solve and settle the
+  // cells; commit); any other setup does the whole step in begin_step. Errors as step's, state
+  // kept. A setter, reset() or step() while a step is in phases abandons it (nothing of it is
+  // committed); advance_step with none in progress is out_of_range.
+  static constexpr int kStepPhases = 4;
+  Result<bool> begin_step(double dt_s) noexcept;
+  Result<bool> advance_step() noexcept;
+  [[nodiscard]] bool step_in_progress() const noexcept;
+
   // State after the last step. The spans stay valid, showing the latest state, for the object's
   // life (a moved-from object has none).
   [[nodiscard]] std::span<const double> cell_indentation_m() const noexcept;  // pad depth
   [[nodiscard]] std::span<const double> cell_velocity_m_per_s() const noexcept;
   [[nodiscard]] std::span<const double> cell_pressure_Pa() const noexcept;
-  [[nodiscard]] std::span<const double> cell_force_N() const noexcept;         // on the finger (truth)
+  [[nodiscard]] std::span<const double> cell_force_N() const noexcept;  // on the finger (truth)
+  // Each fluid cell's force on the finger were its pad at depth_m[i] now, its fluid as the last
+  // step left it plus gain_m3[i] (empty: none; the caller's estimate of the flow since): the
+  // cell's undrained law, 0 at depth 0 or where the fluid holds the pad deeper. At the depths of
+  // the last step and no gain it is cell_force_N(), to the bit, for a pad the finger holds.
+  // Writes min(depth_m.size(), force_N.size(), fluid_cell_count()) values.
+  void cell_force_at_depth_N(std::span<const double> depth_m, std::span<const double> gain_m3,
+                             std::span<double> force_N) const noexcept;
+  // Moves gain_m3 on by dt_s for the cells at depth (depth_m[i] > 0): each passage of such a cell
+  // at the valves' yield_Pa (one per valve) and at the pressure difference between the cell (at
+  // its depth, its fluid as the last step left it plus gain_m3[i]) and the other end as the last
+  // step left it, the regularised law (an explicit step of the touched cells alone, for a caller
+  // between steps; the other ends hold). Sizes: a gain and a depth per cell, a yield per valve;
+  // on a mismatch nothing moves.
+  void advance_cell_gain(std::span<const double> depth_m, std::span<const double> yield_Pa, double dt_s,
+                         std::span<double> gain_m3) const noexcept;
   [[nodiscard]] std::span<const double> chamber_pressure_Pa() const noexcept;  // one per valve (0 if none)
   [[nodiscard]] double reservoir_pressure_Pa() const noexcept;
   [[nodiscard]] std::span<const double> link_flow_m3_per_s() const noexcept;  // a -> b positive

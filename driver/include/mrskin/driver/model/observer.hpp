@@ -20,8 +20,8 @@
 // reading_deadband_sigma from the reading last used) or with a cell that moved. A coil whose command has not
 // changed and that has settled is not stepped. The force model is chosen per grid
 // (ObserverForceModel::automatic):
-//   - network (grids of at most network_max_cells fluid cells): the whole network is stepped
-//     every tick (skip_settled_network skips it at rest);
+//   - network (grids of at most network_max_cells fluid cells): the whole network is stepped,
+//     a step every network_step_s spread over its ticks (skip_settled_network skips it at rest);
 //   - local (larger grids): each contacted cell's force is the quasi-static cell law
 //     (DeviceModel::cell_force_at_yield, the law CellInverse inverts) at its depth and filtered
 //     rate (rates within hold_rate_m_per_s count as holding), at the mean yield stress of its
@@ -143,6 +143,15 @@ struct ObserverOptions {
   // largest link moves at most 1 nL in the ticks the step runs ahead: a released skin's slow
   // tail (docs/bridge.md, "Cost per tick"). Off: the network steps every tick.
   bool skip_settled_network = true;
+  // Network model: each step of the network covers this long, in whole ticks (at most 64, at
+  // least one), and its work is spread over them, a phase a tick (NetworkSimulation::begin_step,
+  // 4 phases): the inputs of the tick it begins on, each touched cell's depth carried on at its
+  // rate to the step's last tick; between steps each touched cell's force is its undrained law
+  // at its depth now, its fluid moved on through its valves as they are now. The hydraulics'
+  // time constants (85-95 ms) allow it: every scene's figures over seeds 1-8 stay within their
+  // seed-to-seed spread, and a held 5 x 5 tick costs about 16k instructions less (docs/bridge.md,
+  // "The network in phases"). 4 ms: 4 ticks at 1 kHz, 1 at 200 Hz. 0: a whole step every tick.
+  double network_step_s = 4e-3;
   // The steel's hysteresis (the profile's coercivity, the plant's play operator, tabulated):
   // after any current a valve keeps a remanent yield at 0 A. Off: the anhysteretic yield curve.
   bool steel_hysteresis = true;
