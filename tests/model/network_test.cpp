@@ -765,7 +765,7 @@ TEST(ModelNetwork, AStepInPhasesIsTheWholeStepToTheBit) {
       EXPECT_EQ(phased.link_flow_m3_per_s()[i], whole.link_flow_m3_per_s()[i]) << k;
     }
     // Between steps the undrained law at the step's own depths is the step's force.
-    phased.cell_force_at_depth_N(depth, {}, at_depth);
+    ASSERT_EQ(phased.cell_force_at_depth_N(depth, {}, at_depth), Status::ok);
     EXPECT_EQ(at_depth[design_cell(m)], whole.cell_force_N()[design_cell(m)]) << k;
   }
   EXPECT_EQ(allocations, 0U);
@@ -785,6 +785,28 @@ TEST(ModelNetwork, AStepInPhasesIsTheWholeStepToTheBit) {
   EXPECT_EQ(phased.begin_step(-1.0).status, Status::out_of_range);
   EXPECT_EQ(phased.begin_step(std::nan("")).status, Status::not_finite);
   EXPECT_FALSE(phased.step_in_progress());
+
+  // Between steps: a cell pressed deeper than its fluid was left pushes fluid out through open
+  // valves, and the force of the undrained law rises with the press. Bad sizes are refused.
+  std::vector<double> pressed(phased.fluid_cell_count(), 0.0);
+  pressed[design_cell(m)] = 3e-3;
+  std::vector<double> gain(phased.fluid_cell_count(), 0.0);
+  const std::vector<double> open(phased.valve_count(), 0.0);
+  ASSERT_EQ(phased.advance_cell_gain(pressed, open, 1e-3, gain), Status::ok);
+  EXPECT_LT(gain[design_cell(m)], 0.0);
+  EXPECT_EQ(gain[0], 0.0);  // untouched: not moved
+  std::vector<double> drained(phased.fluid_cell_count(), 0.0);
+  ASSERT_EQ(phased.cell_force_at_depth_N(pressed, {}, at_depth), Status::ok);
+  ASSERT_EQ(phased.cell_force_at_depth_N(pressed, gain, drained), Status::ok);
+  EXPECT_GT(at_depth[design_cell(m)], drained[design_cell(m)]);
+  EXPECT_GT(drained[design_cell(m)], 0.0);
+  EXPECT_EQ(phased.cell_force_at_depth_N(std::span<const double>(pressed).first(1), {}, at_depth),
+            Status::out_of_range);
+  EXPECT_EQ(phased.cell_force_at_depth_N(pressed, std::span<const double>(gain).first(1), at_depth),
+            Status::out_of_range);
+  EXPECT_EQ(phased.advance_cell_gain(pressed, std::span<const double>(open).first(1), 1e-3, gain),
+            Status::out_of_range);
+  EXPECT_EQ(phased.advance_cell_gain(pressed, open, -1e-3, gain), Status::out_of_range);
 
   // Steppers and contacts that are not split take the whole step in begin_step.
   NetworkSimulation exact(m, NetworkOptions{});

@@ -752,11 +752,11 @@ Result<bool> NetworkSimulation::begin_step(double dt_s) noexcept {
   if (m.opt.stepper != Stepper::linearly_implicit_regularised || !m.direct_depths || !finite(dt_s) ||
       !(dt_s > 0.0)) {
     const Result<StepReport> r = step(dt_s);
-    return {true, r.status};
+    return r.ok() ? Result<bool>{true} : failure<bool>(r.status);
   }
   m.compute_depths();
   m.report = StepReport{};
-  m.phase_dt = dt_s;
+  m.phase_dt_s = dt_s;
   if (const Status s = m.one_solve_evaluate(dt_s); s != Status::ok) {
     return failure<bool>(s);
   }
@@ -766,7 +766,7 @@ Result<bool> NetworkSimulation::begin_step(double dt_s) noexcept {
 
 Result<bool> NetworkSimulation::advance_step() noexcept {
   Impl& m = *impl_;
-  const double dt = m.phase_dt;
+  const double dt = m.phase_dt_s;
   Status s = Status::ok;
   switch (m.phase) {
     case 1:
@@ -802,35 +802,46 @@ std::span<const double> NetworkSimulation::cell_pressure_Pa() const noexcept {
   return std::span<const double>(impl_->node_p).first(impl_->cells);
 }
 std::span<const double> NetworkSimulation::cell_force_N() const noexcept { return impl_->force; }
-void NetworkSimulation::cell_force_at_depth_N(std::span<const double> depth_m,
-                                              std::span<const double> gain_m3,
-                                              std::span<double> force_N) const noexcept {
+Status NetworkSimulation::cell_force_at_depth_N(std::span<const double> depth_m,
+                                                std::span<const double> gain_m3,
+                                                std::span<double> force_N) const noexcept {
   const Impl& m = *impl_;
-  const std::size_t n = std::min({depth_m.size(), force_N.size(), m.cells});
-  const bool gained = gain_m3.size() >= n;
-  for (std::size_t i = 0; i < n; ++i) {
+  if (depth_m.size() != m.cells || force_N.size() != m.cells ||
+      (!gain_m3.empty() && gain_m3.size() != m.cells)) {
+    return Status::out_of_range;
+  }
+  const bool gained = !gain_m3.empty();
+  for (std::size_t i = 0; i < m.cells; ++i) {
     const double d = depth_m[i];
     const double e = gained ? m.e[i] + gain_m3[i] : m.e[i];
     // As finish_state: the pressure at the new volume, then the pad's push with it.
     force_N[i] = d > 0.0 ? std::max(0.0, m.pad.grad(d) + m.area * m.bulge.grad(m.s_of(d, e))) : 0.0;
   }
+  return Status::ok;
 }
-void NetworkSimulation::advance_cell_gain(std::span<const double> depth_m, std::span<const double> yield_Pa,
-                                          double dt_s, std::span<double> gain_m3) const noexcept {
-  const Impl& m = *impl_;
+
+Status NetworkSimulation::advance_cell_gain(std::span<const double> depth_m, std::span<const double> yield_Pa,
+                                            double dt_s, std::span<double> gain_m3) noexcept {
+  Impl& m = *impl_;
   if (depth_m.size() != m.cells || gain_m3.size() != m.cells || yield_Pa.size() != m.valves) {
-    return;
+    return Status::out_of_range;
   }
-  auto pressure = [&](std::uint32_t n) {
-    return n < m.cells ? m.bulge.grad(m.s_of(depth_m[n], m.e[n] + gain_m3[n])) : m.node_p[n];
-  };
+  if (!finite(dt_s) || !(dt_s > 0.0)) {
+    return Status::out_of_range;
+  }
+  // Every pressure first, so that no flow sees another's move (the links' order is no matter).
+  std::vector<double>& p = m.between_p;
+  for (std::size_t n = 0; n < m.nodes; ++n) {
+    p[n] =
+        n < m.cells && depth_m[n] > 0.0 ? m.bulge.grad(m.s_of(depth_m[n], m.e[n] + gain_m3[n])) : m.node_p[n];
+  }
   for (const Link& k : m.links) {
     const bool a_touched = k.a < m.cells && depth_m[k.a] > 0.0;
     const bool b_touched = k.b < m.cells && depth_m[k.b] > 0.0;
     if (!a_touched && !b_touched) {
       continue;
     }
-    const double x = pressure(k.a) - pressure(k.b);
+    const double x = p[k.a] - p[k.b];
     const double tau = k.valve < 0 ? 0.0 : yield_Pa[static_cast<std::size_t>(k.valve)];
     const Result<FlowPoint> f = m.model.valve_law().flow_point(x, tau);
     const double q = (f.ok() ? f.value.flow_m3_per_s : 0.0) + m.floor_conductance * x;
@@ -841,6 +852,7 @@ void NetworkSimulation::advance_cell_gain(std::span<const double> depth_m, std::
       gain_m3[k.b] += dt_s * q;
     }
   }
+  return Status::ok;
 }
 
 std::span<const double> NetworkSimulation::chamber_pressure_Pa() const noexcept { return impl_->chamber_p; }

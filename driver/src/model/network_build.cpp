@@ -169,6 +169,7 @@ void NetworkSimulation::Impl::size_state() {
   new_q.assign(links.size(), 0.0);
   new_p.assign(nodes, p0);
   new_force.assign(cells, 0.0);
+  between_p.assign(nodes, 0.0);
 }
 
 }  // namespace mrskin::model

@@ -210,7 +210,9 @@ struct __attribute__((visibility("hidden"))) NetworkSimulation::Impl {
   StepReport report;
   // A step in phases (begin_step): the next phase to run (0: none in progress) and its dt, s.
   int phase = 0;
-  double phase_dt = 0.0;
+  double phase_dt_s = 0.0;
+  // advance_cell_gain's pressures, one per node.
+  std::vector<double> between_p;
 
   // ---- laws ----
   [[nodiscard]] double s_of(double depth, double gain) const noexcept { return s_rest + area * depth + gain; }

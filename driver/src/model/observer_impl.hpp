@@ -188,6 +188,8 @@ struct __attribute__((visibility("hidden"))) CellObserver::Impl {
     std::fill(command_A.begin(), command_A.end(), 0.0);
     coils_settled = false;
     std::fill(force.begin(), force.end(), 0.0);
+    std::fill(contact_depth_m.begin(), contact_depth_m.end(), 0.0);
+    std::fill(step_depth_m.begin(), step_depth_m.end(), 0.0);
     network_contact = false;
     force_zero = true;
     state_age_s = 0.0;
@@ -288,7 +290,7 @@ struct __attribute__((visibility("hidden"))) CellObserver::Impl {
   Status network_force(double dt_s, bool yields_changed) noexcept;
   Status advance_network(double dt_s) noexcept;
   Status recover_network(Status failed, double dt_s, int ticks) noexcept;
-  void finish_network_step(int ticks_run, double dt_s) noexcept;
+  void finish_network_step(int tick, double dt_s) noexcept;
   void network_cell_forces(double dt_s) noexcept;
   std::span<const double> step_depths(double dt_s, int spread) noexcept;
   [[nodiscard]] int step_spread_for(double dt_s) const noexcept;

@@ -34,10 +34,11 @@ Status CellObserver::Impl::network_force(double dt_s, bool yields_changed) noexc
     // are one whole step at the old length, and this tick begins anew.
     step_phases = 0;
     if (const Result<StepReport> r = network->step(step_dt_s * step_tick); !r.ok()) {
+      network_inputs_changed = true;
       return r.status;
     }
-    state_age_s = 0.0;
-    restart_gain();
+    step_ticks = step_tick;
+    finish_network_step(step_tick, step_dt_s);
   }
   const bool same_inputs = network_primed && !network_inputs_changed;
   if (options.skip_settled_network && same_inputs && network_settled) {
@@ -90,8 +91,11 @@ Status CellObserver::Impl::network_force(double dt_s, bool yields_changed) noexc
   return advance_network(dt_s);
 }
 
-// The ticks of network_step_s at this tick length, 1 to 64.
+// The ticks of network_step_s at this tick length, 1 to 64 (1 for a stepper not split).
 int CellObserver::Impl::step_spread_for(double dt_s) const noexcept {
+  if (options.force_stepper != Stepper::linearly_implicit_regularised) {
+    return 1;  // a stepper that begin_step does not split takes its step whole, a tick's
+  }
   const double ticks = std::floor(options.network_step_s / dt_s + 1e-6);
   return static_cast<int>(std::clamp(ticks, 1.0, double{kMaxSpreadTicks}));
 }
@@ -138,18 +142,22 @@ Status CellObserver::Impl::advance_network(double dt_s) noexcept {
   return Status::ok;
 }
 
-// A step the stepper's linearisation refused (too long: stiff cells, a jump in the inputs): the
-// ticks it has run so far, a step each. Rare, and dear on the tick it happens.
+// A step the stepper's linearisation refused (too long: stiff cells, a jump in the inputs). Rare,
+// and dear on the tick it happens.
 Status CellObserver::Impl::recover_network(Status failed, double dt_s, int ticks) noexcept {
-  step_phases = 0;  // the network abandoned the step
-  if (step_ticks <= 1) {
-    return failed;  // the tick's own step: nothing shorter to try
+  step_phases = 0;                // the network abandoned the step
+  network_inputs_changed = true;  // its inputs were not stepped: the next tick steps them
+  // A step of the ticks run so far is shorter; nothing is shorter than the tick's own step, whose
+  // failure is reported (the estimate of the last good tick stands).
+  if (step_ticks <= ticks) {
+    return failed;
   }
-  for (int k = 0; k < ticks; ++k) {
-    if (const Result<StepReport> r = network->step(dt_s); !r.ok()) {
-      return r.status;
-    }
+  // The ticks it has run so far, as one whole step: at most a refused phase and a whole step in
+  // this tick, as a refused step and the tick's own did before the phases.
+  if (const Result<StepReport> r = network->step(dt_s * ticks); !r.ok()) {
+    return r.status;
   }
+  network_inputs_changed = false;
   step_ticks = ticks;
   finish_network_step(ticks, dt_s);
   return Status::ok;
@@ -166,11 +174,11 @@ void CellObserver::Impl::network_cell_forces(double dt_s) noexcept {
   // spread over ticks), through their valves as they are now.
   std::span<const double> gain;
   if (state_age_s > 0.0 && network_contact) {
-    network->advance_cell_gain(contact_depth_m, yield_Pa, dt_s, gain_m3);
+    (void)network->advance_cell_gain(contact_depth_m, yield_Pa, dt_s, gain_m3);  // sized at construction
     gain_moved = true;
     gain = gain_m3;
   }
-  network->cell_force_at_depth_N(contact_depth_m, gain, force);
+  (void)network->cell_force_at_depth_N(contact_depth_m, gain, force);  // sized at construction
   force_zero = !network_contact;
 }
 

@@ -168,17 +168,18 @@ class MRSKIN_DRIVER_API NetworkSimulation {
   // step left it plus gain_m3[i] (empty: none; the caller's estimate of the flow since): the
   // cell's undrained law, 0 at depth 0 or where the fluid holds the pad deeper. At the depths of
   // the last step and no gain it is cell_force_N(), to the bit, for a pad the finger holds.
-  // Writes min(depth_m.size(), force_N.size(), fluid_cell_count()) values.
-  void cell_force_at_depth_N(std::span<const double> depth_m, std::span<const double> gain_m3,
-                             std::span<double> force_N) const noexcept;
-  // Moves gain_m3 on by dt_s for the cells at depth (depth_m[i] > 0): each passage of such a cell
-  // at the valves' yield_Pa (one per valve) and at the pressure difference between the cell (at
-  // its depth, its fluid as the last step left it plus gain_m3[i]) and the other end as the last
-  // step left it, the regularised law (an explicit step of the touched cells alone, for a caller
-  // between steps; the other ends hold). Sizes: a gain and a depth per cell, a yield per valve;
-  // on a mismatch nothing moves.
-  void advance_cell_gain(std::span<const double> depth_m, std::span<const double> yield_Pa, double dt_s,
-                         std::span<double> gain_m3) const noexcept;
+  // out_of_range (nothing written) unless depth_m and force_N hold a value per fluid cell and
+  // gain_m3 one per cell or none.
+  Status cell_force_at_depth_N(std::span<const double> depth_m, std::span<const double> gain_m3,
+                               std::span<double> force_N) const noexcept;
+  // Moves gain_m3 on by dt_s for the cells at depth (depth_m[i] > 0): an explicit step of their
+  // passages alone, at the valves' yield_Pa (one per valve), the regularised law, between the
+  // cell (at its depth, its fluid as the last step left it plus gain_m3[i]) and the other end
+  // (a touched cell likewise; any other node as the last step left it), every flow taken at the
+  // pressures before the step. For a caller between steps. out_of_range (nothing moved) on a
+  // size mismatch, and dt_s must be finite and > 0.
+  Status advance_cell_gain(std::span<const double> depth_m, std::span<const double> yield_Pa, double dt_s,
+                           std::span<double> gain_m3) noexcept;
   [[nodiscard]] std::span<const double> chamber_pressure_Pa() const noexcept;  // one per valve (0 if none)
   [[nodiscard]] double reservoir_pressure_Pa() const noexcept;
   [[nodiscard]] std::span<const double> link_flow_m3_per_s() const noexcept;  // a -> b positive

@@ -141,7 +141,7 @@ struct ObserverOptions {
   // a released skin that still refills looks settled (docs/bridge.md, "What the tuning measured").
   // Untouched on unchanged inputs, it also steps several ticks at once (at most 64) while its
   // largest link moves at most 1 nL in the ticks the step runs ahead: a released skin's slow
-  // tail (docs/bridge.md, "Cost per tick"). Off: the network steps every tick.
+  // tail (docs/bridge.md, "Cost per tick"). Off: the network takes a step every network_step_s.
   bool skip_settled_network = true;
   // Network model: each step of the network covers this long, in whole ticks (at most 64, at
   // least one), and its work is spread over them, a phase a tick (NetworkSimulation::begin_step,
