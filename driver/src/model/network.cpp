@@ -119,6 +119,17 @@ Status NetworkSimulation::Impl::resolve_cell(std::size_t i, double e1, bool dg, 
 }
 
 Status NetworkSimulation::Impl::evaluate(Eval& ev, double dt, bool dg, bool regularised) const noexcept {
+  if (const Status s = evaluate_nodes(ev, dg); s != Status::ok) {
+    return s;
+  }
+  if (const Status s = evaluate_links(ev, 0, links.size(), dt, regularised); s != Status::ok) {
+    return s;
+  }
+  return evaluate_norms(ev);
+}
+
+// evaluate()'s parts (the phases of a step in phases run them apart): the cells and nodes...
+Status NetworkSimulation::Impl::evaluate_nodes(Eval& ev, bool dg) const noexcept {
   for (std::size_t i = 0; i < cells; ++i) {
     if (const Status s = resolve_cell(i, ev.e[i], dg, ev); s != Status::ok) {
       return s;
@@ -132,7 +143,13 @@ Status NetworkSimulation::Impl::evaluate(Eval& ev, double dt, bool dg, bool regu
   for (std::size_t n = 0; n < nodes; ++n) {
     ev.r[n] = ev.e[n] - e[n];
   }
-  for (std::size_t l = 0; l < links.size(); ++l) {
+  return Status::ok;
+}
+
+// ... the links [first, last), in link order ...
+Status NetworkSimulation::Impl::evaluate_links(Eval& ev, std::size_t first, std::size_t last, double dt,
+                                               bool regularised) const noexcept {
+  for (std::size_t l = first; l < last; ++l) {
     const Link& k = links[l];
     const double x = ev.p[k.a] - ev.p[k.b];
     ev.x[l] = x;
@@ -142,6 +159,11 @@ Status NetworkSimulation::Impl::evaluate(Eval& ev, double dt, bool dg, bool regu
     ev.r[k.a] += dt * ev.q[l];
     ev.r[k.b] -= dt * ev.q[l];
   }
+  return Status::ok;
+}
+
+// ... and the residual's norms.
+Status NetworkSimulation::Impl::evaluate_norms(Eval& ev) const noexcept {
   double n2 = 0.0;
   double ni = 0.0;
   for (std::size_t n = 0; n < nodes; ++n) {
@@ -156,6 +178,11 @@ Status NetworkSimulation::Impl::evaluate(Eval& ev, double dt, bool dg, bool regu
 // M = diag(c) + dt B^T G B: J = I + dt B^T G B diag(1/c) times diag(1/c), symmetric positive
 // definite even with every passage locked (G = 0) because every node has a compliance.
 bool NetworkSimulation::Impl::assemble_and_factorize(const Eval& ev, double dt) noexcept {
+  assemble(ev, dt);
+  return ldl.factorize();
+}
+
+void NetworkSimulation::Impl::assemble(const Eval& ev, double dt) noexcept {
   const std::span<double> a = ldl.values();
   std::fill(a.begin(), a.end(), 0.0);
   for (std::size_t n = 0; n < nodes; ++n) {
@@ -167,7 +194,6 @@ bool NetworkSimulation::Impl::assemble_and_factorize(const Eval& ev, double dt) 
     a[ldl.diagonal_slot(links[l].b)] += w;
     a[ldl.pair_slot(l)] -= w;
   }
-  return ldl.factorize();
 }
 
 // Damped Newton on the discrete-gradient step: unknowns e1, J de = -R solved as M y = -R,
@@ -280,10 +306,20 @@ Status NetworkSimulation::Impl::one_solve_evaluate(double dt) noexcept {
 }
 
 void NetworkSimulation::Impl::one_solve_finish(double dt) noexcept {
+  one_solve_pressures();
+  one_solve_flows(dt);
+}
+
+// The pressure correction y of the one solve...
+void NetworkSimulation::Impl::one_solve_pressures() noexcept {
   for (std::size_t n = 0; n < nodes; ++n) {
     y[n] = -cur.r[n];
   }
   ldl.solve(y);
+}
+
+// ... and the flows and volumes it gives.
+void NetworkSimulation::Impl::one_solve_flows(double dt) noexcept {
   // Linearised flows at the predicted pressures.
   for (std::size_t l = 0; l < links.size(); ++l) {
     const double dx = y[links[l].a] - y[links[l].b];
@@ -391,17 +427,23 @@ Status NetworkSimulation::Impl::run_trial(double dt) noexcept {
 // The one-solve steppers' pad depths were those of the start volumes: settle them at the new
 // ones, and check the linearisation.
 Status NetworkSimulation::Impl::settle_one_step_cells() noexcept {
+  const Status s = settle_cells(0, cells);
+  return s == Status::ok ? finish_settled_cells() : s;
+}
+
+// Cells [first, last) at their new volumes.
+Status NetworkSimulation::Impl::settle_cells(std::size_t first, std::size_t last) noexcept {
   Status s = Status::ok;
-  for (std::size_t i = 0; i < cells && s == Status::ok; ++i) {
+  for (std::size_t i = first; i < last && s == Status::ok; ++i) {
     s = resolve_cell(i, new_e[i], false, trial);
   }
-  if (s == Status::ok) {
-    finish_state(trial);
-  }
-  if (s == Status::ok && opt.stepper == Stepper::linearly_implicit_regularised) {
-    s = check_linearisation();
-  }
   return s;
+}
+
+// After each cell settled at its new volume: the state, and the linearisation's check.
+Status NetworkSimulation::Impl::finish_settled_cells() noexcept {
+  finish_state(trial);
+  return opt.stepper == Stepper::linearly_implicit_regularised ? check_linearisation() : Status::ok;
 }
 
 Status NetworkSimulation::Impl::check_new_state() const noexcept {
@@ -746,54 +788,6 @@ Result<StepReport> NetworkSimulation::step(double dt_s) noexcept {
   return {m.report};
 }
 
-Result<bool> NetworkSimulation::begin_step(double dt_s) noexcept {
-  Impl& m = *impl_;
-  m.phase = 0;
-  if (m.opt.stepper != Stepper::linearly_implicit_regularised || !m.direct_depths || !finite(dt_s) ||
-      !(dt_s > 0.0)) {
-    const Result<StepReport> r = step(dt_s);
-    return r.ok() ? Result<bool>{true} : failure<bool>(r.status);
-  }
-  m.compute_depths();
-  m.report = StepReport{};
-  m.phase_dt_s = dt_s;
-  if (const Status s = m.one_solve_evaluate(dt_s); s != Status::ok) {
-    return failure<bool>(s);
-  }
-  m.phase = 1;
-  return {false};
-}
-
-Result<bool> NetworkSimulation::advance_step() noexcept {
-  Impl& m = *impl_;
-  const double dt = m.phase_dt_s;
-  Status s = Status::ok;
-  switch (m.phase) {
-    case 1:
-      s = m.assemble_and_factorize(m.cur, dt) ? Status::ok : Status::no_convergence;
-      break;
-    case 2:
-      m.one_solve_finish(dt);
-      s = m.settle_one_step_cells();
-      if (s == Status::ok) {
-        s = m.check_new_state();
-      }
-      break;
-    case 3:
-      m.commit(dt);
-      m.phase = 0;
-      return {true};
-    default:
-      return failure<bool>(Status::out_of_range);
-  }
-  if (s != Status::ok) {
-    m.phase = 0;  // nothing committed: the state stays as before begin_step
-    return failure<bool>(s);
-  }
-  ++m.phase;
-  return {false};
-}
-
 bool NetworkSimulation::step_in_progress() const noexcept { return impl_->phase != 0; }
 
 std::span<const double> NetworkSimulation::cell_indentation_m() const noexcept { return impl_->d; }
@@ -829,27 +823,27 @@ Status NetworkSimulation::advance_cell_gain(std::span<const double> depth_m, std
   if (!finite(dt_s) || !(dt_s > 0.0)) {
     return Status::out_of_range;
   }
-  // Every pressure first, so that no flow sees another's move (the links' order is no matter).
+  // Every touched cell's pressure first, so that no flow sees another's move; then each touched
+  // cell's passages in link order (a passage between two touched cells is evaluated from each
+  // side, the same arithmetic: each side's sum is what one pass over the links gives it).
   std::vector<double>& p = m.between_p;
-  for (std::size_t n = 0; n < m.nodes; ++n) {
-    p[n] =
-        n < m.cells && depth_m[n] > 0.0 ? m.bulge.grad(m.s_of(depth_m[n], m.e[n] + gain_m3[n])) : m.node_p[n];
+  for (std::size_t i = 0; i < m.cells; ++i) {
+    if (depth_m[i] > 0.0) {
+      p[i] = m.bulge.grad(m.s_of(depth_m[i], m.e[i] + gain_m3[i]));
+    }
   }
-  for (const Link& k : m.links) {
-    const bool a_touched = k.a < m.cells && depth_m[k.a] > 0.0;
-    const bool b_touched = k.b < m.cells && depth_m[k.b] > 0.0;
-    if (!a_touched && !b_touched) {
+  const auto pressure = [&](std::uint32_t n) { return n < m.cells && depth_m[n] > 0.0 ? p[n] : m.node_p[n]; };
+  for (std::size_t i = 0; i < m.cells; ++i) {
+    if (!(depth_m[i] > 0.0)) {
       continue;
     }
-    const double x = p[k.a] - p[k.b];
-    const double tau = k.valve < 0 ? 0.0 : yield_Pa[static_cast<std::size_t>(k.valve)];
-    const Result<FlowPoint> f = m.model.valve_law().flow_point(x, tau);
-    const double q = (f.ok() ? f.value.flow_m3_per_s : 0.0) + m.floor_conductance * x;
-    if (a_touched) {
-      gain_m3[k.a] -= dt_s * q;
-    }
-    if (b_touched) {
-      gain_m3[k.b] += dt_s * q;
+    for (std::uint32_t j = m.cell_links_begin[i]; j < m.cell_links_begin[i + 1]; ++j) {
+      const Link& k = m.links[m.cell_links[j]];
+      const double x = pressure(k.a) - pressure(k.b);
+      const double tau = k.valve < 0 ? 0.0 : yield_Pa[static_cast<std::size_t>(k.valve)];
+      const Result<FlowPoint> f = m.model.valve_law().flow_point(x, tau);
+      const double q = (f.ok() ? f.value.flow_m3_per_s : 0.0) + m.floor_conductance * x;
+      gain_m3[i] += k.a == i ? -(dt_s * q) : dt_s * q;
     }
   }
   return Status::ok;

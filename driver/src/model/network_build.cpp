@@ -23,6 +23,7 @@ NetworkSimulation::Impl::Impl(DeviceModel m, const NetworkOptions& o)
   build_cell_laws(origin);
   plan_sensors();
   size_state();
+  plan_phases();
   reset();
 }
 
@@ -170,6 +171,27 @@ void NetworkSimulation::Impl::size_state() {
   new_p.assign(nodes, p0);
   new_force.assign(cells, 0.0);
   between_p.assign(nodes, 0.0);
+  // Each fluid cell's links in link order (a counting sort: the palm has thousands).
+  cell_links_begin.assign(cells + 1, 0);
+  for (const Link& k : links) {
+    for (const std::uint32_t n : {k.a, k.b}) {
+      if (n < cells) {
+        ++cell_links_begin[n + 1];
+      }
+    }
+  }
+  for (std::size_t i = 0; i < cells; ++i) {
+    cell_links_begin[i + 1] += cell_links_begin[i];
+  }
+  cell_links.assign(cell_links_begin[cells], 0);
+  std::vector<std::uint32_t> next(cell_links_begin.begin(), cell_links_begin.end() - 1);
+  for (std::size_t l = 0; l < links.size(); ++l) {
+    for (const std::uint32_t n : {links[l].a, links[l].b}) {
+      if (n < cells) {
+        cell_links[next[n]++] = static_cast<std::uint32_t>(l);
+      }
+    }
+  }
 }
 
 }  // namespace mrskin::model

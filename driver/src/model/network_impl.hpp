@@ -113,6 +113,19 @@ struct Eval {
   }
 };
 
+// The parts of a linearly implicit step, in order (a step in phases: network_phases.cpp).
+enum class StepStage : unsigned char {
+  nodes,
+  links,
+  assemble,
+  rows,
+  pressures,
+  flows,
+  settle,
+  finish,
+  commit
+};
+
 struct Link {
   std::uint32_t a = 0;
   std::uint32_t b = 0;
@@ -208,23 +221,51 @@ struct __attribute__((visibility("hidden"))) NetworkSimulation::Impl {
   std::array<double, kMaxContacts> new_contact_force{};
   double new_dissipated = 0.0;
   StepReport report;
-  // A step in phases (begin_step): the next phase to run (0: none in progress) and its dt, s.
+  // A step in phases (begin_step): the phases run (0: none in progress), its dt (s), the
+  // stage and item it reached and the work done, in the plan's units.
   int phase = 0;
   double phase_dt_s = 0.0;
-  // advance_cell_gain's pressures, one per node.
+  StepStage stage = StepStage::nodes;
+  std::size_t stage_item = 0;
+  double work_done = 0.0;
+  // The plan (plan_phases, by topology): each part's work in about an instruction (callgrind,
+  // x86-64 release), so that kStepPhases phases share the step about evenly.
+  struct StepWork {
+    double nodes = 0.0;
+    double link = 0.0;
+    double assemble = 0.0;
+    std::vector<double> row;
+    double pressures = 0.0;
+    double flows = 0.0;
+    double settle_cell = 0.0;
+    double finish = 0.0;
+    double total = 0.0;
+  } step_work;
+  // advance_cell_gain's pressures, one per node, and each fluid cell's links in link order.
   std::vector<double> between_p;
+  std::vector<std::uint32_t> cell_links_begin;
+  std::vector<std::uint32_t> cell_links;
 
   // ---- laws ----
   [[nodiscard]] double s_of(double depth, double gain) const noexcept { return s_rest + area * depth + gain; }
   Status link_law(std::size_t l, double x, bool regularised, double& flow, double& cond) const noexcept;
   Status resolve_cell(std::size_t i, double e1, bool dg, Eval& ev) const noexcept;
   Status evaluate(Eval& ev, double dt, bool dg, bool regularised) const noexcept;
+  Status evaluate_nodes(Eval& ev, bool dg) const noexcept;
+  Status evaluate_links(Eval& ev, std::size_t first, std::size_t last, double dt,
+                        bool regularised) const noexcept;
+  Status evaluate_norms(Eval& ev) const noexcept;
   bool assemble_and_factorize(const Eval& ev, double dt) noexcept;
+  void assemble(const Eval& ev, double dt) noexcept;
   Status newton(double dt, bool regularised) noexcept;
   Status one_solve(double dt) noexcept;
   Status one_solve_evaluate(double dt) noexcept;
   void one_solve_finish(double dt) noexcept;
+  void one_solve_pressures() noexcept;
+  void one_solve_flows(double dt) noexcept;
   Status settle_one_step_cells() noexcept;
+  Status settle_cells(std::size_t first, std::size_t last) noexcept;
+  Status finish_settled_cells() noexcept;
   Status check_new_state() const noexcept;
   Status forward_euler(double dt) noexcept;
   Status run_trial(double dt) noexcept;
@@ -238,6 +279,8 @@ struct __attribute__((visibility("hidden"))) NetworkSimulation::Impl {
     return new_contact_force[c] - contacts[c].force_N;
   }
   void commit(double dt) noexcept;
+  void plan_phases();
+  Status run_step_work(double target) noexcept;
   [[nodiscard]] double stored_energy() const noexcept;
   void reset() noexcept;
 };

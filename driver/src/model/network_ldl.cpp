@@ -142,16 +142,26 @@ void SparseLdl::plan_numeric(std::vector<std::uint32_t>& flag) {
   }
 }
 
-bool SparseLdl::factorize() noexcept {
+std::size_t SparseLdl::row_work(std::size_t k) const noexcept {
+  std::size_t work = ap_[k + 1] - ap_[k];
+  for (std::uint32_t v = row_begin_[k]; v < row_begin_[k + 1]; ++v) {
+    work += 1 + (visits_[v].slot - visits_[v].first);
+  }
+  return work;
+}
+
+bool SparseLdl::factorize() noexcept { return factorize_rows(0, n_); }
+
+bool SparseLdl::factorize_rows(std::size_t first, std::size_t last) noexcept {
   // ldl_numeric, row k of L by a sparse triangular solve, along the precomputed row patterns.
-  const std::size_t n = n_;
+  // Each row leaves the workspace y at zero, so the rows may be factorised apart, in order.
   double* const y = y_.data();
   double* const lx = lx_.data();
   const std::uint32_t* const li = li_.data();
   const double* const ax = ax_.data();
   const std::uint32_t* const ai = ai_.data();
   const Visit* const visits = visits_.data();
-  for (std::size_t k = 0; k < n; ++k) {
+  for (std::size_t k = first; k < last; ++k) {
     for (std::uint32_t p = ap_[k]; p < ap_[k + 1]; ++p) {
       y[ai[p]] += ax[p];
     }

@@ -34,6 +34,12 @@ class SparseLdl {
 
   // Numeric factorisation of values(). false if a pivot is not positive and finite.
   bool factorize() noexcept;
+  // Rows [first, last) of the factorisation, after rows [0, first): factorize() is all n rows.
+  bool factorize_rows(std::size_t first, std::size_t last) noexcept;
+  // Row k's share of factorize()'s work (entries read and multiply-adds), for planning.
+  [[nodiscard]] std::size_t row_work(std::size_t k) const noexcept;
+  // solve()'s work: entries of L read twice, plus the permutation and D.
+  [[nodiscard]] std::size_t solve_work() const noexcept { return 2 * lx_.size() + 3 * n_; }
   // x <- A^-1 x, with the last successful factorisation.
   void solve(std::span<double> x) noexcept;
 

@@ -1,4 +1,4 @@
-// CellObserver's network force model: the whole network, stepped a phase a tick over the ticks
+// CellObserver's network force model: the whole network, stepped in phases over the ticks
 // of ObserverOptions::network_step_s, and each touched cell's undrained law between steps.
 #include <algorithm>
 #include <cmath>

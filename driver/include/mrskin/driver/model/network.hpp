@@ -149,11 +149,13 @@ class MRSKIN_DRIVER_API NetworkSimulation {
   // tick): begin_step takes the inputs as they are and does the first of kStepPhases phases,
   // each advance_step the next; the value is true once the step is committed, its state then
   // what step(dt_s) leaves, to the bit. Only the linearly_implicit_regularised stepper on
-  // set_cell_indentation_m depths is split (evaluate the laws; factorise; solve and settle the
-  // cells; commit); any other setup does the whole step in begin_step. Errors as step's, state
-  // kept. A setter, reset() or step() while a step is in phases abandons it (nothing of it is
-  // committed); advance_step with none in progress is out_of_range.
-  static constexpr int kStepPhases = 4;
+  // set_cell_indentation_m depths is split: its parts (evaluate the cells, then each link;
+  // assemble; factorise row by row; solve; settle each cell; check) are shared out so that each
+  // phase does about an eighth of the work, and the last commits; any other setup does the whole
+  // step in begin_step. Errors as step's, state kept. A setter, reset() or step() while a step
+  // is in phases abandons it (nothing of it is committed); advance_step with none in progress is
+  // out_of_range.
+  static constexpr int kStepPhases = 8;
   Result<bool> begin_step(double dt_s) noexcept;
   Result<bool> advance_step() noexcept;
   [[nodiscard]] bool step_in_progress() const noexcept;

@@ -144,13 +144,14 @@ struct ObserverOptions {
   // tail (docs/bridge.md, "Cost per tick"). Off: the network takes a step every network_step_s.
   bool skip_settled_network = true;
   // Network model: each step of the network covers this long, in whole ticks (at most 64, at
-  // least one), and its work is spread over them, a phase a tick (NetworkSimulation::begin_step,
-  // 4 phases): the inputs of the tick it begins on, each touched cell's depth carried on at its
-  // rate to the step's last tick; between steps each touched cell's force is its undrained law
-  // at its depth now, its fluid moved on through its valves as they are now. The hydraulics'
-  // time constants (85-95 ms) allow it: every scene's figures over seeds 1-8 stay within their
-  // seed-to-seed spread, and a held 5 x 5 tick costs about 16k instructions less (docs/bridge.md,
-  // "The network in phases"). 4 ms: 4 ticks at 1 kHz, 1 at 200 Hz. 0: a whole step every tick.
+  // least one), and its work is spread evenly over them (NetworkSimulation::begin_step, 8
+  // phases: 2 a tick at 1 kHz): the inputs of the tick it begins on, each touched cell's depth
+  // carried on at its rate to the step's last tick; between steps each touched cell's force is
+  // its undrained law at its depth now, its fluid moved on through its valves as they are now.
+  // The hydraulics' time constants (85-95 ms) allow it: every scene's figures over seeds 1-8
+  // stay within their seed-to-seed spread, and a held 5 x 5 tick costs about 16k instructions
+  // less (docs/bridge.md, "The network in phases"). 4 ms: 4 ticks at 1 kHz, 1 at 200 Hz. 0: a
+  // whole step every tick.
   double network_step_s = 4e-3;
   // The steel's hysteresis (the profile's coercivity, the plant's play operator, tabulated):
   // after any current a valve keeps a remanent yield at 0 A. Off: the anhysteretic yield curve.
