@@ -6,6 +6,7 @@
 #include <limits>
 #include <memory>
 #include <string>
+#include <type_traits>
 
 #include "mrskin/driver/errors.hpp"
 
@@ -365,21 +366,52 @@ class __attribute__((visibility("hidden"))) TissueEstimator::Impl {
   void reset() noexcept;
 
  private:
+  // A member's law: its shape (n, or beta in 1/m) and its fit (forces at the reference).
   struct Member {
-    double shape = 1.0;  // n, or beta (1/m)
+    double shape = 1.0;
     std::array<double, 2> theta{};
-    std::array<double, 4> p{};  // symmetric 2x2, row-major
-    double phi1_f = 0.0;        // filtered regressors
-    double phi2_f = 0.0;
-    double g1_prev = 0.0;  // elastic regressor at the previous sample
-    double g2_prev = 0.0;  // antiderivative behind the damping regressor, previous sample
-    double err2 = 0.0;     // forgotten sum of squared prediction errors
   };
-  void regressors(const Member& m, double xs, double& g1, double& g2) const noexcept;
+  // The bank as a structure of arrays, one entry per member: push() updates every member in one
+  // pass the compiler vectorises, then takes the rare resets member by member.
+  struct Bank {
+    std::array<double, kMaxBank> shape{};
+    std::array<double, kMaxBank> theta0{};
+    std::array<double, kMaxBank> theta1{};
+    std::array<double, kMaxBank> p0{};  // covariance, symmetric 2x2: p0 p1 / p2 p3
+    std::array<double, kMaxBank> p1{};
+    std::array<double, kMaxBank> p2{};
+    std::array<double, kMaxBank> p3{};
+    std::array<double, kMaxBank> phi1_f{};  // filtered regressors
+    std::array<double, kMaxBank> phi2_f{};
+    std::array<double, kMaxBank> g1_prev{};  // elastic regressor at the previous sample
+    std::array<double, kMaxBank> g2_prev{};  // antiderivative behind the damping regressor
+    std::array<double, kMaxBank> err2{};     // forgotten sum of squared prediction errors
+  };
+  // Each member's candidate step (update_bank's first pass), applied or refused by its second.
+  struct Step {
+    std::array<double, kMaxBank> s{};
+    std::array<double, kMaxBank> e{};
+    std::array<double, kMaxBank> err2{};
+    std::array<double, kMaxBank> theta0{};
+    std::array<double, kMaxBank> theta1{};
+    std::array<double, kMaxBank> p0{};
+    std::array<double, kMaxBank> off{};
+    std::array<double, kMaxBank> p3{};
+  };
+  [[nodiscard]] Member member(std::size_t j) const noexcept {
+    return Member{bank_.shape[j], {bank_.theta0[j], bank_.theta1[j]}};
+  }
+  void reset_covariance(std::size_t j) noexcept {
+    bank_.p0[j] = options_.initial_covariance;
+    bank_.p1[j] = 0.0;
+    bank_.p2[j] = 0.0;
+    bank_.p3[j] = options_.initial_covariance;
+  }
+  void regressors(double shape, double xs, double& g1, double& g2) const noexcept;
   // push()'s steps, defined inline below (its only caller): a sample admitted, each member's
   // least squares step, then the moments, the best member and the confident law.
   inline bool admit(const TissueSample& sample) noexcept;
-  inline void update_member(Member& m, std::size_t j, double alpha, double d2) noexcept;
+  inline void update_bank(double alpha, double d2) noexcept;
   inline void update_fit(double indentation_m, double dt) noexcept;
   // Every member's regressors at xs into g1_/g2_: the Hunt-Crossley bank's exponents are evenly
   // spaced, so x^n climbs by one factor x^dn per member (two pow calls, not one each).
@@ -390,7 +422,8 @@ class __attribute__((visibility("hidden"))) TissueEstimator::Impl {
   bool stream_ended_ = false;
   double ended_at_s_ = 0.0;
   TissueEstimatorOptions options_;
-  std::array<Member, kMaxBank> bank_{};
+  Bank bank_{};
+  Step step_{};
   std::array<double, kMaxBank> g1_{};
   std::array<double, kMaxBank> g2_{};
   std::size_t bank_size_ = 1;
@@ -472,26 +505,27 @@ void TissueEstimator::Impl::reset() noexcept {
   const double theta1 = std::clamp(o.prior.elastic_force_N(xr), 0.0, o.max_elastic_force_at_ref_N);
   const double theta2 =
       std::clamp(o.prior.force_N(xr, vr) - o.prior.elastic_force_N(xr), 0.0, o.max_damping_force_at_ref_N);
+  bank_ = Bank{};
   for (std::size_t j = 0; j < bank_size_; ++j) {
-    Member& m = bank_[j];
-    m = Member{};
     const double f = bank_size_ > 1 ? static_cast<double>(j) / static_cast<double>(bank_size_ - 1) : 0.0;
+    double& shape = bank_.shape[j];
     switch (o.kind) {
       case TissueKind::kelvin_voigt:
-        m.shape = 1.0;
+        shape = 1.0;
         break;
       case TissueKind::hertz:
-        m.shape = 1.5;
+        shape = 1.5;
         break;
       case TissueKind::hunt_crossley:
-        m.shape = o.exponent_min + f * (o.exponent_max - o.exponent_min);
+        shape = o.exponent_min + f * (o.exponent_max - o.exponent_min);
         break;
       case TissueKind::exponential:
-        m.shape = o.beta_min_per_m * std::pow(o.beta_max_per_m / o.beta_min_per_m, f);
+        shape = o.beta_min_per_m * std::pow(o.beta_max_per_m / o.beta_min_per_m, f);
         break;
     }
-    m.theta = {theta1, theta2};
-    m.p = {o.initial_covariance, 0.0, 0.0, o.initial_covariance};
+    bank_.theta0[j] = theta1;
+    bank_.theta1[j] = theta2;
+    reset_covariance(j);
   }
   best_ = 0;
   stats_ = {};
@@ -509,7 +543,7 @@ void TissueEstimator::Impl::reset() noexcept {
 
 // g1: the elastic regressor at normalised depth xs; g2: the signal whose time derivative (times
 // x_ref / v_ref) is the damping regressor.
-void TissueEstimator::Impl::regressors(const Member& m, double xs, double& g1, double& g2) const noexcept {
+void TissueEstimator::Impl::regressors(double shape, double xs, double& g1, double& g2) const noexcept {
   switch (options_.kind) {
     case TissueKind::kelvin_voigt:
       g1 = xs;
@@ -517,13 +551,13 @@ void TissueEstimator::Impl::regressors(const Member& m, double xs, double& g1, d
       return;
     case TissueKind::hunt_crossley:
     case TissueKind::hertz: {
-      g1 = pow_n(xs, m.shape);
-      g2 = g1 * xs / (m.shape + 1.0);
+      g1 = pow_n(xs, shape);
+      g2 = g1 * xs / (shape + 1.0);
       return;
     }
     case TissueKind::exponential: {
       const double xr = options_.reference_depth_m;
-      g1 = std::expm1(std::min(m.shape * xs * xr, kMaxExpArgument)) / std::expm1(m.shape * xr);
+      g1 = std::expm1(std::min(shape * xs * xr, kMaxExpArgument)) / std::expm1(shape * xr);
       g2 = xs;
       return;
     }
@@ -558,25 +592,25 @@ TissueModel TissueEstimator::Impl::to_model(const Member& member) const noexcept
 
 void TissueEstimator::Impl::bank_regressors(double xs) noexcept {
   if (options_.kind == TissueKind::hunt_crossley && bank_size_ > 1) {
-    double g1 = pow_n(xs, bank_[0].shape);
-    const double factor = std::pow(xs, bank_[1].shape - bank_[0].shape);
+    double g1 = pow_n(xs, bank_.shape[0]);
+    const double factor = std::pow(xs, bank_.shape[1] - bank_.shape[0]);
     for (std::size_t j = 0; j < bank_size_; ++j) {
       g1_[j] = g1;
-      g2_[j] = g1 * xs / (bank_[j].shape + 1.0);
+      g2_[j] = g1 * xs / (bank_.shape[j] + 1.0);
       g1 *= factor;
     }
     return;
   }
   for (std::size_t j = 0; j < bank_size_; ++j) {
-    regressors(bank_[j], xs, g1_[j], g2_[j]);
+    regressors(bank_.shape[j], xs, g1_[j], g2_[j]);
   }
 }
 
 void TissueEstimator::Impl::restart_pair(double xs) noexcept {
   bank_regressors(xs);
   for (std::size_t j = 0; j < bank_size_; ++j) {
-    bank_[j].g1_prev = g1_[j];
-    bank_[j].g2_prev = g2_[j];
+    bank_.g1_prev[j] = g1_[j];
+    bank_.g2_prev[j] = g2_[j];
   }
   have_pair_ = true;
   filter_primed_ = false;
@@ -604,60 +638,94 @@ inline bool TissueEstimator::Impl::admit(const TissueSample& sample) noexcept {
   return true;
 }
 
-// One bank member's recursive least squares step on this sample's filtered regressors.
-inline void TissueEstimator::Impl::update_member(Member& m, std::size_t j, double alpha, double d2) noexcept {
+// Every bank member's recursive least squares step on this sample's filtered regressors, as one
+// member's step at a time would take it: a first pass computes each member's candidate step
+// without a branch (the compiler vectorises it), a second applies it or takes the member's rare
+// reset (a covariance that lost definiteness, a non-finite value) or its cap.
+inline void TissueEstimator::Impl::update_bank(double alpha, double d2) noexcept {
   const TissueEstimatorOptions& o = options_;
   const double mu = mu_;
-  const double g1 = g1_[j];
-  const double g2 = g2_[j];
-  const double phi1 = 0.5 * (g1 + m.g1_prev);
-  const double phi2 = (g2 - m.g2_prev) * d2;
-  m.g1_prev = g1;
-  m.g2_prev = g2;
-  if (filter_primed_) {
-    m.phi1_f += alpha * (phi1 - m.phi1_f);
-    m.phi2_f += alpha * (phi2 - m.phi2_f);
-  } else {
-    m.phi1_f = phi1;
-    m.phi2_f = phi2;
-  }
-  const double p1 = m.phi1_f;
-  const double p2 = m.phi2_f;
-  std::array<double, 4>& p = m.p;
-  const double pp0 = p[0] * p1 + p[1] * p2;
-  const double pp1 = p[2] * p1 + p[3] * p2;
-  const double s = mu + p1 * pp0 + p2 * pp1;
-  const double e = force_f_ - (m.theta[0] * p1 + m.theta[1] * p2);
-  if (!(s > 0.0) || !finite(s) || !finite(e)) {
-    m.err2 = mu * m.err2 + (finite(e) ? e * e : 0.0);
-    ++stats_.covariance_resets;
-    p = {o.initial_covariance, 0.0, 0.0, o.initial_covariance};
-    return;
-  }
-  // A-posteriori error e mu / s: the fit after this sample (early prior mismatch fades fast).
-  const double e_post = e * mu / s;
-  m.err2 = mu * m.err2 + e_post * e_post;
-  const double k0 = pp0 / s;
-  const double k1 = pp1 / s;
-  m.theta[0] += k0 * e;
-  m.theta[1] += k1 * e;
-  const double off = 0.5 * ((p[1] - k0 * pp1) + (p[2] - k1 * pp0)) / mu;
-  p = {(p[0] - k0 * pp0) / mu, off, off, (p[3] - k1 * pp1) / mu};
-  if (!(p[0] > 0.0 && p[3] > 0.0 && p[0] * p[3] - off * off > 0.0) || !finite(p[0] + p[3])) {
-    ++stats_.covariance_resets;
-    p = {o.initial_covariance, 0.0, 0.0, o.initial_covariance};
-  } else if (const double tr = p[0] + p[3]; tr > o.max_covariance_trace) {
-    // Forgetting without excitation blows the covariance up (wind-up): cap it.
-    const double c = o.max_covariance_trace / tr;
-    p = {p[0] * c, p[1] * c, p[2] * c, p[3] * c};
-    if (j == best_) {
-      ++stats_.covariance_limits;
+  const double force_f = force_f_;
+  const std::size_t n = bank_size_;
+  Bank& b = bank_;
+  Step& t = step_;
+  // (The filter's first sample is taken as it is: a loop of its own, so that neither branches.)
+  const auto first_pass = [&](auto primed_constant) {
+    constexpr bool kPrimed = decltype(primed_constant)::value;
+    for (std::size_t j = 0; j < n; ++j) {
+      const double g1 = g1_[j];
+      const double g2 = g2_[j];
+      const double phi1 = 0.5 * (g1 + b.g1_prev[j]);
+      const double phi2 = (g2 - b.g2_prev[j]) * d2;
+      b.g1_prev[j] = g1;
+      b.g2_prev[j] = g2;
+      const double p1 = kPrimed ? b.phi1_f[j] + alpha * (phi1 - b.phi1_f[j]) : phi1;
+      const double p2 = kPrimed ? b.phi2_f[j] + alpha * (phi2 - b.phi2_f[j]) : phi2;
+      b.phi1_f[j] = p1;
+      b.phi2_f[j] = p2;
+      const double pp0 = b.p0[j] * p1 + b.p1[j] * p2;
+      const double pp1 = b.p2[j] * p1 + b.p3[j] * p2;
+      const double s = mu + p1 * pp0 + p2 * pp1;
+      const double e = force_f - (b.theta0[j] * p1 + b.theta1[j] * p2);
+      // A-posteriori error e mu / s: the fit after this sample (early prior mismatch fades fast).
+      const double e_post = e * mu / s;
+      const double k0 = pp0 / s;
+      const double k1 = pp1 / s;
+      t.s[j] = s;
+      t.e[j] = e;
+      t.err2[j] = mu * b.err2[j] + e_post * e_post;
+      t.theta0[j] = b.theta0[j] + k0 * e;
+      t.theta1[j] = b.theta1[j] + k1 * e;
+      t.off[j] = 0.5 * ((b.p1[j] - k0 * pp1) + (b.p2[j] - k1 * pp0)) / mu;
+      t.p0[j] = (b.p0[j] - k0 * pp0) / mu;
+      t.p3[j] = (b.p3[j] - k1 * pp1) / mu;
     }
+  };
+  if (filter_primed_) {
+    first_pass(std::true_type{});
+  } else {
+    first_pass(std::false_type{});
   }
-  if (!finite(m.theta[0]) || !finite(m.theta[1])) {
-    m.theta = {0.0, 0.0};
-    ++stats_.covariance_resets;
-    p = {o.initial_covariance, 0.0, 0.0, o.initial_covariance};
+  for (std::size_t j = 0; j < n; ++j) {
+    const double s = t.s[j];
+    const double e = t.e[j];
+    if (!(s > 0.0) || !finite(s) || !finite(e)) {
+      b.err2[j] = mu * b.err2[j] + (finite(e) ? e * e : 0.0);
+      ++stats_.covariance_resets;
+      reset_covariance(j);
+      continue;
+    }
+    b.err2[j] = t.err2[j];
+    b.theta0[j] = t.theta0[j];
+    b.theta1[j] = t.theta1[j];
+    const double p0 = t.p0[j];
+    const double off = t.off[j];
+    const double p3 = t.p3[j];
+    if (!(p0 > 0.0 && p3 > 0.0 && p0 * p3 - off * off > 0.0) || !finite(p0 + p3)) {
+      ++stats_.covariance_resets;
+      reset_covariance(j);
+    } else if (const double tr = p0 + p3; tr > o.max_covariance_trace) {
+      // Forgetting without excitation blows the covariance up (wind-up): cap it.
+      const double c = o.max_covariance_trace / tr;
+      b.p0[j] = p0 * c;
+      b.p1[j] = off * c;
+      b.p2[j] = off * c;
+      b.p3[j] = p3 * c;
+      if (j == best_) {
+        ++stats_.covariance_limits;
+      }
+    } else {
+      b.p0[j] = p0;
+      b.p1[j] = off;
+      b.p2[j] = off;
+      b.p3[j] = p3;
+    }
+    if (!finite(b.theta0[j]) || !finite(b.theta1[j])) {
+      b.theta0[j] = 0.0;
+      b.theta1[j] = 0.0;
+      ++stats_.covariance_resets;
+      reset_covariance(j);
+    }
   }
 }
 
@@ -674,20 +742,20 @@ inline void TissueEstimator::Impl::update_fit(double indentation_m, double dt) n
   depth_sq_sum_ = mu * depth_sq_sum_ + indentation_m * indentation_m;
   std::size_t best = best_;
   for (std::size_t j = 0; j < bank_size_; ++j) {
-    if (bank_[j].err2 < bank_[best].err2) {
+    if (bank_.err2[j] < bank_.err2[best]) {
       best = j;
     }
   }
-  if (bank_[best].err2 < 0.98 * bank_[best_].err2) {
+  if (bank_.err2[best] < 0.98 * bank_.err2[best_]) {
     best_ = best;
   }
-  const std::array<double, 2>& fit = bank_[best_].theta;
+  const std::array<double, 2> fit = {bank_.theta0[best_], bank_.theta1[best_]};
   if (fit[0] < 0.0 || fit[0] > o.max_elastic_force_at_ref_N || fit[1] < 0.0 ||
       fit[1] > o.max_damping_force_at_ref_N) {
     ++stats_.parameter_clamps;  // the law is projected onto the plausible box
   }
   if (confidence() >= o.min_confidence) {
-    last_good_ = to_model(bank_[best_]);
+    last_good_ = to_model(member(best_));
     confident_ = true;
   }
 }
@@ -727,9 +795,7 @@ bool TissueEstimator::Impl::push(const TissueSample& sample) noexcept {
     mu_ = std::exp(-dt / o.memory_s);
   }
   bank_regressors(xs);
-  for (std::size_t j = 0; j < bank_size_; ++j) {
-    update_member(bank_[j], j, alpha, d2);
-  }
+  update_bank(alpha, d2);
   filter_primed_ = true;
   ++stats_.updates;
   update_fit(sample.indentation_m, dt);
@@ -741,7 +807,7 @@ double TissueEstimator::Impl::confidence() const noexcept {
     return 0.0;
   }
   const double var_sum = force_sq_sum_ - force_sum_ * force_sum_ / weight_;
-  const double r2 = var_sum > 1e-12 ? std::clamp(1.0 - bank_[best_].err2 / var_sum, 0.0, 1.0) : 0.0;
+  const double r2 = var_sum > 1e-12 ? std::clamp(1.0 - bank_.err2[best_] / var_sum, 0.0, 1.0) : 0.0;
   const double mean = depth_sum_ / weight_;
   const double depth_std = std::sqrt(std::max(0.0, depth_sq_sum_ / weight_ - mean * mean));
   const double excitation =
@@ -758,7 +824,7 @@ void TissueEstimator::Impl::end_stream(double now_s) noexcept {
   }
 }
 
-TissueModel TissueEstimator::Impl::raw_fit() const noexcept { return to_model(bank_[best_]); }
+TissueModel TissueEstimator::Impl::raw_fit() const noexcept { return to_model(member(best_)); }
 
 TissueEstimate TissueEstimator::Impl::estimate(double now_s) const noexcept {
   TissueEstimate out;
