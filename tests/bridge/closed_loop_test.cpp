@@ -27,7 +27,8 @@ LoopRun simulate(const std::string& scene_name, double seconds, const Impairment
   // MRSKIN_RATE_FILTER_S sets the observer's rate filter (docs/bridge.md: chosen on the true state);
   // MRSKIN_RATE_LINE_S selects the segmented-line rate with that memory, MRSKIN_RATE_CHANGE_SIGMA
   // its change threshold (docs/bridge.md, "A segmented-line rate"); MRSKIN_NETWORK_STEP_S the
-  // observer's network_step_s (docs/bridge.md, "The network in phases").
+  // observer's network_step_s (docs/bridge.md, "The network in phases"); MRSKIN_SMALL_GRID_SWEEPS
+  // its small_grid_sweeps (docs/bridge.md, "Cost per tick").
   const char* seed = std::getenv("MRSKIN_CLOSED_LOOP_SEED");
   BridgeOptions options;
   if (const char* tau = std::getenv("MRSKIN_RATE_FILTER_S"); tau != nullptr) {
@@ -42,6 +43,9 @@ LoopRun simulate(const std::string& scene_name, double seconds, const Impairment
   }
   if (const char* n = std::getenv("MRSKIN_NETWORK_STEP_S"); n != nullptr) {
     options.observer.network_step_s = std::strtod(n, nullptr);
+  }
+  if (const char* n = std::getenv("MRSKIN_SMALL_GRID_SWEEPS"); n != nullptr) {
+    options.observer.small_grid_sweeps = static_cast<int>(std::strtol(n, nullptr, 10));
   }
   return test::run_scene(scene_name, seconds, std::string("mock://?seed=") + (seed != nullptr ? seed : "7"),
                          network, 0, options);

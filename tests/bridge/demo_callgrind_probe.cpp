@@ -80,6 +80,10 @@ int main(int argc, char** argv) {
   auto scene = bridge::make_scene("demo");
   bridge::BridgeOptions options;
   options.sensor_faults.enabled = std::getenv("MRSKIN_PROBE_NO_SENSOR_FAULTS") == nullptr;
+  // MRSKIN_PROBE_SMALL_GRID_SWEEPS: the observer's small_grid_sweeps (a tuning's cost, measured).
+  if (const char* sweeps = std::getenv("MRSKIN_PROBE_SMALL_GRID_SWEEPS")) {
+    options.observer.small_grid_sweeps = static_cast<int>(std::strtol(sweeps, nullptr, 10));
+  }
   HoveringSlave hovering;
   bridge::SlaveSource& source = finger_mode == "rest" ? static_cast<bridge::SlaveSource&>(hovering) : *scene;
   bridge::Bridge loop(*dev.session, source, options);

@@ -435,8 +435,8 @@ double CellObserver::hysteresis_compensated_current_A(std::size_t valve, double 
   // valve's gain cancels), and the current that moves the valve's play there: the band's upper
   // edge going up, its lower edge going down (0 A at most: the remanence is the floor).
   const double wanted_Pa = Impl::at_index(m.anhysteretic_Pa, current_A / m.anhysteretic_step_A);
-  const double wanted_u = Impl::index_of(m.play_yield_Pa, wanted_Pa);
   const double u = m.play_index[valve];
+  const double wanted_u = Impl::index_of(m.play_yield_Pa, wanted_Pa, u);
   const double wanted_base_A = Impl::at_index(m.play_base_A, wanted_u);
   if (wanted_u > u) {
     return wanted_base_A + m.play_half_width_A;

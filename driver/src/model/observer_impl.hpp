@@ -246,15 +246,37 @@ struct __attribute__((visibility("hidden"))) CellObserver::Impl {
     const double t = std::clamp(u - static_cast<double>(k), 0.0, 1.0);
     return table[k] + t * (table[k + 1] - table[k]);
   }
-  // The fractional index at which a non-decreasing table reaches value (clamped to its ends).
-  [[nodiscard]] static double index_of(const std::vector<double>& table, double value) noexcept {
+  // The fractional index at which a non-decreasing table reaches value (clamped to its ends),
+  // searched from near_u, a fractional index near the answer (a valve's play moves little a
+  // tick): the last entry not above value, as a binary search finds it, in a step or two.
+  [[nodiscard]] static double index_of(const std::vector<double>& table, double value,
+                                       double near_u) noexcept {
     if (!(value > table.front())) {
       return 0.0;
     }
     if (!(value < table.back())) {
       return static_cast<double>(table.size() - 1);
     }
-    const auto above = std::upper_bound(table.begin(), table.end(), value);
+    // front < value < back: the answer is in [0, size - 2]. Gallop from near_u to a bracket
+    // [lo, hi) with table[lo] <= value < table[hi], then search it (a long move costs a log).
+    const std::size_t last = table.size() - 1;
+    const auto near =
+        static_cast<std::size_t>(near_u > 0.0 ? std::min(near_u, static_cast<double>(last - 1)) : 0.0);
+    std::size_t lo = near;
+    std::size_t hi = near;
+    if (table[near] > value) {
+      for (std::size_t step = 1; table[lo] > value; step *= 2) {
+        hi = lo;
+        lo = lo > step ? lo - step : 0;
+      }
+    } else {
+      for (std::size_t step = 1; table[hi] <= value; step *= 2) {
+        lo = hi;
+        hi = std::min(hi + step, last);
+      }
+    }
+    const auto above = std::upper_bound(table.begin() + static_cast<std::ptrdiff_t>(lo),
+                                        table.begin() + static_cast<std::ptrdiff_t>(hi), value);
     const auto k = static_cast<std::size_t>(above - table.begin()) - 1;
     const double span = table[k + 1] - table[k];
     return static_cast<double>(k) + (span > 0.0 ? (value - table[k]) / span : 0.0);
@@ -264,9 +286,9 @@ struct __attribute__((visibility("hidden"))) CellObserver::Impl {
     double& u = play_index[v];
     const double base_A = at_index(play_base_A, u);
     if (field_A - play_half_width_A > base_A) {
-      u = index_of(play_base_A, field_A - play_half_width_A);
+      u = index_of(play_base_A, field_A - play_half_width_A, u);
     } else if (field_A + play_half_width_A < base_A) {
-      u = index_of(play_base_A, field_A + play_half_width_A);
+      u = index_of(play_base_A, field_A + play_half_width_A, u);
     }
     return at_index(play_yield_Pa, u);
   }
