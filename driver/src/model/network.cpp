@@ -288,7 +288,7 @@ Status NetworkSimulation::Impl::newton(double dt, bool regularised) noexcept {
 }
 
 // Rosenbrock-Euler: one Newton step of implicit Euler from e0, point pressures, regularised law.
-// Its parts are the phases of begin_step/advance_step too: evaluate, factorise, finish.
+// Its parts, apart, are the phases of begin_step/advance_step too (network_phases.cpp).
 Status NetworkSimulation::Impl::one_solve(double dt) noexcept {
   if (const Status s = one_solve_evaluate(dt); s != Status::ok) {
     return s;

@@ -147,19 +147,27 @@ Status CellObserver::Impl::advance_network(double dt_s) noexcept {
 Status CellObserver::Impl::recover_network(Status failed, double dt_s, int ticks) noexcept {
   step_phases = 0;                // the network abandoned the step
   network_inputs_changed = true;  // its inputs were not stepped: the next tick steps them
-  // A step of the ticks run so far is shorter; nothing is shorter than the tick's own step, whose
-  // failure is reported (the estimate of the last good tick stands).
-  if (step_ticks <= ticks) {
+  // The step's check is among its last phases, so a refusal mostly comes on its last tick: the
+  // ticks before this one are then the shorter step, and this tick's time is lost, as a whole
+  // step's refused tick loses its own (the network's state is a tick older than the tick).
+  const bool last_tick = step_ticks <= ticks;
+  const int shorter = last_tick ? ticks - 1 : ticks;
+  // Nothing is shorter than the tick's own step, whose failure is reported (the estimate of the
+  // last good tick stands).
+  if (shorter < 1) {
     return failed;
   }
-  // The ticks it has run so far, as one whole step: at most a refused phase and a whole step in
-  // this tick, as a refused step and the tick's own did before the phases.
-  if (const Result<StepReport> r = network->step(dt_s * ticks); !r.ok()) {
+  // The shorter step whole: at most a refused phase and a whole step in this tick, as a refused
+  // step and the tick's own did before the phases.
+  if (const Result<StepReport> r = network->step(dt_s * shorter); !r.ok()) {
     return r.status;
   }
-  network_inputs_changed = false;
-  step_ticks = ticks;
-  finish_network_step(ticks, dt_s);
+  network_inputs_changed = last_tick;  // (this tick's inputs wait for the next step)
+  step_ticks = shorter;
+  finish_network_step(shorter, dt_s);
+  if (last_tick) {
+    state_age_s = dt_s;  // the state ends a tick before this one
+  }
   return Status::ok;
 }
 
