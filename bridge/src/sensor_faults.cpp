@@ -88,6 +88,8 @@ class __attribute__((visibility("hidden"))) SensorFaultMonitor::Impl {
 
  private:
   void latch(std::size_t sensor, SensorFault fault, double evidence) noexcept;
+  void find_neighbours();
+  [[nodiscard]] std::size_t blame_offset(double worst_offset) const noexcept;
   void judge_every_watched_sensor() noexcept;
 
   SensorFaultOptions options_;
@@ -97,6 +99,9 @@ class __attribute__((visibility("hidden"))) SensorFaultMonitor::Impl {
   std::vector<std::size_t> cells_begin_;
   std::vector<std::size_t> cells_;
   std::vector<std::size_t> readers_of_cell_;  // healthy displacement sensors reading each cell
+  // Per watched sensor, the other watched sensors that read one of its cells (offset blame).
+  std::vector<std::size_t> neighbours_begin_;
+  std::vector<std::uint32_t> neighbours_;
   std::vector<SensorFault> fault_;
   std::vector<double> evidence_;
   // Per sensor, what update() reads and writes for every reading, in one place (one stride):
@@ -169,12 +174,71 @@ SensorFaultMonitor::Impl::Impl(const model::DeviceProfile& profile, const GridLa
       ++readers_of_cell_[cells_[e]];
     }
   }
+  find_neighbours();
   set_reading_deadband(reading_deadband);
   fault_.assign(n, SensorFault::none);
   evidence_.assign(n, 0.0);
   healthy_ = static_cast<std::size_t>(std::count(watched_.begin(), watched_.end(), 1));
   reserve_judged();
   judge_every_watched_sensor();
+}
+
+void SensorFaultMonitor::Impl::find_neighbours() {
+  const std::size_t n = watched_.size();
+  std::vector<std::vector<std::uint32_t>> readers(readers_of_cell_.size());
+  for (std::size_t k = 0; k < n; ++k) {
+    for (std::size_t e = cells_begin_[k]; e < cells_begin_[k + 1]; ++e) {
+      readers[cells_[e]].push_back(static_cast<std::uint32_t>(k));
+    }
+  }
+  neighbours_begin_.assign(1, 0);
+  std::vector<std::uint32_t> mine;
+  for (std::size_t k = 0; k < n; ++k) {
+    mine.clear();
+    for (std::size_t e = cells_begin_[k]; e < cells_begin_[k + 1]; ++e) {
+      for (const std::uint32_t other : readers[cells_[e]]) {
+        if (other != k) {
+          mine.push_back(other);
+        }
+      }
+    }
+    std::sort(mine.begin(), mine.end());
+    mine.erase(std::unique(mine.begin(), mine.end()), mine.end());
+    neighbours_.insert(neighbours_.end(), mine.begin(), mine.end());
+    neighbours_begin_.push_back(neighbours_.size());
+  }
+}
+
+// One shifted zero is spread by the fit onto the sensors that read its cells, with the opposite
+// sign (the fit moves those depths towards the shifted reading, and they read the move). Where a
+// neighbour is left with as large a mean as the culprit's (two sensors reading the same cells
+// split it evenly: offset:0 on the 5x5 leaves +14.5 sigma on sensor 0 and -14.5 on sensor 2), the
+// culprit is the one its neighbours oppose: among the sensors within kTieFraction of the largest
+// mean, the largest |m_k - kSpreadWeight * (the sum of k's healthy neighbours' means)|.
+std::size_t SensorFaultMonitor::Impl::blame_offset(double worst_offset) const noexcept {
+  constexpr double kTieFraction = 0.5;
+  constexpr double kSpreadWeight = 0.5;
+  const double floor = kTieFraction * std::abs(worst_offset);
+  std::size_t blamed = npos;
+  double best = -1.0;
+  for (const std::uint32_t k : judged_) {
+    const double m = watch_[k].mean_residual;
+    if (!(std::abs(m) >= floor)) {
+      continue;
+    }
+    double spread = 0.0;
+    for (std::size_t e = neighbours_begin_[k]; e < neighbours_begin_[k + 1]; ++e) {
+      if (fault_[neighbours_[e]] == SensorFault::none) {
+        spread += watch_[neighbours_[e]].mean_residual;
+      }
+    }
+    const double score = std::abs(m - kSpreadWeight * spread);
+    if (score > best) {
+      best = score;
+      blamed = k;
+    }
+  }
+  return blamed;
 }
 
 void SensorFaultMonitor::Impl::judge_every_watched_sensor() noexcept {
@@ -291,15 +355,14 @@ std::size_t SensorFaultMonitor::Impl::update(std::span<const double> readings,
       worst_offset_sensor = k;
     }
   }
-  // One shifted zero spreads a little onto its neighbours through the fit: blame the largest.
   if (found == npos && worst_offset_sensor != npos && std::abs(worst_offset) > options_.offset_limit_sigma) {
-    found = worst_offset_sensor;
+    found = blame_offset(worst_offset);
     // A stuck sensor under a moving finger leaves a residual before its run is long enough; a
     // healthy one with a shifted zero still moves: this many repeats is stuck (p < 1e-3 here).
     constexpr std::size_t kStuckHint = 8;
     const bool stuck = watch_[found].run >= std::min(kStuckHint, watch_[found].stuck_run);
     found_kind = stuck ? SensorFault::stuck : SensorFault::offset;
-    found_evidence = stuck ? watch_[found].last : worst_offset;
+    found_evidence = stuck ? watch_[found].last : watch_[found].mean_residual;
   }
   if (found != npos) {
     latch(found, found_kind, found_evidence);

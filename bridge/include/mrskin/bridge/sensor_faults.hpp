@@ -16,7 +16,8 @@
 //   - offset: the observer's residual for this sensor (its reading less what the fitted depths
 //     predict), averaged, beyond offset_limit_sigma. Depths are never negative and every cell is
 //     read by more than one sensor on the built-in profiles, so one sensor's shifted zero is left
-//     as a residual on that sensor, mostly (docs/reliability.md: where it is not).
+//     as a residual on that sensor, mostly; where the fit splits it between two sensors, the blame
+//     goes to the one its neighbours oppose (docs/reliability.md).
 // A fault latches until reset(): a sensor that comes and goes must not slip back into the fit.
 // A fluid leak cannot be seen here: with the pads pressed by a finger, the sensors read the
 // finger's shape whatever the valves hold (docs/reliability.md).
