@@ -111,11 +111,11 @@ struct ObserverOptions {
   // Grids of at most network_max_cells: at most this many sweeps a tick (and `sweeps`, the lesser).
   // The fit starts from the last tick's depths, so what a capped tick leaves is taken up the next;
   // the 5 x 5's worst held tick fell from 60.7k to 54.9k instructions with every scene's error
-  // over seeds 1-8 within its seed-to-seed noise (docs/bridge.md, "Cost per tick"). 4 would take
-  // about 870 more off a held tick within the same noise, but a shifted sensor is then blamed on
-  // its neighbour ("Fewer sweeps, not kept"). The large grids keep `sweeps`: their sparse fit
-  // capped at 6 cost more (palm, 5 % loading, +10 %). At least 1.
-  int small_grid_sweeps = 6;
+  // over seeds 1-8 within its seed-to-seed noise (docs/bridge.md, "Cost per tick"); 4 took about
+  // 870 more off a held tick (2.0-2.5k off the one-cell maxima) within the same noise ("Fewer
+  // sweeps"). The large grids keep `sweeps`: their sparse fit capped at 6 cost more (palm, 5 %
+  // loading, +10 %). At least 1.
+  int small_grid_sweeps = 4;
   // Grids above network_max_cells: a sensor whose reading (in its standard deviations) is within
   // this of the reading last used counts as unchanged.
   double reading_deadband_sigma = 2.0;
