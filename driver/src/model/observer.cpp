@@ -21,13 +21,14 @@ const ObserverOptions& validated(const ObserverOptions& o) {
       !std::isfinite(o.noise_floor_sigma) || o.residual_refresh_ticks < 1 || !(o.rate_memory_s > 0.0) ||
       !std::isfinite(o.rate_memory_s) || !(o.rate_change_threshold_sigma > 0.0) ||
       !std::isfinite(o.rate_change_threshold_sigma) || !(o.rest_gate_sigma >= 0.0) || o.rest_sweeps < 1 ||
-      o.small_grid_sweeps < 1 || !(o.network_step_s >= 0.0 && o.network_step_s <= 1.0)) {
+      o.small_grid_sweeps < 1 || !(o.network_step_s >= 0.0 && o.network_step_s <= 1.0) ||
+      !(o.network_linearisation_tolerance > 0.0) || !std::isfinite(o.network_linearisation_tolerance)) {
     throw InvalidArgument(
         "observer options: prior_spread_m and sparsity_scale_m must be > 0, sweeps >= 1, "
         "rate_filter_time_constant_s, contact_threshold_m, sweep_tolerance_m, hold_rate_m_per_s and "
         "noise_floor_sigma >= 0, residual_refresh_ticks >= 1, rate_memory_s and "
         "rate_change_threshold_sigma finite and > 0, rest_gate_sigma >= 0, rest_sweeps and small_grid_sweeps "
-        ">= 1, network_step_s in [0, 1]");
+        ">= 1, network_step_s in [0, 1], network_linearisation_tolerance finite and > 0");
   }
   return o;
 }
@@ -448,6 +449,7 @@ double CellObserver::hysteresis_compensated_current_A(std::size_t valve, double 
   return std::clamp(current_A, std::max(0.0, base_A - m.play_half_width_A), base_A + m.play_half_width_A);
 }
 ObserverForceModel CellObserver::force_model() const noexcept { return impl_->force_model; }
+std::size_t CellObserver::network_steps_refused() const noexcept { return impl_->network_refusals; }
 double CellObserver::sensor_misfit_m() const noexcept { return impl_->misfit_m; }
 std::span<const double> CellObserver::sensor_residual_sigma() const noexcept {
   return impl_->sensor_residual;

@@ -171,6 +171,7 @@ struct __attribute__((visibility("hidden"))) CellObserver::Impl {
   static NetworkOptions network_options(const ObserverOptions& o) {
     NetworkOptions n;
     n.stepper = o.force_stepper;
+    n.linearisation_tolerance = o.network_linearisation_tolerance;
     return n;
   }
 
@@ -382,7 +383,8 @@ struct __attribute__((visibility("hidden"))) CellObserver::Impl {
   std::uint32_t generation = 0;
   std::vector<std::size_t> valves_of_cell_begin;
   std::vector<std::size_t> valves_of_cell;
-  bool network_primed = false;  // the network has been stepped at least once since reset
+  bool network_primed = false;       // the network has been stepped at least once since reset
+  std::size_t network_refusals = 0;  // steps the linearisation refused, since construction
   bool network_settled = false;
   double network_ahead_s = 0.0;        // untouched: how far the network's last step ran ahead of the tick
   double network_flow_m3_per_s = 0.0;  // the largest link flow of the last step

@@ -145,6 +145,7 @@ Status CellObserver::Impl::advance_network(double dt_s) noexcept {
 // A step the stepper's linearisation refused (too long: stiff cells, a jump in the inputs). Rare,
 // and dear on the tick it happens.
 Status CellObserver::Impl::recover_network(Status failed, double dt_s, int ticks) noexcept {
+  ++network_refusals;
   step_phases = 0;                // the network abandoned the step
   network_inputs_changed = true;  // its inputs were not stepped: the next tick steps them
   // The step's check is among its last phases, so a refusal mostly comes on its last tick: the

@@ -154,6 +154,11 @@ struct ObserverOptions {
   // less (docs/bridge.md, "The network in phases"). 4 ms: 4 ticks at 1 kHz, 1 at 200 Hz. 0: a
   // whole step every tick.
   double network_step_s = 4e-3;
+  // Network model: a step whose one linear solve is off the laws by more than this fraction of
+  // the pressure scale is refused (NetworkOptions::linearisation_tolerance) and taken again as
+  // the shorter step of the ticks before the refusal (network_steps_refused() counts them).
+  // Lower it only to test that path; > 0.
+  double network_linearisation_tolerance = 0.25;
   // The steel's hysteresis (the profile's coercivity, the plant's play operator, tabulated):
   // after any current a valve keeps a remanent yield at 0 A. Off: the anhysteretic yield curve.
   bool steel_hysteresis = true;
@@ -203,6 +208,9 @@ class MRSKIN_DRIVER_API CellObserver {
   [[nodiscard]] std::size_t fluid_cell_count() const noexcept;
   // The force model in use (automatic resolved at construction).
   [[nodiscard]] ObserverForceModel force_model() const noexcept;
+  // Network model: the steps the network refused since construction (its linearisation, mostly),
+  // each taken again as a shorter step or, where none is shorter, reported as update()'s error.
+  [[nodiscard]] std::size_t network_steps_refused() const noexcept;
 
  private:
   struct Impl;
