@@ -125,7 +125,17 @@ class __attribute__((visibility("hidden"))) SensorFaultMonitor::Impl {
       w.noise_ratio = 0.0;
       w.mean_residual = 0.0;
     }
+    primed_ = false;
   }
+  // Every judged sensor has the two readings before this one (its second difference is defined).
+  bool primed_ = false;
+  [[nodiscard]] static bool all_finite(std::span<const double> readings,
+                                       std::span<const double> residual_sigma) noexcept;
+  [[nodiscard]] bool update_scalar(std::span<const double> readings,
+                                   std::span<const double> residual_sigma) noexcept;
+  [[nodiscard]] bool update_primed(std::span<const double> readings,
+                                   std::span<const double> residual_sigma) noexcept;
+  [[nodiscard]] std::size_t decide(std::span<const double> readings) noexcept;
   std::size_t faulty_ = 0;
   std::size_t healthy_ = 0;
   std::size_t unobservable_ = npos;
@@ -300,23 +310,41 @@ std::size_t SensorFaultMonitor::Impl::update(std::span<const double> readings,
   if (!options_.enabled || readings.size() != fault_.size() || residual_sigma.size() != fault_.size()) {
     return npos;
   }
+  // The common reading (every sensor primed, every value finite) takes the lean pass, which
+  // tells whether any test is past its limit; the tests then decide as the full pass would.
+  if (primed_ && all_finite(readings, residual_sigma)) {
+    return update_primed(readings, residual_sigma) ? decide(readings) : npos;
+  }
+  return update_scalar(readings, residual_sigma) ? decide(readings) : npos;
+}
+
+// Every reading and residual finite (x - x is 0 for a finite x, NaN otherwise).
+bool SensorFaultMonitor::Impl::all_finite(std::span<const double> readings,
+                                          std::span<const double> residual_sigma) noexcept {
+  double sum = 0.0;
+  for (std::size_t k = 0; k < readings.size(); ++k) {
+    sum += (readings[k] - readings[k]) + (residual_sigma[k] - residual_sigma[k]);
+  }
+  return sum == 0.0;
+}
+
+// One reading into each judged sensor's history and running figures; a sensor whose reading is
+// not finite is skipped (the observer refuses the tick), a residual that is not finite leaves the
+// mean as it was. True when some test is past its limit; sets primed_.
+bool SensorFaultMonitor::Impl::update_scalar(std::span<const double> readings,
+                                             std::span<const double> residual_sigma) noexcept {
   const double noise_alpha = 1.0 / options_.noise_window_readings;
   const double offset_alpha = 1.0 / options_.offset_window_readings;
-  // Loop constants in locals: the stores into the per-sensor arrays below would otherwise make
-  // the compiler read the options again for every sensor.
   const double ratio_cap = kOutlierCap * options_.noise_ratio_limit;
-  const double noise_limit = options_.noise_ratio_limit;
   const double offset_cap = kOutlierCap * options_.offset_limit_sigma;
-  std::size_t found = npos;
-  SensorFault found_kind = SensorFault::none;
-  double found_evidence = 0.0;
-  double worst_offset = 0.0;
-  std::size_t worst_offset_sensor = npos;
+  bool alarm = false;
+  bool primed = true;
   for (const std::uint32_t sensor : judged_) {
     const std::size_t k = sensor;
     const double y = readings[k];
     if (!std::isfinite(y)) {
-      continue;  // the observer refuses the tick; nothing to judge
+      primed = primed && watch_[k].seen >= 2;
+      continue;
     }
     const double r = residual_sigma[k];
     Watch& w = watch_[k];
@@ -339,18 +367,71 @@ std::size_t SensorFaultMonitor::Impl::update(std::span<const double> readings,
     if (std::isfinite(r)) {
       w.mean_residual += offset_alpha * (std::clamp(r, -offset_cap, offset_cap) - w.mean_residual);
     }
-    if (found != npos) {
-      continue;
+    primed = primed && w.seen >= 2;
+    alarm = alarm || (w.stuck_run != npos && w.run >= w.stuck_run) ||
+            w.noise_ratio > options_.noise_ratio_limit ||
+            std::abs(w.mean_residual) > options_.offset_limit_sigma;
+  }
+  primed_ = primed;
+  return alarm;
+}
+
+// update_scalar's arithmetic for primed sensors and finite values, without its branches; true
+// when some test is past its limit.
+bool SensorFaultMonitor::Impl::update_primed(std::span<const double> readings,
+                                             std::span<const double> residual_sigma) noexcept {
+  // Loop constants in locals: the stores into watch_ would otherwise make the compiler read the
+  // options again for every sensor.
+  const double noise_alpha = 1.0 / options_.noise_window_readings;
+  const double offset_alpha = 1.0 / options_.offset_window_readings;
+  const double ratio_cap = kOutlierCap * options_.noise_ratio_limit;
+  const double noise_limit = options_.noise_ratio_limit;
+  const double offset_cap = kOutlierCap * options_.offset_limit_sigma;
+  const double offset_limit = options_.offset_limit_sigma;
+  bool alarm = false;
+  for (const std::uint32_t k : judged_) {
+    const double y = readings[k];
+    const double r = residual_sigma[k];
+    Watch& w = watch_[k];
+    const bool counts = w.deadband_sigma == 0.0 || std::abs(r) > w.deadband_sigma + kDeadbandMarginSigma;
+    w.run = y == w.last ? w.run + static_cast<std::size_t>(counts) : 1;
+    const double d2 = y - 2.0 * w.last + w.before_last;
+    w.noise_ratio += noise_alpha * (std::min(d2 * d2 * w.inv_six_sigma2, ratio_cap) - w.noise_ratio);
+    w.before_last = w.last;
+    w.last = y;
+    w.mean_residual += offset_alpha * (std::clamp(r, -offset_cap, offset_cap) - w.mean_residual);
+    alarm = alarm || w.run >= w.stuck_run || w.noise_ratio > noise_limit ||
+            std::abs(w.mean_residual) > offset_limit;
+  }
+  return alarm;
+}
+
+// The tests on the running figures, in sensor order: the first stuck or noisy sensor, else an
+// offset past its limit (blamed as blame_offset says). Latches and returns the sensor, or npos.
+std::size_t SensorFaultMonitor::Impl::decide(std::span<const double> readings) noexcept {
+  std::size_t found = npos;
+  SensorFault found_kind = SensorFault::none;
+  double found_evidence = 0.0;
+  double worst_offset = 0.0;
+  std::size_t worst_offset_sensor = npos;
+  for (const std::uint32_t k : judged_) {
+    const Watch& w = watch_[k];
+    if (!std::isfinite(readings[k])) {
+      continue;  // not judged on this reading
     }
     if (w.stuck_run != npos && w.run >= w.stuck_run) {
       found = k;
       found_kind = SensorFault::stuck;
-      found_evidence = y;
-    } else if (w.noise_ratio > noise_limit) {
+      found_evidence = readings[k];
+      break;
+    }
+    if (w.noise_ratio > options_.noise_ratio_limit) {
       found = k;
       found_kind = SensorFault::noisy;
       found_evidence = w.noise_ratio;
-    } else if (std::abs(w.mean_residual) > std::abs(worst_offset)) {
+      break;
+    }
+    if (std::abs(w.mean_residual) > std::abs(worst_offset)) {
       worst_offset = w.mean_residual;
       worst_offset_sensor = k;
     }
