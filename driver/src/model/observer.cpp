@@ -224,8 +224,11 @@ void CellObserver::Impl::fit(std::span<const double> readings) noexcept {
       next_visit.push_back(c);
     }
   }
+  // A changed row read within the rest gate moves none of its cells at zero depth (the small
+  // grids' rest gate, row by row): those with depth are visited above, the others stay at zero.
+  const double gate = options.rest_gate_sigma > 0.0 ? options.rest_gate_sigma : -1.0;
   for (std::size_t r = 0; r < residual.size(); ++r) {
-    if (row_changed[r] == 0) {
+    if (row_changed[r] == 0 || std::abs(used_reading[r]) <= gate) {
       continue;
     }
     for (std::size_t k = row_begin[r]; k < row_begin[r + 1]; ++k) {

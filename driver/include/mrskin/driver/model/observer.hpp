@@ -99,7 +99,9 @@ struct ObserverOptions {
   // the depths are zero. Noise alone spread micrometres of depth over a few cells and relaxed
   // them for up to `sweeps` sweeps a tick: the 5 x 5's idle tick fell from 17.5k to 12.7k
   // instructions, every scene's figures unchanged over seeds 1-8 (docs/bridge.md, "Cost per
-  // tick"). 0: off.
+  // tick"). Larger grids apply it row by row: a changed reading within it moves none of its cells
+  // at zero depth (the idle palm 866k -> 705k instructions a tick; docs/bridge.md, "The rest gate
+  // row by row"). 0: off.
   double rest_gate_sigma = 3.0;
   // Grids of at most network_max_cells: when no depth was above contact_threshold_m last tick and
   // the largest reading is past the rest gate but within twice it (noise, on about 8 % of the
