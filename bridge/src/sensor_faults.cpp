@@ -1,8 +1,10 @@
 #include "mrskin/bridge/sensor_faults.hpp"
 
 #include <algorithm>
+#include <bit>
 #include <cmath>
 #include <cstdint>
+#include <limits>
 #include <memory>
 #include <vector>
 
@@ -44,6 +46,50 @@ std::size_t stuck_run_for(double noise_std, double resolution, double p) {
   return run > 1e6 ? SensorFaultMonitor::npos : static_cast<std::size_t>(std::max(run, 2.0));
 }
 
+struct LeanLimits {
+  double ratio_cap;   // a reading's noise ratio counts for at most this
+  double offset_cap;  // a residual counts for at most this, sigmas
+  double noise_limit;
+  double offset_limit;
+};
+
+// SensorFaultMonitor::Impl::update_lean's pass over every sensor at once (the sensors not
+// judged have masks that keep their figures and raise nothing), without a branch: for a judged
+// sensor the same arithmetic as the full pass. A function of its own so that its arrays are
+// restrict parameters (g++ ignores restrict on local pointers, and checked 13 arrays for overlap
+// instead of vectorising). Written as selects between doubles, choosing as std::min and
+// std::clamp do: g++ 12 vectorises those on SSE2, not a bool turned into an integer; the alarm is
+// OR-ed from the flags' bits. True when some test is past its limit.
+bool lean_pass(std::size_t n, const double* __restrict y, const double* __restrict r, double* __restrict last,
+               double* __restrict before, double* __restrict run, double* __restrict noise,
+               double* __restrict mean, const double* __restrict band, const double* __restrict inv6,
+               const double* __restrict noise_alpha, const double* __restrict offset_alpha,
+               const double* __restrict weight, const double* __restrict stuck, LeanLimits limits,
+               double has_last, double noise_on) noexcept {
+  std::uint64_t alarm = 0;
+  for (std::size_t k = 0; k < n; ++k) {
+    const double unexplained =
+        std::abs(r[k]) > band[k] + SensorFaultMonitor::kDeadbandMarginSigma ? 1.0 : 0.0;
+    const double counts = band[k] == 0.0 ? 1.0 : unexplained;  // a repeat the band does not explain
+    const double same = y[k] == last[k] ? has_last : 0.0;
+    run[k] = 1.0 + same * (run[k] + counts - 1.0);  // a repeat: run + counts; else 1
+    const double d2 = y[k] - 2.0 * last[k] + before[k];
+    const double ratio = d2 * d2 * inv6[k];
+    noise[k] +=
+        noise_alpha[k] * noise_on * ((limits.ratio_cap < ratio ? limits.ratio_cap : ratio) - noise[k]);
+    before[k] = last[k];
+    last[k] = y[k];
+    const double above_floor = r[k] < -limits.offset_cap ? -limits.offset_cap : r[k];
+    const double clamped = limits.offset_cap < above_floor ? limits.offset_cap : above_floor;
+    mean[k] += offset_alpha[k] * (clamped - mean[k]);
+    const double stuck_flag = run[k] >= stuck[k] ? 1.0 : 0.0;
+    const double noisy_flag = weight[k] * noise[k] > limits.noise_limit ? 1.0 : 0.0;
+    const double offset_flag = weight[k] * std::abs(mean[k]) > limits.offset_limit ? 1.0 : 0.0;
+    alarm |= std::bit_cast<std::uint64_t>(stuck_flag + noisy_flag + offset_flag);
+  }
+  return alarm != 0;
+}
+
 }  // namespace
 
 // The monitor's state, behind SensorFaultMonitor's one pointer (docs/api.md, "ABI").
@@ -62,8 +108,8 @@ class __attribute__((visibility("hidden"))) SensorFaultMonitor::Impl {
   }
   void set_reading_deadband(double reading_deadband) noexcept {
     const double band = std::isfinite(reading_deadband) ? std::max(0.0, reading_deadband) : 0.0;
-    for (std::size_t k = 0; k < watch_.size(); ++k) {
-      watch_[k].deadband_sigma = residual_sigma_[k] > 0.0 ? band / residual_sigma_[k] : 0.0;
+    for (std::size_t k = 0; k < deadband_sigma_.size(); ++k) {
+      deadband_sigma_[k] = residual_sigma_[k] > 0.0 ? band / residual_sigma_[k] : 0.0;
     }
   }
   [[nodiscard]] SensorFault fault(std::size_t sensor) const noexcept {
@@ -74,13 +120,13 @@ class __attribute__((visibility("hidden"))) SensorFaultMonitor::Impl {
   [[nodiscard]] std::size_t unobservable_cell() const noexcept { return unobservable_; }
   [[nodiscard]] std::span<const std::size_t> cells_of_sensor(std::size_t sensor) const noexcept;
   [[nodiscard]] std::size_t stuck_run_readings(std::size_t sensor) const noexcept {
-    return sensor < watch_.size() ? watch_[sensor].stuck_run : npos;
+    return sensor < stuck_run_.size() ? stuck_run_[sensor] : npos;
   }
   [[nodiscard]] double noise_ratio(std::size_t sensor) const noexcept {
-    return sensor < watch_.size() ? watch_[sensor].noise_ratio : 0.0;
+    return sensor < noise_ratio_.size() ? noise_ratio_[sensor] : 0.0;
   }
   [[nodiscard]] double mean_residual_sigma(std::size_t sensor) const noexcept {
-    return sensor < watch_.size() ? watch_[sensor].mean_residual : 0.0;
+    return sensor < mean_residual_.size() ? mean_residual_[sensor] : 0.0;
   }
   [[nodiscard]] double evidence(std::size_t sensor) const noexcept {
     return sensor < evidence_.size() ? evidence_[sensor] : 0.0;
@@ -104,37 +150,48 @@ class __attribute__((visibility("hidden"))) SensorFaultMonitor::Impl {
   std::vector<std::uint32_t> neighbours_;
   std::vector<SensorFault> fault_;
   std::vector<double> evidence_;
-  // Per sensor, what update() reads and writes for every reading, in one place (one stride):
-  // the reading's history, the tests' running figures and their constants.
-  struct Watch {
-    double last = 0.0;
-    double before_last = 0.0;
-    double noise_ratio = 0.0;
-    double mean_residual = 0.0;
-    double inv_six_sigma2 = 0.0;  // 1 / (6 sigma^2): white noise's mean squared 2nd difference
-    double deadband_sigma = 0.0;  // the unit's deadband in residual_sigma_ (0: none)
-    std::size_t run = 0;
-    std::size_t stuck_run = npos;
-    std::size_t seen = 0;  // readings so far (up to 2: the second difference needs 3)
-  };
-  std::vector<Watch> watch_;
-  void restart_watch() noexcept {
-    for (Watch& w : watch_) {
-      w.seen = 0;
-      w.run = 0;
-      w.noise_ratio = 0.0;
-      w.mean_residual = 0.0;
-    }
-    primed_ = false;
+  // Per sensor, what update() reads and writes for every reading, an array each (the lean pass
+  // runs down them together): the reading's history, the tests' running figures and constants.
+  std::vector<double> last_;
+  std::vector<double> before_last_;
+  std::vector<double> noise_ratio_;
+  std::vector<double> mean_residual_;
+  std::vector<double> inv_six_sigma2_;  // 1 / (6 sigma^2): white noise's mean squared 2nd difference
+  std::vector<double> deadband_sigma_;  // the unit's deadband in residual_sigma_ (0: none)
+  std::vector<double> run_;             // equal readings in a row (a count; exact in a double)
+  std::vector<std::size_t> stuck_run_;  // npos: never stuck (not watched, or no noise)
+  std::vector<double> seen_;            // readings so far (up to 2: the second difference needs 3)
+  // The lean pass's masks. A judged sensor: its windows' weights, 1, its stuck run; any other:
+  // 0, 0, 0 and infinity, so that its figures stand and raise nothing.
+  std::vector<double> noise_alpha_;
+  std::vector<double> offset_alpha_;
+  std::vector<double> judged_weight_;
+  std::vector<double> stuck_limit_;
+  void set_judged(std::size_t k, bool judged) noexcept {
+    noise_alpha_[k] = judged ? 1.0 / options_.noise_window_readings : 0.0;
+    offset_alpha_[k] = judged ? 1.0 / options_.offset_window_readings : 0.0;
+    judged_weight_[k] = judged ? 1.0 : 0.0;
+    stuck_limit_[k] = judged && stuck_run_[k] != npos ? static_cast<double>(stuck_run_[k])
+                                                      : std::numeric_limits<double>::infinity();
   }
-  // Every judged sensor has the two readings before this one (its second difference is defined).
-  bool primed_ = false;
+  void restart_watch() noexcept {
+    std::fill(seen_.begin(), seen_.end(), 0.0);
+    lean_ = Lean::fresh;
+    std::fill(run_.begin(), run_.end(), 0.0);
+    std::fill(noise_ratio_.begin(), noise_ratio_.end(), 0.0);
+    std::fill(mean_residual_.begin(), mean_residual_.end(), 0.0);
+  }
   [[nodiscard]] static bool all_finite(std::span<const double> readings,
                                        std::span<const double> residual_sigma) noexcept;
   [[nodiscard]] bool update_scalar(std::span<const double> readings,
                                    std::span<const double> residual_sigma) noexcept;
-  [[nodiscard]] bool update_primed(std::span<const double> readings,
-                                   std::span<const double> residual_sigma) noexcept;
+  // Where the judged sensors' histories stand, for the lean pass: all alike, with no reading yet
+  // (no repeat to count), with one (no noise test: its second difference needs three), with two
+  // or more (primed); or not alike, after a reading that was not finite (the full pass).
+  enum class Lean : unsigned char { mixed, fresh, one_reading, primed };
+  Lean lean_ = Lean::fresh;
+  [[nodiscard]] bool update_lean(std::span<const double> readings,
+                                 std::span<const double> residual_sigma) noexcept;
   [[nodiscard]] std::size_t decide(std::span<const double> readings) noexcept;
   std::size_t faulty_ = 0;
   std::size_t healthy_ = 0;
@@ -157,7 +214,13 @@ SensorFaultMonitor::Impl::Impl(const model::DeviceProfile& profile, const GridLa
   const std::size_t n = profile.sensors.size();
   const std::size_t cells = layout.fluid_cell_count();
   watched_.assign(n, 0);
-  watch_.assign(n, Watch{});
+  for (std::vector<double>* a :
+       {&last_, &before_last_, &noise_ratio_, &mean_residual_, &inv_six_sigma2_, &deadband_sigma_, &run_,
+        &noise_alpha_, &offset_alpha_, &judged_weight_, &stuck_limit_}) {
+    a->assign(n, 0.0);
+  }
+  stuck_run_.assign(n, npos);
+  seen_.assign(n, 0.0);
   residual_sigma_.assign(n, 0.0);
   readers_of_cell_.assign(cells, 0);
   cells_begin_.push_back(0);
@@ -166,8 +229,8 @@ SensorFaultMonitor::Impl::Impl(const model::DeviceProfile& profile, const GridLa
     if (s.quantity == model::SensorQuantity::displacement && s.place != model::PlaceKind::reservoir) {
       watched_[k] = 1;
       const double sigma2 = s.noise_std * s.noise_std + s.resolution * s.resolution / 12.0;
-      watch_[k].inv_six_sigma2 = 1.0 / (6.0 * sigma2);
-      watch_[k].stuck_run = stuck_run_for(s.noise_std, s.resolution, options.false_alarm_probability);
+      inv_six_sigma2_[k] = 1.0 / (6.0 * sigma2);
+      stuck_run_[k] = stuck_run_for(s.noise_std, s.resolution, options.false_alarm_probability);
       // The observer's residual is in max(noise, resolution / sqrt 12) (CellObserver).
       residual_sigma_[k] = std::max(s.noise_std, s.resolution / std::sqrt(12.0));
       if (s.place == model::PlaceKind::fluid_cell) {
@@ -232,14 +295,14 @@ std::size_t SensorFaultMonitor::Impl::blame_offset(double worst_offset) const no
   std::size_t blamed = npos;
   double best = -1.0;
   for (const std::uint32_t k : judged_) {
-    const double m = watch_[k].mean_residual;
+    const double m = mean_residual_[k];
     if (!(std::abs(m) >= floor)) {
       continue;
     }
     double spread = 0.0;
     for (std::size_t e = neighbours_begin_[k]; e < neighbours_begin_[k + 1]; ++e) {
       if (fault_[neighbours_[e]] == SensorFault::none) {
-        spread += watch_[neighbours_[e]].mean_residual;
+        spread += mean_residual_[neighbours_[e]];
       }
     }
     const double score = std::abs(m - kSpreadWeight * spread);
@@ -254,6 +317,7 @@ std::size_t SensorFaultMonitor::Impl::blame_offset(double worst_offset) const no
 void SensorFaultMonitor::Impl::judge_every_watched_sensor() noexcept {
   judged_.clear();  // within its reserve: no allocation
   for (std::size_t k = 0; k < watched_.size(); ++k) {
+    set_judged(k, watched_[k] != 0);
     if (watched_[k] != 0) {
       judged_.push_back(static_cast<std::uint32_t>(k));
     }
@@ -290,6 +354,7 @@ void SensorFaultMonitor::Impl::latch(std::size_t sensor, SensorFault fault, doub
   fault_[sensor] = fault;
   evidence_[sensor] = evidence;
   std::erase(judged_, static_cast<std::uint32_t>(sensor));
+  set_judged(sensor, false);
   ++faulty_;
   --healthy_;
   for (std::size_t e = cells_begin_[sensor]; e < cells_begin_[sensor + 1]; ++e) {
@@ -300,9 +365,7 @@ void SensorFaultMonitor::Impl::latch(std::size_t sensor, SensorFault fault, doub
     }
   }
   // The fit moves once the sensor is out: the others' residual means start again.
-  for (Watch& w : watch_) {
-    w.mean_residual = 0.0;
-  }
+  std::fill(mean_residual_.begin(), mean_residual_.end(), 0.0);
 }
 
 std::size_t SensorFaultMonitor::Impl::update(std::span<const double> readings,
@@ -310,10 +373,17 @@ std::size_t SensorFaultMonitor::Impl::update(std::span<const double> readings,
   if (!options_.enabled || readings.size() != fault_.size() || residual_sigma.size() != fault_.size()) {
     return npos;
   }
-  // The common reading (every sensor primed, every value finite) takes the lean pass, which
+  // The common reading (the sensors' histories alike, every value finite) takes the lean pass,
+  // which
   // tells whether any test is past its limit; the tests then decide as the full pass would.
-  if (primed_ && all_finite(readings, residual_sigma)) {
-    return update_primed(readings, residual_sigma) ? decide(readings) : npos;
+  if (lean_ != Lean::mixed && all_finite(readings, residual_sigma)) {
+    const bool alarm = update_lean(readings, residual_sigma);
+    if (lean_ != Lean::primed) {  // every judged sensor has one reading more
+      const bool was_fresh = lean_ == Lean::fresh;
+      std::fill(seen_.begin(), seen_.end(), was_fresh ? 1.0 : 2.0);
+      lean_ = was_fresh ? Lean::one_reading : Lean::primed;
+    }
+    return alarm ? decide(readings) : npos;
   }
   return update_scalar(readings, residual_sigma) ? decide(readings) : npos;
 }
@@ -330,7 +400,7 @@ bool SensorFaultMonitor::Impl::all_finite(std::span<const double> readings,
 
 // One reading into each judged sensor's history and running figures; a sensor whose reading is
 // not finite is skipped (the observer refuses the tick), a residual that is not finite leaves the
-// mean as it was. True when some test is past its limit; sets primed_.
+// mean as it was. True when some test is past its limit; sets lean_.
 bool SensorFaultMonitor::Impl::update_scalar(std::span<const double> readings,
                                              std::span<const double> residual_sigma) noexcept {
   const double noise_alpha = 1.0 / options_.noise_window_readings;
@@ -339,71 +409,55 @@ bool SensorFaultMonitor::Impl::update_scalar(std::span<const double> readings,
   const double offset_cap = kOutlierCap * options_.offset_limit_sigma;
   bool alarm = false;
   bool primed = true;
+  bool one_each = true;  // (the full pass runs after a reading that was not finite: none is fresh)
   for (const std::uint32_t sensor : judged_) {
     const std::size_t k = sensor;
     const double y = readings[k];
     if (!std::isfinite(y)) {
-      primed = primed && watch_[k].seen >= 2;
+      primed = primed && seen_[k] >= 2.0;
+      one_each = one_each && seen_[k] == 1.0;
       continue;
     }
     const double r = residual_sigma[k];
-    Watch& w = watch_[k];
-    if (w.seen == 0 || y != w.last) {
-      w.run = 1;
-    } else if (w.deadband_sigma == 0.0 ||
-               (std::isfinite(r) && std::abs(r) > w.deadband_sigma + kDeadbandMarginSigma)) {
-      ++w.run;  // a repeat the deadband does not explain
-    }           // else: a repeat within the band is no evidence either way; the run holds
-    if (w.seen >= 2) {
-      const double d2 = y - 2.0 * w.last + w.before_last;
+    if (seen_[k] == 0.0 || y != last_[k]) {
+      run_[k] = 1.0;
+    } else if (deadband_sigma_[k] == 0.0 ||
+               (std::isfinite(r) && std::abs(r) > deadband_sigma_[k] + kDeadbandMarginSigma)) {
+      run_[k] += 1.0;  // a repeat the deadband does not explain
+    }                  // else: a repeat within the band is no evidence either way; the run holds
+    if (seen_[k] >= 2.0) {
+      const double d2 = y - 2.0 * last_[k] + before_last_[k];
       // One jump (a finger's tap, a gap in the readings) must not pass for noise: each reading
       // counts for at most kOutlierCap limits, so it takes several to cross one.
-      const double ratio = std::min(d2 * d2 * w.inv_six_sigma2, ratio_cap);
-      w.noise_ratio += noise_alpha * (ratio - w.noise_ratio);
+      const double ratio = std::min(d2 * d2 * inv_six_sigma2_[k], ratio_cap);
+      noise_ratio_[k] += noise_alpha * (ratio - noise_ratio_[k]);
     }
-    w.before_last = w.last;
-    w.last = y;
-    w.seen = std::min<std::size_t>(w.seen + 1, 2);
+    before_last_[k] = last_[k];
+    last_[k] = y;
+    seen_[k] = std::min(seen_[k] + 1.0, 2.0);
+    primed = primed && seen_[k] >= 2.0;
+    one_each = one_each && seen_[k] == 1.0;
     if (std::isfinite(r)) {
-      w.mean_residual += offset_alpha * (std::clamp(r, -offset_cap, offset_cap) - w.mean_residual);
+      mean_residual_[k] += offset_alpha * (std::clamp(r, -offset_cap, offset_cap) - mean_residual_[k]);
     }
-    primed = primed && w.seen >= 2;
-    alarm = alarm || (w.stuck_run != npos && w.run >= w.stuck_run) ||
-            w.noise_ratio > options_.noise_ratio_limit ||
-            std::abs(w.mean_residual) > options_.offset_limit_sigma;
+    alarm = alarm || run_[k] >= stuck_limit_[k] || noise_ratio_[k] > options_.noise_ratio_limit ||
+            std::abs(mean_residual_[k]) > options_.offset_limit_sigma;
   }
-  primed_ = primed;
+  lean_ = primed ? Lean::primed : (one_each ? Lean::one_reading : Lean::mixed);
   return alarm;
 }
 
-// update_scalar's arithmetic for primed sensors and finite values, without its branches; true
-// when some test is past its limit.
-bool SensorFaultMonitor::Impl::update_primed(std::span<const double> readings,
-                                             std::span<const double> residual_sigma) noexcept {
-  // Loop constants in locals: the stores into watch_ would otherwise make the compiler read the
-  // options again for every sensor.
-  const double noise_alpha = 1.0 / options_.noise_window_readings;
-  const double offset_alpha = 1.0 / options_.offset_window_readings;
-  const double ratio_cap = kOutlierCap * options_.noise_ratio_limit;
-  const double noise_limit = options_.noise_ratio_limit;
-  const double offset_cap = kOutlierCap * options_.offset_limit_sigma;
-  const double offset_limit = options_.offset_limit_sigma;
-  bool alarm = false;
-  for (const std::uint32_t k : judged_) {
-    const double y = readings[k];
-    const double r = residual_sigma[k];
-    Watch& w = watch_[k];
-    const bool counts = w.deadband_sigma == 0.0 || std::abs(r) > w.deadband_sigma + kDeadbandMarginSigma;
-    w.run = y == w.last ? w.run + static_cast<std::size_t>(counts) : 1;
-    const double d2 = y - 2.0 * w.last + w.before_last;
-    w.noise_ratio += noise_alpha * (std::min(d2 * d2 * w.inv_six_sigma2, ratio_cap) - w.noise_ratio);
-    w.before_last = w.last;
-    w.last = y;
-    w.mean_residual += offset_alpha * (std::clamp(r, -offset_cap, offset_cap) - w.mean_residual);
-    alarm = alarm || w.run >= w.stuck_run || w.noise_ratio > noise_limit ||
-            std::abs(w.mean_residual) > offset_limit;
-  }
-  return alarm;
+// update_scalar's arithmetic for finite values, without its branches, while the judged sensors'
+// histories are alike (lean_); true when some test is past its limit.
+bool SensorFaultMonitor::Impl::update_lean(std::span<const double> readings,
+                                           std::span<const double> residual_sigma) noexcept {
+  const LeanLimits limits{kOutlierCap * options_.noise_ratio_limit, kOutlierCap * options_.offset_limit_sigma,
+                          options_.noise_ratio_limit, options_.offset_limit_sigma};
+  return lean_pass(readings.size(), readings.data(), residual_sigma.data(), last_.data(), before_last_.data(),
+                   run_.data(), noise_ratio_.data(), mean_residual_.data(), deadband_sigma_.data(),
+                   inv_six_sigma2_.data(), noise_alpha_.data(), offset_alpha_.data(), judged_weight_.data(),
+                   stuck_limit_.data(), limits, lean_ == Lean::fresh ? 0.0 : 1.0,
+                   lean_ == Lean::primed ? 1.0 : 0.0);
 }
 
 // The tests on the running figures, in sensor order: the first stuck or noisy sensor, else an
@@ -415,24 +469,23 @@ std::size_t SensorFaultMonitor::Impl::decide(std::span<const double> readings) n
   double worst_offset = 0.0;
   std::size_t worst_offset_sensor = npos;
   for (const std::uint32_t k : judged_) {
-    const Watch& w = watch_[k];
     if (!std::isfinite(readings[k])) {
       continue;  // not judged on this reading
     }
-    if (w.stuck_run != npos && w.run >= w.stuck_run) {
+    if (run_[k] >= stuck_limit_[k]) {
       found = k;
       found_kind = SensorFault::stuck;
       found_evidence = readings[k];
       break;
     }
-    if (w.noise_ratio > options_.noise_ratio_limit) {
+    if (noise_ratio_[k] > options_.noise_ratio_limit) {
       found = k;
       found_kind = SensorFault::noisy;
-      found_evidence = w.noise_ratio;
+      found_evidence = noise_ratio_[k];
       break;
     }
-    if (std::abs(w.mean_residual) > std::abs(worst_offset)) {
-      worst_offset = w.mean_residual;
+    if (std::abs(mean_residual_[k]) > std::abs(worst_offset)) {
+      worst_offset = mean_residual_[k];
       worst_offset_sensor = k;
     }
   }
@@ -441,9 +494,9 @@ std::size_t SensorFaultMonitor::Impl::decide(std::span<const double> readings) n
     // A stuck sensor under a moving finger leaves a residual before its run is long enough; a
     // healthy one with a shifted zero still moves: this many repeats is stuck (p < 1e-3 here).
     constexpr std::size_t kStuckHint = 8;
-    const bool stuck = watch_[found].run >= std::min(kStuckHint, watch_[found].stuck_run);
+    const bool stuck = run_[found] >= static_cast<double>(std::min(kStuckHint, stuck_run_[found]));
     found_kind = stuck ? SensorFault::stuck : SensorFault::offset;
-    found_evidence = stuck ? watch_[found].last : watch_[found].mean_residual;
+    found_evidence = stuck ? last_[found] : mean_residual_[found];
   }
   if (found != npos) {
     latch(found, found_kind, found_evidence);

@@ -138,27 +138,31 @@ TEST_F(Monitor, AStuckSensorIsFoundWithinItsRun) {
 // stuck sensor. A stuck one is found once the observer's residual for it leaves what the band
 // explains, within its run.
 // A reading that is not finite skips only its own sensor (the lean pass gives way to the full
-// one for that reading): a stuck sensor 3 is found at its run whatever sensor 5 reads, and one
-// reading later when its own reading was lost once.
+// one while the sensors' histories differ): a stuck sensor 3 is found at its run whatever sensor
+// 5 reads, and one reading later when its own reading was lost once, on the first reading (the
+// histories then differ for two readings) or later.
 TEST_F(Monitor, AReadingThatIsNotFiniteSkipsOnlyItsSensor) {
   const std::vector<double> residual(profile.sensors.size(), 0.0);
   for (const std::size_t lost : {std::size_t{5}, std::size_t{3}}) {
-    SensorFaultMonitor m(profile, layout, {});
-    const std::size_t run = m.stuck_run_readings(3);
-    std::size_t found = SensorFaultMonitor::npos;
-    std::size_t at = 0;
-    for (std::size_t k = 0; k < 200 && found == SensorFaultMonitor::npos; ++k) {
-      std::vector<double> y = readings(0.0);
-      y[3] = 5e-6;
-      if (k == 10) {
-        y[lost] = std::numeric_limits<double>::quiet_NaN();
+    for (const std::size_t lost_at : {std::size_t{0}, std::size_t{1}, std::size_t{10}}) {
+      SensorFaultMonitor m(profile, layout, {});
+      const std::size_t run = m.stuck_run_readings(3);
+      std::size_t found = SensorFaultMonitor::npos;
+      std::size_t at = 0;
+      for (std::size_t k = 0; k < 200 && found == SensorFaultMonitor::npos; ++k) {
+        std::vector<double> y = readings(0.0);
+        y[3] = 5e-6;
+        if (k == lost_at) {
+          y[lost] = std::numeric_limits<double>::quiet_NaN();
+        }
+        found = m.update(y, residual);
+        at = k + 1;
       }
-      found = m.update(y, residual);
-      at = k + 1;
+      EXPECT_EQ(found, 3U) << lost << " at " << lost_at;
+      EXPECT_EQ(at, lost == 3 ? run + 1 : run) << lost << " at " << lost_at;
+      EXPECT_EQ(m.faulty_count(), 1U) << lost << " at " << lost_at;
+      EXPECT_LT(m.noise_ratio(5), 25.0) << lost << " at " << lost_at;
     }
-    EXPECT_EQ(found, 3U) << lost;
-    EXPECT_EQ(at, lost == 3 ? run + 1 : run) << lost;
-    EXPECT_EQ(m.faulty_count(), 1U) << lost;
   }
 }
 
