@@ -28,6 +28,11 @@ struct Entry {
 
 // The options, checked: InvalidArgument naming what is wrong (observer.cpp).
 __attribute__((visibility("hidden"))) const ObserverOptions& validated(const ObserverOptions& o);
+// Every value finite (observer.cpp).
+__attribute__((visibility("hidden"))) bool all_finite(std::span<const double> values) noexcept;
+__attribute__((visibility("hidden"))) void used_rows_residuals(
+    std::size_t rows, const double* __restrict readings, const double* __restrict scale,
+    const double* __restrict used, const double* __restrict residual, double* __restrict out) noexcept;
 
 inline ObserverForceModel resolved_force_model(const ObserverOptions& o, std::size_t cells) noexcept {
   if (o.force_model != ObserverForceModel::automatic) {
@@ -115,6 +120,10 @@ struct __attribute__((visibility("hidden"))) CellObserver::Impl {
       row_of_sensor[sensor_of_row[r]] = r;
     }
     row_excluded.assign(rows.size(), 0);
+    rows_are_sensors = sensor_of_row.size() == p.sensors.size();
+    for (std::size_t r = 0; r < sensor_of_row.size() && rows_are_sensors; ++r) {
+      rows_are_sensors = sensor_of_row[r] == r;
+    }
     sensor_residual.assign(p.sensors.size(), 0.0);
     prior_weight = 1.0 / (o.prior_spread_m * o.prior_spread_m);
     // One sensor sigma of misfit (cost 1) per sparsity_scale_m of summed depth.
@@ -342,6 +351,8 @@ struct __attribute__((visibility("hidden"))) CellObserver::Impl {
   static constexpr std::size_t kNoRow = static_cast<std::size_t>(-1);
   std::vector<std::size_t> row_of_sensor;   // sensor -> row (kNoRow: not in the fit)
   std::vector<unsigned char> row_excluded;  // a faulty sensor: its weights are zero
+  std::size_t rows_excluded = 0;            // how many
+  bool rows_are_sensors = false;            // row r is sensor r, for every sensor (the built-in grids)
   std::vector<double> sensor_residual;      // per sensor: (y - H d) / sigma, base weights
   std::vector<double> residual;             // scaled: (H d - y) / sigma
   std::vector<double> used_reading;         // y / sigma last used per row (large grids: deadband)
