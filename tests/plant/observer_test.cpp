@@ -486,6 +486,26 @@ TEST(ObserverNetworkPhases, ARefusedStepIsTakenAgainAsTheShorterStepBeforeIt) {
   }
 }
 
+// The fit's misfit is computed when asked: the last update's, whatever exclusion follows it, and
+// 0 after a reset.
+TEST(ObserverInputs, TheMisfitIsTheLastUpdatesUntilTheNext) {
+  SeededRig rig(ObserverOptions{}, 0.05);
+  rig.depth[6] = 1e-3;
+  for (int tick = 0; tick < 20; ++tick) {
+    rig.tick();
+  }
+  const double misfit_m = rig.observer.sensor_misfit_m();
+  EXPECT_GT(misfit_m, 0.0);
+  EXPECT_LT(misfit_m, 1e-5);  // within a few of the sensors' 2 um of noise
+  EXPECT_EQ(rig.observer.sensor_misfit_m(), misfit_m);
+  ASSERT_EQ(rig.observer.set_sensor_excluded(3, true), Status::ok);
+  EXPECT_EQ(rig.observer.sensor_misfit_m(), misfit_m);
+  rig.tick();
+  EXPECT_NE(rig.observer.sensor_misfit_m(), misfit_m);
+  rig.observer.reset();
+  EXPECT_EQ(rig.observer.sensor_misfit_m(), 0.0);
+}
+
 TEST(ObserverRest, ANegativeGateIsRefused) {
   const DeviceModel nominal(mrskin::model::default_profile());
   ObserverOptions bad;

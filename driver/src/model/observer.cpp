@@ -413,16 +413,7 @@ Status CellObserver::update(std::span<const double> sensor_readings, std::span<c
   }
   m.fit(sensor_readings);
   m.compute_sensor_residuals(sensor_readings);
-  double misfit2 = 0.0;
-  std::size_t used = 0;
-  for (std::size_t r = 0; r < m.residual.size(); ++r) {
-    if (m.row_excluded[r] == 0) {
-      const double unscaled = m.residual[r] / m.sensor_scale[r];
-      misfit2 += unscaled * unscaled;
-      ++used;
-    }
-  }
-  m.misfit_m = used > 0 ? std::sqrt(misfit2 / static_cast<double>(used)) : 0.0;
+  m.misfit_pending = true;  // nothing in the tick reads it: computed when asked (sensor_misfit_m)
   if (m.rate_tracker) {
     m.rate_tracker->update(m.depth_m, m.previous_m, dt_s, m.velocity);
   } else {
@@ -478,7 +469,22 @@ double CellObserver::hysteresis_compensated_current_A(std::size_t valve, double 
 }
 ObserverForceModel CellObserver::force_model() const noexcept { return impl_->force_model; }
 std::size_t CellObserver::network_steps_refused() const noexcept { return impl_->network_refusals; }
-double CellObserver::sensor_misfit_m() const noexcept { return impl_->misfit_m; }
+double CellObserver::sensor_misfit_m() const noexcept {
+  return impl_->misfit_pending ? impl_->fit_misfit_m() : impl_->misfit_m;
+}
+
+double CellObserver::Impl::fit_misfit_m() const noexcept {
+  double misfit2 = 0.0;
+  std::size_t used = 0;
+  for (std::size_t r = 0; r < residual.size(); ++r) {
+    if (row_excluded[r] == 0) {
+      const double unscaled = residual[r] / sensor_scale[r];
+      misfit2 += unscaled * unscaled;
+      ++used;
+    }
+  }
+  return used > 0 ? std::sqrt(misfit2 / static_cast<double>(used)) : 0.0;
+}
 std::span<const double> CellObserver::sensor_residual_sigma() const noexcept {
   return impl_->sensor_residual;
 }
@@ -489,6 +495,10 @@ Status CellObserver::set_sensor_excluded(std::size_t sensor, bool excluded) noex
     return Status::out_of_range;
   }
   const std::size_t r = m.row_of_sensor[sensor];
+  if (m.misfit_pending) {  // the last update's misfit, before its residual and rows change
+    m.misfit_m = m.fit_misfit_m();
+    m.misfit_pending = false;
+  }
   m.rows_excluded = m.rows_excluded - (m.row_excluded[r] != 0 ? 1 : 0) + (excluded ? 1 : 0);
   m.row_excluded[r] = excluded ? 1 : 0;
   const double keep = excluded ? 0.0 : 1.0;

@@ -218,6 +218,7 @@ struct __attribute__((visibility("hidden"))) CellObserver::Impl {
     step_tick = 0;
     step_phases = 0;
     misfit_m = 0.0;
+    misfit_pending = false;
     residual_current = false;
   }
 
@@ -412,6 +413,10 @@ struct __attribute__((visibility("hidden"))) CellObserver::Impl {
   double prior_weight = 0.0;
   double l1_weight = 0.0;
   double misfit_m = 0.0;
+  // The last update's misfit is computed from its residual when asked (misfit_m holds it once a
+  // sensor's exclusion is about to change that residual).
+  bool misfit_pending = false;
+  [[nodiscard]] double fit_misfit_m() const noexcept;
   // The fit's residual carried over from the last tick (large grids; see fit()).
   bool residual_current = false;
   std::uint32_t residual_age_ticks = 0;
