@@ -147,7 +147,6 @@ class __attribute__((visibility("hidden"))) Bridge::Impl {
   RecordView view_{*this};
   // Send's state across ticks: the currents last sent, when, and whether anything was.
   std::vector<double> sent_A_;
-  TimePoint last_send_{};
   bool ever_sent_ = false;
   // The sensors' watch across ticks.
   std::unique_ptr<SensorFaultMonitor> sensor_faults_;
@@ -359,8 +358,10 @@ void Bridge::Impl::allocate() noexcept {
                  record_.allocated);
 }
 
-// Send: unchanged currents are not sent again until the refresh period: a hold, or a skin nobody
-// touches, costs no bus traffic (the device's watchdog runs on the session's heartbeat).
+// Send: only the blocks of valves whose counts changed go; each block again every
+// resend_period_s, a few blocks a tick (DeviceSession::send_valve_current_changes), so a hold or a
+// skin nobody touches costs little bus traffic and a large grid's refresh loads no single tick
+// (the device's watchdog runs on the session's heartbeat).
 ResultCode Bridge::Impl::send(TimePoint now, TimePoint began, const Clock& perf) noexcept {
   const std::vector<double>& current_A = record_.allocated.current_A;
   const bool changed = !std::equal(current_A.begin(), current_A.end(), sent_A_.begin());
@@ -369,15 +370,22 @@ ResultCode Bridge::Impl::send(TimePoint now, TimePoint began, const Clock& perf)
       stats_.max_current_A = std::max(stats_.max_current_A, a);
     }
   }
-  const bool due = now - last_send_ >= from_seconds(options_.resend_period_s);
+  const Duration period = from_seconds(options_.resend_period_s);
+  // The blocks a tick may refresh: all of them once a period, spread evenly over its ticks.
+  const auto refresh_per_tick = [&] {
+    return std::max<std::size_t>(
+        1, static_cast<std::size_t>(std::ceil(static_cast<double>(session_.valve_current_blocks()) /
+                                              (options_.resend_period_s * options_.rate_hz))));
+  };
   ResultCode sent = ResultCode::ok;
-  if (changed || due || !ever_sent_) {
-    sent = session_.send_valve_currents(current_A);
+  if (changed || !ever_sent_) {
+    sent = session_.send_valve_current_changes(current_A, now, period, refresh_per_tick());
     if (sent == ResultCode::ok) {
       std::copy(current_A.begin(), current_A.end(), sent_A_.begin());
-      last_send_ = now;
       ever_sent_ = true;
     }
+  } else if (now >= session_.valve_refresh_due(period)) {
+    sent = session_.refresh_valve_currents(now, period, refresh_per_tick());
   } else {
     ++stats_.unchanged_sends_skipped;
   }

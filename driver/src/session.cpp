@@ -238,6 +238,9 @@ DeviceSession::Impl::Impl(std::unique_ptr<Transport> transport, Clock& clock, Se
   pending_counts_.assign(info_.valves, 0);
   commanded_A_.assign(info_.valves, 0.0);
   quantised_A_.assign(info_.valves, 0.0);
+  const std::size_t blocks = (info_.valves + proto::kMaxValveCurrents - 1) / proto::kMaxValveCurrents;
+  block_sent_.assign(blocks, TimePoint{});
+  block_go_.assign(blocks, 0);
   targets_.assign(info_.fluid_cells, proto::CellTarget{});
   targeted_.assign(info_.fluid_cells, 0);
   next_heartbeat_ = clock_.now();
@@ -278,6 +281,7 @@ void DeviceSession::Impl::apply_identity(const proto::Identity& id) {
   current_lsb_nA_ = id.current_lsb_nA;
   current_max_counts_ = id.current_max_counts;
   quantised_valid_ = false;  // a new scale: the last command's counts are not these currents' counts
+  all_blocks_due_ = true;
   sensor_lsb_ = info_.sensor_lsb;
 }
 
@@ -578,6 +582,9 @@ void DeviceSession::Impl::handle_packet(const proto::PacketDecoded& p, TimePoint
       fault_ring_size_ = ring_size_;
       fault_ring_next_ = ring_next_;
     }
+    if (state == DeviceState::enabled && state_ != DeviceState::enabled && counts_changed_since_reseed_) {
+      all_blocks_due_ = true;  // the unit zeroed its currents as it enabled, maybe after these went
+    }
     state_ = state;
     fault_ = s->fault;
     valves_released_ = (s->flags & proto::kFlagValvesReleased) != 0;
@@ -658,6 +665,7 @@ ResultCode DeviceSession::Impl::poll(TimePoint now) noexcept {
       report_capacity_ = proto::kHidReportBytes;  // until it declares its reports again
       info_.usb_slots.reset();
       info_.sensor_deadband_counts = 0;  // until it declares one again
+      all_blocks_due_ = true;            // a rebooted unit's currents are not the ones last sent
       ++counters_.disconnects;
       backoff_ = options_.reconnect_backoff_min;
       next_reconnect_ = now + backoff_;
@@ -713,52 +721,6 @@ ResultCode DeviceSession::Impl::poll(TimePoint now) noexcept {
   return state_ == DeviceState::fault ? ResultCode::device_fault : ResultCode::ok;
 }
 
-ResultCode DeviceSession::Impl::send_valve_currents(std::span<const double> current_A) noexcept {
-  if (current_A.size() != current_counts_.size()) {
-    ++counters_.invalid_commands;
-    return ResultCode::invalid_value;
-  }
-  if (!connected_) {
-    return ResultCode::disconnected;
-  }
-  // The same currents as the last command, bit for bit (a hold's periodic resend): the same
-  // counts, already checked. Otherwise quantised once, kept only if every value is valid (a
-  // refused command changes nothing).
-  const std::size_t bytes = current_A.size() * sizeof(double);
-  if (!quantised_valid_ || std::memcmp(current_A.data(), quantised_A_.data(), bytes) != 0) {
-    proto::Identity scale;
-    scale.current_lsb_nA = current_lsb_nA_;
-    scale.current_max_counts = current_max_counts_;
-    for (std::size_t v = 0; v < current_A.size(); ++v) {
-      const proto::Quantized<std::uint16_t> q = proto::quantize_current(current_A[v], scale);
-      if (q.error != proto::Error::ok) {
-        ++counters_.invalid_commands;
-        return ResultCode::invalid_value;
-      }
-      pending_counts_[v] = q.counts;
-    }
-    for (std::size_t v = 0; v < current_A.size(); ++v) {
-      current_counts_[v] = pending_counts_[v];
-      commanded_A_[v] = static_cast<double>(current_counts_[v]) * info_.current_lsb_A;
-    }
-    std::memcpy(quantised_A_.data(), current_A.data(), bytes);
-    quantised_valid_ = true;
-  }
-  currents_commanded_ = true;
-  for (std::size_t first = 0; first < current_counts_.size(); first += proto::kMaxValveCurrents) {
-    proto::ValveCurrents m;
-    m.first = static_cast<std::uint16_t>(first);
-    m.count = static_cast<std::uint8_t>(std::min(proto::kMaxValveCurrents, current_counts_.size() - first));
-    std::copy_n(current_counts_.begin() + static_cast<std::ptrdiff_t>(first), m.count, m.counts.begin());
-    const ResultCode rc = send_packet(m, /*hold=*/true);
-    if (rc != ResultCode::ok) {
-      drop_report();
-      return rc;
-    }
-  }
-  return flush_report();
-}
-
 ResultCode DeviceSession::Impl::send_cell_targets(std::uint16_t first_cell,
                                                   std::span<const proto::CellTarget> targets) noexcept {
   if (first_cell + targets.size() > info_.fluid_cells) {
@@ -788,6 +750,7 @@ void DeviceSession::Impl::reseed_and_send() noexcept {
   quantised_valid_ = false;
   std::fill(current_counts_.begin(), current_counts_.end(), std::uint16_t{0});
   std::fill(commanded_A_.begin(), commanded_A_.end(), 0.0);
+  counts_changed_since_reseed_ = false;
   if (currents_commanded_) {
     for (std::size_t first = 0; first < current_counts_.size(); first += proto::kMaxValveCurrents) {
       proto::ValveCurrents m;
@@ -946,9 +909,6 @@ void DeviceSession::set_telemetry_callback(TelemetryCallback callback, void* con
   impl_->set_telemetry_callback(callback, context);
 }
 ResultCode DeviceSession::poll(TimePoint now) noexcept { return impl_->poll(now); }
-ResultCode DeviceSession::send_valve_currents(std::span<const double> current_A) noexcept {
-  return impl_->send_valve_currents(current_A);
-}
 ResultCode DeviceSession::send_cell_targets(std::uint16_t first_cell,
                                             std::span<const protocol::CellTarget> targets) noexcept {
   return impl_->send_cell_targets(first_cell, targets);

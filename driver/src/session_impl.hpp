@@ -36,6 +36,15 @@ class __attribute__((visibility("hidden"))) DeviceSession::Impl {
   // The tick's calls: inlined into the public functions, so the pointer costs no call.
   [[gnu::always_inline]] inline ResultCode poll(TimePoint now) noexcept;
   [[gnu::always_inline]] inline ResultCode send_valve_currents(std::span<const double> current_A) noexcept;
+  [[gnu::always_inline]] inline ResultCode send_valve_current_changes(std::span<const double> current_A,
+                                                                      TimePoint now, Duration refresh_period,
+                                                                      std::size_t max_refresh) noexcept;
+  [[gnu::always_inline]] inline ResultCode refresh_valve_currents(TimePoint now, Duration refresh_period,
+                                                                  std::size_t max_refresh) noexcept;
+  [[nodiscard]] TimePoint valve_refresh_due(Duration refresh_period) const noexcept {
+    return all_blocks_due_ ? TimePoint::min() : oldest_block_sent_ + refresh_period;
+  }
+  [[nodiscard]] std::size_t valve_current_blocks() const noexcept { return block_sent_.size(); }
   ResultCode send_cell_targets(std::uint16_t first_cell,
                                std::span<const protocol::CellTarget> targets) noexcept;
   ResultCode request_enable() noexcept;
@@ -97,6 +106,16 @@ class __attribute__((visibility("hidden"))) DeviceSession::Impl {
   void await_identity(TimePoint deadline);
   void load_profile();
   void reseed_and_send() noexcept;
+  // Quantises the blocks of current_A that differ bitwise from the last command (every block when
+  // quantised_valid_ is false), all before any is kept, so a refused command changes nothing;
+  // block_go_[b] = 2 for each block whose counts changed, else 0.
+  [[gnu::always_inline]] inline ResultCode quantise_changed_blocks(
+      std::span<const double> current_A) noexcept;
+  // Marks for sending (block_go_ = 2) up to max_refresh blocks unsent for refresh_period.
+  [[gnu::always_inline]] inline void select_refresh(TimePoint now, Duration refresh_period,
+                                                    std::size_t max_refresh) noexcept;
+  // Sends the blocks with block_go_ set, in order, held in the report; records what went.
+  [[gnu::always_inline]] inline ResultCode send_blocks(TimePoint now) noexcept;
 
   std::unique_ptr<Transport> transport_;
   Clock& clock_;
@@ -125,6 +144,13 @@ class __attribute__((visibility("hidden"))) DeviceSession::Impl {
   std::vector<double> quantised_A_;  // the currents current_counts_ were quantised from, bitwise...
   bool quantised_valid_ = false;     // ...while they still are (a reseed or a new scale: no)
   bool currents_commanded_ = false;  // the host has sent currents since the handshake
+  // The valves go in blocks of kMaxValveCurrents: per block when it was last sent.
+  std::vector<TimePoint> block_sent_;
+  std::vector<std::uint8_t> block_go_;  // per block, this send: 2 goes
+  TimePoint oldest_block_sent_{};
+  std::size_t refresh_cursor_ = 0;            // the block the next refresh looks at first
+  bool all_blocks_due_ = true;                // the unit's currents are unknown: every block goes next
+  bool counts_changed_since_reseed_ = false;  // some count may be non-zero since the last reseed
   std::vector<protocol::CellTarget> targets_;
   std::vector<std::uint8_t> targeted_;  // per cell: the host has targeted it
   std::uint32_t sensor_time_us_ = 0;

@@ -356,6 +356,104 @@ TEST(Session, InvalidCurrentsAreRefusedAndNothingIsSent) {
   EXPECT_EQ(rig.dev.session->counters().invalid_commands, 3U);
 }
 
+// One tick of a host that commands through send_valve_current_changes, as the bridge does; returns
+// the currents packets that tick sent (read from the traffic log).
+std::size_t tick_changes(Rig& rig, Duration refresh_period, std::size_t max_refresh) {
+  DeviceSession& s = *rig.dev.session;
+  sim::mock_of(rig.dev)->set_finger_indentation(rig.finger);
+  sim::mock_of(rig.dev)->step(rig.clock.now());
+  const TimePoint now = rig.clock.now();
+  rig.last = s.poll(now);
+  if (rig.last == ResultCode::ok) {
+    rig.last = s.send_valve_current_changes(rig.currents, now, refresh_period, max_refresh);
+  }
+  rig.clock.advance(std::chrono::milliseconds(1));
+  const std::vector<LogEntry> log = s.decode_log(s.ring_log());
+  return static_cast<std::size_t>(std::count_if(log.begin(), log.end(), [&](const LogEntry& e) {
+    return e.sent && e.kind == "currents" && e.host_time == now;
+  }));
+}
+
+// 128 valves go in five blocks of 27: a block goes when its counts change, and each goes again once
+// a refresh period, at most max_refresh a tick.
+TEST(ValveCurrentChanges, OnlyChangedBlocksGoAndTheRefreshSpreadsOverTheTicks) {
+  Rig rig("mock://fingertip-16x16?seed=1");
+  DeviceSession& s = *rig.dev.session;
+  ASSERT_EQ(s.valve_current_blocks(), 5U);
+  ASSERT_EQ(s.request_enable(), ResultCode::ok);
+  rig.run(50);  // send_valve_currents: every block, every tick
+  ASSERT_EQ(s.state(), DeviceState::enabled);
+  const Duration period = std::chrono::milliseconds(20);
+  std::fill(rig.currents.begin(), rig.currents.end(), 0.02);
+  EXPECT_EQ(tick_changes(rig, period, 2), 5U);  // every block changed
+  std::vector<std::size_t> sent;
+  for (int k = 1; k <= 45; ++k) {
+    sent.push_back(tick_changes(rig, period, 2));
+  }
+  // Nothing for 19 ms; then the five blocks as 2, 2, 1 over three ticks, once a period.
+  const std::vector<std::size_t> cycle = {0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 0, 2, 2, 1};
+  for (std::size_t k = 0; k < sent.size(); ++k) {
+    const std::size_t want = k < 19 ? 0U : k < 22 ? cycle[k] : k >= 39 && k < 42 ? cycle[k - 20] : 0U;
+    EXPECT_EQ(sent[k], want) << "tick " << k + 1;
+  }
+  // One valve of the second block: that block alone.
+  rig.currents[30] = 0.03;
+  EXPECT_EQ(tick_changes(rig, period, 2), 1U);
+  // A change smaller than a count changes no count: nothing goes.
+  const double lsb_A = s.info().current_lsb_A;
+  rig.currents[30] = 0.03 + 0.1 * lsb_A;
+  EXPECT_EQ(tick_changes(rig, period, 2), 0U);
+  EXPECT_EQ(s.commanded_currents()[30], std::round(0.03 / lsb_A) * lsb_A);
+  // Refused as send_valve_currents: nothing goes and the last command stands.
+  rig.currents[31] = std::nan("");
+  EXPECT_EQ(tick_changes(rig, period, 2), 0U);
+  EXPECT_EQ(rig.last, ResultCode::invalid_value);
+  rig.currents[31] = 0.02;
+  tick_changes(rig, period, 2);
+  tick_changes(rig, period, 2);
+  const std::span<const double> unit_A = sim::mock_of(rig.dev)->commanded_currents();
+  for (std::size_t v = 0; v < rig.currents.size(); ++v) {
+    EXPECT_EQ(unit_A[v], s.commanded_currents()[v]) << v;
+  }
+}
+
+// Frames lost on the way to the unit: only the refresh brings back what they carried, and it does
+// within a few refresh periods of the last change.
+TEST(ValveCurrentChanges, TheRefreshHealsLostFrames) {
+  Rig rig("mock://fingertip-16x16?seed=2&faults=drop:0.2");
+  DeviceSession& s = *rig.dev.session;
+  ASSERT_EQ(s.request_enable(), ResultCode::ok);
+  rig.run(60);
+  ASSERT_EQ(s.state(), DeviceState::enabled);
+  const Duration period = std::chrono::milliseconds(20);
+  const auto differing = [&] {
+    const std::span<const double> unit_A = sim::mock_of(rig.dev)->commanded_currents();
+    std::size_t n = 0;
+    for (std::size_t v = 0; v < rig.currents.size(); ++v) {
+      n += unit_A[v] != s.commanded_currents()[v] ? 1U : 0U;
+    }
+    return n;
+  };
+  // New currents on every block until a change is lost (three ticks later the unit still differs).
+  std::size_t lost = 0;
+  for (int k = 1; k <= 200 && lost == 0; ++k) {
+    for (std::size_t b = 0; b < 5; ++b) {
+      rig.currents[b * 27 + static_cast<std::size_t>(k) % 27] = 0.001 * static_cast<double>(k % 40);
+    }
+    for (int t = 0; t < 3; ++t) {
+      tick_changes(rig, period, 2);
+    }
+    lost = differing();
+  }
+  ASSERT_GT(lost, 0U);
+  EXPECT_GT(sim::mock_of(rig.dev)->fault_counters().dropped, 0U);
+  for (int k = 0; k < 100; ++k) {  // nothing changes: only the refresh sends
+    tick_changes(rig, period, 2);
+  }
+  EXPECT_EQ(s.state(), DeviceState::enabled);
+  EXPECT_EQ(differing(), 0U);  // the unit holds the host's currents again
+}
+
 TEST(Session, SecondOpenerIsRefusedNamingTheOwner) {
   Rig first("mock://");
   try {

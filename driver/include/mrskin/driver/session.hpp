@@ -222,6 +222,22 @@ class MRSKIN_DRIVER_API DeviceSession {
   // Per-valve coil currents, A. Refuses NaN/Inf/out-of-range with invalid_value and sends
   // nothing in that case.
   ResultCode send_valve_currents(std::span<const double> current_A) noexcept;
+  // The same command for a host that commands every tick, with less on the bus: the valves go in
+  // blocks of protocol::kMaxValveCurrents, and a block goes only when its counts differ from those
+  // last sent in it, or when it went unsent for refresh_period (the cure for a lost frame; the
+  // unit's watchdog runs on the heartbeat). At most max_refresh such refreshes go per call, taken
+  // in turn, so refreshing a large grid spreads over the ticks. Every block goes on the first
+  // command, after a reconnect and after a failed send. Refuses as send_valve_currents.
+  ResultCode send_valve_current_changes(std::span<const double> current_A, TimePoint now,
+                                        Duration refresh_period, std::size_t max_refresh) noexcept;
+  // The refresh of send_valve_current_changes alone, for a tick whose currents equal the last
+  // command's (nothing is quantised or compared again). Nothing goes before the first command.
+  ResultCode refresh_valve_currents(TimePoint now, Duration refresh_period, std::size_t max_refresh) noexcept;
+  // When the block sent longest ago falls due for its refresh (TimePoint::min() while every block
+  // is due): a host whose currents did not change need not call before then.
+  [[nodiscard]] TimePoint valve_refresh_due(Duration refresh_period) const noexcept;
+  // The blocks the valves go in: ceil(valves / protocol::kMaxValveCurrents).
+  [[nodiscard]] std::size_t valve_current_blocks() const noexcept;
   // Per-cell impedance targets (wire counts; see protocol/units.hpp for SI conversion).
   ResultCode send_cell_targets(std::uint16_t first_cell,
                                std::span<const protocol::CellTarget> targets) noexcept;
