@@ -592,9 +592,10 @@ TEST_F(InverseIncremental, LoadedCellsAreTheHoldingAndLoadingCellsInOrder) {
 }
 
 // renew_at_rest() is solve() without the per-cell check, for a caller that vouches only the
-// validity moved: it may stand only on a successful last solve that left every cell untouched,
-// and then gives what solve() gives on the same inputs.
-TEST_F(InverseIncremental, RenewAtRestStandsOnlyOnASolveThatLeftEveryCellUntouched) {
+// validity moved: it may stand only on a successful last solve that left every cell at rest (no
+// contact, no indentation; the first solve and a release included), and then gives what solve()
+// gives on the same inputs.
+TEST_F(InverseIncremental, RenewAtRestStandsOnlyOnASolveThatLeftEveryCellAtRest) {
   EXPECT_FALSE(inv.renew_at_rest(1.0, 0.0));  // nothing solved yet
   InverseCase rest = blank();
   for (CellImpedanceTarget& t : rest.targets) {
@@ -602,9 +603,15 @@ TEST_F(InverseIncremental, RenewAtRestStandsOnlyOnASolveThatLeftEveryCellUntouch
     t.valid_until_s = 0.5;
   }
   ASSERT_EQ(inv.solve(rest.targets, rest.states, rest.now_s), Status::ok);
-  EXPECT_FALSE(inv.renew_at_rest(0.6, 0.0));  // that solve computed every cell: none untouched
+  const std::vector<double> first_A(inv.currents_A().begin(), inv.currents_A().end());
+  // That solve computed every cell and left each at rest: the same inputs would find them untouched.
+  ASSERT_TRUE(inv.renew_at_rest(0.6, 0.0));
+  EXPECT_TRUE(inv.report().from_cache);
+  EXPECT_EQ(std::vector<double>(inv.currents_A().begin(), inv.currents_A().end()), first_A);
   ASSERT_EQ(inv.solve(rest.targets, rest.states, rest.now_s), Status::ok);
+  EXPECT_TRUE(inv.report().from_cache);
   const std::vector<double> at_rest_A(inv.currents_A().begin(), inv.currents_A().end());
+  EXPECT_EQ(at_rest_A, first_A);
   ASSERT_TRUE(inv.renew_at_rest(0.6, 1e-3));
   EXPECT_TRUE(inv.report().from_cache);
   EXPECT_EQ(inv.report().status, Status::ok);
@@ -626,12 +633,23 @@ TEST_F(InverseIncremental, RenewAtRestStandsOnlyOnASolveThatLeftEveryCellUntouch
   ASSERT_EQ(inv.solve(pressed.targets, pressed.states, 3e-3), Status::ok);
   ASSERT_FALSE(inv.loaded_cells().empty());
   EXPECT_FALSE(inv.renew_at_rest(0.7, 4e-3));
-  // Released: the solve that releases the cell touches it; the next one finds every cell at rest.
+  // Released: the solve that releases the cell touches it and leaves every cell at rest.
   ASSERT_EQ(inv.solve(rest.targets, rest.states, 5e-3), Status::ok);
-  EXPECT_FALSE(inv.renew_at_rest(0.7, 5e-3));
+  EXPECT_FALSE(inv.report().from_cache);
+  ASSERT_TRUE(inv.renew_at_rest(0.7, 5e-3));
+  EXPECT_EQ(std::vector<double>(inv.currents_A().begin(), inv.currents_A().end()), at_rest_A);
   ASSERT_EQ(inv.solve(rest.targets, rest.states, 5e-3), Status::ok);
+  EXPECT_TRUE(inv.report().from_cache);
   EXPECT_TRUE(inv.renew_at_rest(0.7, 6e-3));
   EXPECT_EQ(std::vector<double>(inv.currents_A().begin(), inv.currents_A().end()), at_rest_A);
+  // A solve that leaves a cell indented, even unloaded (its target expired), stands for nothing.
+  InverseCase expired = rest;
+  expired.states[a].indentation_m = 1e-3;
+  ASSERT_EQ(inv.solve(expired.targets, expired.states, 1.0), Status::ok);
+  EXPECT_EQ(inv.cells()[a].role, CellRole::expired);
+  EXPECT_FALSE(inv.renew_at_rest(0.7, 1.001));
+  ASSERT_EQ(inv.solve(rest.targets, rest.states, 1.002), Status::ok);
+  ASSERT_TRUE(inv.renew_at_rest(0.7, 1.003));
   // A refused solve, or a forgotten cache, leaves nothing to stand on.
   InverseCase bad = rest;
   bad.states[a].indentation_m = std::numeric_limits<double>::quiet_NaN();
@@ -641,8 +659,8 @@ TEST_F(InverseIncremental, RenewAtRestStandsOnlyOnASolveThatLeftEveryCellUntouch
   inv.invalidate();
   EXPECT_FALSE(inv.renew_at_rest(0.7, 1e-2));
   ASSERT_EQ(inv.solve(rest.targets, rest.states, 1.1e-2), Status::ok);
-  EXPECT_FALSE(inv.report().from_cache);  // every cell recomputed after invalidate()
-  EXPECT_FALSE(inv.renew_at_rest(0.7, 1.1e-2));
+  EXPECT_FALSE(inv.report().from_cache);        // every cell recomputed after invalidate()...
+  EXPECT_TRUE(inv.renew_at_rest(0.7, 1.1e-2));  // ...and left at rest
   ASSERT_EQ(inv.solve(rest.targets, rest.states, 1.1e-2), Status::ok);
   EXPECT_TRUE(inv.renew_at_rest(0.7, 1.2e-2));
 }
@@ -697,9 +715,9 @@ TEST_F(InverseIncremental, RenewAtRestLeavesWhatSolveLeaves) {
       EXPECT_EQ(inv.cells()[i].target_force_N, renewing.cells()[i].target_force_N) << tick << " cell " << i;
     }
   }
-  // Renewed on every stretch at rest but its first two ticks (the first solve computes every
-  // cell; the release's solve touches the released one): ticks 2-19 and 32-59.
-  EXPECT_EQ(renewed, 46U);
+  // Renewed on every tick the caller vouches for (the first solve and the release's solve
+  // leave every cell at rest): ticks 1-19 and 31-59.
+  EXPECT_EQ(renewed, 48U);
 }
 
 TEST_F(InverseIncremental, UnchangedCellsCostNothing) {

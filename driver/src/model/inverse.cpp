@@ -85,6 +85,7 @@ void CellInverse::invalidate() noexcept {
   }
   impl_->factors.reset(impl_->partition);  // no search or wait outlives the cells it was for
   impl_->changes.all_untouched = false;
+  impl_->changes.rest_unscanned = false;
 }
 
 Result<double> CellInverse::valve_pressure_Pa(std::size_t cell, double flow_m3_per_s,

@@ -713,6 +713,9 @@ struct TickChanges {
   // untouched and at rest (no contact, no indentation, its law as cached): what
   // renew_at_rest() may stand on.
   bool all_untouched = false;
+  // The last solve succeeded but examined some cell: whether it left every cell at rest is not
+  // known until renew_at_rest() looks (once).
+  bool rest_unscanned = false;
 };
 
 // The per-cell solutions and the report of the last call.

@@ -231,6 +231,7 @@ double max_demand(const InverseTopology& topo, const Component& comp, CellMemory
 Status CellInverse::Impl::solve(std::span<const CellImpedanceTarget> targets,
                                 std::span<const CellState> states, double now_s) noexcept {
   changes.all_untouched = false;  // until examine finds it so
+  changes.rest_unscanned = false;
   if (targets.size() != topo.graph.cells || states.size() != topo.graph.cells) {
     return output.fail(Status::out_of_range, 0);
   }
@@ -241,6 +242,7 @@ Status CellInverse::Impl::solve(std::span<const CellImpedanceTarget> targets,
     return output.fail(v.status, v.cell);
   }
   const Committed committed = commit(changes, memory, output, targets, states, now_s);
+  changes.rest_unscanned = !changes.all_untouched;
   if (committed == Committed::roles) {
     partition.rebuild(topo.graph, memory.loaded);
     factors.reset(partition);
@@ -260,12 +262,27 @@ Status CellInverse::Impl::solve(std::span<const CellImpedanceTarget> targets,
   return Status::ok;
 }
 
-// What solve() does when examine finds every cell untouched, without examining them: the caller
-// vouches that only the validity moved, and an untouched cell's role does not depend on it. No
-// cell is loaded, so no search is under way; the flag is tested all the same.
+// What solve() does when examine would find every cell untouched, without examining them: the
+// last solve left every cell at rest, the caller vouches that only the validity moved since, and
+// an untouched cell's role does not depend on it. No cell is loaded, so no search is under way;
+// the flag is tested all the same.
 bool CellInverse::Impl::renew_at_rest(double valid_until_s, double now_s) noexcept {
-  if (!changes.all_untouched || factors.searching || !finite(valid_until_s) || !finite(now_s)) {
+  if (factors.searching || !finite(valid_until_s) || !finite(now_s)) {
     return false;
+  }
+  if (!changes.all_untouched) {
+    if (!changes.rest_unscanned) {
+      return false;
+    }
+    // The last solve examined some cell (the first call, a release): if it left every cell at
+    // rest, the same inputs would now find each untouched. Once, not on every examined call.
+    changes.rest_unscanned = false;
+    for (const CellCache& cc : memory.cache) {
+      if (!cc.valid || cc.role != CellRole::no_contact || cc.raw_state.indentation_m > 0.0) {
+        return false;
+      }
+    }
+    changes.all_untouched = true;
   }
   ++changes.resolves;
   solver.now_s = now_s;
