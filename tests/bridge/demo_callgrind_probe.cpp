@@ -84,6 +84,10 @@ int main(int argc, char** argv) {
   if (const char* sweeps = std::getenv("MRSKIN_PROBE_SMALL_GRID_SWEEPS")) {
     options.observer.small_grid_sweeps = static_cast<int>(std::strtol(sweeps, nullptr, 10));
   }
+  // MRSKIN_PROBE_NETWORK_STEP_S: the observer's network_step_s (a tuning's cost, measured).
+  if (const char* step = std::getenv("MRSKIN_PROBE_NETWORK_STEP_S")) {
+    options.observer.network_step_s = std::strtod(step, nullptr);
+  }
   HoveringSlave hovering;
   bridge::SlaveSource& source = finger_mode == "rest" ? static_cast<bridge::SlaveSource&>(hovering) : *scene;
   bridge::Bridge loop(*dev.session, source, options);

@@ -56,6 +56,9 @@ inline constexpr double kSearchWait_s = 0.064;
 inline constexpr unsigned char kSearchIdle = 0;
 inline constexpr unsigned char kSearchRestart = 1;  // a cold restart next tick
 inline constexpr unsigned char kSearchEscapes = 2;  // escape trials next tick, from escape_next
+// Not a search: a large component's Gauss-Newton stopped on large_component_steps and goes on
+// next tick from its levels, its inputs held or not.
+inline constexpr unsigned char kSearchStepping = 3;
 // Warm Gauss-Newton steps a search tick takes before its stage, to follow the tick's targets.
 inline constexpr int kSearchTrackSteps = 1;
 // Levenberg-Marquardt damping, relative to a cell's unit sensitivity to its valves.
@@ -762,6 +765,7 @@ struct ComponentWork {
   bool predicted = false;  // residuals are a tracked step's prediction
   std::size_t rows = 0;    // rows evaluated
   int iterations = 0;
+  bool capped = false;  // the last Gauss-Newton stopped on large_component_steps, not converged
 };
 
 // One component's Gauss-Newton (inverse_solve.cpp) and its rows and steps (inverse_step.cpp),

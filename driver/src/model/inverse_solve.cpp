@@ -485,7 +485,8 @@ void InverseSolver::solve_conflict(const InverseTopology& topo, const Component&
   // Warm: residuals only first (a chord step reuses the saved Jacobian).
   double merit = evaluate_rows(topo, comp, memory, levels, warm ? Rows::residuals : Rows::relinearised);
   // A search under way goes on before any tracking: tracking near a compromise would stop it.
-  const bool searching = warm && factors.search_stage[comp.id] != kSearchIdle;
+  const unsigned char stage = factors.search_stage[comp.id];
+  const bool searching = warm && stage != kSearchIdle && stage != kSearchStepping;
   if (warm && !searching && comp.cells.size() <= kDenseRows) {
     tracked = track(topo, comp, memory, factors, levels, converged);
   }
@@ -506,7 +507,10 @@ void InverseSolver::solve_conflict(const InverseTopology& topo, const Component&
       const int steps_before = work.iterations;
       merit = gauss_newton(topo, comp, memory, factors, levels, warm ? kMinDamping : kStartDamping, converged,
                            merit);
-      if (!converged) {
+      // A large component stopped on its step cap is not stuck: it goes on next tick.
+      factors.search_stage[comp.id] = work.capped ? kSearchStepping : kSearchIdle;
+      factors.searching = factors.searching || work.capped;
+      if (!converged && !work.capped) {
         plan_search(comp, factors, warm);
         // A warm solve that gave up within half its steps (a press turned into a hold stops
         // after about 5) leaves this tick room for the cold restart: the hold is met on the tick
@@ -715,9 +719,16 @@ double InverseSolver::gauss_newton(const InverseTopology& topo, const Component&
                                    int max_steps) noexcept {
   double* const t = levels.t.data();
   const std::span<const std::uint32_t> valves = comp.valves;
-  const int steps = max_steps >= 0 ? max_steps : topo.opt.max_iterations;
+  int steps = max_steps >= 0 ? max_steps : topo.opt.max_iterations;
+  // A large component goes on from these levels next tick (large_component_steps).
+  const int cap = comp.cells.size() > kDenseRows && topo.opt.large_component_steps > 0
+                      ? topo.opt.large_component_steps
+                      : steps;
+  const bool capping = cap < steps;
+  steps = std::min(steps, cap);
   double damping = start_damping;
   converged = false;
+  work.capped = false;
   for (int it = 0;; ++it) {
     double worst = 0.0;
     for (std::size_t r = 0; r < comp.cells.size(); ++r) {
@@ -728,6 +739,7 @@ double InverseSolver::gauss_newton(const InverseTopology& topo, const Component&
       break;
     }
     if (it >= steps) {
+      work.capped = capping;
       break;
     }
     ++work.iterations;

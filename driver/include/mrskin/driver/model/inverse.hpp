@@ -115,6 +115,11 @@ struct InverseOptions {
   // Gauss-Newton stops when every loaded cell of the component is within this (fast model).
   double force_tolerance_N = 1.0e-5;
   int max_iterations = 12;
+  // A component of more than 32 loaded cells (a hand on a large grid: the sparse path, each
+  // step dozens of sweeps over it) takes at most this many Gauss-Newton steps a solve and goes on
+  // from its levels on the next; 0: max_iterations, as a small component. The worst tick is then
+  // bounded by the steps, not by the conflict (docs/bridge.md, "Large components in steps").
+  int large_component_steps = 1;
   // Ridge on the valve levels (relative to the cells' unit sensitivity): picks the smallest
   // currents among equally good allocations.
   double regularisation = 1.0e-8;
