@@ -88,6 +88,56 @@ TEST_F(InverseModel, ForwardPressureMatchesDeviceModel) {
   EXPECT_LT(worst, 1e-7);
 }
 
+// The observer's local force model (large grids) takes the valves' pressure from these tables at
+// one yield stress: the same force as DeviceModel's exact law, on every built-in profile.
+TEST(InverseUniformLaw, MatchesTheExactLawOnEveryProfile) {
+  for (const char* name : {"mr-skin-5x5", "fingertip-16x16", "palm-64x64", "paper-table4"}) {
+    const DeviceModel m(load_profile(std::string(MRSKIN_TEST_PROFILE_DIR) + "/" + name + ".toml"));
+    const CellInverse inv(m);
+    const std::size_t n = m.layout().fluid_cell_count();
+    const double depth = m.profile().design.indentation_m;
+    const double area = m.contact().effective_area_m2;
+    CaseGenerator g(n, 11);
+    double worst_pressure = 0.0;
+    double worst_force = 0.0;
+    for (int k = 0; k < 2000; ++k) {
+      const std::size_t cell = g.rng()() % n;
+      const double tau = k % 7 == 0 ? 0.0 : g.u(0.0, 60.0);
+      const double rate = k % 5 == 0 ? 0.0 : (k % 2 == 0 ? 1.0 : -1.0) * std::pow(10.0, g.u(-6.0, -1.5));
+      const double d = g.u(0.05, 1.0) * depth;
+      const double q = std::fabs(area * rate);
+      const Result<double> exact = m.valve_network_pressure_uniform_Pa(cell, q, tau);
+      const Result<double> fast = inv.uniform_valve_pressure_Pa(cell, q, tau);
+      ASSERT_TRUE(exact.ok() && fast.ok()) << name;
+      if (exact.value > 0.0) {
+        worst_pressure = std::max(worst_pressure, std::fabs(fast.value - exact.value) / exact.value);
+      } else {
+        EXPECT_EQ(fast.value, 0.0) << name;
+      }
+      const Result<CellLoad> by_law = m.cell_force_at_yield(cell, d, rate, tau);
+      const Result<CellLoad> by_table = m.cell_force_at_valve_pressure(cell, d, rate, fast.value);
+      ASSERT_TRUE(by_law.ok() && by_table.ok()) << name;
+      EXPECT_EQ(by_law.value.mode, by_table.value.mode) << name << " cell " << cell;
+      // Against the cell's design force: a force near 0 (a refilling cell) has no relative error.
+      worst_force = std::max(worst_force, std::fabs(by_table.value.force_N - by_law.value.force_N) /
+                                              m.profile().design.force_range_N);
+    }
+    std::printf("%s: uniform valve pressure max relative error %.3g, cell force %.3g\n", name, worst_pressure,
+                worst_force);
+    // Measured: at most 3.0e-7 (fingertip-16x16) and 5.6e-8 of the design force (palm-64x64).
+    EXPECT_LT(worst_pressure, 1e-6) << name;
+    EXPECT_LT(worst_force, 1e-7) << name;
+  }
+  const DeviceModel m = default_model();
+  const CellInverse inv(m);
+  EXPECT_EQ(inv.uniform_valve_pressure_Pa(m.layout().fluid_cell_count(), 1e-9, 1.0).status,
+            Status::out_of_range);
+  EXPECT_EQ(inv.uniform_valve_pressure_Pa(0, -1e-9, 1.0).status, Status::negative);
+  EXPECT_EQ(inv.uniform_valve_pressure_Pa(0, 1e-9, std::nan("")).status, Status::not_finite);
+  EXPECT_EQ(m.cell_force_at_valve_pressure(0, 1e-3, 0.0, -1.0).status, Status::negative);
+  EXPECT_EQ(m.cell_force_at_valve_pressure(0, 0.0, 0.0, 10.0).value.mode, CellMode::released);
+}
+
 TEST_F(InverseModel, TablesAreAccurate) {
   std::printf("tables: branch flow max relative error %.3g, current inverse max error %.3g Pa\n",
               inv.branch_table_max_relative_error(), inv.current_table_max_error_Pa());

@@ -357,6 +357,18 @@ Result<CellLoad> DeviceModel::load(std::size_t cell, double d, double v, const T
   if (d >= profile_.cell_depth_m) {
     return failure<CellLoad>(Status::out_of_range);  // the pad would reach the cell's floor
   }
+  const Result<double> pv = network_pressure(cell, std::fabs(patch_.effective_area_m2 * v), tau_of);
+  if (!pv.ok()) {
+    return failure<CellLoad>(pv.status);
+  }
+  return load_at_pressure(d, v, pv.value);
+}
+
+// The load of a cell in contact (0 < d < depth) whose valves' network stands at pv for the
+// cell's flow |area v|: its mode, the bulge and the force.
+Result<CellLoad> DeviceModel::load_at_pressure(double d, double v, double pv_Pa) const noexcept {
+  CellLoad out;
+  out.effective_area_m2 = patch_.effective_area_m2;
   const double area = patch_.effective_area_m2;
   const Result<double> fm = pad_membrane_force_N(patch_, d);
   if (!fm.ok()) {
@@ -365,22 +377,18 @@ Result<CellLoad> DeviceModel::load(std::size_t cell, double d, double v, const T
   out.membrane_force_N = fm.value;
   const double p0 = profile_.reservoir.initial_pressure_Pa;
   const double flow = area * v;
-  const Result<double> pv = network_pressure(cell, std::fabs(flow), tau_of);
-  if (!pv.ok()) {
-    return failure<CellLoad>(pv.status);
-  }
   if (v >= 0.0) {
     const double displaced = area * d;
     const double p_lock = bulge_pressure_Pa(patch_, displaced);
-    if (p_lock <= pv.value) {
+    if (p_lock <= pv_Pa) {
       out.mode = CellMode::bulging;
       out.pressure_Pa = p_lock;
       out.bulge_volume_m3 = displaced;
     } else {
       out.mode = v > 0.0 ? CellMode::flowing : CellMode::holding;
-      out.pressure_Pa = pv.value;
+      out.pressure_Pa = pv_Pa;
       out.valve_flow_m3_per_s = flow;
-      const Result<double> s = bulge_volume_m3(patch_, pv.value);
+      const Result<double> s = bulge_volume_m3(patch_, pv_Pa);
       if (!s.ok()) {
         return failure<CellLoad>(s.status);
       }
@@ -388,7 +396,7 @@ Result<CellLoad> DeviceModel::load(std::size_t cell, double d, double v, const T
     }
     out.force_N = out.membrane_force_N + area * (out.pressure_Pa + p0);
   } else {
-    out.pressure_Pa = -pv.value;
+    out.pressure_Pa = -pv_Pa;
     out.valve_flow_m3_per_s = flow;
     const Result<double> s = bulge_volume_m3(patch_, out.pressure_Pa);
     out.bulge_volume_m3 = s.value;
@@ -443,6 +451,30 @@ Result<CellLoad> DeviceModel::cell_force_at_yield(std::size_t cell, double inden
   }
   auto tau_of = [&](std::uint32_t link) { return link_valve_[link] < 0 ? 0.0 : yield_stress_Pa; };
   return load(cell, indentation_m, velocity_m_per_s, tau_of);
+}
+
+Result<CellLoad> DeviceModel::cell_force_at_valve_pressure(std::size_t cell, double indentation_m,
+                                                           double velocity_m_per_s,
+                                                           double valve_pressure_Pa) const noexcept {
+  if (!finite(indentation_m) || !finite(velocity_m_per_s) || !finite(valve_pressure_Pa)) {
+    return failure<CellLoad>(Status::not_finite);
+  }
+  if (valve_pressure_Pa < 0.0) {
+    return failure<CellLoad>(Status::negative);
+  }
+  if (cell >= layout_.fluid_cell_count()) {
+    return failure<CellLoad>(Status::out_of_range);
+  }
+  if (indentation_m <= 0.0) {
+    CellLoad out;
+    out.effective_area_m2 = patch_.effective_area_m2;
+    out.mode = CellMode::released;  // no contact
+    return {out};
+  }
+  if (indentation_m >= profile_.cell_depth_m) {
+    return failure<CellLoad>(Status::out_of_range);  // the pad would reach the cell's floor
+  }
+  return load_at_pressure(indentation_m, velocity_m_per_s, valve_pressure_Pa);
 }
 
 Result<CellEnvelope> DeviceModel::envelope(std::size_t cell, double indentation_m,

@@ -112,6 +112,22 @@ Result<double> CellInverse::valve_pressure_Pa(std::size_t cell, double flow_m3_p
   return {m.forward(cell, flow_m3_per_s, [&](std::size_t v) { return k * valve_yield_Pa[v]; })};
 }
 
+Result<double> CellInverse::uniform_valve_pressure_Pa(std::size_t cell, double flow_m3_per_s,
+                                                      double yield_stress_Pa) const noexcept {
+  const InverseTopology& m = impl_->topo;
+  if (cell >= m.graph.cells) {
+    return failure<double>(Status::out_of_range);
+  }
+  if (!finite(flow_m3_per_s) || !finite(yield_stress_Pa)) {
+    return failure<double>(Status::not_finite);
+  }
+  if (flow_m3_per_s < 0.0 || yield_stress_Pa < 0.0) {
+    return failure<double>(Status::negative);
+  }
+  const double level = m.yield_k * yield_stress_Pa;
+  return {m.forward(cell, flow_m3_per_s, [level](std::size_t) { return level; })};
+}
+
 Status CellInverse::set_valve_yield_gain(std::span<const double> gain) noexcept {
   if (gain.size() != impl_->levels.inv_gain.size()) {
     return Status::out_of_range;

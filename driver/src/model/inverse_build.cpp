@@ -120,6 +120,19 @@ void InverseTopology::build_graph(const DeviceModel& model) {
       }
     }
   }
+  // Each cell's links in the profile's order (one pass over the links, not one per cell: the
+  // palm's 2,048 cells made that 0.74e9 instructions of its opening).
+  std::vector<std::vector<std::uint32_t>> links_of_cell(cells);
+  for (std::size_t i = 0; i < links.size(); ++i) {
+    const HydraulicLink& k = links[i];
+    const bool a_cell = k.a.kind == NodeKind::fluid_cell && k.a.index < cells;
+    if (a_cell) {
+      links_of_cell[k.a.index].push_back(static_cast<std::uint32_t>(i));
+    }
+    if (k.b.kind == NodeKind::fluid_cell && k.b.index < cells && !(a_cell && k.a.index == k.b.index)) {
+      links_of_cell[k.b.index].push_back(static_cast<std::uint32_t>(i));
+    }
+  }
   const double open = 1.0 / newton_k;
   std::vector<int> type_of_m;
   info.assign(cells, CellInfo{});
@@ -128,13 +141,9 @@ void InverseTopology::build_graph(const DeviceModel& model) {
     CellInfo& ci = info[cell];
     ci.branch_begin = static_cast<std::uint32_t>(branches.size());
     ci.valve_begin = static_cast<std::uint32_t>(cell_valves.size());
-    for (std::size_t i = 0; i < links.size(); ++i) {
+    for (const std::uint32_t i : links_of_cell[cell]) {
       const HydraulicLink& k = links[i];
       const bool a_is = k.a.kind == NodeKind::fluid_cell && k.a.index == cell;
-      const bool b_is = k.b.kind == NodeKind::fluid_cell && k.b.index == cell;
-      if (!a_is && !b_is) {
-        continue;
-      }
       const NodeRef other = a_is ? k.b : k.a;
       int m = 0;
       if (other.kind == NodeKind::chamber) {

@@ -13,6 +13,7 @@
 #include <string>
 #include <vector>
 
+#include "inverse_impl.hpp"
 #include "mrskin/driver/errors.hpp"
 #include "mrskin/driver/model/coil.hpp"
 #include "mrskin/driver/model/magnetic.hpp"
@@ -67,6 +68,12 @@ struct __attribute__((visibility("hidden"))) CellObserver::Impl {
     const std::size_t cells = grid.fluid_cell_count();
     if (force_model == ObserverForceModel::network) {
       network = std::make_unique<NetworkSimulation>(m, network_options(o));
+    } else {
+      try {
+        uniform_law = std::make_unique<inverse_detail::InverseTopology>(m, InverseOptions{});
+      } catch (const InvalidArgument&) {
+        // A graph the inverse refuses (a branch on two coils): the exact law, a cell at a time.
+      }
     }
     std::vector<std::vector<Entry>> rows;
     for (std::size_t k = 0; k < p.sensors.size(); ++k) {
@@ -339,8 +346,11 @@ struct __attribute__((visibility("hidden"))) CellObserver::Impl {
   ObserverOptions options;
   ObserverForceModel force_model = ObserverForceModel::network;
   std::unique_ptr<NetworkSimulation> network;  // network force model only
-  std::vector<std::size_t> sensor_of_row;      // row -> index in the reading span
-  std::vector<double> sensor_scale;            // 1 / sigma per row
+  // Local force model only: the inverse's fast law of a cell's valves at one yield stress
+  // (CellInverse::uniform_valve_pressure_Pa), for the network's nested Newton solves.
+  std::unique_ptr<inverse_detail::InverseTopology> uniform_law;
+  std::vector<std::size_t> sensor_of_row;  // row -> index in the reading span
+  std::vector<double> sensor_scale;        // 1 / sigma per row
   std::vector<std::size_t> row_begin;
   std::vector<Entry> row_entries;
   std::vector<std::size_t> col_begin;

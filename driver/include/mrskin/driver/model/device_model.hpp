@@ -56,6 +56,11 @@ class MRSKIN_DRIVER_API DeviceModel {
   [[nodiscard]] Result<CellLoad> cell_force_at_yield(std::size_t cell, double indentation_m,
                                                      double velocity_m_per_s,
                                                      double yield_stress_Pa) const noexcept;
+  // Same with the valves' network standing at valve_pressure_Pa (>= 0) for the cell's flow
+  // |area v|, as valve_network_pressure_Pa gives it: for a caller with a faster law of its own.
+  [[nodiscard]] Result<CellLoad> cell_force_at_valve_pressure(std::size_t cell, double indentation_m,
+                                                              double velocity_m_per_s,
+                                                              double valve_pressure_Pa) const noexcept;
   // F_min (valves open: zero current) and F_max (valves at max_current_A) at (d, v).
   [[nodiscard]] Result<CellEnvelope> envelope(std::size_t cell, double indentation_m,
                                               double velocity_m_per_s) const noexcept;
@@ -79,6 +84,7 @@ class MRSKIN_DRIVER_API DeviceModel {
   Result<FlowPoint> branch_flow(const Branch& b, double p, const TauOf& tau_of) const noexcept;
   template <class TauOf>
   Result<CellLoad> load(std::size_t cell, double d, double v, const TauOf& tau_of) const noexcept;
+  Result<CellLoad> load_at_pressure(double d, double v, double pv_Pa) const noexcept;
 
   DeviceProfile profile_;
   GridLayout layout_;

@@ -181,6 +181,9 @@ class MRSKIN_DRIVER_API CellInverse {
   // valves' pressure of a cell driving flow Q >= 0 at per-valve yield stresses (size valve_count()).
   [[nodiscard]] Result<double> valve_pressure_Pa(std::size_t cell, double flow_m3_per_s,
                                                  std::span<const double> valve_yield_Pa) const noexcept;
+  // Same with one yield stress on every valve (the law CellObserver's local force model uses).
+  [[nodiscard]] Result<double> uniform_valve_pressure_Pa(std::size_t cell, double flow_m3_per_s,
+                                                         double yield_stress_Pa) const noexcept;
   // The current that gives a yield stress (inverse of DeviceModel's table), and the largest
   // error of that inverse measured at construction (yield stress, Pa).
   [[nodiscard]] Result<double> current_for_yield_stress_A(double yield_stress_Pa) const noexcept;

@@ -23,7 +23,8 @@
 //   - network (grids of at most network_max_cells fluid cells): the whole network is stepped,
 //     a step every network_step_s spread over its ticks (skip_settled_network skips it at rest);
 //   - local (larger grids): each contacted cell's force is the quasi-static cell law
-//     (DeviceModel::cell_force_at_yield, the law CellInverse inverts) at its depth and filtered
+//     (DeviceModel::cell_force_at_yield, the law CellInverse inverts; its valves' pressure from
+//     the inverse's tables, CellInverse::uniform_valve_pressure_Pa) at its depth and filtered
 //     rate (rates within hold_rate_m_per_s count as holding), at the mean yield stress of its
 //     valves; cells without contact cost nothing and have no force. It keeps no fluid history
 //     (no trapped volume, no refill after a release), so it is less accurate than the network
