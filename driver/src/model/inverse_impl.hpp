@@ -765,7 +765,6 @@ struct ComponentWork {
   bool predicted = false;  // residuals are a tracked step's prediction
   std::size_t rows = 0;    // rows evaluated
   int iterations = 0;
-  bool capped = false;  // the last Gauss-Newton stopped on large_component_steps, not converged
 };
 
 // One component's Gauss-Newton (inverse_solve.cpp) and its rows and steps (inverse_step.cpp),
@@ -800,6 +799,9 @@ class InverseSolver {
   std::vector<double> res;   // fallback residuals
   std::vector<double> best;  // per component valve: best levels found
   ComponentWork work;        // of the component being solved
+  // The last Gauss-Newton stopped on large_component_steps, not converged (set by each; kept out
+  // of ComponentWork, whose reset every solve pays for).
+  bool step_capped = false;
 
   bool demands_conflict(const InverseTopology& topo, const Component& comp, CellMemory& memory) noexcept;
   void solve_conflict(const InverseTopology& topo, const Component& comp, CellMemory& memory,

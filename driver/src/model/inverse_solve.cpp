@@ -508,9 +508,9 @@ void InverseSolver::solve_conflict(const InverseTopology& topo, const Component&
       merit = gauss_newton(topo, comp, memory, factors, levels, warm ? kMinDamping : kStartDamping, converged,
                            merit);
       // A large component stopped on its step cap is not stuck: it goes on next tick.
-      factors.search_stage[comp.id] = work.capped ? kSearchStepping : kSearchIdle;
-      factors.searching = factors.searching || work.capped;
-      if (!converged && !work.capped) {
+      factors.search_stage[comp.id] = step_capped ? kSearchStepping : kSearchIdle;
+      factors.searching = factors.searching || step_capped;
+      if (!converged && !step_capped) {
         plan_search(comp, factors, warm);
         // A warm solve that gave up within half its steps (a press turned into a hold stops
         // after about 5) leaves this tick room for the cold restart: the hold is met on the tick
@@ -728,7 +728,7 @@ double InverseSolver::gauss_newton(const InverseTopology& topo, const Component&
   steps = std::min(steps, cap);
   double damping = start_damping;
   converged = false;
-  work.capped = false;
+  step_capped = false;
   for (int it = 0;; ++it) {
     double worst = 0.0;
     for (std::size_t r = 0; r < comp.cells.size(); ++r) {
@@ -739,7 +739,7 @@ double InverseSolver::gauss_newton(const InverseTopology& topo, const Component&
       break;
     }
     if (it >= steps) {
-      work.capped = capping;
+      step_capped = capping;
       break;
     }
     ++work.iterations;
