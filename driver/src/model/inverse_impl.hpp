@@ -30,9 +30,11 @@ inline constexpr int kTableSegments = 256;
 inline constexpr int kLinearSegments = 4096;
 inline constexpr int kCurrentSegments = 2048;
 // Row-space least squares is dense up to this many cells in one component; larger components
-// (big grids in full contact) fall back to projected Gauss-Seidel.
+// (big grids in full contact) fall back to projected Gauss-Seidel, at most kFallbackSweeps
+// sweeps a step: a step a solve goes on from there next tick (large_component_steps), so 20
+// sweeps left the palm's held residual where 60 did, at 30 % less a tick (docs/bridge.md).
 inline constexpr std::size_t kDenseRows = 32;
-inline constexpr int kFallbackSweeps = 60;
+inline constexpr int kFallbackSweeps = 20;
 inline constexpr int kMaxActiveSetPasses = 24;
 inline constexpr int kMaxBacktracks = 4;
 inline constexpr std::size_t kMaxEscapes = 8;  // trials: a shared valve opened or shut
