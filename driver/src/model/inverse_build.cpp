@@ -95,6 +95,8 @@ InverseSolver::InverseSolver(const ValveGraph& g)
       t1(g.valves, 0.0),
       tu(g.valves, 0.0),
       bound(g.valves, 0),
+      bound_was(g.valves, 0),
+      rank_one(kDenseRows, 0.0),
       excluded_once(g.cells, 0),
       predicted(g.cells, 0.0),
       mat(kDenseRows * kDenseRows, 0.0),

@@ -793,6 +793,8 @@ class InverseSolver {
   std::vector<double> t1;                    // proposal
   std::vector<double> tu;                    // unconstrained row-space value
   std::vector<unsigned char> bound;          // 0 free, 1 at t_min, 2 at t_max
+  std::vector<unsigned char> bound_was;      // the pass before's
+  std::vector<double> rank_one;              // a valve's column over the rows
   std::vector<unsigned char> excluded_once;  // per row, within one step
   std::vector<double> predicted;             // per row: the linear model's residual after a step
   std::vector<double> mat;                   // kDenseRows^2
@@ -804,6 +806,8 @@ class InverseSolver {
   // The last Gauss-Newton stopped on large_component_steps, not converged (set by each; kept out
   // of ComponentWork, whose reset every solve pays for).
   bool step_capped = false;
+  void assemble_step_rhs(const InverseTopology& topo, const Component& comp, double keep) noexcept;
+  bool update_factor(const Component& comp, std::size_t k, bool add) noexcept;
 
   bool demands_conflict(const InverseTopology& topo, const Component& comp, CellMemory& memory) noexcept;
   void solve_conflict(const InverseTopology& topo, const Component& comp, CellMemory& memory,

@@ -129,9 +129,22 @@ void InverseSolver::bounded_step(const InverseTopology& topo, const Component& c
   const double keep = 1.0 - shrink;
   start_step(topo, comp, levels, shrink);
   const double eps = 1e-9 * topo.t_max;  // below this a change is round-off: clamp it
+  const std::size_t nr = comp.cells.size();
+  const std::size_t nv = comp.valves.size();
+  // A pass that only binds or releases valves updates the factor by each valve's column (O(n^2)
+  // each) instead of assembling and factorising again (O(n^3)); rows changing sides refactorise.
+  bool factored = false;
   for (int pass = 0; pass < kMaxActiveSetPasses; ++pass) {
-    assemble_step_system(topo, comp, diag, keep);
-    factorize_and_solve_step(comp.cells.size(), diag);
+    if (!factored) {
+      assemble_step_system(topo, comp, diag, keep);
+      factorize_and_solve_step(nr, diag);
+      factored = true;
+    } else {
+      assemble_step_rhs(topo, comp, keep);
+      std::copy(rhs.data(), rhs.data() + nr, dual.data());
+      cholesky_solve(mat.data(), nr, dual.data());
+    }
+    std::copy(bound.data(), bound.data() + nv, bound_was.data());
     bool changed = move_bounds(topo, comp, keep, eps);
     predict_step(topo, comp);
     const bool switched = switch_one_sided_rows(topo.tol_Pa, comp.cells.size());
@@ -141,6 +154,15 @@ void InverseSolver::bounded_step(const InverseTopology& topo, const Component& c
       break;
     }
     factors.age[comp.id] = -1;  // the last factorisation is not the final active set's
+    if (switched) {
+      factored = false;
+      continue;
+    }
+    for (std::size_t k = 0; k < nv && factored; ++k) {
+      if ((bound[k] == 0) != (bound_was[k] == 0)) {
+        factored = update_factor(comp, k, bound[k] == 0);
+      }
+    }
   }
   for (std::size_t r = 0; r < comp.cells.size(); ++r) {
     excluded_once[r] = 0;
@@ -210,6 +232,62 @@ void InverseSolver::assemble_step_system(const InverseTopology& topo, const Comp
       }
     }
   }
+}
+
+// The right-hand side alone (the matrix kept: its factor is updated valve by valve).
+void InverseSolver::assemble_step_rhs(const InverseTopology& topo, const Component& comp,
+                                      double keep) noexcept {
+  const std::size_t nr = comp.cells.size();
+  const std::size_t nv = comp.valves.size();
+  const double* jac_p = jac.data();
+  for (std::size_t a = 0; a < nr; ++a) {
+    rhs[a] = included[a] != 0 ? crow[a] : 0.0;
+  }
+  for (std::size_t k = 0; k < nv; ++k) {
+    if (bound[k] == 0) {
+      continue;
+    }
+    const double tb = (bound[k] == 1 ? topo.t_min : topo.t_max) - keep * t0[k];
+    for (std::uint32_t j = comp.inc_begin[k]; j < comp.inc_begin[k + 1]; ++j) {
+      rhs[comp.inc_row[j]] -= included[comp.inc_row[j]] != 0 ? jac_p[comp.inc_slot[j]] * tb : 0.0;
+    }
+  }
+}
+
+// The factor of M +- v v^T (v: valve k's column over the included rows); false when a downdate
+// would lose definiteness (the caller refactorises).
+bool InverseSolver::update_factor(const Component& comp, std::size_t k, bool add) noexcept {
+  const std::size_t nr = comp.cells.size();
+  double* x = rank_one.data();
+  std::fill(x, x + nr, 0.0);
+  std::size_t first = nr;
+  for (std::uint32_t j = comp.inc_begin[k]; j < comp.inc_begin[k + 1]; ++j) {
+    const std::uint32_t r = comp.inc_row[j];
+    if (included[r] != 0) {
+      x[r] += jac[comp.inc_slot[j]];
+      first = std::min<std::size_t>(first, r);
+    }
+  }
+  const double sign = add ? 1.0 : -1.0;
+  double* l = mat.data();
+  for (std::size_t c = first; c < nr; ++c) {
+    double* lc = l + c * nr;
+    const double lcc = lc[c];
+    const double r2 = lcc * lcc + sign * x[c] * x[c];
+    if (!(r2 > 1e-12 * lcc * lcc)) {
+      return false;
+    }
+    const double r = std::sqrt(r2);
+    const double cs = r / lcc;
+    const double sn = x[c] / lcc;
+    lc[c] = r;
+    for (std::size_t i = c + 1; i < nr; ++i) {
+      double* li = l + i * nr;
+      li[c] = (li[c] + sign * sn * x[i]) / cs;
+      x[i] = cs * x[i] - sn * li[c];
+    }
+  }
+  return true;
 }
 
 // Cholesky (lower, in place) and the two triangular solves into dual.
