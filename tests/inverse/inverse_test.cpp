@@ -899,6 +899,57 @@ TEST(InverseProfiles, OtherGridsAndTopologiesSolve) {
   EXPECT_LT(worst, 1e-7);
 }
 
+// Every fluid cell pressed at once, each to its own law, so that no levels meet every aim: per
+// cell a start depth, a rate (a share of the cells still) and a force at the start depth, drawn
+// with a fixed seed.
+struct EveryCellPressed {
+  EveryCellPressed(const DeviceModel& m, unsigned seed, double still_share, double min_rate_m_per_s,
+                   double min_force_share)
+      : n(m.layout().fluid_cell_count()), base_m(n), rate_m_per_s(n), force_N(n), targets(n), states(n) {
+    const double depth = m.profile().design.indentation_m;
+    CaseGenerator g(n, seed);
+    for (std::size_t i = 0; i < n; ++i) {
+      base_m[i] = g.u(0.3, 0.6) * depth;
+      rate_m_per_s[i] = still_share > 0.0 && g.u(0.0, 1.0) < still_share ? 0.0 : g.u(min_rate_m_per_s, 0.01);
+      force_N[i] = g.u(min_force_share, 1.0) * m.profile().design.force_range_N;
+    }
+  }
+  // The cells t_s after the start, moving on at their rates or held there.
+  void at(double t_s, bool moving) {
+    for (std::size_t i = 0; i < n; ++i) {
+      const double d = base_m[i] + rate_m_per_s[i] * t_s;
+      states[i] = {d, moving ? rate_m_per_s[i] : 0.0};
+      targets[i] = law_for_force(force_N[i] * d / base_m[i], d);
+    }
+  }
+  std::size_t n;
+  std::vector<double> base_m;
+  std::vector<double> rate_m_per_s;
+  std::vector<double> force_N;
+  std::vector<CellImpedanceTarget> targets;
+  std::vector<CellState> states;
+};
+
+// A solve whole (max_iterations a solve) beside one in steps, on the same ticks.
+struct WholeAndStepped {
+  CellInverse& whole;
+  CellInverse& stepped;
+  int most_steps = 0;        // the stepped solve's, in one solve
+  int most_whole_steps = 0;  // the whole solve's
+  void solve(const EveryCellPressed& p, double now_s) {
+    ASSERT_EQ(whole.solve(p.targets, p.states, now_s), Status::ok);
+    ASSERT_EQ(stepped.solve(p.targets, p.states, now_s), Status::ok);
+    most_steps = std::max(most_steps, stepped.report().iterations);
+    most_whole_steps = std::max(most_whole_steps, whole.report().iterations);
+  }
+  [[nodiscard]] double whole_N() const { return whole.report().residual_norm_N; }
+  [[nodiscard]] double stepped_N() const { return stepped.report().residual_norm_N; }
+  void print(int tick) const {
+    std::printf("tick %3d  residual whole %.5f N (%2d steps)  stepped %.5f N (%d steps)\n", tick, whole_N(),
+                whole.report().iterations, stepped_N(), stepped.report().iterations);
+  }
+};
+
 // A hand on the palm: one component of every fluid cell (the sparse path). By default it takes
 // one Gauss-Newton step a solve and goes on from its levels on the next (large_component_steps);
 // 0 lets it run max_iterations a solve, as before. Over a held press and a slow press, the
@@ -909,66 +960,88 @@ TEST(InverseLargeComponents, StepsOverTheTicksFollowTheWholeSolve) {
   whole_options.large_component_steps = 0;
   CellInverse whole(m, whole_options);
   CellInverse stepped(m);
-  const double depth = m.profile().design.indentation_m;
-  const std::size_t n = m.layout().fluid_cell_count();
-  CaseGenerator g(n, 6);
-  std::vector<double> base(n);
-  std::vector<double> force(n);
-  std::vector<double> rate(n);
-  for (std::size_t i = 0; i < n; ++i) {
-    base[i] = g.u(0.3, 0.6) * depth;
-    rate[i] = g.u(0.0, 1.0) < 0.3 ? 0.0 : g.u(0.0, 0.01);
-    force[i] = g.u(0.0, 1.0) * m.profile().design.force_range_N;
-  }
-  std::vector<CellImpedanceTarget> targets(n);
-  std::vector<CellState> states(n);
+  EveryCellPressed press(m, 6, 0.3, 0.0, 0.0);
+  WholeAndStepped both{whole, stepped};
   const double tick_s = 1e-3;
-  int worst_steps = 0;
   double sum_whole = 0.0;
   double sum_stepped = 0.0;
-  double last_whole = 0.0;
-  double last_stepped = 0.0;
   double first_stepped = 0.0;
   double held_whole = 0.0;
   double held_stepped = 0.0;
   for (int k = 0; k < 200; ++k) {
     // 100 ticks held, then 100 ticks pressing on at the rates (each cell its own law).
-    const double t_s = k < 100 ? 0.0 : (k - 100) * tick_s;
-    for (std::size_t i = 0; i < n; ++i) {
-      const double d = base[i] + rate[i] * t_s;
-      states[i] = {d, k < 100 ? 0.0 : rate[i]};
-      targets[i] = law_for_force(force[i] * d / base[i], d);
-    }
-    ASSERT_EQ(whole.solve(targets, states, k * tick_s), Status::ok);
-    ASSERT_EQ(stepped.solve(targets, states, k * tick_s), Status::ok);
-    worst_steps = std::max(worst_steps, stepped.report().iterations);
-    last_whole = whole.report().residual_norm_N;
-    last_stepped = stepped.report().residual_norm_N;
+    press.at(k < 100 ? 0.0 : (k - 100) * tick_s, k >= 100);
+    ASSERT_NO_FATAL_FAILURE(both.solve(press, k * tick_s));
     if (k == 0) {
-      first_stepped = last_stepped;
+      first_stepped = both.stepped_N();
     }
     if (k == 99) {
-      held_whole = last_whole;
-      held_stepped = last_stepped;
+      held_whole = both.whole_N();
+      held_stepped = both.stepped_N();
     }
     if (k % 10 == 0 || k < 10) {
-      std::printf("tick %3d  residual whole %.5f N (%2d steps)  stepped %.5f N (%d steps)\n", k, last_whole,
-                  whole.report().iterations, last_stepped, stepped.report().iterations);
+      both.print(k);
     }
     if (k >= 100) {
-      sum_whole += last_whole;
-      sum_stepped += last_stepped;
+      sum_whole += both.whole_N();
+      sum_stepped += both.stepped_N();
     }
   }
   std::printf("pressing: mean residual whole %.5f N, stepped %.5f N; most steps a stepped solve %d\n",
-              sum_whole / 100, sum_stepped / 100, worst_steps);
+              sum_whole / 100, sum_stepped / 100, both.most_steps);
   // Measured (20 sweeps a step): one step a solve, two on a tick whose step stalled (the
   // search's restart); held, 0.451 N after the first tick, 0.3934 against 0.3895 N after 100 (the
   // stepped solve stops where a step gains < 0.1 %); pressing, 0.571 against 0.555 N on average,
   // the first ticks of the press behind.
-  EXPECT_LE(worst_steps, 2);
+  EXPECT_LE(both.most_steps, 2);
   EXPECT_LT(held_stepped, 0.9 * first_stepped);  // it went on over the held ticks
   EXPECT_LE(held_stepped, 1.02 * held_whole);
+  EXPECT_LE(sum_stepped, 1.05 * sum_whole);
+}
+
+// The 5x5 with every fluid cell pressed at once, each to its own law: one component of 13 cells
+// on 12 valves, whose aims no levels meet while they press. The bridge's small_component_steps =
+// 1 takes one Gauss-Newton step a solve (a search's trial two) and goes on next tick; the
+// library's default solves it whole. Over a press and the hold after it, the stepped residual
+// follows the whole solve's, at a bounded number of steps a tick.
+TEST(InverseSmallComponents, StepsOverTheTicksFollowTheWholeSolve) {
+  const DeviceModel m(load_profile(std::string(MRSKIN_TEST_PROFILE_DIR) + "/mr-skin-5x5.toml"));
+  CellInverse whole(m);
+  InverseOptions stepped_options;
+  stepped_options.small_component_steps = 1;
+  CellInverse stepped(m, stepped_options);
+  EveryCellPressed press(m, 11, 0.0, 0.002, 0.2);
+  WholeAndStepped both{whole, stepped};
+  const double tick_s = 1e-3;
+  double sum_whole = 0.0;
+  double sum_stepped = 0.0;
+  for (int k = 0; k < 400; ++k) {
+    // 200 ticks pressing at the rates, then 200 ticks held.
+    press.at(std::min(k, 200) * tick_s, k < 200);
+    ASSERT_NO_FATAL_FAILURE(both.solve(press, k * tick_s));
+    ASSERT_EQ(stepped.report().loaded_cells, press.n);
+    for (const double i : stepped.currents_A()) {
+      ASSERT_TRUE(i >= 0.0 && i <= m.profile().coil.max_current_A);
+    }
+    if (k < 200) {
+      sum_whole += both.whole_N();
+      sum_stepped += both.stepped_N();
+    }
+    if (k % 50 == 0 || k < 5) {
+      both.print(k);
+    }
+  }
+  std::printf(
+      "held %.5f / %.5f N; pressing: mean residual whole %.5f N, stepped %.5f N; most steps a solve "
+      "whole %d, stepped %d\n",
+      both.whole_N(), both.stepped_N(), sum_whole / 200, sum_stepped / 200, both.most_whole_steps,
+      both.most_steps);
+  // Measured: pressing 0.1990 against 0.1968 N on average (+1.1 %), held 0.989 against 1.117 N
+  // (the two stop at different compromises); at most 3 steps a solve (a solve's own step, or a
+  // search tick's tracking step and its trial's two) against 12.
+  EXPECT_LE(both.most_steps, 3);
+  EXPECT_GT(both.most_whole_steps, both.most_steps);
+  EXPECT_LE(both.stepped_N(), 1.02 * both.whole_N());
   EXPECT_LE(sum_stepped, 1.05 * sum_whole);
 }
 

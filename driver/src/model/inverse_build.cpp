@@ -20,12 +20,12 @@ InverseTopology::InverseTopology(const DeviceModel& model, const InverseOptions&
   const std::string& origin = p.origin;
   if (!(opt.hold_rate_tolerance_m_per_s >= 0.0) || !(opt.indentation_tolerance_m >= 0.0) ||
       !(opt.rate_tolerance_m_per_s >= 0.0) || !(opt.force_tolerance_N > 0.0) || opt.max_iterations < 0 ||
-      opt.large_component_steps < 0 || !(opt.regularisation > 0.0) ||
+      opt.large_component_steps < 0 || opt.small_component_steps < 0 || !(opt.regularisation > 0.0) ||
       !finite(opt.hold_rate_tolerance_m_per_s) || !finite(opt.indentation_tolerance_m) ||
       !finite(opt.rate_tolerance_m_per_s) || !finite(opt.force_tolerance_N) || !finite(opt.regularisation)) {
     throw InvalidArgument(
         "InverseOptions: tolerances must be finite and >= 0, force_tolerance_N and regularisation > 0, "
-        "max_iterations and large_component_steps >= 0");
+        "max_iterations, large_component_steps and small_component_steps >= 0");
   }
   graph.cells = model.layout().fluid_cell_count();
   graph.valves = model.layout().valve_count();
@@ -96,6 +96,7 @@ InverseSolver::InverseSolver(const ValveGraph& g)
       tu(g.valves, 0.0),
       bound(g.valves, 0),
       bound_was(g.valves, 0),
+      feasible(g.valves, 0.0),
       rank_one(kDenseRows, 0.0),
       excluded_once(g.cells, 0),
       predicted(g.cells, 0.0),

@@ -58,11 +58,15 @@ inline constexpr double kSearchWait_s = 0.064;
 inline constexpr unsigned char kSearchIdle = 0;
 inline constexpr unsigned char kSearchRestart = 1;  // a cold restart next tick
 inline constexpr unsigned char kSearchEscapes = 2;  // escape trials next tick, from escape_next
-// Not a search: a large component's Gauss-Newton stopped on large_component_steps and goes on
+// Not a search: a Gauss-Newton stopped on large_ or small_component_steps goes on
 // next tick from its levels, its inputs held or not.
 inline constexpr unsigned char kSearchStepping = 3;
 // Warm Gauss-Newton steps a search tick takes before its stage, to follow the tick's targets.
 inline constexpr int kSearchTrackSteps = 1;
+// With small_component_steps set, a search's trial (a cold restart, a stall escape) takes at most
+// this many times those steps and is judged where it stands: a trial that has not beaten the
+// best levels by then is dropped.
+inline constexpr int kTrialStepsPerStep = 2;
 // Levenberg-Marquardt damping, relative to a cell's unit sensitivity to its valves.
 inline constexpr double kStartDamping = 1e-3;
 inline constexpr double kMinDamping = 1e-7;
@@ -794,6 +798,7 @@ class InverseSolver {
   std::vector<double> tu;                    // unconstrained row-space value
   std::vector<unsigned char> bound;          // 0 free, 1 at t_min, 2 at t_max
   std::vector<unsigned char> bound_was;      // the pass before's
+  std::vector<double> feasible;              // the active-set passes' feasible levels
   std::vector<double> rank_one;              // a valve's column over the rows
   std::vector<unsigned char> excluded_once;  // per row, within one step
   std::vector<double> predicted;             // per row: the linear model's residual after a step
@@ -803,8 +808,8 @@ class InverseSolver {
   std::vector<double> res;   // fallback residuals
   std::vector<double> best;  // per component valve: best levels found
   ComponentWork work;        // of the component being solved
-  // The last Gauss-Newton stopped on large_component_steps, not converged (set by each; kept out
-  // of ComponentWork, whose reset every solve pays for).
+  // The last Gauss-Newton stopped on its step cap (large_ or small_component_steps), not converged (set by
+  // each; kept out of ComponentWork, whose reset every solve pays for).
   bool step_capped = false;
   void assemble_step_rhs(const InverseTopology& topo, const Component& comp, double keep) noexcept;
   bool update_factor(const Component& comp, std::size_t k, bool add) noexcept;
@@ -821,10 +826,13 @@ class InverseSolver {
                 ValveLevels& levels, double merit, bool& converged) noexcept;
   double escape_stall(const InverseTopology& topo, const Component& comp, const CellMemory& memory,
                       ChordFactors& factors, ValveLevels& levels, double merit, bool& converged) noexcept;
+  // A Gauss-Newton's role: the solve's own, or a search's trial (a cold restart, a stall escape),
+  // which a small component's step cap allows kTrialStepsPerStep times the steps.
+  enum class Run : unsigned char { solve, trial };
   // From the current levels, with the rows already evaluated there (merit: their merit).
   double gauss_newton(const InverseTopology& topo, const Component& comp, const CellMemory& memory,
                       ChordFactors& factors, ValveLevels& levels, double start_damping, bool& converged,
-                      double merit, int max_steps = -1) noexcept;
+                      double merit, Run run, int max_steps = -1) noexcept;
   // What evaluate_rows fills: the residuals alone; also the Jacobian, linearised at the aim; or
   // also relinearised, where a flowing row far from its aim is linearised at its true pressure (a
   // forward solve) instead.

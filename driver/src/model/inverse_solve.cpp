@@ -498,16 +498,16 @@ void InverseSolver::solve_conflict(const InverseTopology& topo, const Component&
       // The search's next stage stands in for this tick's warm solve (each of its trials is a
       // solve of its own) after kSearchTrackSteps steps that follow this tick's targets: the
       // stage keeps those levels when none of its trials does better.
-      merit =
-          gauss_newton(topo, comp, memory, factors, levels, kMinDamping, converged, merit, kSearchTrackSteps);
+      merit = gauss_newton(topo, comp, memory, factors, levels, kMinDamping, converged, merit, Run::solve,
+                           kSearchTrackSteps);
       if (!converged) {
         merit = search(topo, comp, memory, factors, levels, merit, converged);
       }
     } else {
       const int steps_before = work.iterations;
       merit = gauss_newton(topo, comp, memory, factors, levels, warm ? kMinDamping : kStartDamping, converged,
-                           merit);
-      // A large component stopped on its step cap is not stuck: it goes on next tick.
+                           merit, Run::solve);
+      // A component stopped on its step cap is not stuck: it goes on next tick.
       factors.search_stage[comp.id] = step_capped ? kSearchStepping : kSearchIdle;
       factors.searching = factors.searching || step_capped;
       if (!converged && !step_capped) {
@@ -639,7 +639,7 @@ double InverseSolver::restart_cold(const InverseTopology& topo, const Component&
   }
   bool cold_converged = false;
   const double cold = gauss_newton(topo, comp, memory, factors, levels, kStartDamping, cold_converged,
-                                   evaluate_rows(topo, comp, memory, levels));
+                                   evaluate_rows(topo, comp, memory, levels), Run::trial);
   if (cold < merit) {
     converged = cold_converged;
     return cold;
@@ -690,7 +690,7 @@ double InverseSolver::escape_stall(const InverseTopology& topo, const Component&
     t[valves[listed[i / 2]]] = i % 2 == 0 ? topo.t_min : topo.t_max;
     bool conv_i = false;
     const double merit_i = gauss_newton(topo, comp, memory, factors, levels, kStartDamping, conv_i,
-                                        evaluate_rows(topo, comp, memory, levels));
+                                        evaluate_rows(topo, comp, memory, levels), Run::trial);
     if (merit_i < best_merit) {
       best_merit = merit_i;
       converged = conv_i;
@@ -715,15 +715,19 @@ double InverseSolver::escape_stall(const InverseTopology& topo, const Component&
 // component; leaves the rows evaluated at the final levels. Returns the merit.
 double InverseSolver::gauss_newton(const InverseTopology& topo, const Component& comp,
                                    const CellMemory& memory, ChordFactors& factors, ValveLevels& levels,
-                                   double start_damping, bool& converged, double merit,
+                                   double start_damping, bool& converged, double merit, Run run,
                                    int max_steps) noexcept {
   double* const t = levels.t.data();
   const std::span<const std::uint32_t> valves = comp.valves;
   int steps = max_steps >= 0 ? max_steps : topo.opt.max_iterations;
-  // A large component goes on from these levels next tick (large_component_steps).
-  const int cap = comp.cells.size() > kDenseRows && topo.opt.large_component_steps > 0
-                      ? topo.opt.large_component_steps
-                      : steps;
+  // A capped component goes on from these levels next tick (large_ or small_component_steps).
+  int cap = steps;
+  if (comp.cells.size() > kDenseRows) {
+    cap = topo.opt.large_component_steps > 0 ? topo.opt.large_component_steps : steps;
+  } else if (topo.opt.small_component_steps > 0) {
+    cap = run == Run::solve ? topo.opt.small_component_steps
+                            : kTrialStepsPerStep * topo.opt.small_component_steps;
+  }
   const bool capping = cap < steps;
   steps = std::min(steps, cap);
   double damping = start_damping;

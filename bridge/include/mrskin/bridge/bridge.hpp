@@ -89,7 +89,9 @@ struct BridgeOptions {
   int loop_cpu = -1;  // the library's loop thread pinned to this CPU (LoopOptions::cpu); -1: not pinned
   double feedback_limit_N = 0.5;
   model::ObserverOptions observer{};
-  model::InverseOptions inverse{};
+  // One Gauss-Newton step a tick on every component (small_component_steps; the library's default
+  // solves a small one whole).
+  model::InverseOptions inverse{.small_component_steps = 1};
   // Stuck, noisy and offset sensors (sensor_faults.hpp): a faulty sensor leaves the observer's
   // fit; when a fluid cell is left with no healthy sensor the bridge releases the valves and
   // disables the device, and refuses enable until it is rebuilt.

@@ -120,6 +120,11 @@ struct InverseOptions {
   // from its levels on the next; 0: max_iterations, as a small component. The worst tick is then
   // bounded by the steps, not by the conflict (docs/bridge.md, "Large components in steps").
   int large_component_steps = 1;
+  // The same for a component of at most 32 loaded cells (the dense path), and twice it for each
+  // trial of a search for better levels (a cold restart, a stall escape); 0: max_iterations, so
+  // that one solve converges where it can. The bridge sets 1: the 5x5 with every cell pressed then
+  // costs one step a tick, not a dozen (docs/bridge.md, "Small components in steps").
+  int small_component_steps = 0;
   // Ridge on the valve levels (relative to the cells' unit sensitivity): picks the smallest
   // currents among equally good allocations.
   double regularisation = 1.0e-8;
