@@ -294,7 +294,9 @@ void Bridge::Impl::watch_sensors(TimePoint now) noexcept {
     return;
   }
   telemetry_seen_ = link.telemetry;
-  const std::size_t k = sensor_faults_->update(sensor_reading_, observer_->sensor_residual_sigma());
+  // Spaced by the unit's clock: a late tick reads the newest of several readings.
+  const std::size_t k = sensor_faults_->update(sensor_reading_, observer_->sensor_residual_sigma(),
+                                               session_.sensor_device_time_us());
   if (k == SensorFaultMonitor::npos) {
     return;
   }

@@ -46,6 +46,23 @@ std::size_t stuck_run_for(double noise_std, double resolution, double p) {
   return run > 1e6 ? SensorFaultMonitor::npos : static_cast<std::size_t>(std::max(run, 2.0));
 }
 
+// The second difference's weights on the readings before last, last and now: (1, -2, 1) for evenly
+// spaced readings; for spacings h1 (before to last) and h2 (last to now), the combination that a
+// reading moving at a constant rate leaves at zero, (h2, -(h1 + h2), h1), scaled so that white
+// noise of sigma gives it the same mean square, 6 sigma^2, whatever the spacing.
+struct SecondDifference {
+  double before = 1.0;
+  double last = -2.0;
+  double now = 1.0;
+};
+
+SecondDifference second_difference(std::uint32_t before_to_last_us, std::uint32_t last_to_now_us) noexcept {
+  const double h1 = before_to_last_us;
+  const double h2 = last_to_now_us;
+  const double scale = std::sqrt(6.0 / (h2 * h2 + (h1 + h2) * (h1 + h2) + h1 * h1));
+  return {h2 * scale, -(h1 + h2) * scale, h1 * scale};
+}
+
 struct LeanLimits {
   double ratio_cap;   // a reading's noise ratio counts for at most this
   double offset_cap;  // a residual counts for at most this, sigmas
@@ -59,13 +76,15 @@ struct LeanLimits {
 // restrict parameters (g++ ignores restrict on local pointers, and checked 13 arrays for overlap
 // instead of vectorising). Written as selects between doubles, choosing as std::min and
 // std::clamp do: g++ 12 vectorises those on SSE2, not a bool turned into an integer; the alarm is
-// OR-ed from the flags' bits. True when some test is past its limit.
+// OR-ed from the flags' bits. True when some test is past its limit. kEven: the readings evenly
+// spaced, w is (1, -2, 1) (the common case, with two multiplications a sensor fewer).
+template <bool kEven>
 bool lean_pass(std::size_t n, const double* __restrict y, const double* __restrict r, double* __restrict last,
                double* __restrict before, double* __restrict run, double* __restrict noise,
                double* __restrict mean, const double* __restrict band, const double* __restrict inv6,
                const double* __restrict noise_alpha, const double* __restrict offset_alpha,
                const double* __restrict weight, const double* __restrict stuck, LeanLimits limits,
-               double has_last, double noise_on) noexcept {
+               SecondDifference w, double has_last, double noise_on) noexcept {
   std::uint64_t alarm = 0;
   for (std::size_t k = 0; k < n; ++k) {
     const double unexplained =
@@ -73,7 +92,8 @@ bool lean_pass(std::size_t n, const double* __restrict y, const double* __restri
     const double counts = band[k] == 0.0 ? 1.0 : unexplained;  // a repeat the band does not explain
     const double same = y[k] == last[k] ? has_last : 0.0;
     run[k] = 1.0 + same * (run[k] + counts - 1.0);  // a repeat: run + counts; else 1
-    const double d2 = y[k] - 2.0 * last[k] + before[k];
+    const double d2 =
+        kEven ? y[k] - 2.0 * last[k] + before[k] : w.now * y[k] + w.last * last[k] + w.before * before[k];
     const double ratio = d2 * d2 * inv6[k];
     noise[k] +=
         noise_alpha[k] * noise_on * ((limits.ratio_cap < ratio ? limits.ratio_cap : ratio) - noise[k]);
@@ -98,7 +118,8 @@ class __attribute__((visibility("hidden"))) SensorFaultMonitor::Impl {
   Impl(const model::DeviceProfile& profile, const GridLayout& layout, const SensorFaultOptions& options,
        double reading_deadband);
 
-  std::size_t update(std::span<const double> readings, std::span<const double> residual_sigma) noexcept;
+  std::size_t update(std::span<const double> readings, std::span<const double> residual_sigma,
+                     const std::uint32_t* device_time_us) noexcept;
   void reset() noexcept;
   void restart_history() noexcept;
   // Room for every watched sensor in judged_, so reset() never allocates (a copy's vector has
@@ -160,7 +181,16 @@ class __attribute__((visibility("hidden"))) SensorFaultMonitor::Impl {
   std::vector<double> deadband_sigma_;  // the unit's deadband in residual_sigma_ (0: none)
   std::vector<double> run_;             // equal readings in a row (a count; exact in a double)
   std::vector<std::size_t> stuck_run_;  // npos: never stuck (not watched, or no noise)
-  std::vector<double> seen_;            // readings so far (up to 2: the second difference needs 3)
+  // Readings in a row so far (up to 2: the second difference needs 3); a reading that was not
+  // finite starts it again (its sensor's history then spans other times than the others').
+  std::vector<double> seen_;
+  // The unit's clock at the last two readings, for the second difference's spacing: a host that
+  // wakes late reads the newest of several readings (SecondDifference).
+  std::uint32_t time_last_us_ = 0;
+  std::uint32_t time_before_us_ = 0;
+  unsigned times_seen_ = 0;    // readings with a time in a row, up to 2
+  bool evenly_spaced_ = true;  // this reading and the two before it (else spacing_ weighs them)
+  SecondDifference spacing_;
   // The lean pass's masks. A judged sensor: its windows' weights, 1, its stuck run; any other:
   // 0, 0, 0 and infinity, so that its figures stand and raise nothing.
   std::vector<double> noise_alpha_;
@@ -176,6 +206,7 @@ class __attribute__((visibility("hidden"))) SensorFaultMonitor::Impl {
   }
   void restart_watch() noexcept {
     std::fill(seen_.begin(), seen_.end(), 0.0);
+    times_seen_ = 0;
     lean_ = Lean::fresh;
     std::fill(run_.begin(), run_.end(), 0.0);
     std::fill(noise_ratio_.begin(), noise_ratio_.end(), 0.0);
@@ -369,9 +400,26 @@ void SensorFaultMonitor::Impl::latch(std::size_t sensor, SensorFault fault, doub
 }
 
 std::size_t SensorFaultMonitor::Impl::update(std::span<const double> readings,
-                                             std::span<const double> residual_sigma) noexcept {
+                                             std::span<const double> residual_sigma,
+                                             const std::uint32_t* device_time_us) noexcept {
   if (!options_.enabled || readings.size() != fault_.size() || residual_sigma.size() != fault_.size()) {
     return npos;
+  }
+  // The spacing of before, last and this reading on the unit's clock (uint32 differences: it
+  // wraps); evenly spaced while fewer than three readings came with a time.
+  evenly_spaced_ = true;
+  if (device_time_us == nullptr) {
+    times_seen_ = 0;
+  } else {
+    const std::uint32_t before_to_last_us = time_last_us_ - time_before_us_;
+    const std::uint32_t last_to_now_us = *device_time_us - time_last_us_;
+    if (times_seen_ >= 2 && before_to_last_us != last_to_now_us) {
+      evenly_spaced_ = false;
+      spacing_ = second_difference(before_to_last_us, last_to_now_us);
+    }
+    time_before_us_ = time_last_us_;
+    time_last_us_ = *device_time_us;
+    times_seen_ = std::min(times_seen_ + 1U, 2U);
   }
   // The common reading (the sensors' histories alike, every value finite) takes the lean pass,
   // which
@@ -414,19 +462,22 @@ bool SensorFaultMonitor::Impl::update_scalar(std::span<const double> readings,
     const std::size_t k = sensor;
     const double y = readings[k];
     if (!std::isfinite(y)) {
-      primed = primed && seen_[k] >= 2.0;
-      one_each = one_each && seen_[k] == 1.0;
+      seen_[k] = 0.0;  // the noise test needs three readings in a row again; the stuck run goes on
+      primed = false;
+      one_each = false;
       continue;
     }
     const double r = residual_sigma[k];
-    if (seen_[k] == 0.0 || y != last_[k]) {
+    if (run_[k] == 0.0 || y != last_[k]) {  // a run of 0: no reading yet
       run_[k] = 1.0;
     } else if (deadband_sigma_[k] == 0.0 ||
                (std::isfinite(r) && std::abs(r) > deadband_sigma_[k] + kDeadbandMarginSigma)) {
       run_[k] += 1.0;  // a repeat the deadband does not explain
     }                  // else: a repeat within the band is no evidence either way; the run holds
     if (seen_[k] >= 2.0) {
-      const double d2 = y - 2.0 * last_[k] + before_last_[k];
+      const double d2 = evenly_spaced_
+                            ? y - 2.0 * last_[k] + before_last_[k]
+                            : spacing_.now * y + spacing_.last * last_[k] + spacing_.before * before_last_[k];
       // One jump (a finger's tap, a gap in the readings) must not pass for noise: each reading
       // counts for at most kOutlierCap limits, so it takes several to cross one.
       const double ratio = std::min(d2 * d2 * inv_six_sigma2_[k], ratio_cap);
@@ -453,11 +504,15 @@ bool SensorFaultMonitor::Impl::update_lean(std::span<const double> readings,
                                            std::span<const double> residual_sigma) noexcept {
   const LeanLimits limits{kOutlierCap * options_.noise_ratio_limit, kOutlierCap * options_.offset_limit_sigma,
                           options_.noise_ratio_limit, options_.offset_limit_sigma};
-  return lean_pass(readings.size(), readings.data(), residual_sigma.data(), last_.data(), before_last_.data(),
-                   run_.data(), noise_ratio_.data(), mean_residual_.data(), deadband_sigma_.data(),
-                   inv_six_sigma2_.data(), noise_alpha_.data(), offset_alpha_.data(), judged_weight_.data(),
-                   stuck_limit_.data(), limits, lean_ == Lean::fresh ? 0.0 : 1.0,
-                   lean_ == Lean::primed ? 1.0 : 0.0);
+  const auto pass = [&]<bool kEven>() {
+    return lean_pass<kEven>(readings.size(), readings.data(), residual_sigma.data(), last_.data(),
+                            before_last_.data(), run_.data(), noise_ratio_.data(), mean_residual_.data(),
+                            deadband_sigma_.data(), inv_six_sigma2_.data(), noise_alpha_.data(),
+                            offset_alpha_.data(), judged_weight_.data(), stuck_limit_.data(), limits,
+                            spacing_, lean_ == Lean::fresh ? 0.0 : 1.0, lean_ == Lean::primed ? 1.0 : 0.0);
+  };
+  // Evenly spaced (every reading a host that keeps its periods gets): the pass without the weights.
+  return evenly_spaced_ ? pass.template operator()<true>() : pass.template operator()<false>();
 }
 
 // The tests on the running figures, in sensor order: the first stuck or noisy sensor, else an
@@ -521,7 +576,12 @@ SensorFaultMonitor& SensorFaultMonitor::operator=(SensorFaultMonitor&&) noexcept
 SensorFaultMonitor::~SensorFaultMonitor() = default;
 std::size_t SensorFaultMonitor::update(std::span<const double> readings,
                                        std::span<const double> residual_sigma) noexcept {
-  return impl_->update(readings, residual_sigma);
+  return impl_->update(readings, residual_sigma, nullptr);
+}
+std::size_t SensorFaultMonitor::update(std::span<const double> readings,
+                                       std::span<const double> residual_sigma,
+                                       std::uint32_t device_time_us) noexcept {
+  return impl_->update(readings, residual_sigma, &device_time_us);
 }
 void SensorFaultMonitor::reset() noexcept { impl_->reset(); }
 void SensorFaultMonitor::set_reading_deadband(double reading_deadband) noexcept {

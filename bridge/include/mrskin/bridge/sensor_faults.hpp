@@ -12,7 +12,8 @@
 //     value away from the stuck one, and never while a healthy one rests inside the band.
 //   - noisy: the mean square of the reading's second difference (6 sigma^2 for white noise, and
 //     next to nothing from a finger's motion at 1 kHz) over noise_ratio_limit times its expected
-//     value.
+//     value. Spaced by the unit's clock when update() is given it: a host that reads only the
+//     newest of several readings sees them unevenly spaced, and a moving finger is no noise.
 //   - offset: the observer's residual for this sensor (its reading less what the fitted depths
 //     predict), averaged, beyond offset_limit_sigma. Depths are never negative and every cell is
 //     read by more than one sensor on the built-in profiles, so one sensor's shifted zero is left
@@ -75,6 +76,11 @@ class MRSKIN_BRIDGE_API SensorFaultMonitor {
   // reading, or npos. At most one sensor per call (the others are judged again next time, once
   // the observer has left the faulty one out). Real-time safe.
   std::size_t update(std::span<const double> readings, std::span<const double> residual_sigma) noexcept;
+  // The same, with the unit's clock at the readings' sampling (DeviceSession::sensor_device_time_us,
+  // us, wrapping): the noise test spaces its second difference by it, so readings a late host
+  // skipped over are no noise. Without it, readings are taken as evenly spaced.
+  std::size_t update(std::span<const double> readings, std::span<const double> residual_sigma,
+                     std::uint32_t device_time_us) noexcept;
   void reset() noexcept;
   // The unit's declared deadband again (after a reconnect: the unit declares it anew), in the
   // readings' unit; a negative or non-finite value is taken as 0. Real-time safe.
