@@ -793,14 +793,13 @@ TEST_F(BridgedDaemon, TheMockFingerWaitsForEachNewStreamsFirstSample) {
   const std::string s = reload(d, c);
   ASSERT_EQ(json_field(s, "reloads"), "1") << s << d.output();
   // Back at depth 0 the cell refills slowly (0 -> 0.08 N over 0.8 s here). A finger that carried
-  // on would hold the demo's 4 mm (above 0.45 N) through the 1.2 s below. Lines are judged by the
-  // daemon's own clock, from 0.3 s after the reload took effect (`uptime_s` of that status): none
-  // pressed, and the last ones resting. Under ThreadSanitizer on a loaded machine the new bridge
-  // can start later still: lines 0.5 s after it repeated the old bridge's last grid (0.39 N).
+  // on would hold the demo's 4 mm (0.43-0.7 N) through the 1.2 s below. Lines are judged by the
+  // daemon's own clock, from 0.3 s after the reload took effect (`uptime_s` of that status): all
+  // resting. The reload lifts the finger before the new loop starts: when the daemon's main loop
+  // did it after the reload, a loaded machine held the old finger 0.5 s into the new bridge (CI).
   const double reloaded_s = std::stod(json_field(s, "uptime_s").value_or("0"));
   f = true_forces_N(t, reloaded_s + 0.3, reloaded_s + 1.3);
-  EXPECT_TRUE(f.size() >= 10 && *std::max_element(f.begin(), f.end()) < 0.45 &&
-              *std::max_element(f.end() - 5, f.end()) < 0.25)
+  EXPECT_TRUE(f.size() >= 10 && *std::max_element(f.begin(), f.end()) < 0.25)
       << "the finger did not wait for the new stream: " << ::testing::PrintToString(f);
 
   robot = udp_robot(second, 1300);

@@ -954,6 +954,7 @@ bool Daemon::apply_reload(const Settings& next, const ReloadPlan& plan, std::vec
   if (new_loop) {
     loop_ = std::move(new_loop);
   }
+  drive_finger();  // before the new loop's first tick (the main loop, loaded, came 0.5 s late)
   return true;
 }
 
