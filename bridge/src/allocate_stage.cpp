@@ -11,7 +11,11 @@ namespace {
 constexpr double kNotLoaded = std::numeric_limits<double>::quiet_NaN();  // no envelope to show
 constexpr double kSealReleaseLoading_s = 0.01;  // a sealed cell loading this long is pressed on
 constexpr double kFallSmoothing_s = 3e-3;       // the fall rate's smoothing (observer force noise)
-constexpr double kHighestSealFraction = 0.95;   // of the highest current: the seal's delay stays finite
+// A sealed cell under a pressing finger gains about 4 times its force a second (2.1-2.6 N/s from
+// 0.6 N at 5 mm/s, docs/bridge.md): a lock for being short of the law waits until the cell is
+// short by more than one period of that, or it overshoots (at 200 Hz: 2 % of the law a tick).
+constexpr double kSealedRise_per_s = 4.0;
+constexpr double kHighestSealFraction = 0.95;  // of the highest current: the seal's delay stays finite
 }  // namespace
 
 bool valves_open(const GridLayout& layout, std::span<const double> current_A, std::size_t cell,
@@ -116,10 +120,19 @@ void AllocateStage::lock_short_cells(const Rendering& rendered, std::span<const 
     // A loading cell whose observed force is still below its request: the inverse's feed-forward
     // expects the viscous force of a steady flow through open valves, but the network's
     // compliance is still filling, and open valves would let the finger's volume out before it
-    // builds the pressure. Held at the request's threshold until the force gets there.
-    const bool short_of_request =
-        options_.lock_while_short && c.role == model::CellRole::loading && force_N[i] < c.requested_force_N;
-    if (!(c.clamped_high || margin > 0.0 || short_of_request)) {
+    // builds the pressure. Held at the request's threshold until the force gets there. Short of
+    // its law (as far as the envelope reaches) counts too: a request the feedback wound below
+    // the law would let the cell sag under it as the finger slows (BridgeOptions).
+    const double short_of_N =
+        options_.lock_short_of_law
+            ? std::max(
+                  c.requested_force_N,
+                  std::min(std::max(0.0, 1.0 - kSealedRise_per_s / options_.rate_hz) * rendered.tissue_N[i],
+                           c.force_max_N))
+            : c.requested_force_N;
+    const bool short_loading =
+        options_.lock_while_short && c.role == model::CellRole::loading && force_N[i] < short_of_N;
+    if (!(c.clamped_high || margin > 0.0 || short_loading)) {
       continue;
     }
     for (const std::size_t v : layout_.valves_of_cell(i)) {
