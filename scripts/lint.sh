@@ -2,9 +2,11 @@
 # Lint: clang-format (dry run, any difference fails) on the project's C++ sources, no file over
 # 1,000 lines outside tests/, then clang-tidy
 # (.clang-tidy, warnings are errors) over protocol/, driver/, bridge/, tools/ and python/ using the release
-# build's compile_commands.json (configured first if missing). Prints a count of findings per check.
+# build's compile_commands.json (configured first if missing), files with the same flags several to a
+# clang-tidy unit (scripts/tidy_unity.py). Prints a count of findings per check.
 # Usage: scripts/lint.sh [--format-only | --tidy-only]
-# Env: LINT_BUILD_DIR (default build/release), LINT_JOBS (default nproc).
+# Env: LINT_BUILD_DIR (default build/release), LINT_JOBS (default nproc), LINT_PER_FILE=1 (one
+# file per clang-tidy unit, as run-clang-tidy does: about 2.5 times slower).
 set -euo pipefail
 cd "$(dirname "${BASH_SOURCE[0]}")/.."
 root=$PWD
@@ -78,16 +80,22 @@ if [[ $mode != --format-only ]]; then
     cmake --preset release >/dev/null
   fi
   tidy=$(pick clang-tidy-14 clang-tidy)
-  runner=$(pick run-clang-tidy-14 run-clang-tidy)
   mkdir -p "$logs"
+  # Files with the same flags are tidied several to a unit (scripts/tidy_unity.py: the standard
+  # library's headers are most of clang-tidy's time on a file); LINT_PER_FILE=1 tidies one by one.
+  unity_args=()
+  [[ ${LINT_PER_FILE:-0} == 1 ]] && unity_args+=(--per-file)
   echo "== lint: clang-tidy (${jobs} jobs) over protocol/ driver/ bridge/ tools/ python/"
-  if ! "$runner" -clang-tidy-binary "$(command -v "$tidy")" -p "$build_dir" -j "$jobs" -quiet \
-    "^${root}/(protocol|driver|bridge|tools|python)/" >"$logs/tidy.raw.log" 2>&1; then
+  if ! python3 scripts/tidy_unity.py --build-dir "$build_dir" --out-dir "$logs/unity" \
+    --config-file "$root/.clang-tidy" --tidy "$(command -v "$tidy")" --jobs "$jobs" \
+    "${unity_args[@]}" --regex "^${root}/(protocol|driver|bridge|tools|python)/" \
+    >"$logs/tidy.raw.log" 2>&1; then
     rc=1
   fi
-  # run-clang-tidy-14 always asks for colours; strip them.
+  # Strip colours, should a clang-tidy print them.
   sed -E 's/\x1b\[[0-9;]*m//g' "$logs/tidy.raw.log" >"$logs/tidy.log"
   rm -f "$logs/tidy.raw.log"
+  grep -E '^tidy_unity: ' "$logs/tidy.log" || true
   counts=$(summarize "$logs/tidy.log")
   if [[ -n $counts ]]; then
     rc=1

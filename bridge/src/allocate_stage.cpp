@@ -49,6 +49,7 @@ AllocateStage::AllocateStage(const BridgeOptions& options, const GridLayout& lay
 void AllocateStage::retune_rate() noexcept {
   fall_smoothing_ = 1.0 - std::exp(-1.0 / (options_.rate_hz * kFallSmoothing_s));
   seal_release_ticks_ = std::max(1, static_cast<int>(std::lround(kSealReleaseLoading_s * options_.rate_hz)));
+  short_of_law_fraction_ = std::max(0.0, 1.0 - kSealedRise_per_s / options_.rate_hz);
 }
 
 void AllocateStage::run(const Rendering& rendered, std::span<const double> force_N, double since_start_s,
@@ -125,10 +126,8 @@ void AllocateStage::lock_short_cells(const Rendering& rendered, std::span<const 
     // the law would let the cell sag under it as the finger slows (BridgeOptions).
     const double short_of_N =
         options_.lock_short_of_law
-            ? std::max(
-                  c.requested_force_N,
-                  std::min(std::max(0.0, 1.0 - kSealedRise_per_s / options_.rate_hz) * rendered.tissue_N[i],
-                           c.force_max_N))
+            ? std::max(c.requested_force_N,
+                       std::min(short_of_law_fraction_ * rendered.tissue_N[i], c.force_max_N))
             : c.requested_force_N;
     const bool short_loading =
         options_.lock_while_short && c.role == model::CellRole::loading && force_N[i] < short_of_N;

@@ -56,8 +56,9 @@ class AllocateStage {
   const model::CellObserver& observer_;
   std::span<const double> valve_gain_;  // calibrated per-valve yield gain
   double max_current_A_;
-  double coil_tau_s_;            // the profile's coil time constant
-  double fall_smoothing_ = 1.0;  // per tick (retune_rate)
+  double coil_tau_s_;                   // the profile's coil time constant
+  double fall_smoothing_ = 1.0;         // per tick (retune_rate)
+  double short_of_law_fraction_ = 1.0;  // of the law, below which a loading cell locks (retune_rate)
   enum class DrainPhase : unsigned char { none, draining, sealed };
   std::vector<DrainPhase> drain_phase_;     // per fluid cell (drain_then_seal)...
   int seal_release_ticks_ = 1;              // loading this many ticks ends a seal (retune_rate)

@@ -50,16 +50,16 @@ struct Case {
 };
 
 // Error of a solution's exact rendered forces against its clamped targets, over loaded cells.
-struct ForceError {
+struct ExactForceError {
   double max_N = 0.0;
   double rms_N = 0.0;
   std::size_t cells = 0;
 };
 
-ForceError exact_error(const DeviceModel& m, const Case& c, std::span<const double> currents,
-                       std::span<const double> target_N) {
+ExactForceError exact_error(const DeviceModel& m, const Case& c, std::span<const double> currents,
+                            std::span<const double> target_N) {
   std::vector<double> f(m.layout().fluid_cell_count());
-  ForceError e;
+  ExactForceError e;
   if (exact_rendered_forces_N(m, c.targets, c.states, 0.0, currents, f) != Status::ok) {
     e.max_N = e.rms_N = std::numeric_limits<double>::quiet_NaN();
     return e;
@@ -155,8 +155,8 @@ std::vector<Case> make_cases(const DeviceModel& m) {
 struct Outcome {
   double fast_ns = 0.0;  // median cold solve
   double slow_s = 0.0;
-  ForceError fast;
-  ForceError slow;
+  ExactForceError fast;
+  ExactForceError slow;
   double fast_residual_N = 0.0;  // the fast model's own estimate
   long slow_evaluations = 0;
   bool ok = true;
@@ -200,7 +200,7 @@ Outcome run_case(const DeviceModel& m, CellInverse& inv, const Case& c) {
 struct Tracking {
   double median_ns = 0.0;
   double p99_ns = 0.0;
-  ForceError error;
+  ExactForceError error;
   int ticks = 0;
 };
 
@@ -236,7 +236,7 @@ Tracking run_tracking(const DeviceModel& m) {
       for (std::size_t i = 0; i < n; ++i) {
         targets[i] = inv.cells()[i].target_force_N;
       }
-      const ForceError e = exact_error(m, c, inv.currents_A(), targets);
+      const ExactForceError e = exact_error(m, c, inv.currents_A(), targets);
       max_N = std::max(max_N, e.max_N);
       sum2 += e.rms_N * e.rms_N * static_cast<double>(e.cells);
       samples += e.cells;

@@ -15,14 +15,12 @@
 
 #include "bench_common.hpp"
 #include "mrskin/driver/model/device_model.hpp"
+#include "suites.hpp"  // run_inverse_suite, the same as a model-bench suite
 
 namespace mrskin::bench {
 
 // The suite proper; `progress` draws a progress bar on stderr (when it is a terminal). Returns
 // the process exit code (0; 1 when a file cannot be written or a solve fails).
 int run_inverse_bench(const std::string& out_dir, const model::DeviceModel& model, bool progress);
-
-// The same as a model-bench suite: options.profile (default profile if empty), options.out.
-int run_inverse_suite(const BenchOptions& o);
 
 }  // namespace mrskin::bench

@@ -85,7 +85,7 @@ std::vector<std::size_t> cells_to_draw(const PlotOptions& o, const Recording& r,
   return order;
 }
 
-std::string num(double v) { return fmt::format("{:.1f}", v); }
+std::string svg_num(double v) { return fmt::format("{:.1f}", v); }
 
 class Panel {
  public:
@@ -115,7 +115,7 @@ std::string polylines(const Samples& s, const Panel& p, Keep keep, Value value, 
       flush();
       continue;
     }
-    points += num(p.px(s.t_s[k])) + "," + num(p.py(value(*s.cells[k]))) + " ";
+    points += svg_num(p.px(s.t_s[k])) + "," + svg_num(p.py(value(*s.cells[k]))) + " ";
   }
   flush();
   return out;
@@ -136,10 +136,10 @@ std::string envelope_band(const Samples& s, const Panel& p, std::size_t i) {
     }
     std::string points;
     for (std::size_t j = k; j < end; ++j) {
-      points += num(p.px(s.t_s[j])) + "," + num(p.py(s.cells[j]->ceiling_n[i])) + " ";
+      points += svg_num(p.px(s.t_s[j])) + "," + svg_num(p.py(s.cells[j]->ceiling_n[i])) + " ";
     }
     for (std::size_t j = end; j-- > k;) {
-      points += num(p.px(s.t_s[j])) + "," + num(p.py(s.cells[j]->floor_n[i])) + " ";
+      points += svg_num(p.px(s.t_s[j])) + "," + svg_num(p.py(s.cells[j]->floor_n[i])) + " ";
     }
     out += fmt::format("<polygon fill='#cfe3f7' stroke='none' points='{}'/>\n", points);
     k = end;
@@ -157,7 +157,7 @@ std::string clamp_marks(const Samples& s, const Panel& p, std::size_t i, std::si
     const double x0 = p.px(s.t_s[k]);
     const double x1 = k + 1 < s.cells.size() ? p.px(s.t_s[k + 1]) : x0 + 1.0;
     out += fmt::format("<rect class='clamped' x='{}' y='{}' width='{}' height='5' fill='#d62728'/>\n",
-                       num(x0), num(p.bottom() - 5.0), num(std::max(1.0, x1 - x0)));
+                       svg_num(x0), svg_num(p.bottom() - 5.0), svg_num(std::max(1.0, x1 - x0)));
   }
   return out;
 }
@@ -200,7 +200,7 @@ PlotResult plot_svg(const Recording& r, const Samples& s, const std::vector<std:
       "font-size='12'>\n"
       "<rect width='100%' height='100%' fill='white'/>\n"
       "<text x='{}' y='24' font-size='15' font-weight='bold'>{}</text>\n",
-      num(width), num(height), num(kLeft), json_escape(title));
+      svg_num(width), svg_num(height), svg_num(kLeft), json_escape(title));
   const std::string rendered_name =
       r.rendered == "truth" ? "rendered (the mock's true force)" : "rendered (the observer's estimate)";
   const std::string legend[][2] = {{"#cfe3f7", "envelope (what the valves can render)"},
@@ -210,20 +210,21 @@ PlotResult plot_svg(const Recording& r, const Samples& s, const std::vector<std:
                                    {"#d62728", "clamped: the law outside the envelope"}};
   double ly = 44.0;
   for (const auto& [colour, name] : legend) {
-    out +=
-        fmt::format("<rect x='{}' y='{}' width='18' height='10' fill='{}'/><text x='{}' y='{}'>{}</text>\n",
-                    num(kLeft), num(ly - 9.0), colour, num(kLeft + 24.0), num(ly), json_escape(name));
+    out += fmt::format(
+        "<rect x='{}' y='{}' width='18' height='10' fill='{}'/><text x='{}' y='{}'>{}</text>\n",
+        svg_num(kLeft), svg_num(ly - 9.0), colour, svg_num(kLeft + 24.0), svg_num(ly), json_escape(name));
     ly += 16.0;
   }
   out += fmt::format("<text x='{}' y='{}' fill='#555'>{}; force 0..{:.2f} N; time {:.2f}..{:.2f} s</text>\n",
-                     num(kLeft), num(ly + 4.0), json_escape(r.uri), f_max_N, t0_s, t1_s);
+                     svg_num(kLeft), svg_num(ly + 4.0), json_escape(r.uri), f_max_N, t0_s, t1_s);
   for (std::size_t n = 0; n < cells.size(); ++n) {
     const std::size_t i = cells[n];
     const std::size_t row = n / columns;  // the panels fill the rows left to right
     const double x = kLeft + static_cast<double>(n % columns) * (kPanelW + kGapX);
     const double y = kTop + static_cast<double>(row) * (kPanelH + kGapY);
     const Panel p(x, y, kPanelW, kPanelH, t0_s, t1_s, f_max_N);
-    out += fmt::format("<text x='{}' y='{}' font-weight='bold'>cell {}</text>\n", num(x), num(y - 6.0), i);
+    out += fmt::format("<text x='{}' y='{}' font-weight='bold'>cell {}</text>\n", svg_num(x),
+                       svg_num(y - 6.0), i);
     out += envelope_band(s, p, i);
     const auto all = [](const CellsSample&) { return true; };
     const auto loaded = [i](const CellsSample& c) { return c.loaded[i] != 0.0; };
@@ -240,16 +241,17 @@ PlotResult plot_svg(const Recording& r, const Samples& s, const std::vector<std:
     for (const CellsSample* c : s.cells) {
       result.loaded_samples += c->loaded[i] != 0.0 ? 1U : 0U;
     }
-    out += fmt::format("<rect x='{}' y='{}' width='{}' height='{}' fill='none' stroke='#444'/>\n", num(x),
-                       num(y), num(kPanelW), num(kPanelH));
-    out += fmt::format("<text x='{}' y='{}' text-anchor='end' fill='#555'>{:.2f} N</text>\n", num(x - 4.0),
-                       num(y + 10.0), f_max_N);
-    out += fmt::format("<text x='{}' y='{}' text-anchor='end' fill='#555'>0</text>\n", num(x - 4.0),
-                       num(y + kPanelH));
+    out += fmt::format("<rect x='{}' y='{}' width='{}' height='{}' fill='none' stroke='#444'/>\n", svg_num(x),
+                       svg_num(y), svg_num(kPanelW), svg_num(kPanelH));
+    out += fmt::format("<text x='{}' y='{}' text-anchor='end' fill='#555'>{:.2f} N</text>\n",
+                       svg_num(x - 4.0), svg_num(y + 10.0), f_max_N);
+    out += fmt::format("<text x='{}' y='{}' text-anchor='end' fill='#555'>0</text>\n", svg_num(x - 4.0),
+                       svg_num(y + kPanelH));
     out += fmt::format(
         "<text x='{}' y='{}' fill='#555'>{:.2f} s</text><text x='{}' y='{}' text-anchor='end' "
         "fill='#555'>{:.2f} s</text>\n",
-        num(x), num(y + kPanelH + 14.0), t0_s, num(x + kPanelW), num(y + kPanelH + 14.0), t1_s);
+        svg_num(x), svg_num(y + kPanelH + 14.0), t0_s, svg_num(x + kPanelW), svg_num(y + kPanelH + 14.0),
+        t1_s);
   }
   out += "</svg>\n";
   return result;

@@ -7,8 +7,6 @@ namespace mrskin::model {
 
 namespace {
 
-bool finite(double x) noexcept { return std::isfinite(x); }
-
 // 4-point Gauss-Legendre on [-1, 1].
 constexpr std::array<double, 4> kGaussX = {-0.8611363115940526, -0.3399810435848563, 0.3399810435848563,
                                            0.8611363115940526};
@@ -63,7 +61,7 @@ const char* to_string(CellMode m) noexcept {
 
 Result<ContactPatch> contact_patch(const MembraneParams& m, double cell_radius_m,
                                    double finger_radius_m) noexcept {
-  if (!finite(cell_radius_m) || !finite(finger_radius_m)) {
+  if (!std::isfinite(cell_radius_m) || !std::isfinite(finger_radius_m)) {
     return failure<ContactPatch>(Status::not_finite);
   }
   if (!(cell_radius_m > 0.0) || !(finger_radius_m >= 0.01 * cell_radius_m)) {
@@ -87,7 +85,7 @@ Result<ContactPatch> contact_patch(const MembraneParams& m, double cell_radius_m
   p.bulge_linear_Pa_per_m3 =
       4.0 * m.pretension_N_per_m / n2 + 16.0 * kPi * bending_stiffness_N_m(m) * (a - c) * (a + c) / (n2 * n2);
   p.bulge_cubic_Pa_per_m9 = kappa * e_prime * m.thickness_m * in.j4 / (2.0 * n2 * n2 * n2 * n2);
-  if (!finite(p.bulge_linear_Pa_per_m3) || !finite(p.bulge_cubic_Pa_per_m9) || !(n2 > 0.0)) {
+  if (!std::isfinite(p.bulge_linear_Pa_per_m3) || !std::isfinite(p.bulge_cubic_Pa_per_m9) || !(n2 > 0.0)) {
     return failure<ContactPatch>(Status::degenerate);
   }
   return {p};
@@ -105,7 +103,7 @@ double bulge_pressure_Pa(const ContactPatch& p, double bulge_volume_m3) noexcept
 }
 
 Result<double> bulge_volume_m3(const ContactPatch& p, double pressure_Pa) noexcept {
-  if (!finite(pressure_Pa)) {
+  if (!std::isfinite(pressure_Pa)) {
     return failure<double>(Status::not_finite);
   }
   const double target = std::fabs(pressure_Pa);
@@ -135,7 +133,7 @@ Result<double> bulge_volume_m3(const ContactPatch& p, double pressure_Pa) noexce
 
 Result<double> stored_energy_J(const ContactPatch& p, double indentation_m, double bulge_volume_m3) noexcept {
   const double s = bulge_volume_m3;
-  if (!finite(indentation_m) || !finite(s)) {
+  if (!std::isfinite(indentation_m) || !std::isfinite(s)) {
     return failure<double>(Status::not_finite);
   }
   const MembraneParams& m = p.membrane;
@@ -147,7 +145,7 @@ Result<double> stored_energy_J(const ContactPatch& p, double indentation_m, doub
   const double k_cub = m.youngs_modulus_Pa * m.thickness_m / (a2 * q * q * q);
   const double u = 0.5 * k_lin * d * d + 0.25 * k_cub * d * d * d * d +
                    0.5 * p.bulge_linear_Pa_per_m3 * s * s + 0.25 * p.bulge_cubic_Pa_per_m9 * s * s * s * s;
-  return finite(u) ? Result<double>{u} : failure<double>(Status::overflow);
+  return std::isfinite(u) ? Result<double>{u} : failure<double>(Status::overflow);
 }
 
 }  // namespace mrskin::model

@@ -12,8 +12,6 @@ namespace mrskin::model {
 
 namespace {
 
-bool finite(double x) noexcept { return std::isfinite(x); }
-
 constexpr int kYieldSegments = 512;
 constexpr double kRelTol = 1e-12;
 // Absolute floor of the pressure tolerances, Pa: subnormal inputs (1e-320 m^3/s through a
@@ -139,7 +137,7 @@ Result<GapField> DeviceModel::gap_field(double current_A) const noexcept {
 }
 
 Result<double> DeviceModel::yield_stress_at_current_Pa(double current_A) const noexcept {
-  if (!finite(current_A)) {
+  if (!std::isfinite(current_A)) {
     return failure<double>(Status::not_finite);
   }
   const double imax = profile_.coil.max_current_A;
@@ -304,14 +302,14 @@ Result<double> DeviceModel::valve_network_pressure_Pa(std::size_t cell, double f
   if (cell >= layout_.fluid_cell_count() || valve_yield_Pa.size() != layout_.valve_count()) {
     return failure<double>(Status::out_of_range);
   }
-  if (!finite(flow_m3_per_s)) {
+  if (!std::isfinite(flow_m3_per_s)) {
     return failure<double>(Status::not_finite);
   }
   if (flow_m3_per_s < 0.0) {
     return failure<double>(Status::negative);
   }
   for (const double t : valve_yield_Pa) {
-    if (!finite(t)) {
+    if (!std::isfinite(t)) {
       return failure<double>(Status::not_finite);
     }
     if (t < 0.0) {
@@ -330,7 +328,7 @@ Result<double> DeviceModel::valve_network_pressure_uniform_Pa(std::size_t cell, 
   if (cell >= layout_.fluid_cell_count()) {
     return failure<double>(Status::out_of_range);
   }
-  if (!finite(flow_m3_per_s) || !finite(yield_stress_Pa)) {
+  if (!std::isfinite(flow_m3_per_s) || !std::isfinite(yield_stress_Pa)) {
     return failure<double>(Status::not_finite);
   }
   if (flow_m3_per_s < 0.0 || yield_stress_Pa < 0.0) {
@@ -342,7 +340,7 @@ Result<double> DeviceModel::valve_network_pressure_uniform_Pa(std::size_t cell, 
 
 template <class TauOf>
 Result<CellLoad> DeviceModel::load(std::size_t cell, double d, double v, const TauOf& tau_of) const noexcept {
-  if (!finite(d) || !finite(v)) {
+  if (!std::isfinite(d) || !std::isfinite(v)) {
     return failure<CellLoad>(Status::not_finite);
   }
   if (cell >= layout_.fluid_cell_count()) {
@@ -407,7 +405,7 @@ Result<CellLoad> DeviceModel::load_at_pressure(double d, double v, double pv_Pa)
       out.mode = CellMode::released;
     }
   }
-  if (!finite(out.force_N)) {
+  if (!std::isfinite(out.force_N)) {
     return failure<CellLoad>(Status::overflow);
   }
   return {out};
@@ -443,7 +441,7 @@ Result<CellLoad> DeviceModel::cell_force_uniform(std::size_t cell, double indent
 Result<CellLoad> DeviceModel::cell_force_at_yield(std::size_t cell, double indentation_m,
                                                   double velocity_m_per_s,
                                                   double yield_stress_Pa) const noexcept {
-  if (!finite(yield_stress_Pa)) {
+  if (!std::isfinite(yield_stress_Pa)) {
     return failure<CellLoad>(Status::not_finite);
   }
   if (yield_stress_Pa < 0.0) {
@@ -456,7 +454,8 @@ Result<CellLoad> DeviceModel::cell_force_at_yield(std::size_t cell, double inden
 Result<CellLoad> DeviceModel::cell_force_at_valve_pressure(std::size_t cell, double indentation_m,
                                                            double velocity_m_per_s,
                                                            double valve_pressure_Pa) const noexcept {
-  if (!finite(indentation_m) || !finite(velocity_m_per_s) || !finite(valve_pressure_Pa)) {
+  if (!std::isfinite(indentation_m) || !std::isfinite(velocity_m_per_s) ||
+      !std::isfinite(valve_pressure_Pa)) {
     return failure<CellLoad>(Status::not_finite);
   }
   if (valve_pressure_Pa < 0.0) {
@@ -499,7 +498,7 @@ Result<CellEnvelope> DeviceModel::envelope(std::size_t cell, double indentation_
 
 Result<double> DeviceModel::current_for_force_A(std::size_t cell, double indentation_m,
                                                 double velocity_m_per_s, double force_N) const noexcept {
-  if (!finite(force_N)) {
+  if (!std::isfinite(force_N)) {
     return failure<double>(Status::not_finite);
   }
   if (velocity_m_per_s < 0.0) {

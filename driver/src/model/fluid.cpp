@@ -4,16 +4,12 @@
 
 namespace mrskin::model {
 
-namespace {
-bool finite(double x) noexcept { return std::isfinite(x); }
-}  // namespace
-
 double saturated_yield_stress_Pa(const FluidParams& f) noexcept {
   return f.carrier_factor * f.yield_coefficient_Pa * std::pow(f.volume_fraction, f.yield_exponent);
 }
 
 Result<double> yield_stress_Pa(const FluidParams& f, double field_A_per_m) noexcept {
-  if (!finite(field_A_per_m)) {
+  if (!std::isfinite(field_A_per_m)) {
     return failure<double>(Status::not_finite);
   }
   return {saturated_yield_stress_Pa(f) * std::tanh(f.yield_field_scale_m_per_A * std::fabs(field_A_per_m))};
@@ -25,7 +21,7 @@ double yield_stress_slope_Pa_per_A_per_m(const FluidParams& f, double field_A_pe
 }
 
 Result<double> fluid_flux_density_T(const FluidParams& f, double field_A_per_m) noexcept {
-  if (!finite(field_A_per_m)) {
+  if (!std::isfinite(field_A_per_m)) {
     return failure<double>(Status::not_finite);
   }
   const double a = f.saturation_coefficient_T * std::pow(f.volume_fraction, f.saturation_exponent);
@@ -42,7 +38,7 @@ double fluid_permeability_H_per_m(const FluidParams& f, double field_A_per_m) no
 }
 
 Result<double> fluid_field_for_flux_density_A_per_m(const FluidParams& f, double flux_density_T) noexcept {
-  if (!finite(flux_density_T)) {
+  if (!std::isfinite(flux_density_T)) {
     return failure<double>(Status::not_finite);
   }
   const double b = std::fabs(flux_density_T);
@@ -74,7 +70,7 @@ Result<double> fluid_field_for_flux_density_A_per_m(const FluidParams& f, double
 }
 
 Result<double> field_for_yield_stress_A_per_m(const FluidParams& f, double yield_stress_Pa) noexcept {
-  if (!finite(yield_stress_Pa)) {
+  if (!std::isfinite(yield_stress_Pa)) {
     return failure<double>(Status::not_finite);
   }
   if (yield_stress_Pa < 0.0) {

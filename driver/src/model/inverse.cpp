@@ -94,14 +94,14 @@ Result<double> CellInverse::valve_pressure_Pa(std::size_t cell, double flow_m3_p
   if (cell >= m.graph.cells || valve_yield_Pa.size() != m.graph.valves) {
     return failure<double>(Status::out_of_range);
   }
-  if (!finite(flow_m3_per_s)) {
+  if (!std::isfinite(flow_m3_per_s)) {
     return failure<double>(Status::not_finite);
   }
   if (flow_m3_per_s < 0.0) {
     return failure<double>(Status::negative);
   }
   for (const double y : valve_yield_Pa) {
-    if (!finite(y)) {
+    if (!std::isfinite(y)) {
       return failure<double>(Status::not_finite);
     }
     if (y < 0.0) {
@@ -118,7 +118,7 @@ Result<double> CellInverse::uniform_valve_pressure_Pa(std::size_t cell, double f
   if (cell >= m.graph.cells) {
     return failure<double>(Status::out_of_range);
   }
-  if (!finite(flow_m3_per_s) || !finite(yield_stress_Pa)) {
+  if (!std::isfinite(flow_m3_per_s) || !std::isfinite(yield_stress_Pa)) {
     return failure<double>(Status::not_finite);
   }
   if (flow_m3_per_s < 0.0 || yield_stress_Pa < 0.0) {
@@ -133,7 +133,7 @@ Status CellInverse::set_valve_yield_gain(std::span<const double> gain) noexcept 
     return Status::out_of_range;
   }
   for (const double g : gain) {
-    if (!finite(g) || !(g > 0.0)) {
+    if (!std::isfinite(g) || !(g > 0.0)) {
       return Status::out_of_range;
     }
   }
@@ -144,7 +144,7 @@ Status CellInverse::set_valve_yield_gain(std::span<const double> gain) noexcept 
 }
 
 Result<double> CellInverse::current_for_yield_stress_A(double yield_stress_Pa) const noexcept {
-  if (!finite(yield_stress_Pa)) {
+  if (!std::isfinite(yield_stress_Pa)) {
     return failure<double>(Status::not_finite);
   }
   if (yield_stress_Pa < 0.0) {

@@ -21,8 +21,9 @@ InverseTopology::InverseTopology(const DeviceModel& model, const InverseOptions&
   if (!(opt.hold_rate_tolerance_m_per_s >= 0.0) || !(opt.indentation_tolerance_m >= 0.0) ||
       !(opt.rate_tolerance_m_per_s >= 0.0) || !(opt.force_tolerance_N > 0.0) || opt.max_iterations < 0 ||
       opt.large_component_steps < 0 || opt.small_component_steps < 0 || !(opt.regularisation > 0.0) ||
-      !finite(opt.hold_rate_tolerance_m_per_s) || !finite(opt.indentation_tolerance_m) ||
-      !finite(opt.rate_tolerance_m_per_s) || !finite(opt.force_tolerance_N) || !finite(opt.regularisation)) {
+      !std::isfinite(opt.hold_rate_tolerance_m_per_s) || !std::isfinite(opt.indentation_tolerance_m) ||
+      !std::isfinite(opt.rate_tolerance_m_per_s) || !std::isfinite(opt.force_tolerance_N) ||
+      !std::isfinite(opt.regularisation)) {
     throw InvalidArgument(
         "InverseOptions: tolerances must be finite and >= 0, force_tolerance_N and regularisation > 0, "
         "max_iterations, large_component_steps and small_component_steps >= 0");

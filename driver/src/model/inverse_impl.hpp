@@ -22,8 +22,6 @@
 
 namespace mrskin::model::inverse_detail {
 
-inline bool finite(double x) noexcept { return std::isfinite(x); }
-
 // Table resolution (segments): cubic Hermite with exact slopes, so the error goes as K^-4.
 inline constexpr int kTableSegments = 256;
 // The loop's branch-flow table: linear, resampled from the Hermite one (two loads, one FMA).
@@ -209,7 +207,7 @@ inline Status check_state(const CellState& s, double depth_m) noexcept {
       std::fabs(s.rate_m_per_s) <= kMaxRate_m_per_s) {
     return Status::ok;
   }
-  if (!finite(s.indentation_m) || !finite(s.rate_m_per_s)) {
+  if (!std::isfinite(s.indentation_m) || !std::isfinite(s.rate_m_per_s)) {
     return Status::not_finite;
   }
   return Status::out_of_range;
@@ -219,7 +217,7 @@ inline Status check_target(const CellImpedanceTarget& t) noexcept {
   const double v[] = {t.stiffness_N_per_m, t.exponent,        t.damping_N_s_per_m, t.hc_damping_N_s_per_m2,
                       t.surface_offset_m,  t.force_ceiling_N, t.valid_until_s};
   for (const double x : v) {
-    if (!finite(x)) {
+    if (!std::isfinite(x)) {
       return Status::not_finite;
     }
   }

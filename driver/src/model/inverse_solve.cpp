@@ -67,7 +67,7 @@ Status InverseTopology::derive(std::size_t cell, const CellImpedanceTarget& g, c
   o.requested_force_N = requested;
   o.force_min_N = base + area_m2 * p_open;
   o.force_max_N = base + area_m2 * p_full;
-  if (!finite(o.force_min_N) || !finite(o.force_max_N) || !finite(requested)) {
+  if (!std::isfinite(o.force_min_N) || !std::isfinite(o.force_max_N) || !std::isfinite(requested)) {
     return Status::overflow;
   }
   // Flag only what is outside by more than round-off (a target computed from a rendered force
@@ -116,7 +116,7 @@ Verdict examine(const InverseTopology& topo, CellMemory& memory, TickChanges& ch
     // cells of a large grid are untouched; its cached raw inputs stay as they were (they are only
     // ever compared).
     if (cc.valid && cc.role == CellRole::no_contact && !(s.indentation_m > 0.0) &&
-        same_bits(s, cc.raw_state) && same_law(g, cc.target) && finite(g.valid_until_s)) {
+        same_bits(s, cc.raw_state) && same_law(g, cc.target) && std::isfinite(g.valid_until_s)) {
       continue;
     }
     all_untouched = false;
@@ -133,7 +133,7 @@ Verdict examine(const InverseTopology& topo, CellMemory& memory, TickChanges& ch
       if (const Status st = check_target(g); st != Status::ok) {
         return {st, i};
       }
-    } else if (!finite(g.valid_until_s)) {
+    } else if (!std::isfinite(g.valid_until_s)) {
       return {Status::not_finite, i};
     }
     if (changed) {
@@ -235,7 +235,7 @@ Status CellInverse::Impl::solve(std::span<const CellImpedanceTarget> targets,
   if (targets.size() != topo.graph.cells || states.size() != topo.graph.cells) {
     return output.fail(Status::out_of_range, 0);
   }
-  if (!finite(now_s)) {
+  if (!std::isfinite(now_s)) {
     return output.fail(Status::not_finite, 0);
   }
   if (const Verdict v = examine(topo, memory, changes, targets, states, now_s); v.status != Status::ok) {
@@ -267,7 +267,7 @@ Status CellInverse::Impl::solve(std::span<const CellImpedanceTarget> targets,
 // an untouched cell's role does not depend on it. No cell is loaded, so no search is under way;
 // the flag is tested all the same.
 bool CellInverse::Impl::renew_at_rest(double valid_until_s, double now_s) noexcept {
-  if (factors.searching || !finite(valid_until_s) || !finite(now_s)) {
+  if (factors.searching || !std::isfinite(valid_until_s) || !std::isfinite(now_s)) {
     return false;
   }
   if (!changes.all_untouched) {

@@ -6,7 +6,6 @@
 namespace mrskin::model {
 
 namespace {
-bool finite(double x) noexcept { return std::isfinite(x); }
 
 // Root of a x^3 + b x = p (a, b >= 0, a + b > 0, p >= 0): increasing, so one root, found by
 // Newton from an upper bound (convex: descends monotonically).
@@ -87,7 +86,7 @@ DiskCoeffs strip_coeffs(const MembraneParams& m, double l) noexcept {
       64.0 / 3.0 * m.youngs_modulus_Pa * m.thickness_m / ((1.0 - m.poisson_ratio * m.poisson_ratio) * l4)};
 }
 Status check_len(double len, double defl) noexcept {
-  if (!finite(len) || !finite(defl)) {
+  if (!std::isfinite(len) || !std::isfinite(defl)) {
     return Status::not_finite;
   }
   if (!(len > 0.0)) {
@@ -105,7 +104,7 @@ Result<double> disk_pressure_Pa(const MembraneParams& m, double radius_m,
   }
   const DiskCoeffs c = disk_coeffs(m, radius_m);
   const double p = c.linear * w0 + c.cubic * w0 * w0 * w0;
-  return finite(p) ? Result<double>{p} : failure<double>(Status::overflow);
+  return std::isfinite(p) ? Result<double>{p} : failure<double>(Status::overflow);
 }
 
 Result<double> disk_deflection_m(const MembraneParams& m, double radius_m, double pressure_Pa) noexcept {
@@ -120,7 +119,7 @@ Result<double> disk_deflection_m(const MembraneParams& m, double radius_m, doubl
 Result<LoadSplit> point_load_force_N(const MembraneParams& m, double radius_m, double contact_radius_m,
                                      double centre_deflection_m) noexcept {
   const double d = centre_deflection_m;
-  if (!finite(radius_m) || !finite(contact_radius_m) || !finite(d)) {
+  if (!std::isfinite(radius_m) || !std::isfinite(contact_radius_m) || !std::isfinite(d)) {
     return failure<LoadSplit>(Status::not_finite);
   }
   if (!(contact_radius_m > 0.0 && contact_radius_m < radius_m)) {
@@ -133,7 +132,7 @@ Result<LoadSplit> point_load_force_N(const MembraneParams& m, double radius_m, d
   out.pretension = 2.0 * kPi * m.pretension_N_per_m * d / std::log(radius_m / contact_radius_m);
   out.stretching = m.youngs_modulus_Pa * m.thickness_m / a2 * d * d * d / (q * q * q);
   out.total = out.bending + out.pretension + out.stretching;
-  if (!finite(out.total)) {
+  if (!std::isfinite(out.total)) {
     return failure<LoadSplit>(Status::overflow);
   }
   return {out};
@@ -147,7 +146,7 @@ Result<double> strip_pressure_Pa(const MembraneParams& m, double span_m,
   }
   const DiskCoeffs c = strip_coeffs(m, span_m);
   const double p = c.linear * w0 + c.cubic * w0 * w0 * w0;
-  return finite(p) ? Result<double>{p} : failure<double>(Status::overflow);
+  return std::isfinite(p) ? Result<double>{p} : failure<double>(Status::overflow);
 }
 
 Result<double> strip_deflection_m(const MembraneParams& m, double span_m, double pressure_Pa) noexcept {
@@ -164,7 +163,7 @@ Result<double> paper_eq6_deflection_m(double pressure_Pa, double area_m2, double
                                       double thickness_m) noexcept {
   for (const double v :
        {pressure_Pa, area_m2, length_m, youngs_modulus_Pa, second_moment_m4, x_m, thickness_m}) {
-    if (!finite(v)) {
+    if (!std::isfinite(v)) {
       return failure<double>(Status::not_finite);
     }
   }
@@ -178,7 +177,7 @@ Result<double> paper_eq6_deflection_m(double pressure_Pa, double area_m2, double
       pressure_Pa * area_m2 * length_m * length_m * length_m / (24.0 * youngs_modulus_Pa * second_moment_m4);
   const double u = x_m / length_m;
   const double d = k * (u * u * u * u - 2.0 * u * u * u + u);
-  if (!finite(d)) {
+  if (!std::isfinite(d)) {
     return failure<double>(Status::overflow);
   }
   const double mid = k * (5.0 / 16.0);

@@ -76,7 +76,7 @@ Status NetworkSimulation::Impl::resolve_cell(std::size_t i, double e1, bool dg, 
       a = b;
       step *= 2.0;
       b = lo + step;
-      if (++n > kScalarIterations || !finite(b)) {
+      if (++n > kScalarIterations || !std::isfinite(b)) {
         return Status::no_convergence;
       }
     }
@@ -84,7 +84,7 @@ Status NetworkSimulation::Impl::resolve_cell(std::size_t i, double e1, bool dg, 
     bool done = false;
     for (int it = 0; it < kScalarIterations && !done; ++it) {
       const double f = force_at(depth);
-      if (!finite(f)) {
+      if (!std::isfinite(f)) {
         return Status::not_finite;
       }
       if (f == 0.0) {
@@ -172,7 +172,7 @@ Status NetworkSimulation::Impl::evaluate_norms(Eval& ev) const noexcept {
   }
   ev.norm2 = n2;
   ev.norm_inf = ni;
-  return finite(n2) ? Status::ok : Status::not_finite;
+  return std::isfinite(n2) ? Status::ok : Status::not_finite;
 }
 
 // M = diag(c) + dt B^T G B: J = I + dt B^T G B diag(1/c) times diag(1/c), symmetric positive
@@ -254,7 +254,7 @@ Status NetworkSimulation::Impl::newton(double dt, bool regularised) noexcept {
       de[n] = cur.c[n] * y[n];
       y_inf = std::max(y_inf, std::fabs(y[n]));
     }
-    if (!finite(y_inf)) {
+    if (!std::isfinite(y_inf)) {
       return Status::not_finite;
     }
     double alpha = 1.0;
@@ -454,7 +454,7 @@ Status NetworkSimulation::Impl::check_new_state() const noexcept {
   for (std::size_t i = 0; i < cells; ++i) {
     check += new_d[i] + new_force[i];
   }
-  return finite(check) ? Status::ok : Status::not_finite;
+  return std::isfinite(check) ? Status::ok : Status::not_finite;
 }
 
 void NetworkSimulation::Impl::compute_depths() noexcept {
@@ -713,8 +713,8 @@ Status NetworkSimulation::set_contacts(std::span<const Contact> contacts) noexce
     return Status::out_of_range;
   }
   for (const Contact& c : contacts) {
-    if (!finite(c.x_m) || !finite(c.y_m) || !finite(c.radius_m) || !finite(c.indentation_m) ||
-        !finite(c.force_N)) {
+    if (!std::isfinite(c.x_m) || !std::isfinite(c.y_m) || !std::isfinite(c.radius_m) ||
+        !std::isfinite(c.indentation_m) || !std::isfinite(c.force_N)) {
       return Status::not_finite;
     }
     if (c.radius_m < 0.0 || c.force_N < 0.0) {
@@ -762,7 +762,7 @@ void NetworkSimulation::reset() noexcept { impl_->reset(); }
 Result<StepReport> NetworkSimulation::step(double dt_s) noexcept {
   Impl& m = *impl_;
   m.phase = 0;
-  if (!finite(dt_s)) {
+  if (!std::isfinite(dt_s)) {
     return failure<StepReport>(Status::not_finite);
   }
   if (!(dt_s > 0.0)) {
@@ -820,7 +820,7 @@ Status NetworkSimulation::advance_cell_gain(std::span<const double> depth_m, std
   if (depth_m.size() != m.cells || gain_m3.size() != m.cells || yield_Pa.size() != m.valves) {
     return Status::out_of_range;
   }
-  if (!finite(dt_s) || !(dt_s > 0.0)) {
+  if (!std::isfinite(dt_s) || !(dt_s > 0.0)) {
     return Status::out_of_range;
   }
   // Every touched cell's pressure first, so that no flow sees another's move; then each touched

@@ -28,10 +28,10 @@ NetworkSimulation::Impl::Impl(DeviceModel m, const NetworkOptions& o)
 }
 
 void NetworkSimulation::Impl::check_options(const std::string& origin) const {
-  if (!(opt.chamber_compliance_m3_per_Pa > 0.0) || !finite(opt.chamber_compliance_m3_per_Pa)) {
+  if (!(opt.chamber_compliance_m3_per_Pa > 0.0) || !std::isfinite(opt.chamber_compliance_m3_per_Pa)) {
     throw InvalidArgument(origin + "chamber_compliance_m3_per_Pa must be > 0");
   }
-  if (!(opt.regularisation_viscosity_factor > 0.0) || !finite(opt.regularisation_viscosity_factor)) {
+  if (!(opt.regularisation_viscosity_factor > 0.0) || !std::isfinite(opt.regularisation_viscosity_factor)) {
     throw InvalidArgument(origin + "regularisation_viscosity_factor must be > 0");
   }
   if (opt.max_newton_iterations < 1) {

@@ -26,8 +26,6 @@ inline constexpr int kForceSweeps = 30;
 inline constexpr double kArmijo = 1e-4;
 inline constexpr double kMinStep = 1.0 / 1024.0;
 
-inline bool finite(double x) noexcept { return std::isfinite(x); }
-
 // One input per valve or cell: out_of_range on a size mismatch or a value at or above `limit`,
 // not_finite, negative.
 inline Status check_inputs(std::span<const double> v, std::size_t size, double limit) noexcept {
@@ -35,7 +33,7 @@ inline Status check_inputs(std::span<const double> v, std::size_t size, double l
     return Status::out_of_range;
   }
   for (const double x : v) {
-    if (!finite(x)) {
+    if (!std::isfinite(x)) {
       return Status::not_finite;
     }
     if (x < 0.0) {

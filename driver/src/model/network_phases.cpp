@@ -132,7 +132,7 @@ Status NetworkSimulation::Impl::run_step_work(double target) noexcept {
 Result<bool> NetworkSimulation::begin_step(double dt_s) noexcept {
   Impl& m = *impl_;
   m.phase = 0;
-  if (m.opt.stepper != Stepper::linearly_implicit_regularised || !m.direct_depths || !finite(dt_s) ||
+  if (m.opt.stepper != Stepper::linearly_implicit_regularised || !m.direct_depths || !std::isfinite(dt_s) ||
       !(dt_s > 0.0)) {
     const Result<StepReport> r = step(dt_s);
     return r.ok() ? Result<bool>{true} : failure<bool>(r.status);

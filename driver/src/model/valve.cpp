@@ -177,10 +177,8 @@ inline double excess_lookup(double r) noexcept {
   return s.c0 + s.slope * (r - left);
 }
 
-bool finite(double x) noexcept { return std::isfinite(x); }
-
 Status check_inputs(double a, double tau) noexcept {
-  if (!finite(a) || !finite(tau)) {
+  if (!std::isfinite(a) || !std::isfinite(tau)) {
     return Status::not_finite;
   }
   if (tau < 0.0) {
@@ -190,7 +188,7 @@ Status check_inputs(double a, double tau) noexcept {
 }
 
 Result<double> finish(double dp, double sign_of) noexcept {
-  if (!finite(dp)) {
+  if (!std::isfinite(dp)) {
     return failure<double>(Status::overflow);
   }
   return {std::copysign(dp, sign_of)};
@@ -217,7 +215,7 @@ double bingham_excess_fast(double r) noexcept { return excess_lookup(r); }
 Result<double> paper_eq3_flow_m3_per_s(double dp_Pa, double yield_stress_Pa, double gap_m, double length_m,
                                        double mean_diameter_m, double viscosity_Pa_s) noexcept {
   for (const double x : {dp_Pa, yield_stress_Pa, gap_m, length_m, mean_diameter_m, viscosity_Pa_s}) {
-    if (!finite(x)) {
+    if (!std::isfinite(x)) {
       return failure<double>(Status::not_finite);
     }
   }
@@ -231,7 +229,7 @@ Result<double> paper_eq3_flow_m3_per_s(double dp_Pa, double yield_stress_Pa, dou
       20.0 * t * t * t - 12.0 * g * t * t + 15.0 * h * h * g * g * t + 2.0 * h * h * h * g * g * g;
   const double l_over_dp = length_m / dp_Pa;
   const double q = kPi * mean_diameter_m / (24.0 * viscosity_Pa_s) * l_over_dp * l_over_dp * bracket;
-  if (!finite(q)) {
+  if (!std::isfinite(q)) {
     return failure<double>(Status::overflow);
   }
   return {q, Status::out_of_regime};
@@ -442,7 +440,7 @@ Result<FlowPoint> ValveLaw::flow_point(double dp_Pa, double yield_stress_Pa) con
     const double p0 = pressure_exact_Pa(q - h, yield_stress_Pa).value;
     dq = p1 > p0 ? 2.0 * h / (p1 - p0) : 0.0;
   }
-  if (!finite(q) || !finite(dq)) {
+  if (!std::isfinite(q) || !std::isfinite(dq)) {
     return failure<FlowPoint>(Status::overflow);
   }
   return {FlowPoint{std::copysign(q, dp_Pa), dq}};

@@ -33,20 +33,20 @@ using socketcan::to_wire;
 
 namespace {
 
-constexpr std::string_view kScheme = "can://";
-constexpr std::string_view kUriForm = "can://IFACE?node=N[&fd=1], e.g. can://can0?node=3";
+constexpr std::string_view kCanScheme = "can://";
+constexpr std::string_view kCanUriForm = "can://IFACE?node=N[&fd=1], e.g. can://can0?node=3";
 
 [[noreturn]] void bad_uri(std::string_view uri, std::string_view what) {
-  throw InvalidArgument(fmt::format("'{}': {} (expected {})", uri, what, kUriForm));
+  throw InvalidArgument(fmt::format("'{}': {} (expected {})", uri, what, kCanUriForm));
 }
 
 }  // namespace
 
 CanUri parse_can_uri(std::string_view uri) {
-  if (!uri.starts_with(kScheme)) {
+  if (!uri.starts_with(kCanScheme)) {
     bad_uri(uri, "not a can:// URI");
   }
-  const std::string_view rest = uri.substr(kScheme.size());
+  const std::string_view rest = uri.substr(kCanScheme.size());
   const std::size_t q = rest.find('?');
   const std::string_view iface = rest.substr(0, q);
   CanUri out;

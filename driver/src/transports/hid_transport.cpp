@@ -27,7 +27,7 @@
 namespace mrskin {
 namespace {
 
-constexpr std::string_view kScheme = "hid://";
+constexpr std::string_view kHidScheme = "hid://";
 // hid_write() takes the report-ID byte (0x00: no report IDs), then the report: 64 bytes at full speed, or up
 // to the 1024 a unit declares (UsbSlots), as long as its packets (a short transfer, which USB allows).
 constexpr std::size_t kMaxWriteBytes = kMaxDatagramBytes + 1;
@@ -523,11 +523,11 @@ class SystemHidApi final : public HidApi {
 }  // namespace
 
 HidUri parse_hid_uri(std::string_view uri) {
-  if (!uri.starts_with(kScheme)) {
+  if (!uri.starts_with(kHidScheme)) {
     throw InvalidArgument(fmt::format("'{}' is not a hid:// URI (hid://VID:PID[?serial=XXXXXXXX])", uri));
   }
   HidUri parsed;
-  std::string_view rest = uri.substr(kScheme.size());
+  std::string_view rest = uri.substr(kHidScheme.size());
   const auto q = rest.find('?');
   const std::string_view ids = rest.substr(0, q);
   std::string_view query = q == std::string_view::npos ? std::string_view{} : rest.substr(q + 1);

@@ -38,8 +38,8 @@ using SteadyClock = std::chrono::steady_clock;
 constexpr int kInterface = proto::kUsbInterface;
 // A report: 64 bytes at full speed, up to 1024 on a high-speed unit (UsbSlots).
 constexpr std::size_t kReportBytes = kMaxDatagramBytes;
-constexpr std::string_view kScheme = "usb://";
-constexpr const char* kUriForm = "usb://VID:PID[?serial=XXXXXXXX], e.g. usb://1209:4d52";
+constexpr std::string_view kUsbScheme = "usb://";
+constexpr const char* kUsbUriForm = "usb://VID:PID[?serial=XXXXXXXX], e.g. usb://1209:4d52";
 
 // --- URI ---------------------------------------------------------------------------------
 
@@ -49,7 +49,7 @@ std::uint16_t parse_hex_id(std::string_view uri, std::string_view text, const ch
   const auto [ptr, ec] = std::from_chars(text.data(), end, value, 16);
   if (text.empty() || text.size() > 4 || ec != std::errc{} || ptr != end) {
     throw InvalidArgument(
-        fmt::format("'{}': {} '{}' is not 1 to 4 hex digits ({})", uri, what, text, kUriForm));
+        fmt::format("'{}': {} '{}' is not 1 to 4 hex digits ({})", uri, what, text, kUsbUriForm));
   }
   return static_cast<std::uint16_t>(value);
 }
@@ -873,11 +873,11 @@ void UsbTransport::close_device() noexcept {
 }  // namespace
 
 UsbUri parse_usb_uri(std::string_view uri) {
-  if (!uri.starts_with(kScheme)) {
-    throw InvalidArgument(fmt::format("'{}' is not a usb:// URI ({})", uri, kUriForm));
+  if (!uri.starts_with(kUsbScheme)) {
+    throw InvalidArgument(fmt::format("'{}' is not a usb:// URI ({})", uri, kUsbUriForm));
   }
   UsbUri out;
-  std::string_view rest = uri.substr(kScheme.size());
+  std::string_view rest = uri.substr(kUsbScheme.size());
   std::string_view query;
   if (const auto q = rest.find('?'); q != std::string_view::npos) {
     query = rest.substr(q + 1);
@@ -886,7 +886,7 @@ UsbUri parse_usb_uri(std::string_view uri) {
   if (!rest.empty()) {
     const auto colon = rest.find(':');
     if (colon == std::string_view::npos) {
-      throw InvalidArgument(fmt::format("'{}': '{}' is not VID:PID ({})", uri, rest, kUriForm));
+      throw InvalidArgument(fmt::format("'{}': '{}' is not VID:PID ({})", uri, rest, kUsbUriForm));
     }
     out.vendor_id = parse_hex_id(uri, rest.substr(0, colon), "vendor id");
     out.product_id = parse_hex_id(uri, rest.substr(colon + 1), "product id");
@@ -900,12 +900,12 @@ UsbUri parse_usb_uri(std::string_view uri) {
     const std::string_view value = eq == std::string_view::npos ? std::string_view{} : item.substr(eq + 1);
     if (key != "serial") {
       throw InvalidArgument(
-          fmt::format("'{}': unknown parameter '{}' (only serial; {})", uri, key, kUriForm));
+          fmt::format("'{}': unknown parameter '{}' (only serial; {})", uri, key, kUsbUriForm));
     }
     const auto serial = proto::parse_usb_serial(value);
     if (!serial) {
       throw InvalidArgument(fmt::format(
-          "'{}': serial '{}' is not 8 hex digits (as mrskinctl list shows it; {})", uri, value, kUriForm));
+          "'{}': serial '{}' is not 8 hex digits (as mrskinctl list shows it; {})", uri, value, kUsbUriForm));
     }
     out.serial = proto::format_usb_serial(*serial);
   }
