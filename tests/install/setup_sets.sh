@@ -30,7 +30,7 @@ commands=(
   test:ip test:python3 test:apt-get test:dpkg-deb test:flock test:mountpoint test:timeout test:sha256sum
   test:gzip test:setarch
   build:clang++-14 build:help2man
-  lint:clang-format-14 lint:clang-tidy-14
+  lint:clang-format-14 lint:clang-tidy-14 lint:python3
   package:dpkg-buildpackage package:lintian package:mmdebstrap package:fakeroot
 )
 callers=("$src/scripts" "$src/tests/system" "$src/tests/install" "$src/tests/tools" "$src/tests/python"
