@@ -11,8 +11,8 @@ What it keeps: every file is tidied with its own compile command's flags (groups
 flags); findings in the included .cpp files and the project's headers are reported at their own
 paths (the header filter takes .cpp files too); a file compiled twice with different flags is
 tidied twice, as per-file clang-tidy does. A group that does not compile as one unit (two files
-with the same name in an anonymous namespace, say) is tidied again file by file, so nothing is
-lost, only time.
+with the same name in an anonymous namespace, say) is tidied again: the files its compile errors
+name each on their own, the rest as one unit, so nothing is lost, only time.
 
 Usage: tidy_unity.py --build-dir DIR --out-dir DIR --jobs N --regex RE [--per-file] [--group N]
 Prints every clang-tidy output to stdout; exits 1 when clang-tidy reported anything.
@@ -152,6 +152,7 @@ def main():
     print(f"tidy_unity: {commands} compile commands in {len(unity_db)} units over {rounds} "
           f"rounds, {split} of them taken out of their group for not compiling in it", flush=True)
     return 1 if found else 0
+
 
 if __name__ == "__main__":
     sys.exit(main())
