@@ -2,8 +2,11 @@
 #include <gtest/gtest.h>
 
 #include <algorithm>
+#include <bit>
 #include <cmath>
+#include <cstdint>
 #include <cstdio>
+#include <span>
 #include <vector>
 
 #include "counting_new.hpp"
@@ -145,6 +148,66 @@ TEST(PlantHysteresis, AnAlternatingDecayDegaussesTheCores) {
       after_max_Pa, unipolar_Pa, degaussed_Pa);
   EXPECT_EQ(again_Pa, after_max_Pa);
   EXPECT_LT(degaussed_Pa, 0.2 * after_max_Pa);
+}
+
+// A valve whose coil has settled keeps its yield without solving its magnetic circuit again, and
+// the plant is the same to the last bit as one that solves every valve every substep: currents
+// ramped, held, stepped down, reversed (the hysteresis' play moves) and held again, under a press.
+TEST(PlantSettledFields, ReusedFieldsGiveTheSameBitsAsSolvingEverySubstep) {
+  const DeviceProfile nominal = mrskin::model::default_profile();
+  NetworkPlantOptions o;
+  o.seed = 3;
+  NetworkPlant reusing(nominal, o);
+  o.reuse_settled_fields = false;
+  NetworkPlant solving(nominal, o);
+  const std::size_t valves = reusing.valve_yield_stress_Pa().size();
+  const double max_A = nominal.coil.max_current_A;
+  std::vector<double> depth(13, 0.0);
+  std::vector<double> current(valves, 0.0);
+  std::vector<double> y_reusing(reusing.sensor_count());
+  std::vector<double> y_solving(solving.sensor_count());
+  std::vector<double> f_reusing(13);
+  std::vector<double> f_solving(13);
+  std::size_t mismatches = 0;
+  const auto run = [&](int steps) {
+    for (int i = 0; i < steps; ++i) {
+      depth[6] = std::min(1.5e-3, depth[6] + 1e-6);
+      for (NetworkPlant* p : {&reusing, &solving}) {
+        p->set_finger_indentation(depth);
+        p->set_valve_currents(current);
+        p->step(1e-4);
+      }
+      reusing.read_sensors(y_reusing);
+      solving.read_sensors(y_solving);
+      reusing.contact_forces(f_reusing);
+      solving.contact_forces(f_solving);
+      const auto same = [](std::span<const double> a, std::span<const double> b) {
+        return std::equal(a.begin(), a.end(), b.begin(), b.end(), [](double x, double z) {
+          return std::bit_cast<std::uint64_t>(x) == std::bit_cast<std::uint64_t>(z);
+        });
+      };
+      mismatches += same(reusing.valve_yield_stress_Pa(), solving.valve_yield_stress_Pa()) ? 0 : 1;
+      mismatches += same(y_reusing, y_solving) && same(f_reusing, f_solving) ? 0 : 1;
+    }
+  };
+  for (std::size_t v = 0; v < valves; ++v) {
+    current[v] = max_A * static_cast<double>(v + 1) / static_cast<double>(valves);
+  }
+  run(3000);  // 0.3 s: every coil settles (coil and eddy constants of a few ms)
+  const std::uint64_t settled_solves = reusing.gap_field_solves();
+  run(1000);  // held: nothing to solve
+  EXPECT_EQ(reusing.gap_field_solves(), settled_solves);
+  current[0] = 0.5 * current[0];
+  current[1] = -0.5 * max_A;  // a degauss's reversal: the play moves
+  run(2000);
+  run(2000);
+  EXPECT_EQ(mismatches, 0U);
+  EXPECT_EQ(solving.gap_field_solves(), 8000U * valves);
+  std::printf("gap-field solves over 8,000 substeps of %zu valves: %llu reusing, %llu solving\n", valves,
+              static_cast<unsigned long long>(reusing.gap_field_solves()),
+              static_cast<unsigned long long>(solving.gap_field_solves()));
+  EXPECT_LT(reusing.gap_field_solves(), solving.gap_field_solves() / 4);
+  EXPECT_EQ(reusing.failed_steps(), 0U);
 }
 
 TEST(PlantHotPath, SteppingDoesNotAllocate) {

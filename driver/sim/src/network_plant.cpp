@@ -1,7 +1,9 @@
 #include "mrskin/sim/network_plant.hpp"
 
 #include <algorithm>
+#include <bit>
 #include <cmath>
+#include <limits>
 #include <random>
 #include <string>
 #include <vector>
@@ -67,6 +69,7 @@ struct __attribute__((visibility("hidden"))) NetworkPlant::Impl {
     hysteresis.resize(valves);
     commanded_A.assign(valves, 0.0);
     yield_Pa.assign(valves, 0.0);
+    solved.assign(valves, SolvedField{});
     coil_A.assign(valves, 0.0);
     ring_A.assign(kDelaySlots * valves, 0.0);
     ring_time_s.assign(kDelaySlots, 0.0);
@@ -99,6 +102,17 @@ struct __attribute__((visibility("hidden"))) NetworkPlant::Impl {
     }
   }
 
+  // A valve's last gap-field solve: its inputs (the eddy-lagged current and the steel's play
+  // before it) and its output play. The solve is a pure function of those two inputs, so a valve
+  // whose inputs have the same bits keeps its yield stress without solving the magnetic circuit
+  // again: the coils of untouched cells settle to a fixed point within tens of substeps, and the
+  // solve was most of a large grid's idle substep (palm-64x64: about two thirds).
+  struct SolvedField {
+    std::uint64_t current_bits = std::bit_cast<std::uint64_t>(std::numeric_limits<double>::quiet_NaN());
+    std::uint64_t play_in_bits = 0;
+    double play_out_A_per_m = 0.0;
+  };
+
   NetworkPlantOptions options;
   model::DeviceModel truth;  // perturbed: the plant's reference physics
   model::NetworkSimulation network;
@@ -110,6 +124,7 @@ struct __attribute__((visibility("hidden"))) NetworkPlant::Impl {
   std::vector<model::HysteresisState> hysteresis;
   std::vector<double> commanded_A;  // at the coil drivers (after the bus delay)
   std::vector<double> yield_Pa;
+  std::vector<SolvedField> solved;
   std::vector<double> coil_A;
   std::vector<double> ring_A;
   std::vector<double> ring_time_s;
@@ -121,6 +136,7 @@ struct __attribute__((visibility("hidden"))) NetworkPlant::Impl {
   std::vector<double> resolution;
   double time_s = 0.0;
   std::uint64_t failed = 0;
+  std::uint64_t field_solves = 0;
 };
 
 NetworkPlant::NetworkPlant(const model::DeviceProfile& nominal, const NetworkPlantOptions& options)
@@ -171,9 +187,23 @@ void NetworkPlant::step(double dt_s) noexcept {
       m.coil[v] = next.value;
     }
     m.coil_A[v] = m.coil[v].current_A;
+    Impl::SolvedField& last = m.solved[v];
+    const auto current_bits = std::bit_cast<std::uint64_t>(m.coil[v].field_current_A);
+    const auto play_bits = std::bit_cast<std::uint64_t>(m.hysteresis[v].play_A_per_m);
+    if (m.options.reuse_settled_fields && current_bits == last.current_bits &&
+        play_bits == last.play_in_bits) {
+      m.hysteresis[v].play_A_per_m = last.play_out_A_per_m;  // the solve would give these bits
+      continue;
+    }
     const model::Result<model::GapField> field =
         model::gap_field_hysteretic(m.magnetic, fluid, m.coil[v].field_current_A, m.hysteresis[v]);
-    m.yield_Pa[v] = field.ok() ? field.value.yield_stress_Pa * m.valve_gain[v] : m.yield_Pa[v];
+    ++m.field_solves;
+    if (field.ok()) {
+      m.yield_Pa[v] = field.value.yield_stress_Pa * m.valve_gain[v];
+      last = {current_bits, play_bits, m.hysteresis[v].play_A_per_m};
+    } else {
+      last = Impl::SolvedField{};  // a failed solve kept the last yield; try again next substep
+    }
   }
   (void)m.network.set_valve_yield_stress_Pa(m.yield_Pa);
   const model::Result<model::StepReport> r = m.network.step(dt_s);
@@ -205,6 +235,7 @@ const model::NetworkSimulation& NetworkPlant::network() const noexcept { return 
 std::span<const double> NetworkPlant::valve_yield_stress_Pa() const noexcept { return impl_->yield_Pa; }
 std::span<const double> NetworkPlant::coil_current_A() const noexcept { return impl_->coil_A; }
 std::uint64_t NetworkPlant::failed_steps() const noexcept { return impl_->failed; }
+std::uint64_t NetworkPlant::gap_field_solves() const noexcept { return impl_->field_solves; }
 const model::DeviceProfile& NetworkPlant::true_profile() const noexcept { return impl_->truth.profile(); }
 std::span<const double> NetworkPlant::valve_yield_gain() const noexcept { return impl_->valve_gain; }
 

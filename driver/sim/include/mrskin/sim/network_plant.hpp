@@ -32,6 +32,10 @@ struct NetworkPlantOptions {
   double sensor_noise_scale = 1.0;  // multiplies every sensor's noise_std (0: noise-free)
   bool quantise_sensors = true;     // round readings to the sensor's resolution
   model::Stepper stepper = model::Stepper::implicit_exact;
+  // Keep a valve's yield stress while its eddy-lagged current and steel play have the bits of its
+  // last gap-field solve (the solve is a pure function of them: the same results, bit for bit).
+  // false solves every valve every substep (tests compare the two).
+  bool reuse_settled_fields = true;
 };
 
 // The perturbed profile the plant runs on (exposed so tests can show the spread).
@@ -64,6 +68,8 @@ class MRSKIN_SIM_API NetworkPlant final : public Plant {
   [[nodiscard]] std::span<const double> valve_yield_gain() const noexcept;
   // Steps whose network solve failed (state kept, counted; never expected).
   [[nodiscard]] std::uint64_t failed_steps() const noexcept;
+  // Gap-field solves since construction, over every valve (reuse_settled_fields skips them).
+  [[nodiscard]] std::uint64_t gap_field_solves() const noexcept;
 
  private:
   struct Impl;
