@@ -174,6 +174,18 @@ TEST(ContactOnset, FingertipOnTheDemo) {
 TEST(ContactOnset, FingertipOnTheSweep) {
   expect_onsets_within_a_tick("mock://fingertip-16x16", "sweep", 2.0, 2);
 }
+// What the mock's 1 ms plant substep (mock://...?physics_dt=1e-3, the one at which the 16x16's
+// plant keeps real time: docs/bridge.md, "Every grid in real time") changes in contact onset. It
+// fails, and that is the measurement (2026-12-03): the bridge finds contact on the same ticks as
+// at 0.1 ms (demo 270 and 273 against 269 and 263), but the coarse plant's own force crosses the
+// contact force 100-180 ticks earlier on the slow approach (tick 183 against 284 and 364), so the
+// same detection counts as 87-93 ticks late; and a sweep cell whose force never crosses at 0.1 ms
+// crosses at 1 ms. The coarse plant's truth differs, not the detection. Run by hand with
+// --gtest_also_run_disabled_tests.
+TEST(ContactOnset, DISABLED_FingertipAtAMillisecondSubstep) {
+  expect_onsets_within_a_tick("mock://fingertip-16x16?physics_dt=1e-3", "demo", 1.0, 2);
+  expect_onsets_within_a_tick("mock://fingertip-16x16?physics_dt=1e-3", "sweep", 2.0, 2);
+}
 // About 40 s for 0.3 s of the scene (the 64x64 plant and tick): run by hand with
 // --gtest_also_run_disabled_tests.
 TEST(ContactOnset, DISABLED_PalmOnTheDemo) {

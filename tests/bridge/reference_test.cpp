@@ -166,7 +166,7 @@ TEST(Reference, DISABLED_MeasureEverySceneOnADevice) {
   options.scale_to_design = std::getenv("MRSKIN_REFERENCE_AS_GIVEN") == nullptr;
   for (const std::string_view name : scene_names()) {
     const BridgeStats s = test::run_scene(std::string(name), kSeconds, device, nullptr, 0, options).stats;
-    std::printf("| %s | %.1f %% | %.3f N | %.1f %% | %.3f N | %.3f N |\n", std::string(name).c_str(),
+    std::printf("| %s | %.1f %% | %.4f N | %.1f %% | %.4f N | %.4f N |\n", std::string(name).c_str(),
                 100.0 * s.clamped_fraction(), s.force_rms_error_N(),
                 100.0 * s.relative_error.percentile(0.95), s.unclamped_rms_error_N(),
                 s.release_rms_error_N());

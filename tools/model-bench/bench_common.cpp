@@ -8,6 +8,7 @@
 #include <fstream>
 #include <iomanip>
 #include <iostream>
+#include <numeric>
 #include <sstream>
 #include <utility>
 
@@ -18,6 +19,25 @@ volatile double g_sink = 0.0;  // NOLINT(cppcoreguidelines-avoid-non-const-globa
 }  // namespace
 
 void keep(double v) noexcept { g_sink = g_sink + v; }
+
+std::vector<std::size_t> pressed_cells(const model::DeviceModel& m, double fraction) {
+  const auto& cells = m.layout().fluid_cells();
+  const int r0 = m.profile().design.row;
+  const int c0 = m.profile().design.col;
+  std::vector<std::size_t> order(cells.size());
+  std::iota(order.begin(), order.end(), 0);
+  auto dist = [&](std::size_t i) {
+    const int dr = cells[i].row - r0;
+    const int dc = cells[i].col - c0;
+    return dr * dr + dc * dc;
+  };
+  std::stable_sort(order.begin(), order.end(),
+                   [&](std::size_t a, std::size_t b) { return dist(a) < dist(b); });
+  const auto n = std::max<std::size_t>(
+      1, static_cast<std::size_t>(std::lround(fraction * static_cast<double>(cells.size()))));
+  order.resize(std::min(n, order.size()));
+  return order;
+}
 
 double percentile(std::vector<double> v, double p) {
   if (v.empty()) {

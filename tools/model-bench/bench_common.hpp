@@ -8,6 +8,8 @@
 #include <string>
 #include <vector>
 
+#include "mrskin/driver/model/device_model.hpp"
+
 namespace mrskin::bench {
 
 struct BenchOptions {
@@ -17,6 +19,9 @@ struct BenchOptions {
   bool check = false;   // valve suite: exit 1 unless the fast law meets its figure
   bool quick = false;   // design suite: one scene cycle, a coarser search (for the test)
 };
+
+// The `fraction` of the unit's fluid cells nearest its design cell (at least one), nearest first.
+std::vector<std::size_t> pressed_cells(const model::DeviceModel& m, double fraction);
 
 // Keeps timed results observable so that no call is optimised away.
 void keep(double v) noexcept;

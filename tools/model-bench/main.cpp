@@ -1,6 +1,7 @@
 // mrskin-model-bench: run time against error of the device model, published as CSV and SVG.
 //
-//   mrskin-model-bench [--suite valve|network|inverse|design|all] [--out DIR] [--reps N] [--profile FILE]
+//   mrskin-model-bench [--suite valve|network|inverse|design|plant|all] [--out DIR] [--reps N] [--profile
+//   FILE]
 //                      [--check] [--quick]
 //
 // --out (default: ./model-bench-out) is created when missing; the committed results in
@@ -15,7 +16,9 @@
 //   design   the design study: searches the profile's design parameters for the largest coverage
 //            of the organ scenes under stated constraints, writes designed.toml and a plot per
 //            parameter (design_bench.cpp; about a minute; docs/model.md, "The design study")
-//   all      valve, network and inverse, in that order (default; design only when named)
+//   plant    the mock device's plant: time per substep on every built-in grid, idle and pressed,
+//            with its settled-field reuse on and off (plant_bench.cpp; about a minute)
+//   all      valve, network and inverse, in that order (default; design and plant only when named)
 // --reps applies to the valve suite; --profile to the valve suite and to design (its base);
 // --quick makes design short (one scene cycle, a coarse search: the test's mode); --check exits 1
 // unless the fast valve law is within 0.5 % and at least 10x faster than the exact one. A progress
@@ -46,11 +49,12 @@ struct SuiteEntry {
   Suite suite;
   bool in_all;  // run by --suite all
 };
-constexpr std::array<SuiteEntry, 4> kSuites = {{
+constexpr std::array<SuiteEntry, 5> kSuites = {{
     {{"valve", &mrskin::bench::run_valve_suite}, true},
     {{"network", &mrskin::bench::run_network_suite}, true},
     {{"inverse", &mrskin::bench::run_inverse_suite}, true},
     {{"design", &mrskin::bench::run_design_suite}, false},
+    {{"plant", &mrskin::bench::run_plant_suite}, false},
 }};
 
 int run(int argc, char** argv) {
@@ -65,7 +69,7 @@ int run(int argc, char** argv) {
   o.out = "model-bench-out";
   std::string suite = "all";
   app.option("--suite", suite, "The suite to run")
-      .one_of({"valve", "network", "inverse", "design", "all"})
+      .one_of({"valve", "network", "inverse", "design", "plant", "all"})
       .show_default();
   app.option("--out", o.out, "Directory for the CSV and SVG files (created when missing)").show_default();
   app.option("--reps", o.reps, "Timing repetitions of the valve suite").range(3, 1000000).show_default();
@@ -77,7 +81,9 @@ int run(int argc, char** argv) {
       "Suites: valve, network and inverse time the model's laws against their error (all runs these "
       "three); design searches the profile's design parameters for the organ scenes' envelope coverage "
       "under stated constraints and writes designed.toml, design_coverage.csv, design_search.csv and a "
-      "design_<parameter>.svg each (about 1.5 min; docs/model.md, section 11a).\n"
+      "design_<parameter>.svg each (about 1.5 min; docs/model.md, section 11a); plant times the mock "
+      "device's plant per substep on every built-in grid and writes plant_substep.csv (about a minute; "
+      "docs/bridge.md, \"Every grid in real time\").\n"
       "Exit codes: 0 done; 1 a suite failed (--check unmet; design: no candidate meets the constraints, "
       "or the written profile fails one or covers the organs less than its base); 2 bad argument.");
   app.flag("--check", o.check,

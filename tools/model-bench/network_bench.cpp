@@ -15,7 +15,6 @@
 #include <cmath>
 #include <fstream>
 #include <iostream>
-#include <numeric>
 #include <string>
 #include <vector>
 
@@ -250,26 +249,6 @@ int stepper_suite(const BenchOptions& o) {
   }
   (void)plot.write(o.out + "/network_stepper_error_vs_time.svg");
   return 0;
-}
-
-// The `fraction` of fluid cells nearest the design cell (at least one).
-std::vector<std::size_t> pressed_cells(const DeviceModel& m, double fraction) {
-  const auto& cells = m.layout().fluid_cells();
-  const int r0 = m.profile().design.row;
-  const int c0 = m.profile().design.col;
-  std::vector<std::size_t> order(cells.size());
-  std::iota(order.begin(), order.end(), 0);
-  auto dist = [&](std::size_t i) {
-    const int dr = cells[i].row - r0;
-    const int dc = cells[i].col - c0;
-    return dr * dr + dc * dc;
-  };
-  std::stable_sort(order.begin(), order.end(),
-                   [&](std::size_t a, std::size_t b) { return dist(a) < dist(b); });
-  const auto n = std::max<std::size_t>(
-      1, static_cast<std::size_t>(std::lround(fraction * static_cast<double>(cells.size()))));
-  order.resize(std::min(n, order.size()));
-  return order;
 }
 
 int scaling_suite(const BenchOptions& o) {
