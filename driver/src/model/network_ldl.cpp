@@ -106,6 +106,9 @@ SparseLdl::SparseLdl(std::size_t n, std::span<const Pair> pairs)
   y_.assign(n, 0.0);
   w_.assign(n, 0.0);
   plan_numeric(flag);
+  nz_row_.assign(lp_[n], 0);
+  nz_value_.assign(lp_[n], 0.0);
+  nz_count_.assign(n, 0);
 }
 
 void SparseLdl::plan_numeric(std::vector<std::uint32_t>& flag) {
@@ -161,6 +164,7 @@ bool SparseLdl::factorize_rows(std::size_t first, std::size_t last) noexcept {
   const double* const ax = ax_.data();
   const std::uint32_t* const ai = ai_.data();
   const Visit* const visits = visits_.data();
+  nz_valid_ = false;
   for (std::size_t k = first; k < last; ++k) {
     for (std::uint32_t p = ap_[k]; p < ap_[k + 1]; ++p) {
       y[ai[p]] += ax[p];
@@ -185,6 +189,93 @@ bool SparseLdl::factorize_rows(std::size_t first, std::size_t last) noexcept {
     d_[k] = dk;
   }
   return true;
+}
+
+bool SparseLdl::factorize_skipping_zeros() noexcept {
+  // factorize_rows() along the same visits; a column's entries above row k are its non-zeros so
+  // far (the rows before k, in order), and a visit whose multiplier is zero only wrote zeros.
+  const std::size_t n = n_;
+  double* const y = y_.data();
+  std::uint32_t* const nz_row = nz_row_.data();
+  double* const nz_value = nz_value_.data();
+  std::uint32_t* const nz_count = nz_count_.data();
+  const std::uint32_t* const lp = lp_.data();
+  const double* const ax = ax_.data();
+  const std::uint32_t* const ai = ai_.data();
+  const Visit* const visits = visits_.data();
+  nz_valid_ = false;
+  std::fill(nz_count_.begin(), nz_count_.end(), 0U);
+  for (std::size_t k = 0; k < n; ++k) {
+    for (std::uint32_t p = ap_[k]; p < ap_[k + 1]; ++p) {
+      y[ai[p]] += ax[p];
+    }
+    double dk = y[k];
+    y[k] = 0.0;
+    for (const Visit* v = visits + row_begin_[k]; v != visits + row_begin_[k + 1]; ++v) {
+      const std::uint32_t i = v->column;
+      const double yi = y[i];
+      y[i] = 0.0;
+      if (yi == 0.0) {
+        continue;
+      }
+      const std::uint32_t first = lp[i];
+      const std::uint32_t count = nz_count[i];
+      for (std::uint32_t e = first; e < first + count; ++e) {
+        y[nz_row[e]] -= nz_value[e] * yi;
+      }
+      const double l_ki = yi / d_[i];
+      dk -= l_ki * yi;
+      if (l_ki != 0.0) {
+        nz_row[first + count] = static_cast<std::uint32_t>(k);
+        nz_value[first + count] = l_ki;
+        nz_count[i] = count + 1;
+      }
+    }
+    if (!(dk > 0.0) || !std::isfinite(dk)) {
+      return false;
+    }
+    d_[k] = dk;
+  }
+  nz_valid_ = true;
+  return true;
+}
+
+void SparseLdl::solve_skipping_zeros(std::span<double> x) noexcept {
+  if (!nz_valid_) {
+    solve(x);
+    return;
+  }
+  const std::size_t n = n_;
+  double* const w = w_.data();
+  const std::uint32_t* const nz_row = nz_row_.data();
+  const double* const nz_value = nz_value_.data();
+  const std::uint32_t* const nz_count = nz_count_.data();
+  const std::uint32_t* const lp = lp_.data();
+  for (std::size_t i = 0; i < n; ++i) {
+    w[new_of_old_[i]] = x[i];
+  }
+  for (std::size_t j = 0; j < n; ++j) {
+    const double yj = w[j];
+    if (yj == 0.0) {
+      continue;
+    }
+    for (std::uint32_t e = lp[j]; e < lp[j] + nz_count[j]; ++e) {
+      w[nz_row[e]] -= nz_value[e] * yj;
+    }
+  }
+  for (std::size_t j = 0; j < n; ++j) {
+    w[j] /= d_[j];
+  }
+  for (std::size_t j = n; j-- > 0;) {
+    double yj = w[j];
+    for (std::uint32_t e = lp[j]; e < lp[j] + nz_count[j]; ++e) {
+      yj -= nz_value[e] * w[nz_row[e]];
+    }
+    w[j] = yj;
+  }
+  for (std::size_t i = 0; i < n; ++i) {
+    x[i] = w[new_of_old_[i]];
+  }
 }
 
 void SparseLdl::solve(std::span<double> x) noexcept {

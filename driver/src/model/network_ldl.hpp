@@ -36,6 +36,17 @@ class SparseLdl {
   bool factorize() noexcept;
   // Rows [first, last) of the factorisation, after rows [0, first): factorize() is all n rows.
   bool factorize_rows(std::size_t first, std::size_t last) noexcept;
+  // factorize() and solve() for a matrix that is mostly zeros off its diagonal. Under the exact
+  // law a locked passage conducts nothing, so on a large grid with a few cells pressed nearly
+  // every node stands alone (palm-64x64: about 93 % of its links), and factorize() spends nearly
+  // all its work multiplying zeros. This pass keeps each column of L as its non-zeros only, in
+  // the same row order, and skips a row's visit to a column whose multiplier is zero: the same
+  // arithmetic on the non-zeros in the same order, so every non-zero of L, D and the solution
+  // has the bits factorize() and solve() give (only the sign of an exact zero may differ).
+  // solve_skipping_zeros() uses the last factorize_skipping_zeros(); after any other
+  // factorisation it is solve().
+  bool factorize_skipping_zeros() noexcept;
+  void solve_skipping_zeros(std::span<double> x) noexcept;
   // Row k's share of factorize()'s work (entries read and multiply-adds), for planning.
   [[nodiscard]] std::size_t row_work(std::size_t k) const noexcept;
   // solve()'s work: entries of L read twice, plus the permutation and D.
@@ -71,6 +82,12 @@ class SparseLdl {
   std::vector<Visit> visits_;
   std::vector<double> y_;
   std::vector<double> w_;  // solve()'s permuted right-hand side
+  // factorize_skipping_zeros()'s L: column i's non-zeros (rows, values) from lp_[i], nz_count_[i]
+  // of them.
+  std::vector<std::uint32_t> nz_row_;
+  std::vector<double> nz_value_;
+  std::vector<std::uint32_t> nz_count_;
+  bool nz_valid_ = false;
 };
 
 }  // namespace mrskin::model::detail
