@@ -5,6 +5,7 @@
 #include <bit>
 #include <cstdint>
 #include <random>
+#include <string>
 #include <vector>
 
 #include "network_ldl.hpp"
@@ -113,6 +114,41 @@ TEST_P(SparseLdlSkippingZeros, GivesTheFullPassBits) {
 
 // Every passage locked, one in 20, one in 3, and every one open.
 INSTANTIATE_TEST_SUITE_P(OpenFractions, SparseLdlSkippingZeros, ::testing::Values(0.0, 0.05, 0.3, 1.0));
+
+// Most passages open: the pass keeps nearly all of L, and the next ones are full passes until it
+// tries again; a network that locks up is then skipped again. The bits never change.
+TEST(SparseLdlSkippingZeros, KeepsTheBitsAsTheNetworkOpensAndLocks) {
+  const Network open = make_network(12, 1.0, 11);
+  const Network locked = make_network(12, 0.05, 12);
+  SparseLdl full(open.n, open.pairs);
+  SparseLdl skipping(open.n, open.pairs);
+  std::size_t kept_open = 0;
+  std::size_t kept_locked = 0;
+  for (int pass = 0; pass < 60; ++pass) {
+    const Network& net = (pass / 20) % 2 == 0 ? open : locked;  // 20 open, 20 locked, 20 open
+    assemble(full, net);
+    assemble(skipping, net);
+    ASSERT_TRUE(full.factorize());
+    ASSERT_TRUE(skipping.factorize_skipping_zeros());
+    if (pass == 0) {
+      kept_open = skipping.kept_nonzeros();
+    }
+    if (pass == 39) {
+      kept_locked = skipping.kept_nonzeros();
+    }
+    std::vector<double> x_full = right_hand_side(open.n, 100 + static_cast<std::uint64_t>(pass));
+    std::vector<double> x_skipping = x_full;
+    full.solve(x_full);
+    skipping.solve_skipping_zeros(x_skipping);
+    SCOPED_TRACE("pass " + std::to_string(pass));
+    expect_same_bits(x_full, x_skipping);
+  }
+  // Every passage open keeps L's whole pattern; at one in 20 the locked pass (the last of the
+  // locked ones, after the full passes ran out) kept a small part of it.
+  EXPECT_EQ(kept_open, full.factor_nonzeros());
+  EXPECT_GT(kept_locked, 0U);
+  EXPECT_LT(kept_locked * 4, full.factor_nonzeros());
+}
 
 TEST(SparseLdlSkippingZeros, StandingAloneNodesSolveAsTheirDiagonal) {
   const Network net = make_network(6, 0.0, 4);

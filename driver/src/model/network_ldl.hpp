@@ -36,16 +36,20 @@ class SparseLdl {
   bool factorize() noexcept;
   // Rows [first, last) of the factorisation, after rows [0, first): factorize() is all n rows.
   bool factorize_rows(std::size_t first, std::size_t last) noexcept;
-  // factorize() and solve() for a matrix that is mostly zeros off its diagonal. Under the exact
-  // law a locked passage conducts nothing, so on a large grid with a few cells pressed nearly
-  // every node stands alone (palm-64x64: about 93 % of its links), and factorize() spends nearly
-  // all its work multiplying zeros. This pass keeps each column of L as its non-zeros only, in
-  // the same row order, and skips a row's visit to a column whose multiplier is zero: the same
+  // factorize() and solve() for a matrix with many zeros off its diagonal. Under the exact law a
+  // locked passage conducts nothing, so on a large grid with a few cells pressed most nodes stand
+  // alone (palm-64x64, a 5 % press, valves at 30 %: 75-93 % of its links conduct nothing), and
+  // factorize() spends most of its work multiplying zeros. This pass keeps each column of L as its non-zeros
+  // only, in the same row order, and skips a row's visit to a column whose multiplier is zero: the same
   // arithmetic on the non-zeros in the same order, so every non-zero of L, D and the solution
   // has the bits factorize() and solve() give (only the sign of an exact zero may differ).
-  // solve_skipping_zeros() uses the last factorize_skipping_zeros(); after any other
-  // factorisation it is solve().
+  // When a pass keeps more than 3/4 of L's pattern (most passages open), the next 15 are full
+  // factorize() passes: the same bits either way, at the full pass's cost. solve_skipping_zeros()
+  // uses the last factorize_skipping_zeros() that skipped; after any other factorisation it is
+  // solve().
   bool factorize_skipping_zeros() noexcept;
+  // Non-zeros of L the last factorize_skipping_zeros() kept (of factor_nonzeros()).
+  [[nodiscard]] std::size_t kept_nonzeros() const noexcept { return kept_nonzeros_; }
   void solve_skipping_zeros(std::span<double> x) noexcept;
   // Row k's share of factorize()'s work (entries read and multiply-adds), for planning.
   [[nodiscard]] std::size_t row_work(std::size_t k) const noexcept;
@@ -88,6 +92,8 @@ class SparseLdl {
   std::vector<double> nz_value_;
   std::vector<std::uint32_t> nz_count_;
   bool nz_valid_ = false;
+  std::size_t kept_nonzeros_ = 0;
+  int full_passes_ahead_ = 0;
 };
 
 }  // namespace mrskin::model::detail
