@@ -818,3 +818,41 @@ TEST(ModelNetwork, AStepInPhasesIsTheWholeStepToTheBit) {
 }
 
 }  // namespace
+
+// A pad the fluid holds off the finger's depth is solved for its depth by safeguarded Newton.
+// A Newton step that had converged onto an end of its bracket (the depth itself, once the force
+// there rounded to the wrong side of zero) used to be bisected away, and the search came back
+// a bit an iteration: 30-40 iterations on a third of the 16x16 plant's searches in the daemon's
+// demo (docs/bridge.md, "The pad's depth search"). Cells around a press on the 16x16, with the
+// plant's stepper and substep; and reset() zeroes the counts.
+TEST(ModelNetwork, AFreePadsDepthSearchTakesAFewIterations) {
+  const DeviceModel& m = model_of("fingertip-16x16");
+  NetworkSimulation sim(m, NetworkOptions{});
+  set_uniform_yield(sim, 0.3 * max_yield_Pa(m));
+  const std::size_t centre = design_cell(m);
+  const auto& cells = m.layout().fluid_cells();
+  std::vector<double> depth(sim.fluid_cell_count(), 0.0);
+  const double design_m = m.profile().design.indentation_m;
+  constexpr double kDt_s = 1e-4;
+  for (int k = 0; k < 1000; ++k) {
+    const double t_s = (k + 1) * kDt_s;
+    // In over 20 ms, held 30 ms, out over 20 ms, then 30 ms at rest.
+    const double x = t_s < 0.02 ? t_s / 0.02 : t_s < 0.05 ? 1.0 : t_s < 0.07 ? (0.07 - t_s) / 0.02 : 0.0;
+    for (std::size_t c = 0; c < cells.size(); ++c) {
+      const int dr = cells[c].row - cells[centre].row;
+      const int dc = cells[c].col - cells[centre].col;
+      depth[c] = dr * dr + dc * dc <= 2 ? x * design_m : 0.0;
+    }
+    ASSERT_EQ(sim.set_cell_indentation_m(depth), Status::ok);
+    ASSERT_TRUE(sim.step(kDt_s).ok()) << "step " << k;
+  }
+  const std::uint64_t searches = sim.pad_searches();
+  ASSERT_GT(searches, 1000U) << "no free pad: the case does not test the search";
+  const double mean = static_cast<double>(sim.pad_search_iterations()) / static_cast<double>(searches);
+  std::printf("free pads' depth searches: %llu, %.2f iterations each\n",
+              static_cast<unsigned long long>(searches), mean);
+  EXPECT_LE(mean, 8.0);
+  sim.reset();
+  EXPECT_EQ(sim.pad_searches(), 0U);
+  EXPECT_EQ(sim.pad_search_iterations(), 0U);
+}

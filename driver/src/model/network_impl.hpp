@@ -201,6 +201,10 @@ struct __attribute__((visibility("hidden"))) NetworkSimulation::Impl {
   double work = 0.0;
   double stored_initial = 0.0;
   double dissipated = 0.0;
+  // Free pads' depth searches (resolve_cell) and their Newton iterations, since construction or
+  // reset. Counted inside const evaluations; the object is not shared between threads.
+  mutable std::uint64_t pad_searches = 0;
+  mutable std::uint64_t pad_search_iterations = 0;
 
   // ---- one step's workspace ----
   std::vector<double> dc;           // contact depth of each cell for the step

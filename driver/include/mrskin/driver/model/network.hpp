@@ -130,6 +130,12 @@ class MRSKIN_DRIVER_API NetworkSimulation {
   // factor (fixed at construction), for reports.
   [[nodiscard]] std::size_t node_count() const noexcept;
   [[nodiscard]] std::size_t factor_nonzeros() const noexcept;
+  // Since construction or reset(): the depth searches of pads the fluid holds off the finger's
+  // depth (one per such cell an evaluation of the step's balance; safeguarded Newton) and their
+  // iterations in all, for reports and tests (a few iterations each: docs/bridge.md, "The pad's
+  // depth search").
+  [[nodiscard]] std::uint64_t pad_searches() const noexcept;
+  [[nodiscard]] std::uint64_t pad_search_iterations() const noexcept;
 
   // Inputs, taking effect at the next step. out_of_range on a size mismatch (or more than 16
   // contacts, a zero radius, a depth at or below the cell's floor), not_finite or negative on
