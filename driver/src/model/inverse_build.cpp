@@ -262,6 +262,9 @@ void InverseTopology::build_tables() {
       double hi = sh.a / (1.0 - kappa * sh.g) * 1.0000001 + 1.0;
       for (int i = 0; i < 400 && hi - lo > 1e-16 * hi; ++i) {
         const double mid = 0.5 * (lo + hi);
+        if (!(mid > lo && mid < hi)) {
+          break;  // adjacent doubles (as in r_of_phi): mid is the answer
+        }
         (sh.phi(kappa * mid) - mid > 0.0 ? lo : hi) = mid;
       }
       const double phi = 0.5 * (lo + hi);

@@ -106,6 +106,9 @@ struct BranchShape {
     double hi = std::sqrt(std::max(0.0, (target - s) / g)) * 1.0000001 + 1e-300;
     for (int i = 0; i < 400 && hi - lo > 1e-17 * hi; ++i) {
       const double mid = 0.5 * (lo + hi);
+      if (!(mid > lo && mid < hi)) {
+        break;  // adjacent doubles, closer than the tolerance can ask: mid is the answer
+      }
       (phi(mid * mid) < target ? lo : hi) = mid;
     }
     const double w = 0.5 * (lo + hi);

@@ -65,27 +65,39 @@ Status NetworkSimulation::Impl::resolve_cell(std::size_t i, double e1, bool dg, 
   };
   double depth = lo;
   bool pinned = true;
-  if (force_at(lo) < 0.0) {
+  if (const double f_lo = force_at(lo); f_lo < 0.0) {
     pinned = false;
     // Bracket the free depth (the force rises with depth), then safeguarded Newton.
     double a = lo;
+    double f_a = f_lo;
     double step = std::max(std::fabs(d0 - lo), 1e-3 * cell_depth);
     double b = lo + step;
+    double f_b = force_at(b);
     int n = 0;
-    while (force_at(b) < 0.0) {
+    while (f_b < 0.0) {
       a = b;
+      f_a = f_b;
       step *= 2.0;
       b = lo + step;
       if (++n > kScalarIterations || !std::isfinite(b)) {
         return Status::no_convergence;
       }
+      f_b = force_at(b);
     }
-    depth = b;
+    // Newton from the first probe when it brackets the root (the step's start depth, near it);
+    // after an expansion from the last probe below the root, which lies just past it: from the
+    // far end Newton crawled down the stiff force curve about 15 % a step (16x16: 8.8 iterations
+    // a search that expanded, 3.0 from below). The force there is known: not evaluated again.
+    const bool expanded = n > 0;
+    depth = expanded ? a : b;
+    double f = expanded ? f_a : f_b;
     bool done = false;
     ++pad_searches;
     for (int it = 0; it < kScalarIterations && !done; ++it) {
       ++pad_search_iterations;
-      const double f = force_at(depth);
+      if (it > 0) {
+        f = force_at(depth);
+      }
       if (!std::isfinite(f)) {
         return Status::not_finite;
       }
