@@ -817,26 +817,17 @@ TEST(ModelNetwork, AStepInPhasesIsTheWholeStepToTheBit) {
   static_assert(noexcept(std::declval<NetworkSimulation&>().advance_step()));
 }
 
-}  // namespace
-
-// A pad the fluid holds off the finger's depth is solved for its depth by safeguarded Newton.
-// A Newton step that had converged onto an end of its bracket (the depth itself, once the force
-// there rounded to the wrong side of zero) used to be bisected away, and the search came back
-// a bit an iteration: 30-40 iterations on a third of the 16x16 plant's searches in the daemon's
-// demo (docs/bridge.md, "The pad's depth search"). Cells around a press on the 16x16, with the
-// plant's stepper and substep; and reset() zeroes the counts.
-TEST(ModelNetwork, AFreePadsDepthSearchTakesAFewIterations) {
-  const DeviceModel& m = model_of("fingertip-16x16");
-  NetworkSimulation sim(m, NetworkOptions{});
-  set_uniform_yield(sim, 0.3 * max_yield_Pa(m));
+// The fingertip-16x16 at the plant's substep and stepper: cells around its design cell pressed
+// in over 20 ms, held 30 ms, out over 20 ms, then 30 ms at rest: steps [first, last) of 1,000.
+void press_fingertip_around_design_cell(NetworkSimulation& sim, int first = 0, int last = 1000) {
+  const DeviceModel& m = sim.model();
   const std::size_t centre = design_cell(m);
   const auto& cells = m.layout().fluid_cells();
   std::vector<double> depth(sim.fluid_cell_count(), 0.0);
   const double design_m = m.profile().design.indentation_m;
   constexpr double kDt_s = 1e-4;
-  for (int k = 0; k < 1000; ++k) {
+  for (int k = first; k < last; ++k) {
     const double t_s = (k + 1) * kDt_s;
-    // In over 20 ms, held 30 ms, out over 20 ms, then 30 ms at rest.
     const double x = t_s < 0.02 ? t_s / 0.02 : t_s < 0.05 ? 1.0 : t_s < 0.07 ? (0.07 - t_s) / 0.02 : 0.0;
     for (std::size_t c = 0; c < cells.size(); ++c) {
       const int dr = cells[c].row - cells[centre].row;
@@ -846,6 +837,18 @@ TEST(ModelNetwork, AFreePadsDepthSearchTakesAFewIterations) {
     ASSERT_EQ(sim.set_cell_indentation_m(depth), Status::ok);
     ASSERT_TRUE(sim.step(kDt_s).ok()) << "step " << k;
   }
+}
+
+// A pad the fluid holds off the finger's depth is solved for its depth by safeguarded Newton.
+// A Newton step that had converged onto an end of its bracket (the depth itself, once the force
+// there rounded to the wrong side of zero) used to be bisected away, and the search came back
+// a bit an iteration: 30-40 iterations on a third of the 16x16 plant's searches in the daemon's
+// demo (docs/bridge.md, "The pad's depth search"). reset() zeroes the counts.
+TEST(ModelNetwork, AFreePadsDepthSearchTakesAFewIterations) {
+  const DeviceModel& m = model_of("fingertip-16x16");
+  NetworkSimulation sim(m, NetworkOptions{});
+  set_uniform_yield(sim, 0.3 * max_yield_Pa(m));
+  press_fingertip_around_design_cell(sim);
   const std::uint64_t searches = sim.pad_searches();
   ASSERT_GT(searches, 1000U) << "no free pad: the case does not test the search";
   const double mean = static_cast<double>(sim.pad_search_iterations()) / static_cast<double>(searches);
@@ -855,4 +858,31 @@ TEST(ModelNetwork, AFreePadsDepthSearchTakesAFewIterations) {
   sim.reset();
   EXPECT_EQ(sim.pad_searches(), 0U);
   EXPECT_EQ(sim.pad_search_iterations(), 0U);
+  EXPECT_EQ(sim.balance_evaluations(), 0U);
 }
+
+// Newton's start: the last step's flows carried on, compared with the committed state only when
+// the carried-on start is not already within the volume tolerance (docs/bridge.md, "One
+// evaluation fewer a smooth step"). Each comparison costs an evaluation of every cell and link.
+TEST(ModelNetwork, ASmoothStepEvaluatesItsBalanceOnceBeforeNewton) {
+  const DeviceModel& m = model_of("fingertip-16x16");
+  NetworkSimulation sim(m, NetworkOptions{});
+  set_uniform_yield(sim, 0.3 * max_yield_Pa(m));
+  // Evaluations a step over the last 10 ms of the hold and of the rest: a Newton step and its
+  // check (3 and 4 with the comparison) while held; the start alone and its check at rest (2
+  // and 3). The other stretches move and need more either way.
+  auto evaluations_a_step = [&sim](int first, int last) {
+    const std::uint64_t before = sim.balance_evaluations();
+    press_fingertip_around_design_cell(sim, first, last);
+    return static_cast<double>(sim.balance_evaluations() - before) / (last - first);
+  };
+  press_fingertip_around_design_cell(sim, 0, 400);
+  const double held = evaluations_a_step(400, 500);
+  press_fingertip_around_design_cell(sim, 500, 900);
+  const double at_rest = evaluations_a_step(900, 1000);
+  std::printf("balance evaluations a step: %.2f held, %.2f at rest\n", held, at_rest);
+  EXPECT_LE(held, 3.0);
+  EXPECT_LE(at_rest, 2.0);
+}
+
+}  // namespace

@@ -205,6 +205,7 @@ struct __attribute__((visibility("hidden"))) NetworkSimulation::Impl {
   // reset. Counted inside const evaluations; the object is not shared between threads.
   mutable std::uint64_t pad_searches = 0;
   mutable std::uint64_t pad_search_iterations = 0;
+  mutable std::uint64_t balance_evaluations = 0;  // evaluate_nodes calls, the same way
 
   // ---- one step's workspace ----
   std::vector<double> dc;           // contact depth of each cell for the step

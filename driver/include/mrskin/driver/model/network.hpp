@@ -136,6 +136,9 @@ class MRSKIN_DRIVER_API NetworkSimulation {
   // depth search").
   [[nodiscard]] std::uint64_t pad_searches() const noexcept;
   [[nodiscard]] std::uint64_t pad_search_iterations() const noexcept;
+  // Since construction or reset(): evaluations of the step's balance (every cell's law and every
+  // link's: the dearest part of a step, a few a step), for reports and tests.
+  [[nodiscard]] std::uint64_t balance_evaluations() const noexcept;
 
   // Inputs, taking effect at the next step. out_of_range on a size mismatch (or more than 16
   // contacts, a zero radius, a depth at or below the cell's floor), not_finite or negative on
