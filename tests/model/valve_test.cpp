@@ -91,6 +91,34 @@ TEST(ModelValve, NewtonianLimitIsExact) {
   }
 }
 
+// The network evaluates a passage without yield below the critical flow as g x itself, without
+// calling flow_point (docs/bridge.md, "Passages without yield"): that must be flow_point's
+// answer to the bit, on both sides of zero, and zero (flow and conductance) at zero.
+TEST(ModelValve, NewtonianConductanceIsFlowPointsBitsWithoutYield) {
+  const ValveLaw v = paper_valve();
+  const double g = v.newtonian_conductance_m3_per_s_Pa();
+  const double dp_critical = v.critical_flow_m3_per_s() / g;
+  int laminar = 0;
+  for (const double dp : logspace(1e-9, 10.0 * dp_critical, 400)) {
+    for (const double x : {dp, -dp}) {
+      const Result<FlowPoint> f = v.flow_point(x, 0.0);
+      ASSERT_TRUE(f.ok());
+      const double q = g * std::fabs(x);
+      if (q <= v.critical_flow_m3_per_s()) {
+        ++laminar;
+        EXPECT_EQ(f.value.flow_m3_per_s, std::copysign(q, x)) << x;
+        EXPECT_EQ(f.value.conductance_m3_per_s_Pa, g) << x;
+      } else {
+        EXPECT_LT(std::fabs(f.value.flow_m3_per_s), q) << x;  // turbulence costs flow
+      }
+    }
+  }
+  EXPECT_GT(laminar, 600);
+  const Result<FlowPoint> zero = v.flow_point(0.0, 0.0);
+  EXPECT_EQ(zero.value.flow_m3_per_s, 0.0);
+  EXPECT_EQ(zero.value.conductance_m3_per_s_Pa, 0.0);
+}
+
 TEST(ModelValve, ZeroFlowGivesTheYieldThreshold) {
   const ValveLaw v = paper_valve();
   for (const double tau : yield_grid()) {

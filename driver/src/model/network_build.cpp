@@ -122,6 +122,8 @@ void NetworkSimulation::Impl::build_cell_laws(const std::string& origin) {
   s_rest = rest.value;
   const double newton_k = model.valve_law().newtonian_pressure_Pa(1.0);
   floor_conductance = 1.0 / (opt.regularisation_viscosity_factor * newton_k);
+  newtonian_conductance = model.valve_law().newtonian_conductance_m3_per_s_Pa();
+  critical_flow = model.valve_law().critical_flow_m3_per_s();
   for (const GridCell& gc : lay.fluid_cells()) {
     cell_x.push_back(gc.col * prof.cell_pitch_m);
     cell_y.push_back(gc.row * prof.cell_pitch_m);

@@ -174,7 +174,9 @@ struct __attribute__((visibility("hidden"))) NetworkSimulation::Impl {
   double s_rest = 0.0;  // bulge volume at p0
   double p0 = 0.0;
   double cell_depth = 0.0;
-  double floor_conductance = 0.0;  // regularised law's conductance inside the yield band
+  double floor_conductance = 0.0;      // regularised law's conductance inside the yield band
+  double newtonian_conductance = 0.0;  // an open passage's without yield, laminar
+  double critical_flow = 0.0;          // where its flow turns turbulent (flow_point's branch)
   std::vector<SensorPlan> sensors;
   std::vector<std::uint32_t> sensor_cells;
   detail::SparseLdl ldl;

@@ -76,6 +76,9 @@ class MRSKIN_DRIVER_API ValveLaw {
   [[nodiscard]] double turbulent_pressure_Pa(double flow_m3_per_s) const noexcept;
   // The flow at which Re reaches 2300, m^3/s.
   [[nodiscard]] double critical_flow_m3_per_s() const noexcept { return critical_flow_; }
+  // Q / dp of a passage without yield below the critical flow, w h^3 / (12 mu L), m^3/(s Pa):
+  // flow_point's conductance there, the same bits.
+  [[nodiscard]] double newtonian_conductance_m3_per_s_Pa() const noexcept { return flow_k_; }
 
   // Pressure to flow, exact (explicit factored form; with a safeguarded solve only if Re > 2300).
   [[nodiscard]] Result<double> flow_m3_per_s(double dp_Pa, double yield_stress_Pa) const noexcept;
