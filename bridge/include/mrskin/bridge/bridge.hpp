@@ -80,7 +80,10 @@ struct BridgeOptions {
   bool lock_short_of_law = true;
   // A holding cell whose force is above its target by more than this fraction drains with every
   // valve open and is sealed (highest allowed current) once it gets there, until the finger
-  // moves: the settling figure after a fast press (docs/bridge.md, Settling).
+  // moves: the settling figure after a fast press (docs/bridge.md, Settling). Only on a unit
+  // whose cell takes at least a tick to empty through an open passage (the default 5x5: 1.7 s);
+  // fingertip-16x16 and palm-64x64 empty in microseconds, so a drain there ends at the open
+  // floor before it can be sealed (docs/bridge.md, "Where the 16x16's hold goes").
   bool drain_then_seal = true;
   double drain_open_fraction = 0.05;
   // With drain_then_seal: a loading cell whose observed force is above the law at its observed
