@@ -32,6 +32,35 @@ TissueEstimatorOptions default_estimator_options() noexcept {
   return o;
 }
 
+namespace {
+
+constexpr double kReferenceSensorNoise_m = 2e-6;  // the reference design's displacement sensors
+// The reference's retreat (30 um) is 15 of its sensors' noise sigmas; on another unit the retreat
+// keeps at least this share of that many of its own (7.5 sigmas by default): measured best on
+// the fingertip and the palm together (docs/bridge.md, "A retreat above the fit's noise").
+constexpr double kRetreatNoiseShare = 0.5;
+
+// scaled (scaled_to_design(given, ...)) with the direction latch's retreat above the fit's
+// noise: scaled with the design alone, the fingertip's (30 um x 0.06 = 1.8 um) sat inside the
+// 2-3 um its fit moves from tick to tick, and released its holds on 625 of 1,000 ticks
+// (docs/bridge.md, "Where the 16x16's hold goes").
+BridgeOptions with_noise_floor(BridgeOptions scaled, const BridgeOptions& given,
+                               const model::DeviceProfile& profile) noexcept {
+  double noise_m = std::numeric_limits<double>::infinity();
+  for (const model::SensorSpec& sensor : profile.sensors) {
+    if (sensor.quantity == model::SensorQuantity::displacement && sensor.noise_std > 0.0) {
+      noise_m = std::min(noise_m, sensor.noise_std);
+    }
+  }
+  if (std::isfinite(noise_m)) {  // (the default 5x5: 15 um, below its 30 um as given)
+    const double floor_m = kRetreatNoiseShare * given.unload_retreat_m * noise_m / kReferenceSensorNoise_m;
+    scaled.unload_retreat_m = std::max(scaled.unload_retreat_m, floor_m);
+  }
+  return scaled;
+}
+
+}  // namespace
+
 class __attribute__((visibility("hidden"))) Bridge::Impl {
  public:
   // The public functions, as documented in bridge.hpp (they forward here).
@@ -187,7 +216,7 @@ Bridge::Impl::Impl(DeviceSession& session, SlaveSource& source, BridgeOptions op
   }
   if (options_.scale_to_design) {
     scale_ = design_scale(profile->design);
-    options_ = scaled_to_design(options_, scale_);
+    options_ = with_noise_floor(scaled_to_design(options_, scale_), options_, *profile);
   }
   const std::size_t cells = layout_.fluid_cell_count();
   if (session.info().sensors != profile->sensors.size() || session.info().valves != layout_.valve_count() ||

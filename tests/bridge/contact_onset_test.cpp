@@ -166,6 +166,32 @@ TEST(DesignScale, TheDefaultUnitIsTheReferenceAndTheOthersScale) {
       << "the observer's thresholds follow the sensors' noise, not the design";
 }
 
+// The direction latch's retreat answers the fit's noise: on a unit whose sensors are less quiet
+// than its design is small it stays at 7.5 of their noise sigmas (the fingertip: 0.5 um, the
+// palm: 1 um), not at the design's 0.06 or 0.1 of 30 um (the fingertip's holds were released on
+// 625 of 1,000 ticks: docs/bridge.md, "Where the 16x16's hold goes"). The default unit keeps its
+// options bit for bit; the rates stay scaled with the design.
+TEST(DesignScale, TheDirectionLatchFollowsTheSensorsNoise) {
+  const BridgeOptions given;
+  const auto applied = [&](const std::string& uri) {
+    SimulatedClock clock;
+    OpenOptions open;
+    open.synchronous_mock = true;
+    OpenedDevice dev = open_device(uri, clock, open);
+    auto scene = make_scene("demo");
+    return Bridge(*dev.session, *scene, given).options();
+  };
+  const BridgeOptions unit = applied("mock://");
+  EXPECT_EQ(unit.unload_retreat_m, given.unload_retreat_m);
+  EXPECT_EQ(unit.unload_rate_m_per_s, given.unload_rate_m_per_s);
+  const BridgeOptions fingertip = applied("mock://fingertip-16x16");
+  EXPECT_DOUBLE_EQ(fingertip.unload_retreat_m, 7.5 * 0.5e-6);
+  EXPECT_DOUBLE_EQ(fingertip.unload_rate_m_per_s, given.unload_rate_m_per_s * 0.06);
+  EXPECT_DOUBLE_EQ(fingertip.contact_threshold_m, given.contact_threshold_m * 0.06) << "the design's";
+  const BridgeOptions palm = applied("mock://palm-64x64");
+  EXPECT_DOUBLE_EQ(palm.unload_retreat_m, 7.5 * 1e-6);
+}
+
 TEST(ContactOnset, DefaultUnitOnTheDemo) { expect_onsets_within_a_tick("mock://", "demo", 1.0, 1); }
 TEST(ContactOnset, DefaultUnitOnTheSweep) { expect_onsets_within_a_tick("mock://", "sweep", 4.0, 3); }
 TEST(ContactOnset, FingertipOnTheDemo) {

@@ -117,7 +117,10 @@ struct BridgeOptions {
   // The lengths and forces above, and the scenes' tissue laws, are stated for the reference
   // design (the default 5x5: 2 N at 5 mm). On a unit of another design point (profile [design])
   // the bridge renders them at its own: lengths times indentation_m / 5 mm, forces times
-  // force_range_N / 2 N (design_scale; 1 and 1 on the default unit). Off: taken as they are.
+  // force_range_N / 2 N (design_scale; 1 and 1 on the default unit). unload_retreat_m, a noise
+  // threshold as much as a length, stays at least half its reference number of sensor noise
+  // sigmas (30 um is 15 of the reference's 2 um; fingertip-16x16: 3.75 um, not 1.8 um).
+  // Off: taken as they are.
   bool scale_to_design = true;
 };
 
