@@ -18,6 +18,7 @@
 #include "mrskin/bridge/bridge.hpp"
 #include "mrskin/driver/model/device_model.hpp"
 #include "mrskin/driver/model/profile.hpp"
+#include "mrskin/sim/network_plant.hpp"
 #include "scene_rig.hpp"
 
 namespace mrskin::bridge {
@@ -249,6 +250,65 @@ TEST(CellTrace, TheFingertipHoldsTheDemosLaw) {
   });
   EXPECT_EQ(released, 0);
   EXPECT_GT(true_sum_N, 0.8 * law_sum_N) << "true / law " << true_sum_N / law_sum_N;
+}
+
+// The plant alone (sim::NetworkPlant: no perturbation, noise, hysteresis or command delay) under
+// the scene's finger, every valve at MRSKIN_TRACE_CURRENT of the maximum (or only the demo's
+// deepest cell's, MRSKIN_TRACE_ONLY_DEEPEST=1): every 50th tick from 0.3 s to 1.5 s, the deepest
+// cell's depth, force and pressure, and each fluid cell around it with its depth and pressure.
+TEST(CellTrace, DISABLED_PlantPressuresAroundTheDeepestCell) {
+  const model::DeviceModel nominal(model::load_profile("fingertip-16x16"));
+  sim::NetworkPlantOptions exact;
+  exact.perturbation = 0.0;
+  exact.sensor_noise_scale = 0.0;
+  exact.hysteresis_scale = 0.0;
+  exact.command_delay_s = 0.0;
+  sim::NetworkPlant plant(nominal.profile(), exact);
+  const GridLayout& layout = nominal.layout();
+  const std::size_t cells = layout.fluid_cell_count();
+  const auto& fluid = layout.fluid_cells();
+  const auto& valves = layout.valves();
+  constexpr std::size_t kDeepest = 59;  // the demo's
+  std::vector<double> current(layout.valve_count(),
+                              env_or("MRSKIN_TRACE_CURRENT", 0.25) * nominal.profile().coil.max_current_A);
+  for (std::size_t v = 0; v < valves.size(); ++v) {
+    const int away =
+        std::abs(valves[v].row - fluid[kDeepest].row) + std::abs(valves[v].col - fluid[kDeepest].col);
+    if (std::getenv("MRSKIN_TRACE_ONLY_DEEPEST") != nullptr && away != 1) {
+      current[v] = 0.0;
+    }
+  }
+  plant.set_valve_currents(current);
+  std::vector<std::size_t> around;
+  for (std::size_t k = 0; k < cells; ++k) {
+    const int rows = std::abs(fluid[k].row - fluid[kDeepest].row);
+    const int cols = std::abs(fluid[k].col - fluid[kDeepest].col);
+    if (rows + cols == 2) {
+      around.push_back(k);
+    }
+  }
+  auto scene = make_scene(env_or("MRSKIN_TRACE_SCENE", "demo"));
+  std::vector<double> finger(cells);
+  std::vector<double> force(cells);
+  const double length = design_scale(nominal.profile().design).length;
+  for (int k = 0; k <= 1500; ++k) {
+    eval::press_scene_finger(*scene, k * 1e-3, layout, finger, length);
+    plant.set_finger_indentation(finger);
+    for (int s = 0; s < 10; ++s) {
+      plant.step(1e-4);
+    }
+    if (k < 300 || k % 50 != 0) {
+      continue;
+    }
+    plant.contact_forces(force);
+    const std::span<const double> pressure_Pa = plant.network().cell_pressure_Pa();
+    std::printf("%5.3f s cell %zu %6.1f um %6.2f mN %7.0f Pa | around:", k * 1e-3, kDeepest,
+                finger[kDeepest] * 1e6, force[kDeepest] * 1e3, pressure_Pa[kDeepest]);
+    for (const std::size_t n : around) {
+      std::printf(" %zu %5.1f um %6.0f Pa", n, finger[n] * 1e6, pressure_Pa[n]);
+    }
+    std::printf("\n");
+  }
 }
 
 // Per printed tick: the deepest cell's finger, the observer's depth, rate and force, the true
