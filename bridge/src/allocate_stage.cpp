@@ -17,16 +17,6 @@ constexpr double kFallSmoothing_s = 3e-3;       // the fall rate's smoothing (ob
 constexpr double kSealedRise_per_s = 4.0;
 constexpr double kHighestSealFraction = 0.95;  // of the highest current: the seal's delay stays finite
 
-// How long a cell's own bulge takes to empty through one open passage: its compliance (1 / k1,
-// cell.hpp) over the passage's conductance without yield. An order of magnitude: 1.7 s on the
-// default 5x5, 3.5 us on fingertip-16x16 and 7.6 us on palm-64x64, whose cells are stiff.
-double open_drain_time_s(const model::DeviceModel& model) noexcept {
-  const double stiffness_Pa_per_m3 = model.contact().bulge_linear_Pa_per_m3;
-  const double conductance_m3_per_s_Pa = model.valve_law().newtonian_conductance_m3_per_s_Pa();
-  return stiffness_Pa_per_m3 > 0.0 && conductance_m3_per_s_Pa > 0.0
-             ? 1.0 / (stiffness_Pa_per_m3 * conductance_m3_per_s_Pa)
-             : std::numeric_limits<double>::infinity();
-}
 }  // namespace
 
 bool valves_open(const GridLayout& layout, std::span<const double> current_A, std::size_t cell,
@@ -48,7 +38,7 @@ AllocateStage::AllocateStage(const BridgeOptions& options, const GridLayout& lay
       valve_gain_(valve_gain),
       max_current_A_(max_current_A),
       coil_tau_s_(model::coil_time_constant_s(model.profile().coil)),
-      open_drain_s_(open_drain_time_s(model)),
+      open_drain_s_(model.cell_open_drain_time_s()),
       drain_phase_(layout.fluid_cell_count(), DrainPhase::none),
       last_force_N_(layout.fluid_cell_count(), 0.0),
       fall_N_(layout.fluid_cell_count(), 0.0),

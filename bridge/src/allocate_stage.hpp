@@ -57,7 +57,7 @@ class AllocateStage {
   std::span<const double> valve_gain_;  // calibrated per-valve yield gain
   double max_current_A_;
   double coil_tau_s_;                   // the profile's coil time constant
-  double open_drain_s_;                 // how long a cell's bulge takes to empty (open_drain_time_s)
+  double open_drain_s_;                 // how long a cell's bulge takes to empty (DeviceModel)
   bool drain_seen_ = true;              // open_drain_s_ spans a tick: drain_then_seal applies (retune_rate)
   double fall_smoothing_ = 1.0;         // per tick (retune_rate)
   double short_of_law_fraction_ = 1.0;  // of the law, below which a loading cell locks (retune_rate)

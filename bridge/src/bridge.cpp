@@ -55,6 +55,11 @@ BridgeOptions with_noise_floor(BridgeOptions scaled, const BridgeOptions& given,
   if (std::isfinite(noise_m)) {  // (the default 5x5: 15 um, below its 30 um as given)
     const double floor_m = kRetreatNoiseShare * given.unload_retreat_m * noise_m / kReferenceSensorNoise_m;
     scaled.unload_retreat_m = std::max(scaled.unload_retreat_m, floor_m);
+    // The observer's contact depth is set in the reference's sensor sigmas (25 um: 12.5 of 2 um);
+    // on quieter sensors it keeps as many of theirs. At 25 um a finger crossing the fingertip's
+    // cells at 0.25 mm/s (sweep) was never found in contact: its whole press is 30 um deep.
+    const double observer_contact_m = given.observer.contact_threshold_m * noise_m / kReferenceSensorNoise_m;
+    scaled.observer.contact_threshold_m = std::min(scaled.observer.contact_threshold_m, observer_contact_m);
   }
   return scaled;
 }

@@ -6,6 +6,8 @@
 //   MRSKIN_TRACE_FROM_S, MRSKIN_TRACE_TO_S, MRSKIN_TRACE_EVERY   the ticks printed (0-3 s, every 50th)
 //   MRSKIN_TRACE_CURRENT  the open loop's current on every valve, as a fraction of the maximum
 //   MRSKIN_TRACE_ONLY_DEEPEST=1   the open loop's current on the deepest cell's valves only
+//   MRSKIN_TRACE_INTEGRATION, MRSKIN_TRACE_SUBSTEPS_PER_MS   the plant alone's integration
+//     (automatic, discrete_gradient or backward_euler) and substeps a tick (default 10)
 #include <gtest/gtest.h>
 
 #include <chrono>
@@ -263,6 +265,14 @@ TEST(CellTrace, DISABLED_PlantPressuresAroundTheDeepestCell) {
   exact.sensor_noise_scale = 0.0;
   exact.hysteresis_scale = 0.0;
   exact.command_delay_s = 0.0;
+  const int substeps_per_ms = static_cast<int>(env_or("MRSKIN_TRACE_SUBSTEPS_PER_MS", 10.0));
+  exact.substep_s = 1e-3 / substeps_per_ms;
+  const std::string integration = env_or("MRSKIN_TRACE_INTEGRATION", "automatic");
+  if (integration == "discrete_gradient") {
+    exact.integration = sim::NetworkPlantOptions::Integration::discrete_gradient;
+  } else if (integration == "backward_euler") {
+    exact.integration = sim::NetworkPlantOptions::Integration::backward_euler;
+  }
   sim::NetworkPlant plant(nominal.profile(), exact);
   const GridLayout& layout = nominal.layout();
   const std::size_t cells = layout.fluid_cell_count();
@@ -294,8 +304,8 @@ TEST(CellTrace, DISABLED_PlantPressuresAroundTheDeepestCell) {
   for (int k = 0; k <= 1500; ++k) {
     eval::press_scene_finger(*scene, k * 1e-3, layout, finger, length);
     plant.set_finger_indentation(finger);
-    for (int s = 0; s < 10; ++s) {
-      plant.step(1e-4);
+    for (int s = 0; s < substeps_per_ms; ++s) {
+      plant.step(exact.substep_s);
     }
     if (k < 300 || k % 50 != 0) {
       continue;

@@ -148,7 +148,8 @@ TEST(Reference, EveryScenesStatisticsAtSeed7MatchTheGoldenFile) {
 
 // A measurement, not a test: the same rig on another unit, MRSKIN_REFERENCE_DEVICE (default
 // mock://?seed=7, the golden file's), one table row a scene: clamped, RMS error, p95 relative,
-// unclamped RMS, release RMS. docs/model.md's closed-loop table of the designed profile:
+// unclamped RMS, release RMS (MRSKIN_REFERENCE_SCENES=demo,sweep: only those). docs/model.md's
+// closed-loop table of the designed profile:
 //   MRSKIN_REFERENCE_DEVICE="mock://$PWD/tools/model-bench/results/design/designed.toml?seed=7"
 //   build/release/tests/bridge/bridge_reference_test --gtest_also_run_disabled_tests
 //     --gtest_filter='*MeasureEveryScene*'      (one command, the variable set before it)
@@ -164,7 +165,14 @@ TEST(Reference, DISABLED_MeasureEverySceneOnADevice) {
   // thresholds, laws and finger on any unit, as before the design scale).
   BridgeOptions options;
   options.scale_to_design = std::getenv("MRSKIN_REFERENCE_AS_GIVEN") == nullptr;
+  // MRSKIN_REFERENCE_SCENES: a comma-separated list of scenes (default: every scene; the palm
+  // takes minutes a scene).
+  const char* only = std::getenv("MRSKIN_REFERENCE_SCENES");
+  const std::string wanted = only != nullptr ? "," + std::string(only) + "," : std::string();
   for (const std::string_view name : scene_names()) {
+    if (!wanted.empty() && wanted.find("," + std::string(name) + ",") == std::string::npos) {
+      continue;
+    }
     const BridgeStats s = test::run_scene(std::string(name), kSeconds, device, nullptr, 0, options).stats;
     std::printf("| %s | %.1f %% | %.4f N | %.1f %% | %.4f N | %.4f N |\n", std::string(name).c_str(),
                 100.0 * s.clamped_fraction(), s.force_rms_error_N(),

@@ -248,6 +248,7 @@ std::shared_ptr<MockDevice> MockDevice::make(const MockOptions& options, const m
   NetworkPlantOptions plant_options;
   plant_options.perturbation = options.perturbation;
   plant_options.seed = options.seed;
+  plant_options.substep_s = options.physics_dt_s;
   // The firmware adds the sensors' noise and quantisation itself (MockOptions).
   plant_options.sensor_noise_scale = 0.0;
   plant_options.quantise_sensors = false;

@@ -52,7 +52,7 @@ struct __attribute__((visibility("hidden"))) NetworkPlant::Impl {
   Impl(const model::DeviceProfile& nominal, const NetworkPlantOptions& o)
       : options(o),
         truth(perturbed_profile(nominal, o.perturbation, o.seed)),
-        network(truth, network_options(o)),
+        network(truth, network_options(o, truth)),
         rng(o.seed ^ 0x9E3779B97F4A7C15ULL) {
     const std::size_t valves = truth.layout().valve_count();
     const std::size_t sensors = truth.profile().sensors.size();
@@ -85,9 +85,18 @@ struct __attribute__((visibility("hidden"))) NetworkPlant::Impl {
     }
   }
 
-  static model::NetworkOptions network_options(const NetworkPlantOptions& o) {
+  static model::NetworkOptions network_options(const NetworkPlantOptions& o,
+                                               const model::DeviceModel& truth) {
+    if (!(o.substep_s > 0.0 && std::isfinite(o.substep_s))) {
+      throw InvalidArgument("plant substep_s must be positive and finite (got " +
+                            std::to_string(o.substep_s) + " s)");
+    }
     model::NetworkOptions n;
     n.stepper = o.stepper;
+    using Integration = NetworkPlantOptions::Integration;
+    n.backward_euler = o.integration == Integration::backward_euler ||
+                       (o.integration == Integration::automatic &&
+                        truth.cell_open_drain_time_s() < NetworkPlantOptions::kStiffStepRatio * o.substep_s);
     return n;
   }
 

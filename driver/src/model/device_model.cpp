@@ -164,6 +164,14 @@ std::size_t DeviceModel::branch_count(std::size_t cell) const noexcept {
   return cell_branch_begin_[cell + 1] - cell_branch_begin_[cell];
 }
 
+double DeviceModel::cell_open_drain_time_s() const noexcept {
+  const double stiffness_Pa_per_m3 = patch_.bulge_linear_Pa_per_m3;
+  const double conductance_m3_per_s_Pa = valve_.newtonian_conductance_m3_per_s_Pa();
+  return stiffness_Pa_per_m3 > 0.0 && conductance_m3_per_s_Pa > 0.0
+             ? 1.0 / (stiffness_Pa_per_m3 * conductance_m3_per_s_Pa)
+             : std::numeric_limits<double>::infinity();
+}
+
 // Flow through one branch at cell pressure p (> 0) above the sinks.
 template <class TauOf>
 Result<FlowPoint> DeviceModel::branch_flow(const Branch& b, double p, const TauOf& tau_of) const noexcept {
