@@ -40,26 +40,29 @@ constexpr double kReferenceSensorNoise_m = 2e-6;  // the reference design's disp
 // the fingertip and the palm together (docs/bridge.md, "A retreat above the fit's noise").
 constexpr double kRetreatNoiseShare = 0.5;
 
-// scaled (scaled_to_design(given, ...)) with the direction latch's retreat above the fit's
-// noise: scaled with the design alone, the fingertip's (30 um x 0.06 = 1.8 um) sat inside the
-// 2-3 um its fit moves from tick to tick, and released its holds on 625 of 1,000 ticks
-// (docs/bridge.md, "Where the 16x16's hold goes").
+// scaled (scaled_to_design(given, ...)) with two noise thresholds in the unit's own sensor
+// sigmas. The direction latch's retreat stays above the fit's noise: scaled with the design
+// alone, the fingertip's (30 um x 0.06 = 1.8 um) sat inside the 2-3 um its fit moves from tick
+// to tick, and released its holds on 625 of 1,000 ticks (docs/bridge.md, "Where the 16x16's hold
+// goes"). The observer's contact depth (25 um: 12.5 of the reference's 2 um sigmas) keeps as
+// many sigmas of quieter sensors: at 25 um the fingertip's sweep left a cell unfound for 2 s
+// (docs/bridge.md, "The plant rang on stiff cells").
 BridgeOptions with_noise_floor(BridgeOptions scaled, const BridgeOptions& given,
                                const model::DeviceProfile& profile) noexcept {
-  double noise_m = std::numeric_limits<double>::infinity();
+  double quietest_m = std::numeric_limits<double>::infinity();
+  double noisiest_m = 0.0;
   for (const model::SensorSpec& sensor : profile.sensors) {
     if (sensor.quantity == model::SensorQuantity::displacement && sensor.noise_std > 0.0) {
-      noise_m = std::min(noise_m, sensor.noise_std);
+      quietest_m = std::min(quietest_m, sensor.noise_std);
+      noisiest_m = std::max(noisiest_m, sensor.noise_std);
     }
   }
-  if (std::isfinite(noise_m)) {  // (the default 5x5: 15 um, below its 30 um as given)
-    const double floor_m = kRetreatNoiseShare * given.unload_retreat_m * noise_m / kReferenceSensorNoise_m;
+  if (std::isfinite(quietest_m)) {  // (the default 5x5: 15 um, below its 30 um as given)
+    const double floor_m =
+        kRetreatNoiseShare * given.unload_retreat_m * (quietest_m / kReferenceSensorNoise_m);
     scaled.unload_retreat_m = std::max(scaled.unload_retreat_m, floor_m);
-    // The observer's contact depth is set in the reference's sensor sigmas (25 um: 12.5 of 2 um);
-    // on quieter sensors it keeps as many of theirs. At 25 um a finger crossing the fingertip's
-    // cells at 0.25 mm/s (sweep) was never found in contact: its whole press is 30 um deep.
-    const double observer_contact_m = given.observer.contact_threshold_m * noise_m / kReferenceSensorNoise_m;
-    scaled.observer.contact_threshold_m = std::min(scaled.observer.contact_threshold_m, observer_contact_m);
+    const double contact_m = given.observer.contact_threshold_m * (noisiest_m / kReferenceSensorNoise_m);
+    scaled.observer.contact_threshold_m = std::min(scaled.observer.contact_threshold_m, contact_m);
   }
   return scaled;
 }

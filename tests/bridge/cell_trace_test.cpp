@@ -236,9 +236,10 @@ TEST(CellTrace, TheFingertipsPressMovesItsValvesSmoothly) {
 }
 
 // The demo's hold, from 1.05 s to 2.0 s, with the default options: never released, and the true
-// force on the deepest cell on average within 20 % of the law (0.907 of it; 0.370, the open
-// floor, with 607 of the 950 ticks unloading before the direction latch's retreat rose above the
-// fit's noise: DesignScale.TheDirectionLatchFollowsTheSensorsNoise).
+// force on the deepest cell on average at least 0.9 of the law (0.950 of it since the plant stopped
+// ringing, 0.907 on the ringing plant; 0.370, the open floor, with 607 of the 950 ticks unloading
+// before the direction latch's retreat rose above the fit's noise:
+// DesignScale.TheDirectionLatchFollowsTheSensorsNoise).
 TEST(CellTrace, TheFingertipHoldsTheDemosLaw) {
   int released = 0;
   double true_sum_N = 0.0;
@@ -250,8 +251,9 @@ TEST(CellTrace, TheFingertipHoldsTheDemosLaw) {
       law_sum_N += t.law_N;
     }
   });
+  std::printf("demo hold 1.05-2.0 s: %d ticks released, true / law %.3f\n", released, true_sum_N / law_sum_N);
   EXPECT_EQ(released, 0);
-  EXPECT_GT(true_sum_N, 0.8 * law_sum_N) << "true / law " << true_sum_N / law_sum_N;
+  EXPECT_GT(true_sum_N, 0.9 * law_sum_N) << "true / law " << true_sum_N / law_sum_N;
 }
 
 // The plant alone (sim::NetworkPlant: no perturbation, noise, hysteresis or command delay) under
@@ -272,6 +274,9 @@ TEST(CellTrace, DISABLED_PlantPressuresAroundTheDeepestCell) {
     exact.integration = sim::NetworkPlantOptions::Integration::discrete_gradient;
   } else if (integration == "backward_euler") {
     exact.integration = sim::NetworkPlantOptions::Integration::backward_euler;
+  } else {
+    ASSERT_EQ(integration, "automatic")
+        << "MRSKIN_TRACE_INTEGRATION: automatic, discrete_gradient or backward_euler";
   }
   sim::NetworkPlant plant(nominal.profile(), exact);
   const GridLayout& layout = nominal.layout();

@@ -6,6 +6,7 @@
 #include <cmath>
 #include <cstdint>
 #include <cstdio>
+#include <limits>
 #include <span>
 #include <vector>
 
@@ -286,10 +287,13 @@ TEST(PlantIntegration, AStiffUnitsPressedCellKeepsToAFineStepsForce) {
   EXPECT_GT(worst_ringing, 0.3);  // what automatic avoids
 }
 
-TEST(PlantIntegration, ANonPositiveSubstepIsRefused) {
-  NetworkPlantOptions o;
-  o.substep_s = 0.0;
-  EXPECT_THROW(NetworkPlant(mrskin::model::default_profile(), o), mrskin::InvalidArgument);
+TEST(PlantIntegration, ASubstepThatIsNotPositiveAndFiniteIsRefused) {
+  for (const double substep_s :
+       {0.0, -1e-4, std::numeric_limits<double>::quiet_NaN(), std::numeric_limits<double>::infinity()}) {
+    NetworkPlantOptions o;
+    o.substep_s = substep_s;
+    EXPECT_THROW(NetworkPlant(mrskin::model::default_profile(), o), mrskin::InvalidArgument) << substep_s;
+  }
 }
 
 TEST(PlantHotPath, SteppingDoesNotAllocate) {

@@ -5,6 +5,7 @@
 #include <cmath>
 #include <limits>
 #include <random>
+#include <sstream>
 #include <string>
 #include <vector>
 
@@ -88,8 +89,12 @@ struct __attribute__((visibility("hidden"))) NetworkPlant::Impl {
   static model::NetworkOptions network_options(const NetworkPlantOptions& o,
                                                const model::DeviceModel& truth) {
     if (!(o.substep_s > 0.0 && std::isfinite(o.substep_s))) {
-      throw InvalidArgument("plant substep_s must be positive and finite (got " +
-                            std::to_string(o.substep_s) + " s)");
+      std::ostringstream got;
+      got << o.substep_s;  // the shortest form, as %g: 1e-12, not 0.000000
+      throw InvalidArgument(
+          "the plant's substep (NetworkPlantOptions::substep_s, the mock's physics_dt) must be positive and "
+          "finite, got " +
+          got.str() + " s");
     }
     model::NetworkOptions n;
     n.stepper = o.stepper;

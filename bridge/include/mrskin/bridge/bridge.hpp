@@ -119,8 +119,9 @@ struct BridgeOptions {
   // the bridge renders them at its own: lengths times indentation_m / 5 mm, forces times
   // force_range_N / 2 N (design_scale; 1 and 1 on the default unit). unload_retreat_m, a noise
   // threshold as much as a length, stays at least half its reference number of sensor noise
-  // sigmas (30 um is 15 of the reference's 2 um; fingertip-16x16: 3.75 um, not 1.8 um).
-  // Off: taken as they are.
+  // sigmas (30 um is 15 of the reference's 2 um; fingertip-16x16: 3.75 um, not 1.8 um), and
+  // observer.contact_threshold_m, left unscaled by the design, at most its reference number
+  // (25 um is 12.5 sigmas; fingertip-16x16: 6.25 um). Off: taken as they are.
   bool scale_to_design = true;
 };
 

@@ -73,8 +73,8 @@ class MRSKIN_DRIVER_API DeviceModel {
   [[nodiscard]] std::size_t branch_count(std::size_t cell) const noexcept;
 
   // How long a cell's own bulge takes to empty through one open passage: its compliance
-  // (1 / bulge_linear_Pa_per_m3) over the passage's conductance without yield; infinity if
-  // either is zero. An order of magnitude of the network's fastest mode: 1.7 s on the default
+  // (1 / bulge_linear_Pa_per_m3) over the passage's conductance without yield; infinity unless
+  // both are positive. An order of magnitude of the network's fastest mode: 1.7 s on the default
   // 5x5, 3.5 us on fingertip-16x16 and 7.6 us on palm-64x64, whose cells are stiff.
   [[nodiscard]] double cell_open_drain_time_s() const noexcept;
 

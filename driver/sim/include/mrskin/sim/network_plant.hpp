@@ -25,9 +25,10 @@
 namespace mrskin::sim {
 
 struct NetworkPlantOptions {
-  // A cell's open drain time under this many substeps: automatic integrates it by backward
-  // Euler. A cell of four passages drains 4 times faster; the discrete gradient's factor per
-  // substep, (1 - x/2) / (1 + x/2) at x = substep / time constant, turns negative past x = 2.
+  // A unit whose cells' open drain time is under this many substeps: automatic steps it by
+  // backward Euler. The discrete gradient's factor a substep, (1 - x/2) / (1 + x/2) at x =
+  // substep / time constant, turns negative past x = 2, and a cell of four passages drains 4
+  // times faster than through one: 10 keeps a margin of 5 over that.
   static constexpr double kStiffStepRatio = 10.0;
 
   double perturbation = 0.15;  // relative half-width of the parameter spread
@@ -41,8 +42,9 @@ struct NetworkPlantOptions {
   // exact but is not L-stable: a cell that empties through an open passage in far less than a
   // substep (fingertip-16x16: 3.5 us against 100 us) rings at the substep's Nyquist rate and
   // settles in a spurious locked state, under half the force a finer step gives while a finger
-  // presses. Backward Euler is L-stable and first order. automatic takes backward Euler where
-  // DeviceModel::cell_open_drain_time_s() is under kStiffStepRatio substeps of substep_s.
+  // presses. Backward Euler is L-stable and first order. automatic takes backward Euler for the
+  // whole unit when DeviceModel::cell_open_drain_time_s() is under kStiffStepRatio substeps.
+  // Step the plant at substep_s: the choice is made for it at construction.
   enum class Integration : unsigned char { automatic, discrete_gradient, backward_euler };
   Integration integration = Integration::automatic;
   double substep_s = 1e-4;  // the step automatic judges against (MockOptions::physics_dt_s)
@@ -58,7 +60,8 @@ MRSKIN_SIM_API model::DeviceProfile perturbed_profile(const model::DeviceProfile
 
 class MRSKIN_SIM_API NetworkPlant final : public Plant {
  public:
-  // Throws InvalidArgument for a profile the network cannot simulate.
+  // Throws InvalidArgument for a profile the network cannot simulate, or a substep_s that is not
+  // positive and finite.
   NetworkPlant(const model::DeviceProfile& nominal, const NetworkPlantOptions& options);
   ~NetworkPlant() override;
   NetworkPlant(const NetworkPlant&) = delete;
