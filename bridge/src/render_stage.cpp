@@ -16,6 +16,19 @@ void release_direction_latch(CellMemory& cell) noexcept {
   cell.extreme_m = 0.0;
   cell.smooth_depth_m = 0.0;
 }
+// Contact lost. A cell that was unloading keeps its latch while its pad is still down: a finger
+// that leaves a stiff cell faster than the cell refills leaves the pad down, its depth can meet
+// the contact rule again a tick later (the local force model reads the valves' hold as force),
+// and re-entering it as a new press would seal the pad down with no finger on it (docs/bridge.md,
+// "Phantom contacts"). It loads again only once its depth rises unload_retreat_m above its
+// trough, as while in contact.
+void lose_contact(CellMemory& cell, double depth_m) noexcept {
+  if (cell.unloading != 0 && depth_m > 0.0) {
+    cell.loading = 0;
+    return;
+  }
+  release_direction_latch(cell);
+}
 }  // namespace
 
 RenderStage::RenderStage(const BridgeOptions& options, const GridLayout& layout, DesignScale scale)
@@ -93,7 +106,7 @@ double RenderStage::direction_rate(CellMemory& cell, bool contact, double depth_
   // trough. Between the two, rates within the deadband count as holding.
   const double retreat_m = options_.unload_retreat_m;
   if (!contact) {
-    release_direction_latch(cell);
+    lose_contact(cell, depth_m);
     return 0.0;
   }
   // On a smoothed depth: the fit's noise (2-3 um RMS, ~20 um peaks) shrinks well below retreat_m.
@@ -155,13 +168,13 @@ void RenderStage::render(const Observation& observed, std::span<const model::Cel
     if (!contact && law.surface_offset_m() == 0.0 && !(law.tank_J() > 0.0)) {
       // Untouched, and the law at rest: what the general path below gives, without evaluating
       // the law (no force at zero depth, no feedback, the same target but for its validity).
-      if (cell.rest_valid != 0 && cell.rest_ceiling_N == max_force_N) {
+      if (cell.rest_valid == 1 && cell.rest_ceiling_N == max_force_N) {
         // At rest last tick too (any other path clears rest_valid): its outputs stand.
         targets[i].valid_until_s = valid_until_s;
         ++standing;
         continue;
       }
-      release_direction_latch(cell);
+      lose_contact(cell, depth_m[i]);
       state.indentation_m = 0.0;
       state.rate_m_per_s = 0.0;
       out.contact[i] = 0;
@@ -170,8 +183,10 @@ void RenderStage::render(const Observation& observed, std::span<const model::Cel
       if (cell.rest_valid == 0 || cell.rest_ceiling_N != options_.max_force_N) {
         cell.rest_target = law.target(0.0, options_.max_force_N, valid_until_s);
         cell.rest_ceiling_N = options_.max_force_N;
-        cell.rest_valid = 1;
       }
+      // A latch kept while the pad is down (lose_contact) is looked at again next tick: the rest
+      // target stands, the outputs do not.
+      cell.rest_valid = cell.unloading != 0 ? 2 : 1;
       model::CellImpedanceTarget& t = out.target[i];
       t = cell.rest_target;
       t.valid_until_s = valid_until_s;

@@ -74,6 +74,8 @@ struct CellMemory {
   // an untouched cell of a large grid then costs a copy a tick, not the law's evaluation.
   model::CellImpedanceTarget rest_target{};
   double rest_ceiling_N = 0.0;  // the force ceiling it was made with
+  // 0: none; 1: valid, and the outputs of a cell at rest stand; 2: valid, but the cell is looked
+  // at every tick (a direction latch kept while its pad is down).
   unsigned char rest_valid = 0;
 };
 

@@ -20,20 +20,24 @@ constexpr int kNever = -1;
 // Per cell: the first tick the bridge rendered it in contact.
 class OnsetWatcher final : public TickWatcher {
  public:
-  explicit OnsetWatcher(std::size_t cells) : seen_(cells, kNever) {}
+  explicit OnsetWatcher(std::size_t cells) : seen_(cells, kNever), loaded_(cells, 0) {}
   void on_tick(const TickView& tick, BridgeStats& /*stats*/) noexcept override {
     const std::span<const model::CellSolution> solve = tick.solve();
     for (std::size_t c = 0; c < seen_.size(); ++c) {
       if (seen_[c] == kNever && solve[c].role != model::CellRole::no_contact) {
         seen_[c] = tick_;
       }
+      loaded_[c] = solve[c].role == model::CellRole::loading || solve[c].role == model::CellRole::holding;
     }
   }
+  // The cell's role in the last tick: loading or holding (its valves render a press).
+  [[nodiscard]] bool loaded(std::size_t c) const noexcept { return loaded_[c] != 0; }
   void set_tick(int k) noexcept { tick_ = k; }
   [[nodiscard]] const std::vector<int>& seen() const noexcept { return seen_; }
 
  private:
   std::vector<int> seen_;
+  std::vector<unsigned char> loaded_;
   int tick_ = 0;
 };
 
@@ -49,6 +53,10 @@ struct Onset {
 // in contact, ticked at 1 kHz on the simulated clock.
 struct Measured {
   std::vector<Onset> onsets;
+  // Cell-ticks the bridge loaded (loading or holding) a cell with no finger in it: a phantom
+  // press; and cell-ticks with the finger in the cell, for scale.
+  long phantom_ticks = 0;
+  long finger_ticks = 0;
   double noise_m = 0.0;  // the displacement sensors' largest noise (1 sigma)
   double period_s = 0.0;
 };
@@ -74,6 +82,8 @@ Measured measure(const std::string& uri, const std::string& scene_name, double s
   std::vector<double> force(cells, 0.0);
   std::vector<Onset> onsets(cells);
   std::vector<double> last_depth(cells, 0.0);
+  long phantom_ticks = 0;
+  long finger_ticks = 0;
   const auto ticks = static_cast<int>(seconds * options.rate_hz);
   const auto period =
       std::chrono::duration_cast<Duration>(std::chrono::duration<double>(1.0 / options.rate_hz));
@@ -99,9 +109,15 @@ Measured measure(const std::string& uri, const std::string& scene_name, double s
     }
     watcher.set_tick(k);
     (void)loop.step(clock.now());
+    for (std::size_t c = 0; c < cells; ++c) {
+      phantom_ticks += watcher.loaded(c) && !(depth[c] > 0.0) ? 1 : 0;
+      finger_ticks += depth[c] > 0.0 ? 1 : 0;
+    }
     clock.advance(period);
   }
   Measured out;
+  out.phantom_ticks = phantom_ticks;
+  out.finger_ticks = finger_ticks;
   for (std::size_t c = 0; c < cells; ++c) {
     onsets[c].seen = watcher.seen()[c];
     if (onsets[c].deep != kNever || onsets[c].seen != kNever) {
@@ -233,6 +249,51 @@ TEST(ContactOnset, DISABLED_FingertipAtAMillisecondSubstep) {
 // fingertip would without its bound: the true force crosses at tick 143, found at 185 and 250.
 TEST(ContactOnset, DISABLED_PalmOnTheDemo) {
   expect_onsets_within_a_tick("mock://palm-64x64", "demo", 0.3, 1);
+}
+
+}  // namespace
+}  // namespace mrskin::bridge::test
+
+namespace mrskin::bridge::test {
+namespace {
+
+// Phantom presses: cells the bridge loads after the finger has left them. A finger that leaves a
+// stiff cell faster than the cell refills leaves its pad down (the steel's remanence holds it
+// against the membrane for about a second). Its depth, and by the local force model the valves'
+// hold, meet the contact rule; a contact lost for a tick used to release the direction latch,
+// and the cell was taken again as a new press and sealed with no finger on it (docs/bridge.md,
+// "Phantom presses"). Over a whole scene (8 s).
+long phantom_ticks(const std::string& uri, const std::string& scene) {
+  const Measured m = measure(uri, scene, 8.0);
+  std::printf("%s %s: %ld cell-ticks loaded with no finger, %ld with the finger in the cell\n", uri.c_str(),
+              scene.c_str(), m.phantom_ticks, m.finger_ticks);
+  return m.phantom_ticks;
+}
+
+// The network force model sees the pad's suction: none.
+TEST(PhantomContact, NoneOnTheDefaultUnit) {
+  EXPECT_EQ(phantom_ticks("mock://?seed=4", "demo"), 0);
+  EXPECT_EQ(phantom_ticks("mock://?seed=4", "force_step"), 0);
+}
+
+// 12,079 cell-ticks on the demo and 249 on the neck (against 13,994 and 14,996 with the finger in
+// the cell) before the latch outlived a lost contact; 1 and 1 now.
+TEST(PhantomContact, FewOnTheFingertipsDemoAndNeck) {
+  EXPECT_LE(phantom_ticks("mock://fingertip-16x16?seed=7", "demo"), 10);
+  EXPECT_LE(phantom_ticks("mock://fingertip-16x16?seed=7", "neck"), 10);
+}
+
+// Not fixed (2026-12-05), run by hand with --gtest_also_run_disabled_tests: on force_step and the
+// sweep a pad left down keeps meeting the contact rule, and its fitted depth wanders 17-27 um,
+// more than the fingertip's 3.75 um retreat, so the latch loads it again on the wander itself.
+// Seeds 4 and 7: force_step 18,477 and 18,524 -> 15,136 and 18,050; sweep 7,007 and 12,326 ->
+// 827 and 6,142 (demo 15,586 -> 0 at seed 4, neck 38 -> 0).
+TEST(PhantomContact, DISABLED_MeasureOnTheFingertip) {
+  for (const char* scene : {"demo", "force_step", "sweep", "neck"}) {
+    for (const char* seed : {"4", "7"}) {
+      (void)phantom_ticks(std::string("mock://fingertip-16x16?seed=") + seed, scene);
+    }
+  }
 }
 
 }  // namespace
