@@ -16,19 +16,23 @@ void release_direction_latch(CellMemory& cell) noexcept {
   cell.extreme_m = 0.0;
   cell.smooth_depth_m = 0.0;
 }
-// Contact lost. A cell that was unloading keeps its latch while its pad is still down: a finger
-// that leaves a stiff cell faster than the cell refills leaves the pad down, its depth can meet
-// the contact rule again a tick later (the local force model reads the valves' hold as force),
-// and re-entering it as a new press would seal the pad down with no finger on it (docs/bridge.md,
-// "Phantom contacts"). It loads again only once its depth rises unload_retreat_m above its
-// trough, as while in contact.
-void lose_contact(CellMemory& cell, double depth_m) noexcept {
-  if (cell.unloading != 0 && depth_m > 0.0) {
-    cell.loading = 0;
+// Contact lost. A cell that was unloading keeps its latch, marked released, while its pad is
+// still down (deeper than the contact threshold): a finger that leaves a stiff cell faster than
+// the cell refills leaves the pad down, its depth and (by the local force model) the valves' hold
+// meet the contact rule again, and taking it as a new press sealed the pad with no finger on it
+// (docs/bridge.md, "Phantom presses").
+constexpr unsigned char kReleased = 2;
+void lose_contact(CellMemory& cell, double depth_m, double pad_down_m) noexcept {
+  if (cell.unloading != 0 && depth_m > pad_down_m) {
+    cell.unloading = kReleased;
     return;
   }
   release_direction_latch(cell);
 }
+// A released cell loads again only after rising this many retreats above its trough: the fitted
+// depth of a pad left down wanders over about 10 um (17-27 um on the fingertip's force_step),
+// more than one retreat (3.75 um there).
+constexpr double kReleasedReloadRetreats = 4.0;
 }  // namespace
 
 RenderStage::RenderStage(const BridgeOptions& options, const GridLayout& layout, DesignScale scale)
@@ -106,7 +110,7 @@ double RenderStage::direction_rate(CellMemory& cell, bool contact, double depth_
   // trough. Between the two, rates within the deadband count as holding.
   const double retreat_m = options_.unload_retreat_m;
   if (!contact) {
-    lose_contact(cell, depth_m);
+    lose_contact(cell, depth_m, options_.contact_threshold_m);
     return 0.0;
   }
   // On a smoothed depth: the fit's noise (2-3 um RMS, ~20 um peaks) shrinks well below retreat_m.
@@ -120,7 +124,8 @@ double RenderStage::direction_rate(CellMemory& cell, bool contact, double depth_
     }
   } else {
     cell.extreme_m = std::min(cell.extreme_m, depth_m);
-    if (depth_m > cell.extreme_m + retreat_m) {
+    const double rise_m = cell.unloading == kReleased ? kReleasedReloadRetreats * retreat_m : retreat_m;
+    if (depth_m > cell.extreme_m + rise_m) {
       cell.unloading = 0;
       cell.extreme_m = depth_m;
     }
@@ -174,7 +179,10 @@ void RenderStage::render(const Observation& observed, std::span<const model::Cel
         ++standing;
         continue;
       }
-      lose_contact(cell, depth_m[i]);
+      // A latch kept while the pad is down is looked at every tick until the pad is back; the
+      // outputs it writes are last tick's, so it stands all the same.
+      standing += cell.rest_valid == 2 && cell.rest_ceiling_N == max_force_N ? 1 : 0;
+      lose_contact(cell, depth_m[i], contact_threshold_m);
       state.indentation_m = 0.0;
       state.rate_m_per_s = 0.0;
       out.contact[i] = 0;
@@ -184,9 +192,7 @@ void RenderStage::render(const Observation& observed, std::span<const model::Cel
         cell.rest_target = law.target(0.0, options_.max_force_N, valid_until_s);
         cell.rest_ceiling_N = options_.max_force_N;
       }
-      // A latch kept while the pad is down (lose_contact) is looked at again next tick: the rest
-      // target stands, the outputs do not.
-      cell.rest_valid = cell.unloading != 0 ? 2 : 1;
+      cell.rest_valid = cell.unloading != 0 ? 2 : 1;  // 2: a latch kept while the pad is down
       model::CellImpedanceTarget& t = out.target[i];
       t = cell.rest_target;
       t.valid_until_s = valid_until_s;

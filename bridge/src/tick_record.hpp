@@ -61,7 +61,7 @@ struct CellMemory {
   // The direction latch (hysteresis in position): latched loading or release, the depth's peak
   // while loaded (trough while unloading), and the depth smoothed for it.
   unsigned char loading = 0;
-  unsigned char unloading = 0;
+  unsigned char unloading = 0;  // 2: released, its contact lost since (render_stage.cpp)
   double extreme_m = 0.0;
   double smooth_depth_m = 0.0;
   double feedback_N = 0.0;  // the integral correction
@@ -74,8 +74,8 @@ struct CellMemory {
   // an untouched cell of a large grid then costs a copy a tick, not the law's evaluation.
   model::CellImpedanceTarget rest_target{};
   double rest_ceiling_N = 0.0;  // the force ceiling it was made with
-  // 0: none; 1: valid, and the outputs of a cell at rest stand; 2: valid, but the cell is looked
-  // at every tick (a direction latch kept while its pad is down).
+  // 0: none; 1: valid; 2: valid, and the cell's direction latch is kept while its pad is down
+  // (looked at each tick until the pad is back).
   unsigned char rest_valid = 0;
 };
 
