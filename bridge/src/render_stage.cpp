@@ -107,7 +107,8 @@ double RenderStage::direction_rate(CellMemory& cell, bool contact, double depth_
   // Hysteresis in position, not in rate: the observer's rate noise (~0.5 mm/s RMS) must neither
   // release a held press nor re-hold a release that is under way. A cell unloads once its depth
   // has fallen retreat_m below its peak, and loads again once it has risen retreat_m above its
-  // trough. Between the two, rates within the deadband count as holding.
+  // trough (a released cell, kReleasedReloadRetreats of them). Between the two, rates within the
+  // deadband count as holding.
   const double retreat_m = options_.unload_retreat_m;
   if (!contact) {
     lose_contact(cell, depth_m, options_.contact_threshold_m);
