@@ -22,17 +22,29 @@ void release_direction_latch(CellMemory& cell) noexcept {
 // meet the contact rule again, and taking it as a new press sealed the pad with no finger on it
 // (docs/bridge.md, "Phantom presses").
 constexpr unsigned char kReleased = 2;
-void lose_contact(CellMemory& cell, double depth_m, double pad_down_m) noexcept {
+void lose_contact(CellMemory& cell, double depth_m, double pad_down_m, std::uint32_t hold_ticks) noexcept {
   if (cell.unloading != 0 && depth_m > pad_down_m) {
-    cell.unloading = kReleased;
+    if (cell.unloading != kReleased) {
+      cell.unloading = kReleased;
+      cell.released_ticks = 0;
+    } else if (cell.released_ticks < hold_ticks) {
+      ++cell.released_ticks;
+    }
     return;
   }
   release_direction_latch(cell);
 }
 // A released cell loads again only after rising this many retreats above its trough: the fitted
 // depth of a pad left down wanders over about 10 um (17-27 um on the fingertip's force_step),
-// more than one retreat (3.75 um there).
-constexpr double kReleasedReloadRetreats = 4.0;
+// more than two retreats (3.75 um each there). Three ended as many phantom presses as four, and
+// a finger pressing again loads 20 ticks sooner (docs/bridge.md, "Phantom presses").
+constexpr double kReleasedReloadRetreats = 3.0;
+// ...for at most this long after the release, then one retreat again: a pad can stay down for
+// more than the steel's second of remanence (with 1 s the sweep took a pad again at seed 7).
+constexpr double kReleasedHold_s = 2.0;
+std::uint32_t released_hold_ticks(const BridgeOptions& o) noexcept {
+  return static_cast<std::uint32_t>(std::lround(std::min(kReleasedHold_s * o.rate_hz, 1e9)));
+}
 }  // namespace
 
 RenderStage::RenderStage(const BridgeOptions& options, const GridLayout& layout, DesignScale scale)
@@ -42,9 +54,13 @@ RenderStage::RenderStage(const BridgeOptions& options, const GridLayout& layout,
       scale_(scale),
       rescale_(scale.length != 1.0 || scale.force != 1.0),
       unload_filter_alpha_(unload_filter_alpha(options)),
+      released_hold_ticks_(released_hold_ticks(options)),
       cell_(layout.fluid_cell_count()) {}
 
-void RenderStage::retune_rate() noexcept { unload_filter_alpha_ = unload_filter_alpha(options_); }
+void RenderStage::retune_rate() noexcept {
+  unload_filter_alpha_ = unload_filter_alpha(options_);
+  released_hold_ticks_ = released_hold_ticks(options_);
+}
 
 void RenderStage::clear_feedback() noexcept {
   for (CellMemory& c : cell_) {
@@ -111,7 +127,7 @@ double RenderStage::direction_rate(CellMemory& cell, bool contact, double depth_
   // deadband count as holding.
   const double retreat_m = options_.unload_retreat_m;
   if (!contact) {
-    lose_contact(cell, depth_m, options_.contact_threshold_m);
+    lose_contact(cell, depth_m, options_.contact_threshold_m, released_hold_ticks_);
     return 0.0;
   }
   // On a smoothed depth: the fit's noise (2-3 um RMS, ~20 um peaks) shrinks well below retreat_m.
@@ -125,7 +141,12 @@ double RenderStage::direction_rate(CellMemory& cell, bool contact, double depth_
     }
   } else {
     cell.extreme_m = std::min(cell.extreme_m, depth_m);
-    const double rise_m = cell.unloading == kReleased ? kReleasedReloadRetreats * retreat_m : retreat_m;
+    // A released cell, for the bound's time, needs more than a pad's wander.
+    double rise_m = retreat_m;
+    if (cell.unloading == kReleased && cell.released_ticks < released_hold_ticks_) {
+      ++cell.released_ticks;
+      rise_m = kReleasedReloadRetreats * retreat_m;
+    }
     if (depth_m > cell.extreme_m + rise_m) {
       cell.unloading = 0;
       cell.extreme_m = depth_m;
@@ -183,7 +204,7 @@ void RenderStage::render(const Observation& observed, std::span<const model::Cel
       // A latch kept while the pad is down is looked at every tick until the pad is back; the
       // outputs it writes are last tick's, so it stands all the same.
       standing += cell.rest_valid == 2 && cell.rest_ceiling_N == max_force_N ? 1 : 0;
-      lose_contact(cell, depth_m[i], contact_threshold_m);
+      lose_contact(cell, depth_m[i], contact_threshold_m, released_hold_ticks_);
       state.indentation_m = 0.0;
       state.rate_m_per_s = 0.0;
       out.contact[i] = 0;
