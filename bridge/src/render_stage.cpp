@@ -16,34 +16,16 @@ void release_direction_latch(CellMemory& cell) noexcept {
   cell.extreme_m = 0.0;
   cell.smooth_depth_m = 0.0;
 }
-// Contact lost. A cell that was unloading keeps its latch, marked released, while its pad is
-// still down (deeper than the contact threshold): a finger that leaves a stiff cell faster than
-// the cell refills leaves the pad down, its depth and (by the local force model) the valves' hold
-// meet the contact rule again, and taking it as a new press sealed the pad with no finger on it
-// (docs/bridge.md, "Phantom presses").
-constexpr unsigned char kReleased = 2;
-void lose_contact(CellMemory& cell, double depth_m, double pad_down_m, std::uint32_t hold_ticks) noexcept {
+// Contact lost. A cell that was unloading keeps its latch while its pad is still down (deeper
+// than the contact threshold): a finger that leaves a stiff cell faster than the cell refills
+// leaves the pad down, its depth and (by the local force model) the valves' hold meet the contact
+// rule again, and taking it as a new press sealed the pad with no finger on it (docs/bridge.md,
+// "Phantom presses"). The kept latch loads again one retreat above its trough, as any.
+void lose_contact(CellMemory& cell, double depth_m, double pad_down_m) noexcept {
   if (cell.unloading != 0 && depth_m > pad_down_m) {
-    if (cell.unloading != kReleased) {
-      cell.unloading = kReleased;
-      cell.released_ticks = 0;
-    } else if (cell.released_ticks < hold_ticks) {
-      ++cell.released_ticks;
-    }
     return;
   }
   release_direction_latch(cell);
-}
-// A released cell loads again only after rising this many retreats above its trough: the fitted
-// depth of a pad left down wanders over about 10 um (17-27 um on the fingertip's force_step),
-// more than two retreats (3.75 um each there). Three ended as many phantom presses as four, and
-// a finger pressing again loads 20 ticks sooner (docs/bridge.md, "Phantom presses").
-constexpr double kReleasedReloadRetreats = 3.0;
-// ...for at most this long after the release, then one retreat again: a pad can stay down for
-// more than the steel's second of remanence (with 1 s the sweep took a pad again at seed 7).
-constexpr double kReleasedHold_s = 2.0;
-std::uint32_t released_hold_ticks(const BridgeOptions& o) noexcept {
-  return static_cast<std::uint32_t>(std::lround(std::min(kReleasedHold_s * o.rate_hz, 1e9)));
 }
 }  // namespace
 
@@ -54,13 +36,9 @@ RenderStage::RenderStage(const BridgeOptions& options, const GridLayout& layout,
       scale_(scale),
       rescale_(scale.length != 1.0 || scale.force != 1.0),
       unload_filter_alpha_(unload_filter_alpha(options)),
-      released_hold_ticks_(released_hold_ticks(options)),
       cell_(layout.fluid_cell_count()) {}
 
-void RenderStage::retune_rate() noexcept {
-  unload_filter_alpha_ = unload_filter_alpha(options_);
-  released_hold_ticks_ = released_hold_ticks(options_);
-}
+void RenderStage::retune_rate() noexcept { unload_filter_alpha_ = unload_filter_alpha(options_); }
 
 void RenderStage::clear_feedback() noexcept {
   for (CellMemory& c : cell_) {
@@ -123,11 +101,10 @@ double RenderStage::direction_rate(CellMemory& cell, bool contact, double depth_
   // Hysteresis in position, not in rate: the observer's rate noise (~0.5 mm/s RMS) must neither
   // release a held press nor re-hold a release that is under way. A cell unloads once its depth
   // has fallen retreat_m below its peak, and loads again once it has risen retreat_m above its
-  // trough (a released cell, kReleasedReloadRetreats of them). Between the two, rates within the
-  // deadband count as holding.
+  // trough. Between the two, rates within the deadband count as holding.
   const double retreat_m = options_.unload_retreat_m;
   if (!contact) {
-    lose_contact(cell, depth_m, options_.contact_threshold_m, released_hold_ticks_);
+    lose_contact(cell, depth_m, options_.contact_threshold_m);
     return 0.0;
   }
   // On a smoothed depth: the fit's noise (2-3 um RMS, ~20 um peaks) shrinks well below retreat_m.
@@ -141,13 +118,7 @@ double RenderStage::direction_rate(CellMemory& cell, bool contact, double depth_
     }
   } else {
     cell.extreme_m = std::min(cell.extreme_m, depth_m);
-    // A released cell, for the bound's time, needs more than a pad's wander.
-    double rise_m = retreat_m;
-    if (cell.unloading == kReleased && cell.released_ticks < released_hold_ticks_) {
-      ++cell.released_ticks;
-      rise_m = kReleasedReloadRetreats * retreat_m;
-    }
-    if (depth_m > cell.extreme_m + rise_m) {
+    if (depth_m > cell.extreme_m + retreat_m) {
       cell.unloading = 0;
       cell.extreme_m = depth_m;
     }
@@ -204,7 +175,7 @@ void RenderStage::render(const Observation& observed, std::span<const model::Cel
       // A latch kept while the pad is down is looked at every tick until the pad is back; the
       // outputs it writes are last tick's, so it stands all the same.
       standing += cell.rest_valid == 2 && cell.rest_ceiling_N == max_force_N ? 1 : 0;
-      lose_contact(cell, depth_m[i], contact_threshold_m, released_hold_ticks_);
+      lose_contact(cell, depth_m[i], contact_threshold_m);
       state.indentation_m = 0.0;
       state.rate_m_per_s = 0.0;
       out.contact[i] = 0;

@@ -3,7 +3,6 @@
 // Private to the bridge library (bridge.cpp runs it).
 #pragma once
 
-#include <cstdint>
 #include <span>
 #include <vector>
 
@@ -51,7 +50,6 @@ class RenderStage {
   TissueModel law_{};
   SlaveSample slave_{};  // the newest sample taken
   double unload_filter_alpha_ = 1.0;
-  std::uint32_t released_hold_ticks_ = 0;  // kReleasedHold_s at the options' rate
   std::vector<CellMemory> cell_;
 };
 

@@ -4,7 +4,6 @@
 #pragma once
 
 #include <cstddef>
-#include <cstdint>
 #include <span>
 #include <vector>
 
@@ -62,8 +61,7 @@ struct CellMemory {
   // The direction latch (hysteresis in position): latched loading or release, the depth's peak
   // while loaded (trough while unloading), and the depth smoothed for it.
   unsigned char loading = 0;
-  unsigned char unloading = 0;       // 2: released, its contact lost since (render_stage.cpp)
-  std::uint32_t released_ticks = 0;  // ticks since it was released (counted to a bound)
+  unsigned char unloading = 0;
   double extreme_m = 0.0;
   double smooth_depth_m = 0.0;
   double feedback_N = 0.0;  // the integral correction

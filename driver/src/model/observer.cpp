@@ -352,31 +352,38 @@ bool CellObserver::Impl::update_coils(std::span<const double> valve_current_A, d
 void CellObserver::Impl::local_force() noexcept {
   const std::size_t cells = depth_m.size();
   const double hold = options.hold_rate_m_per_s;
-  const inverse_detail::InverseTopology* const law = uniform_law.get();
+  const inverse_detail::InverseTopology* const law = valve_law.get();
   const double area_m2 = model.contact().effective_area_m2;
   for (std::size_t c = 0; c < cells; ++c) {
     if (!(depth_m[c] > options.contact_threshold_m)) {
       force[c] = 0.0;
       continue;
     }
-    double tau = 0.0;
-    const std::size_t first = valves_of_cell_begin[c];
-    const std::size_t last = valves_of_cell_begin[c + 1];
-    for (std::size_t k = first; k < last; ++k) {
-      tau += yield_Pa[valves_of_cell[k]];
-    }
-    tau = last > first ? tau / static_cast<double>(last - first) : 0.0;
     const double v = velocity[c];
     const double rate = v > hold ? v - hold : (v < -hold ? v + hold : 0.0);
-    // The valves' pressure by the inverse's tables, not DeviceModel's nested Newton solves
-    // (9k instructions a flowing cell on the palm; docs/bridge.md, "The local force by tables").
-    const double level = law != nullptr ? law->yield_k * tau : 0.0;
-    const Result<CellLoad> load =
-        law != nullptr
-            ? model.cell_force_at_valve_pressure(
-                  c, depth_m[c], rate,
-                  law->forward(c, std::fabs(area_m2 * rate), [level](std::size_t) { return level; }))
-            : model.cell_force_at_yield(c, depth_m[c], rate, tau);
+    Result<CellLoad> load;
+    if (law != nullptr) {
+      // The valves' pressure by the inverse's tables, not DeviceModel's nested Newton solves
+      // (9k instructions a flowing cell on the palm; docs/bridge.md, "The local force by tables").
+      // Each valve at its own yield: at rest the cell holds up to its weakest valve, and a
+      // current on a valve it shares with a pressed neighbour is not its force (docs/bridge.md,
+      // "Phantom presses").
+      const double yield_k = law->yield_k;
+      const double* const yield = yield_Pa.data();
+      load = model.cell_force_at_valve_pressure(
+          c, depth_m[c], rate,
+          law->forward(c, std::fabs(area_m2 * rate),
+                       [yield_k, yield](std::size_t valve) { return yield_k * yield[valve]; }));
+    } else {
+      double tau = 0.0;  // the mean yield of the cell's valves
+      const std::size_t first = valves_of_cell_begin[c];
+      const std::size_t last = valves_of_cell_begin[c + 1];
+      for (std::size_t k = first; k < last; ++k) {
+        tau += yield_Pa[valves_of_cell[k]];
+      }
+      tau = last > first ? tau / static_cast<double>(last - first) : 0.0;
+      load = model.cell_force_at_yield(c, depth_m[c], rate, tau);
+    }
     if (load.ok()) {
       force[c] = load.value.force_N;
     }

@@ -70,7 +70,7 @@ struct __attribute__((visibility("hidden"))) CellObserver::Impl {
       network = std::make_unique<NetworkSimulation>(m, network_options(o));
     } else {
       try {
-        uniform_law = std::make_unique<inverse_detail::InverseTopology>(m, InverseOptions{});
+        valve_law = std::make_unique<inverse_detail::InverseTopology>(m, InverseOptions{});
       } catch (const InvalidArgument&) {
         // A graph the inverse refuses (a branch on two coils): the exact law, a cell at a time.
       }
@@ -346,9 +346,9 @@ struct __attribute__((visibility("hidden"))) CellObserver::Impl {
   ObserverOptions options;
   ObserverForceModel force_model = ObserverForceModel::network;
   std::unique_ptr<NetworkSimulation> network;  // network force model only
-  // Local force model only: the inverse's fast law of a cell's valves at one yield stress
-  // (CellInverse::uniform_valve_pressure_Pa), for the network's nested Newton solves.
-  std::unique_ptr<inverse_detail::InverseTopology> uniform_law;
+  // Local force model only: the inverse's fast law of a cell's valves, each at its own yield
+  // stress (CellInverse::valve_pressure_Pa), in place of DeviceModel's nested Newton solves.
+  std::unique_ptr<inverse_detail::InverseTopology> valve_law;
   std::vector<std::size_t> sensor_of_row;  // row -> index in the reading span
   std::vector<double> sensor_scale;        // 1 / sigma per row
   std::vector<std::size_t> row_begin;
