@@ -139,19 +139,24 @@ Measured measure(const std::string& uri, const std::string& scene_name, double s
       phantom_ticks += watcher.loaded(c) && !(depth[c] > 0.0) ? 1 : 0;
       finger_ticks += depth[c] > 0.0 ? 1 : 0;
       if (!(depth[c] > 0.0)) {
+        if (awaited[c] >= 0) {
+          presses[static_cast<std::size_t>(awaited[c])].left_unloaded = true;
+        }
         left[c] = 1;
-        awaited[c] = -1;  // gone before it was loaded: no figure
+        awaited[c] = -1;
       } else if (left[c] != 0 && depth[c] > options.contact_threshold_m &&
                  force[c] > options.contact_force_N) {
         left[c] = 0;
-        awaited[c] = static_cast<long>(presses.size());
-        presses.push_back(Press{.cell = c, .crossed = k, .again = pressed_before[c] != 0});
+        presses.push_back(Press{
+            .cell = c, .crossed = k, .again = pressed_before[c] != 0, .loaded_before = was_loaded[c] != 0});
+        awaited[c] = presses.back().loaded_before ? -1 : static_cast<long>(presses.size() - 1);
         pressed_before[c] = 1;
       }
       if (awaited[c] >= 0 && watcher.loaded(c)) {
         presses[static_cast<std::size_t>(awaited[c])].loaded = k;
         awaited[c] = -1;
       }
+      was_loaded[c] = watcher.loaded(c) ? 1 : 0;
     }
     clock.advance(period);
   }
@@ -195,7 +200,8 @@ void expect_onsets_within_a_tick(const std::string& uri, const std::string& scen
     const int noise_ticks = static_cast<int>(std::ceil(3.0 * m.noise_m / step_m));
     const int allowed = o.crossed + 1 + noise_ticks + unseen_flow_ticks;
     if (o.seen == kNever && allowed >= m.ticks) {
-      std::printf("  (not judged: the run ends before the tick it is allowed, %d)\n", allowed);
+      std::printf("  (cell %zu not judged: the run ends before the tick it is allowed, %d)\n", o.cell,
+                  allowed);
       continue;
     }
     ++crossed;
@@ -261,7 +267,7 @@ TEST(DesignScale, TheDirectionLatchFollowsTheSensorsNoise) {
 
 TEST(ContactOnset, DefaultUnitOnTheDemo) { expect_onsets_within_a_tick("mock://", "demo", 1.0, 1); }
 TEST(ContactOnset, DefaultUnitOnTheSweep) { expect_onsets_within_a_tick("mock://", "sweep", 4.0, 3); }
-// NOT the gate: on fingertip-16x16 the bridge finds contact 57-70 ticks after the true state
+// NOT the gate: on fingertip-16x16 the bridge finds contact 55-70 ticks after the true state
 // meets the rule (demo: ticks 269 and 263 against 206; sweep: 321 and 306 against 251; 315 before
 // the observer held each valve at its own yield, 2026-12-05), 51-58 beyond one tick and the
 // noise's ticks. The finger approaches at 0.13-0.15 mm/s. The observer
@@ -349,11 +355,12 @@ TEST(PhantomContact, DISABLED_MeasureOnTheFingertip) {
 // Press lag: ticks from the finger meeting the contact rule in a cell (the truth) to the bridge
 // loading it, for first presses and for presses of a cell the finger had left. Printed as the
 // lower median, p90 and maximum of the presses the bridge loaded while the finger was in the
-// cell; presses it had loaded already (phantoms) and those the finger left unloaded are counted
-// apart. Returns the largest lag of first presses and of repeated ones (-1: none).
+// cell; apart, the presses it had loaded already (a phantom there before the finger), those the
+// finger left before the bridge loaded them and those still waiting when the run ended.
 struct PressLags {
-  int first_max = -1;
+  int first_max = -1;  // -1: none loaded
   int again_max = -1;
+  int not_loaded = 0;  // presses of either kind not loaded in time (the three counts above)
 };
 
 PressLags print_press_lags(const std::string& uri, const std::string& scene) {
@@ -363,14 +370,17 @@ PressLags print_press_lags(const std::string& uri, const std::string& scene) {
     std::vector<int> lag;
     int loaded_before = 0;
     int left_unloaded = 0;
+    int waiting = 0;
     for (const Press& p : m.presses) {
       if (p.again != again) {
         continue;
       }
       if (p.loaded_before) {
         ++loaded_before;
+      } else if (p.left_unloaded) {
+        ++left_unloaded;
       } else if (p.loaded == kNever) {
-        left_unloaded += p.left_unloaded ? 1 : 0;
+        ++waiting;
       } else {
         lag.push_back(p.loaded - p.crossed);
       }
@@ -381,21 +391,23 @@ PressLags print_press_lags(const std::string& uri, const std::string& scene) {
     };
     std::printf(
         "%s %s %s presses: %zu loaded, lag median %d p90 %d max %d ticks; %d loaded before the finger came, "
-        "%d left unloaded\n",
+        "%d left unloaded, %d waiting at the end\n",
         uri.c_str(), scene.c_str(), again ? "repeated" : "first", lag.size(), at(0.5), at(0.9), at(1.0),
-        loaded_before, left_unloaded);
+        loaded_before, left_unloaded, waiting);
     (again ? out.again_max : out.first_max) = at(1.0);
+    out.not_loaded += loaded_before + left_unloaded + waiting;
   }
   return out;
 }
 
-// The demo presses each cell again 0.5 s after the finger left it. Those presses loaded 113-122
-// ticks after the finger met the contact rule (seed 7; the first ones 55-60) while a cell whose
+// The demo presses each cell again 0.5 s after the finger left it. At seed 7 those presses loaded
+// 117-122 ticks after the finger met the contact rule (the first ones 55-60) while a cell whose
 // pad was still down needed four retreats to load again: the observer read the valves' hold as a
 // finger's force, so one retreat let pads left down load again. Now each valve holds at its own
 // yield in the observer, one retreat is enough, and they load within 63.
 TEST(PressLag, TheFingertipsDemoLoadsARepeatedPressAsSoonAsAFirstOne) {
   const PressLags lags = print_press_lags("mock://fingertip-16x16?seed=7", "demo");
+  EXPECT_EQ(lags.not_loaded, 0) << "every press of the demo is loaded while the finger is in the cell";
   ASSERT_GE(lags.first_max, 0);
   ASSERT_GE(lags.again_max, 0) << "the demo presses its cells again";
   EXPECT_LE(lags.again_max, lags.first_max + 10);

@@ -361,29 +361,24 @@ void CellObserver::Impl::local_force() noexcept {
     }
     const double v = velocity[c];
     const double rate = v > hold ? v - hold : (v < -hold ? v + hold : 0.0);
-    Result<CellLoad> load;
+    // Each valve at its own yield: at rest the cell holds up to its weakest valve, so a current
+    // on a valve it shares with a pressed neighbour is not its force unless every valve of it is
+    // on (docs/bridge.md, "Phantoms that spread through shared valves").
+    const double flow_m3_per_s = std::fabs(area_m2 * rate);
+    Result<double> valve_pressure_Pa;
     if (law != nullptr) {
       // The valves' pressure by the inverse's tables, not DeviceModel's nested Newton solves
       // (9k instructions a flowing cell on the palm; docs/bridge.md, "The local force by tables").
-      // Each valve at its own yield: at rest the cell holds up to its weakest valve, and a
-      // current on a valve it shares with a pressed neighbour is not its force (docs/bridge.md,
-      // "Phantom presses").
       const double yield_k = law->yield_k;
       const double* const yield = yield_Pa.data();
-      load = model.cell_force_at_valve_pressure(
-          c, depth_m[c], rate,
-          law->forward(c, std::fabs(area_m2 * rate),
-                       [yield_k, yield](std::size_t valve) { return yield_k * yield[valve]; }));
+      valve_pressure_Pa.value = law->forward(
+          c, flow_m3_per_s, [yield_k, yield](std::size_t valve) { return yield_k * yield[valve]; });
     } else {
-      double tau = 0.0;  // the mean yield of the cell's valves
-      const std::size_t first = valves_of_cell_begin[c];
-      const std::size_t last = valves_of_cell_begin[c + 1];
-      for (std::size_t k = first; k < last; ++k) {
-        tau += yield_Pa[valves_of_cell[k]];
-      }
-      tau = last > first ? tau / static_cast<double>(last - first) : 0.0;
-      load = model.cell_force_at_yield(c, depth_m[c], rate, tau);
+      valve_pressure_Pa = model.valve_network_pressure_Pa(c, flow_m3_per_s, yield_Pa);
     }
+    const Result<CellLoad> load = valve_pressure_Pa.ok() ? model.cell_force_at_valve_pressure(
+                                                               c, depth_m[c], rate, valve_pressure_Pa.value)
+                                                         : failure<CellLoad>(valve_pressure_Pa.status);
     if (load.ok()) {
       force[c] = load.value.force_N;
     }

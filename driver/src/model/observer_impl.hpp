@@ -175,13 +175,6 @@ struct __attribute__((visibility("hidden"))) CellObserver::Impl {
     visit.reserve(cells);
     next_visit.reserve(cells);
     mark.assign(cells, 0);
-    valves_of_cell_begin.push_back(0);
-    for (std::size_t c = 0; c < cells; ++c) {
-      for (const std::size_t v : grid.valves_of_cell(c)) {
-        valves_of_cell.push_back(v);
-      }
-      valves_of_cell_begin.push_back(valves_of_cell.size());
-    }
   }
 
   static NetworkOptions network_options(const ObserverOptions& o) {
@@ -403,8 +396,6 @@ struct __attribute__((visibility("hidden"))) CellObserver::Impl {
   std::vector<std::size_t> next_visit;  // ...and next sweep
   std::vector<std::uint32_t> mark;      // generation stamp per cell (dedupes next_visit)
   std::uint32_t generation = 0;
-  std::vector<std::size_t> valves_of_cell_begin;
-  std::vector<std::size_t> valves_of_cell;
   bool network_primed = false;       // the network has been stepped at least once since reset
   std::size_t network_refusals = 0;  // steps the linearisation refused, since construction
   bool network_settled = false;

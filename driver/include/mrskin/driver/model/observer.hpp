@@ -23,13 +23,13 @@
 //   - network (grids of at most network_max_cells fluid cells): the whole network is stepped,
 //     a step every network_step_s spread over its ticks (skip_settled_network skips it at rest);
 //   - local (larger grids): each contacted cell's force is the quasi-static cell law
-//     (DeviceModel::cell_force_at_yield, the law CellInverse inverts; its valves' pressure from
-//     the inverse's tables, CellInverse::valve_pressure_Pa) at its depth and filtered rate
-//     (rates within hold_rate_m_per_s count as holding), each valve at its own yield stress: a
-//     holding cell is held by its weakest valve, so a current a neighbour's press puts on a
-//     shared valve is not read as this cell's force (where the inverse refuses the graph, a
-//     branch on two coils, the exact law at the valves' mean yield); cells without contact cost
-//     nothing and have no force. It keeps no fluid history
+//     (DeviceModel::cell_force_at_valve_pressure, the law CellInverse inverts; its valves'
+//     pressure from the inverse's tables, CellInverse::valve_pressure_Pa, or the exact law where
+//     the inverse refuses the graph) at its depth and filtered rate (rates within
+//     hold_rate_m_per_s count as holding), each valve at its own yield stress: a holding cell is
+//     held by its weakest valve, so the current a neighbour's press puts on a shared valve is
+//     not read as this cell's force while any valve of the cell is off; cells without contact
+//     cost nothing and have no force. It keeps no fluid history
 //     (no trapped volume, no refill after a release), so it is less accurate than the network
 //     (tests/plant/observer_test.cpp prints both), but its cost grows with the contacted cells,
 //     not with the grid.
