@@ -62,7 +62,7 @@ struct Press {
   int crossed = kNever;
   int loaded = kNever;
   bool again = false;          // the finger had pressed the cell before in this run
-  bool loaded_before = false;  // the bridge had the cell loaded already (a phantom): no lag
+  bool loaded_before = false;  // the bridge had the cell loaded on the tick before: no lag
   bool left_unloaded = false;  // the finger left the cell before the bridge loaded it
 };
 
@@ -355,8 +355,9 @@ TEST(PhantomContact, DISABLED_MeasureOnTheFingertip) {
 // Press lag: ticks from the finger meeting the contact rule in a cell (the truth) to the bridge
 // loading it, for first presses and for presses of a cell the finger had left. Printed as the
 // lower median, p90 and maximum of the presses the bridge loaded while the finger was in the
-// cell; apart, the presses it had loaded already (a phantom there before the finger), those the
-// finger left before the bridge loaded them and those still waiting when the run ended.
+// cell; apart, the presses it had loaded on the tick before the crossing (a phantom there before
+// the finger, or a press found before the truth met the rule), those the finger left before the
+// bridge loaded them and those still waiting when the run ended (a press in the last ~70 ticks).
 struct PressLags {
   int first_max = -1;  // -1: none loaded
   int again_max = -1;
@@ -390,7 +391,7 @@ PressLags print_press_lags(const std::string& uri, const std::string& scene) {
       return lag.empty() ? -1 : lag[static_cast<std::size_t>(q * static_cast<double>(lag.size() - 1))];
     };
     std::printf(
-        "%s %s %s presses: %zu loaded, lag median %d p90 %d max %d ticks; %d loaded before the finger came, "
+        "%s %s %s presses: %zu loaded, lag median %d p90 %d max %d ticks; %d loaded before the crossing, "
         "%d left unloaded, %d waiting at the end\n",
         uri.c_str(), scene.c_str(), again ? "repeated" : "first", lag.size(), at(0.5), at(0.9), at(1.0),
         loaded_before, left_unloaded, waiting);

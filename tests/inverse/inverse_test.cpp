@@ -91,7 +91,7 @@ TEST_F(InverseModel, ForwardPressureMatchesDeviceModel) {
 // The inverse's law of a cell's valves against DeviceModel's exact law over 2,000 random cases on
 // a built-in profile: the worst relative pressure error and the worst force error, as a fraction
 // of the design force (a force near 0, a refilling cell, has no relative error). per_valve: a
-// yield per valve (a third of them at 0 Pa), else one yield on every valve.
+// yield per valve (30 % of them at 0 Pa), else one yield on every valve.
 struct LawErrors {
   double pressure = 0.0;
   double force = 0.0;
